@@ -1,0 +1,229 @@
+//! The request/response messages between the host and the target.
+//!
+//! The host always speaks first and the target answers every request with exactly one
+//! response carrying the request's sequence number (see [`Envelope`]): a frame that cannot be
+//! decoded at all is answered with [`ErrorCode::Frame`] and the sequence number 0xFFFF.
+//!
+//! Session order (the firmware enforces it and says which step is out of order):
+//!
+//! 1. `Hello` → `Hello(TargetInfo)`: versions and capacities; it also resets the session.
+//! 2. `BeginMatrix`, then for each tile a `Tile` followed by its `Words` chunks, then `EndMatrix`
+//!    with the CRC of all words → `Ack` once the whole matrix is validated.
+//! 3. `BeginVector(Rhs)` and its `VectorData` chunks (likewise an initial guess, if wanted).
+//! 4. `Solve` → `Solved(SolveReport)`, then `ReadSolution` chunk by chunk.
+//!
+//! Steps 3–4 repeat for as many right-hand sides as wanted; the matrix stays resident.
+
+use heapless::Vec;
+use serde::{Deserialize, Serialize};
+
+use crate::frame::FrameError;
+use crate::matrix::{MatrixError, TileHeader};
+
+/// Bumped on any change to these types or to the framing.
+pub const PROTOCOL_VERSION: u16 = 1;
+
+/// Words or mantissas per chunk message. 64 × 4 bytes keeps a frame well under
+/// [`MAX_FRAME_LEN`] while the per-frame overhead stays small.
+pub const CHUNK_LEN: usize = 64;
+
+/// Largest encoded frame, delimiter included, that either side must accept.
+pub const MAX_FRAME_LEN: usize = 512;
+
+/// Sequence number used in answers to frames whose own sequence number could not be read.
+pub const UNKNOWN_SEQ: u16 = 0xFFFF;
+
+/// Every frame carries one envelope: a sequence number and the message.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Envelope<T> {
+    pub seq: u16,
+    pub body: T,
+}
+
+/// Which vector a `BeginVector`/`VectorData` fills.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum VectorSlot {
+    /// The right-hand side b.
+    Rhs,
+    /// A starting point x₀ for CG.
+    InitialGuess,
+}
+
+/// Where CG starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Start {
+    /// x₀ = 0.
+    Zero,
+    /// x₀ = the previous solve's result (warm start for time series).
+    Previous,
+    /// x₀ = the uploaded `InitialGuess` vector.
+    Uploaded,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SolveParams {
+    /// Upper bound on CG iterations.
+    pub max_iterations: u32,
+    /// Stop once ‖r‖₂ / ‖b‖₂ falls to this (the target's recursive residual).
+    pub tolerance: f64,
+    pub start: Start,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Request {
+    Hello { protocol_version: u16 },
+    BeginMatrix { n: u32, frac_bits: u8, tiles: u32, words: u32 },
+    Tile(TileHeader),
+    Words { offset: u32, words: Vec<u32, CHUNK_LEN> },
+    EndMatrix { crc32: u32 },
+    BeginVector { slot: VectorSlot, exponent: i32, len: u32 },
+    VectorData { slot: VectorSlot, offset: u32, mantissas: Vec<i32, CHUNK_LEN> },
+    Solve(SolveParams),
+    ReadSolution { offset: u32 },
+}
+
+/// What the target is and what it can hold.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TargetInfo {
+    pub protocol_version: u16,
+    pub firmware_version: heapless::String<16>,
+    /// Harts available as MVUs.
+    pub harts: u8,
+    /// Instruction words the matrix store holds.
+    pub word_capacity: u32,
+    /// Tiles the matrix store holds.
+    pub tile_capacity: u32,
+    /// Largest dimension n the vectors hold.
+    pub max_n: u32,
+}
+
+/// Cycle and retired-instruction counts of one phase (`mcycle`/`minstret` deltas).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct PhaseCounters {
+    pub cycles: u64,
+    pub instructions: u64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SolveReport {
+    pub iterations: u32,
+    pub converged: bool,
+    /// Final ‖r‖₂ / ‖b‖₂ of the recursive residual.
+    pub residual: f64,
+    /// Nonzeros the MVUs executed per iteration (instruction words, empty-row words included).
+    pub words_per_iteration: u32,
+    /// Matrix–vector products (the MVU phase), over the whole solve.
+    pub mvu: PhaseCounters,
+    /// Scalar and vector steps (the SVU phase), over the whole solve.
+    pub svu: PhaseCounters,
+}
+
+/// Why CG stopped without an answer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, thiserror::Error)]
+pub enum SolveFailure {
+    #[error("pᵀKp ≤ 0 at iteration {iteration}: the matrix is not positive definite (unconstrained or singular system)")]
+    NotPositiveDefinite { iteration: u32 },
+    #[error("the right-hand side is zero")]
+    ZeroRhs,
+}
+
+/// Every error the target can answer with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, thiserror::Error)]
+pub enum ErrorCode {
+    #[error("bad frame: {0}")]
+    Frame(FrameError),
+    #[error("protocol version mismatch: target speaks {target}")]
+    VersionMismatch { target: u16 },
+    #[error("request out of order: {0}")]
+    OutOfOrder(SessionStep),
+    #[error("matrix of {requested} words exceeds the target's capacity of {capacity} words")]
+    TooManyWords { requested: u32, capacity: u32 },
+    #[error("matrix of {requested} tiles exceeds the target's capacity of {capacity} tiles")]
+    TooManyTiles { requested: u32, capacity: u32 },
+    #[error("dimension {requested} exceeds the target's maximum n of {capacity}")]
+    DimensionTooLarge { requested: u32, capacity: u32 },
+    #[error("{0} fractional bits requested; the value field allows 0..=20")]
+    BadFracBits(u8),
+    #[error("chunk at offset {got}, expected offset {expected}")]
+    UnexpectedOffset { expected: u32, got: u32 },
+    #[error("chunk runs past the announced length")]
+    ChunkTooLong,
+    #[error("malformed matrix: {0}")]
+    Matrix(MatrixError),
+    #[error("matrix CRC mismatch: computed {computed:#010x}")]
+    MatrixCrc { computed: u32 },
+    #[error("vector length {got} differs from the matrix dimension {expected}")]
+    LengthMismatch { expected: u32, got: u32 },
+    #[error("vector mantissa out of range (|m| must be < 2^30)")]
+    MantissaOutOfRange,
+    #[error("solve failed: {0}")]
+    Solve(SolveFailure),
+}
+
+/// The step a request arrived out of, for [`ErrorCode::OutOfOrder`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, thiserror::Error)]
+pub enum SessionStep {
+    #[error("no matrix upload is in progress")]
+    NoMatrixUpload,
+    #[error("a tile's words are still expected")]
+    TileIncomplete,
+    #[error("a tile header was expected")]
+    TileExpected,
+    #[error("not all tiles were sent")]
+    TilesMissing,
+    #[error("no vector upload is in progress for that slot")]
+    NoVectorUpload,
+    #[error("the vector upload is incomplete")]
+    VectorIncomplete,
+    #[error("no matrix is loaded")]
+    NoMatrix,
+    #[error("no right-hand side is loaded")]
+    NoRhs,
+    #[error("no initial guess is loaded")]
+    NoInitialGuess,
+    #[error("there is no previous solution")]
+    NoPreviousSolution,
+    #[error("no solution is available")]
+    NoSolution,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Response {
+    Hello(TargetInfo),
+    Ack,
+    Error(ErrorCode),
+    Solved(SolveReport),
+    Solution { offset: u32, exponent: i32, mantissas: Vec<i32, CHUNK_LEN> },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame;
+
+    #[test]
+    fn the_largest_messages_fit_a_frame() {
+        let words: Vec<u32, CHUNK_LEN> = (0..CHUNK_LEN as u32).map(|i| u32::MAX - i).collect();
+        let req = Envelope { seq: u16::MAX, body: Request::Words { offset: u32::MAX, words } };
+        let mut buf = [0u8; MAX_FRAME_LEN];
+        let n = frame::encode(&req, &mut buf).unwrap();
+        let back: Envelope<Request> = frame::decode(&mut buf[..n - 1]).unwrap();
+        assert_eq!(back, req);
+
+        let mantissas: Vec<i32, CHUNK_LEN> = (0..CHUNK_LEN as i32).map(|i| i32::MIN + i).collect();
+        let resp = Envelope {
+            seq: 7,
+            body: Response::Solution { offset: u32::MAX, exponent: i32::MIN, mantissas },
+        };
+        assert!(frame::encode(&resp, &mut buf).is_ok());
+        let info = TargetInfo {
+            protocol_version: 1,
+            firmware_version: heapless::String::try_from("0.1.0-abcdefghij").unwrap(),
+            harts: 8,
+            word_capacity: u32::MAX,
+            tile_capacity: u32::MAX,
+            max_n: u32::MAX,
+        };
+        assert!(frame::encode(&Envelope { seq: 1, body: Response::Hello(info) }, &mut buf).is_ok());
+    }
+}
