@@ -1,0 +1,1 @@
+//! The deform host library; `main.rs` is a thin CLI over it.

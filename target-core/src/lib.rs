@@ -1,0 +1,13 @@
+//! # deform-target-core
+//!
+//! The target's logic, free of hardware so that it runs in host tests too:
+//!
+//! - [`cg`]: conjugate gradients in block floating point. The MVU executes the instruction words
+//!   (thesis 4.2.1) and yields Kp and pᵀKp in one pass; the SVU does α, x, r, β and p (4.2.2).
+//! - [`session`]: the protocol state machine. It owns no memory: the firmware lends it the
+//!   matrix store and the vectors, and it turns each request into exactly one response.
+#![cfg_attr(not(test), no_std)]
+#![forbid(unsafe_code)]
+
+pub mod cg;
+pub mod session;

@@ -1,0 +1,1 @@
+//! Protocol session (in progress).
