@@ -1,1 +1,2 @@
 //! The deform host library; `main.rs` is a thin CLI over it.
+pub mod encode;
