@@ -60,7 +60,7 @@ pub fn decode<'a, T: Deserialize<'a>>(frame: &'a mut [u8]) -> Result<T, FrameErr
         return Err(FrameError::Crc);
     }
     match postcard::take_from_bytes(payload) {
-        Ok((msg, rest)) if rest.is_empty() => Ok(msg),
+        Ok((msg, [])) => Ok(msg),
         _ => Err(FrameError::Message),
     }
 }
@@ -98,7 +98,11 @@ impl<const N: usize> Default for FrameAccumulator<N> {
 
 impl<const N: usize> FrameAccumulator<N> {
     pub const fn new() -> Self {
-        Self { buf: [0; N], len: 0, overflowed: false }
+        Self {
+            buf: [0; N],
+            len: 0,
+            overflowed: false,
+        }
     }
 
     /// Forgets any partial frame.
@@ -149,7 +153,11 @@ mod tests {
     }
 
     fn sample() -> Msg {
-        Msg { a: 0, b: [0, 1, 2, 0, 0, 255, 0, 7], c: -5 }
+        Msg {
+            a: 0,
+            b: [0, 1, 2, 0, 0, 255, 0, 7],
+            c: -5,
+        }
     }
 
     fn frame_of(msg: &Msg) -> Vec<u8> {
@@ -177,7 +185,10 @@ mod tests {
                 if body[i] == 0 {
                     continue; // would split the frame at the receiver instead
                 }
-                assert!(decode::<Msg>(&mut body).is_err(), "flip {i}:{bit} went unnoticed");
+                assert!(
+                    decode::<Msg>(&mut body).is_err(),
+                    "flip {i}:{bit} went unnoticed"
+                );
             }
         }
     }
@@ -186,11 +197,17 @@ mod tests {
     fn errors_are_told_apart() {
         let f = frame_of(&sample());
         let mut truncated = f[..3].to_vec();
-        assert!(matches!(decode::<Msg>(&mut truncated), Err(FrameError::Cobs | FrameError::TooShort)));
+        assert!(matches!(
+            decode::<Msg>(&mut truncated),
+            Err(FrameError::Cobs | FrameError::TooShort)
+        ));
         let mut bad_crc = f[..f.len() - 1].to_vec();
         let k = bad_crc.len() - 1;
         bad_crc[k] ^= 0x40;
-        assert!(matches!(decode::<Msg>(&mut bad_crc), Err(FrameError::Crc | FrameError::Cobs)));
+        assert!(matches!(
+            decode::<Msg>(&mut bad_crc),
+            Err(FrameError::Crc | FrameError::Cobs)
+        ));
         // A valid frame of another message type: CRC fine, message wrong.
         let mut buf = [0u8; 16];
         let n = encode(&7u8, &mut buf).unwrap();
@@ -200,7 +217,10 @@ mod tests {
         let mut buf = [0u8; 64];
         encode(&(sample(), 1u8), &mut buf).unwrap();
         assert_eq!(decode::<Msg>(&mut buf[..n - 1]), Err(FrameError::Message));
-        assert_eq!(encode(&sample(), &mut [0u8; 4]), Err(FrameError::BufferTooSmall));
+        assert_eq!(
+            encode(&sample(), &mut [0u8; 4]),
+            Err(FrameError::BufferTooSmall)
+        );
     }
 
     #[test]

@@ -30,9 +30,17 @@ pub enum MatrixError {
     #[error("tile {tile} covers rows beyond the matrix dimension")]
     RowsOutOfRange { tile: u32 },
     #[error("tile {tile} has {found} words, its header says {expected}")]
-    WordCountMismatch { tile: u32, expected: u32, found: u32 },
+    WordCountMismatch {
+        tile: u32,
+        expected: u32,
+        found: u32,
+    },
     #[error("tile {tile} ends {found} rows, its header says {expected}")]
-    RowCountMismatch { tile: u32, expected: u32, found: u32 },
+    RowCountMismatch {
+        tile: u32,
+        expected: u32,
+        found: u32,
+    },
     #[error("tile {tile} does not end with an EM+ER word")]
     MissingEnd { tile: u32 },
     #[error("tile {tile} has an EM bit before its last word")]
@@ -53,7 +61,11 @@ pub fn validate_tile(
     if header.rows == 0 || header.words == 0 {
         return Err(MatrixError::EmptyTile { tile });
     }
-    if header.row_base.checked_add(header.rows).is_none_or(|end| end > n) {
+    if header
+        .row_base
+        .checked_add(header.rows)
+        .is_none_or(|end| end > n)
+    {
         return Err(MatrixError::RowsOutOfRange { tile });
     }
     if words.len() as u64 != header.words as u64 {
@@ -69,7 +81,10 @@ pub fn validate_tile(
         let w = Word(bits);
         let column = header.col_base as u64 + w.column() as u64;
         if column >= n as u64 {
-            return Err(MatrixError::ColumnOutOfRange { tile, column: column.min(u32::MAX as u64) as u32 });
+            return Err(MatrixError::ColumnOutOfRange {
+                tile,
+                column: column.min(u32::MAX as u64) as u32,
+            });
         }
         rows += w.end_of_row() as u32;
         if w.end_of_matrix() && i != last {
@@ -81,7 +96,11 @@ pub fn validate_tile(
         return Err(MatrixError::MissingEnd { tile });
     }
     if rows != header.rows {
-        return Err(MatrixError::RowCountMismatch { tile, expected: header.rows, found: rows });
+        return Err(MatrixError::RowCountMismatch {
+            tile,
+            expected: header.rows,
+            found: rows,
+        });
     }
     Ok(())
 }
@@ -107,38 +126,83 @@ mod tests {
     }
 
     fn tile(rows: u32, words: &[u32]) -> TileHeader {
-        TileHeader { row_base: 0, col_base: 0, rows, words: words.len() as u32 }
+        TileHeader {
+            row_base: 0,
+            col_base: 0,
+            rows,
+            words: words.len() as u32,
+        }
     }
 
     #[test]
     fn accepts_a_well_formed_tile_with_an_empty_row() {
-        let words = [w(0, 2, false, false), w(1, -1, true, false), w(0, 0, true, false), w(1, 3, true, true)];
+        let words = [
+            w(0, 2, false, false),
+            w(1, -1, true, false),
+            w(0, 0, true, false),
+            w(1, 3, true, true),
+        ];
         assert_eq!(validate_tile(0, &tile(3, &words), &words, 3), Ok(()));
     }
 
     #[test]
     fn refuses_each_structural_fault() {
         let good = [w(0, 2, true, false), w(1, 3, true, true)];
-        assert_eq!(validate_tile(0, &tile(3, &good), &good, 2), Err(MatrixError::RowsOutOfRange { tile: 0 }));
+        assert_eq!(
+            validate_tile(0, &tile(3, &good), &good, 2),
+            Err(MatrixError::RowsOutOfRange { tile: 0 })
+        );
         assert_eq!(
             validate_tile(0, &tile(3, &good), &good, 3),
-            Err(MatrixError::RowCountMismatch { tile: 0, expected: 3, found: 2 })
+            Err(MatrixError::RowCountMismatch {
+                tile: 0,
+                expected: 3,
+                found: 2
+            })
         );
-        assert_eq!(validate_tile(0, &tile(2, &good), &good, 1), Err(MatrixError::RowsOutOfRange { tile: 0 }));
+        assert_eq!(
+            validate_tile(0, &tile(2, &good), &good, 1),
+            Err(MatrixError::RowsOutOfRange { tile: 0 })
+        );
         let wide = [w(0, 2, true, false), w(5, 3, true, true)];
-        assert_eq!(validate_tile(1, &tile(2, &wide), &wide, 4), Err(MatrixError::ColumnOutOfRange { tile: 1, column: 5 }));
+        assert_eq!(
+            validate_tile(1, &tile(2, &wide), &wide, 4),
+            Err(MatrixError::ColumnOutOfRange { tile: 1, column: 5 })
+        );
         let early = [w(0, 2, true, true), w(1, 3, true, true)];
-        assert_eq!(validate_tile(0, &tile(2, &early), &early, 2), Err(MatrixError::EarlyEnd { tile: 0 }));
+        assert_eq!(
+            validate_tile(0, &tile(2, &early), &early, 2),
+            Err(MatrixError::EarlyEnd { tile: 0 })
+        );
         let open = [w(0, 2, true, false), w(1, 3, true, false)];
-        assert_eq!(validate_tile(0, &tile(2, &open), &open, 2), Err(MatrixError::MissingEnd { tile: 0 }));
-        assert_eq!(validate_tile(0, &tile(2, &[]), &[], 2), Err(MatrixError::EmptyTile { tile: 0 }));
-        let h = TileHeader { words: 5, ..tile(2, &good) };
+        assert_eq!(
+            validate_tile(0, &tile(2, &open), &open, 2),
+            Err(MatrixError::MissingEnd { tile: 0 })
+        );
+        assert_eq!(
+            validate_tile(0, &tile(2, &[]), &[], 2),
+            Err(MatrixError::EmptyTile { tile: 0 })
+        );
+        let h = TileHeader {
+            words: 5,
+            ..tile(2, &good)
+        };
         assert_eq!(
             validate_tile(0, &h, &good, 2),
-            Err(MatrixError::WordCountMismatch { tile: 0, expected: 5, found: 2 })
+            Err(MatrixError::WordCountMismatch {
+                tile: 0,
+                expected: 5,
+                found: 2
+            })
         );
-        let h = TileHeader { row_base: u32::MAX, ..tile(2, &good) };
-        assert_eq!(validate_tile(0, &h, &good, 2), Err(MatrixError::RowsOutOfRange { tile: 0 }));
+        let h = TileHeader {
+            row_base: u32::MAX,
+            ..tile(2, &good)
+        };
+        assert_eq!(
+            validate_tile(0, &h, &good, 2),
+            Err(MatrixError::RowsOutOfRange { tile: 0 })
+        );
     }
 
     #[test]

@@ -69,17 +69,41 @@ pub struct SolveParams {
     pub start: Start,
 }
 
+// Chunk variants are large by design (one frame's worth of data); no_std has no Box to shrink them.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum Request {
-    Hello { protocol_version: u16 },
-    BeginMatrix { n: u32, frac_bits: u8, tiles: u32, words: u32 },
+    Hello {
+        protocol_version: u16,
+    },
+    BeginMatrix {
+        n: u32,
+        frac_bits: u8,
+        tiles: u32,
+        words: u32,
+    },
     Tile(TileHeader),
-    Words { offset: u32, words: Vec<u32, CHUNK_LEN> },
-    EndMatrix { crc32: u32 },
-    BeginVector { slot: VectorSlot, exponent: i32, len: u32 },
-    VectorData { slot: VectorSlot, offset: u32, mantissas: Vec<i32, CHUNK_LEN> },
+    Words {
+        offset: u32,
+        words: Vec<u32, CHUNK_LEN>,
+    },
+    EndMatrix {
+        crc32: u32,
+    },
+    BeginVector {
+        slot: VectorSlot,
+        exponent: i32,
+        len: u32,
+    },
+    VectorData {
+        slot: VectorSlot,
+        offset: u32,
+        mantissas: Vec<i32, CHUNK_LEN>,
+    },
     Solve(SolveParams),
-    ReadSolution { offset: u32 },
+    ReadSolution {
+        offset: u32,
+    },
 }
 
 /// What the target is and what it can hold.
@@ -125,6 +149,8 @@ pub enum SolveFailure {
     NotPositiveDefinite { iteration: u32 },
     #[error("the right-hand side is zero")]
     ZeroRhs,
+    #[error("the solver's work vectors are shorter than the matrix needs (a firmware fault)")]
+    WorkspaceTooSmall,
 }
 
 /// Every error the target can answer with.
@@ -187,13 +213,19 @@ pub enum SessionStep {
     NoSolution,
 }
 
+// Chunk variants are large by design (one frame's worth of data); no_std has no Box to shrink them.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum Response {
     Hello(TargetInfo),
     Ack,
     Error(ErrorCode),
     Solved(SolveReport),
-    Solution { offset: u32, exponent: i32, mantissas: Vec<i32, CHUNK_LEN> },
+    Solution {
+        offset: u32,
+        exponent: i32,
+        mantissas: Vec<i32, CHUNK_LEN>,
+    },
 }
 
 #[cfg(test)]
@@ -204,7 +236,13 @@ mod tests {
     #[test]
     fn the_largest_messages_fit_a_frame() {
         let words: Vec<u32, CHUNK_LEN> = (0..CHUNK_LEN as u32).map(|i| u32::MAX - i).collect();
-        let req = Envelope { seq: u16::MAX, body: Request::Words { offset: u32::MAX, words } };
+        let req = Envelope {
+            seq: u16::MAX,
+            body: Request::Words {
+                offset: u32::MAX,
+                words,
+            },
+        };
         let mut buf = [0u8; MAX_FRAME_LEN];
         let n = frame::encode(&req, &mut buf).unwrap();
         let back: Envelope<Request> = frame::decode(&mut buf[..n - 1]).unwrap();
@@ -213,7 +251,11 @@ mod tests {
         let mantissas: Vec<i32, CHUNK_LEN> = (0..CHUNK_LEN as i32).map(|i| i32::MIN + i).collect();
         let resp = Envelope {
             seq: 7,
-            body: Response::Solution { offset: u32::MAX, exponent: i32::MIN, mantissas },
+            body: Response::Solution {
+                offset: u32::MAX,
+                exponent: i32::MIN,
+                mantissas,
+            },
         };
         assert!(frame::encode(&resp, &mut buf).is_ok());
         let info = TargetInfo {
@@ -224,6 +266,13 @@ mod tests {
             tile_capacity: u32::MAX,
             max_n: u32::MAX,
         };
-        assert!(frame::encode(&Envelope { seq: 1, body: Response::Hello(info) }, &mut buf).is_ok());
+        assert!(frame::encode(
+            &Envelope {
+                seq: 1,
+                body: Response::Hello(info)
+            },
+            &mut buf
+        )
+        .is_ok());
     }
 }

@@ -39,27 +39,90 @@ pub enum QFormatError {
 macro_rules! with_frac {
     ($f:expr, $T:ident => $body:expr) => {
         match $f {
-            0 => { type $T = FixedI32<U0>; Ok($body) }
-            1 => { type $T = FixedI32<U1>; Ok($body) }
-            2 => { type $T = FixedI32<U2>; Ok($body) }
-            3 => { type $T = FixedI32<U3>; Ok($body) }
-            4 => { type $T = FixedI32<U4>; Ok($body) }
-            5 => { type $T = FixedI32<U5>; Ok($body) }
-            6 => { type $T = FixedI32<U6>; Ok($body) }
-            7 => { type $T = FixedI32<U7>; Ok($body) }
-            8 => { type $T = FixedI32<U8>; Ok($body) }
-            9 => { type $T = FixedI32<U9>; Ok($body) }
-            10 => { type $T = FixedI32<U10>; Ok($body) }
-            11 => { type $T = FixedI32<U11>; Ok($body) }
-            12 => { type $T = FixedI32<U12>; Ok($body) }
-            13 => { type $T = FixedI32<U13>; Ok($body) }
-            14 => { type $T = FixedI32<U14>; Ok($body) }
-            15 => { type $T = FixedI32<U15>; Ok($body) }
-            16 => { type $T = FixedI32<U16>; Ok($body) }
-            17 => { type $T = FixedI32<U17>; Ok($body) }
-            18 => { type $T = FixedI32<U18>; Ok($body) }
-            19 => { type $T = FixedI32<U19>; Ok($body) }
-            20 => { type $T = FixedI32<U20>; Ok($body) }
+            0 => {
+                type $T = FixedI32<U0>;
+                Ok($body)
+            }
+            1 => {
+                type $T = FixedI32<U1>;
+                Ok($body)
+            }
+            2 => {
+                type $T = FixedI32<U2>;
+                Ok($body)
+            }
+            3 => {
+                type $T = FixedI32<U3>;
+                Ok($body)
+            }
+            4 => {
+                type $T = FixedI32<U4>;
+                Ok($body)
+            }
+            5 => {
+                type $T = FixedI32<U5>;
+                Ok($body)
+            }
+            6 => {
+                type $T = FixedI32<U6>;
+                Ok($body)
+            }
+            7 => {
+                type $T = FixedI32<U7>;
+                Ok($body)
+            }
+            8 => {
+                type $T = FixedI32<U8>;
+                Ok($body)
+            }
+            9 => {
+                type $T = FixedI32<U9>;
+                Ok($body)
+            }
+            10 => {
+                type $T = FixedI32<U10>;
+                Ok($body)
+            }
+            11 => {
+                type $T = FixedI32<U11>;
+                Ok($body)
+            }
+            12 => {
+                type $T = FixedI32<U12>;
+                Ok($body)
+            }
+            13 => {
+                type $T = FixedI32<U13>;
+                Ok($body)
+            }
+            14 => {
+                type $T = FixedI32<U14>;
+                Ok($body)
+            }
+            15 => {
+                type $T = FixedI32<U15>;
+                Ok($body)
+            }
+            16 => {
+                type $T = FixedI32<U16>;
+                Ok($body)
+            }
+            17 => {
+                type $T = FixedI32<U17>;
+                Ok($body)
+            }
+            18 => {
+                type $T = FixedI32<U18>;
+                Ok($body)
+            }
+            19 => {
+                type $T = FixedI32<U19>;
+                Ok($body)
+            }
+            20 => {
+                type $T = FixedI32<U20>;
+                Ok($body)
+            }
             other => Err(QFormatError::FracBitsOutOfRange(other)),
         }
     };
@@ -91,7 +154,10 @@ pub fn choose_frac_bits(max_abs: f64) -> Result<u8, QFormatError> {
     (0..=MAX_FRAC_BITS)
         .rev()
         .find(|&f| quantize(max_abs, f).is_ok() && quantize(-max_abs, f).is_ok())
-        .ok_or(QFormatError::ValueOutOfRange { value: max_abs, frac_bits: 0 })
+        .ok_or(QFormatError::ValueOutOfRange {
+            value: max_abs,
+            frac_bits: 0,
+        })
 }
 
 /// 2^k as an `f64`, for any `k` (saturating to 0 or infinity outside the `f64` range).
@@ -152,7 +218,11 @@ pub fn to_mantissa(value: f64, e: i32) -> Option<i32> {
         return None;
     }
     let scaled = ldexp(value, -e);
-    let rounded = if scaled >= 0.0 { scaled + 0.5 } else { scaled - 0.5 };
+    let rounded = if scaled >= 0.0 {
+        scaled + 0.5
+    } else {
+        scaled - 0.5
+    };
     if rounded.abs() >= MANTISSA_LIMIT as f64 {
         return None;
     }

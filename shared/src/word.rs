@@ -129,7 +129,10 @@ mod tests {
         assert_eq!(w.bits(), 0xFFFF_FFFF);
         let w = Word::new(1, 1, false, false).unwrap();
         assert_eq!(w.bits(), (1 << 21) | 1);
-        assert_eq!(Word::new(0, VALUE_MIN as i64, false, false).unwrap().bits(), 1 << 20);
+        assert_eq!(
+            Word::new(0, VALUE_MIN as i64, false, false).unwrap().bits(),
+            1 << 20
+        );
     }
 
     #[test]
