@@ -1,1 +1,621 @@
-//! Protocol session (in progress).
+//! The protocol state machine: one [`Response`] for every [`Request`], in the order documented in
+//! [`deform_shared::protocol`].
+//!
+//! A [`Session`] owns no memory. The firmware (or a test) lends it a [`Storage`]: the matrix store
+//! (`words`, `tiles`), the vectors `b` (right-hand side), `x` (solution), `x0` (uploaded initial
+//! guess) and CG's scratch `r`, `p`, `kp`, plus a [`TargetInfo`] and a [`PhaseClock`]. The session
+//! never panics and never indexes out of bounds, whatever the requests: every access goes through
+//! `get`/`get_mut` and checked arithmetic, and a proptest throws random request sequences at it.
+//!
+//! # Capacities
+//!
+//! [`Session::new`] clamps the capacities advertised in the [`TargetInfo`] to what the lent
+//! slices really hold (`max_n` is the shortest vector), sets `protocol_version` to
+//! [`PROTOCOL_VERSION`], and then enforces exactly the capacities it advertises.
+//!
+//! # Policies
+//!
+//! - **Hello** always answers `Hello(TargetInfo)` and resets the session (no matrix, no vectors,
+//!   no solution). If the host's `protocol_version` differs from ours we still answer `Hello`
+//!   with our info, so the host can report both versions; but until the next `Hello` with the
+//!   right version, every other request is answered `Error(VersionMismatch { target })`. A fresh
+//!   session needs no `Hello` (it behaves as after a matching one).
+//! - **Refused requests change nothing**, so a host may correct and resend (e.g. a chunk at the
+//!   wrong offset: the error says which offset is expected). Two exceptions:
+//!   - `BeginMatrix` first drops the loaded matrix, both vectors and the solution, and
+//!     `BeginVector` first drops that slot's vector, even when they are then refused: the host
+//!     has said it is done with them.
+//!   - Faults found in data already received abort the matrix upload (back to "no matrix"): a
+//!     tile that fails [`validate_tile`] when its last word arrives, a word total that differs
+//!     from `BeginMatrix`'s at `EndMatrix`, and a CRC mismatch.
+//! - **Matrix upload**: `BeginMatrix` needs `1 ≤ n ≤ max_n`, `words ≤ word_capacity`,
+//!   `tiles ≤ tile_capacity`, `frac_bits ≤ 20` and at least one tile (`n = 0` or `tiles = 0` is
+//!   answered `Matrix(EmptyTile { tile: 0 })`: such a matrix cannot be positive definite). A
+//!   `Tile` header is checked at once (`EmptyTile`, `RowsOutOfRange`, and `TotalWordsMismatch` if
+//!   its words would run past the announced total); a `Tile` beyond the announced count, or
+//!   `Words` after all tiles are complete, is `ChunkTooLong`. `Words` offsets count from the
+//!   start of the whole word stream and must continue exactly where the previous chunk ended;
+//!   empty chunks are allowed (they change nothing).
+//! - **Vectors** need a loaded matrix (`OutOfOrder(NoMatrix)`) and `len == n`. Loading a new
+//!   matrix invalidates both vectors. A completed vector stays until replaced; a new `Rhs` does
+//!   not invalidate the solution.
+//! - **Solve** invalidates the previous solution only once its own checks passed; a failed solve
+//!   leaves no solution. `Start::Previous` uses the solution still in `x`.
+//! - **ReadSolution** at `offset ≥ n` is `ChunkTooLong`.
+
+use deform_shared::matrix::{validate_tile, words_crc, MatrixError, TileHeader};
+use deform_shared::protocol::{
+    ErrorCode, Request, Response, SessionStep, SolveParams, Start, TargetInfo, VectorSlot,
+    CHUNK_LEN, PROTOCOL_VERSION,
+};
+use deform_shared::qformat::{MANTISSA_LIMIT, MAX_FRAC_BITS};
+use deform_shared::word::COLUMN_WINDOW;
+
+use crate::cg::{self, Matrix, PhaseClock, Scratch};
+
+/// Extra elements the search direction `p` needs beyond n: the MVU reads a tile's whole
+/// 512-column window of p (see [`cg::Scratch`]).
+pub const DIRECTION_PAD: usize = COLUMN_WINDOW as usize;
+
+/// The memory a [`Session`] works in, lent by its owner.
+///
+/// The vectors may differ in length; the session's `max_n` is the largest n they all hold,
+/// `p` being [`DIRECTION_PAD`] longer than the others.
+pub struct Storage<'a> {
+    /// The matrix's instruction words, all tiles back to back.
+    pub words: &'a mut [u32],
+    /// The matrix's tile headers.
+    pub tiles: &'a mut [TileHeader],
+    /// Right-hand side mantissas.
+    pub b: &'a mut [i32],
+    /// Solution mantissas (CG iterates on them in place).
+    pub x: &'a mut [i32],
+    /// Uploaded initial-guess mantissas.
+    pub x0: &'a mut [i32],
+    /// CG residual.
+    pub r: &'a mut [i32],
+    /// CG search direction: n + [`DIRECTION_PAD`] elements.
+    pub p: &'a mut [i32],
+    /// CG's K·p, in double width.
+    pub kp: &'a mut [i64],
+}
+
+impl Storage<'_> {
+    /// The largest dimension all vectors can hold (`p` needs [`DIRECTION_PAD`] extra elements).
+    pub fn max_n(&self) -> usize {
+        [
+            self.b.len(),
+            self.x.len(),
+            self.x0.len(),
+            self.r.len(),
+            self.p.len().saturating_sub(DIRECTION_PAD),
+            self.kp.len(),
+        ]
+        .into_iter()
+        .min()
+        .unwrap_or(0)
+    }
+}
+
+/// The shape announced by `BeginMatrix`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Shape {
+    n: u32,
+    frac_bits: u8,
+    tiles: u32,
+    words: u32,
+}
+
+/// A matrix upload in progress.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Upload {
+    shape: Shape,
+    /// Tiles whose words are all in and validated.
+    tiles_done: u32,
+    /// Words received so far: the offset the next chunk must have.
+    words_done: u32,
+    /// The tile whose words are arriving, with the offset of its first word.
+    current: Option<(TileHeader, u32)>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum MatrixState {
+    Empty,
+    Uploading(Upload),
+    Loaded(Shape),
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum VectorState {
+    Empty,
+    Uploading { exponent: i32, received: u32 },
+    Complete { exponent: i32 },
+}
+
+impl VectorState {
+    /// The exponent of a complete vector, or why there is none.
+    fn exponent(self, missing: SessionStep) -> Result<i32, ErrorCode> {
+        match self {
+            VectorState::Complete { exponent } => Ok(exponent),
+            VectorState::Uploading { .. } => {
+                Err(ErrorCode::OutOfOrder(SessionStep::VectorIncomplete))
+            }
+            VectorState::Empty => Err(ErrorCode::OutOfOrder(missing)),
+        }
+    }
+}
+
+/// The target's side of the protocol. See the module documentation for its policies.
+pub struct Session<'a, C: PhaseClock> {
+    store: Storage<'a>,
+    info: TargetInfo,
+    clock: C,
+    /// False after a `Hello` with another protocol version.
+    compatible: bool,
+    matrix: MatrixState,
+    rhs: VectorState,
+    guess: VectorState,
+    /// The exponent of the solution in `x`, if there is one.
+    solution: Option<i32>,
+}
+
+fn to_usize(v: u32) -> usize {
+    usize::try_from(v).unwrap_or(usize::MAX)
+}
+
+fn to_u32(v: usize) -> u32 {
+    u32::try_from(v).unwrap_or(u32::MAX)
+}
+
+const fn out_of_order(step: SessionStep) -> ErrorCode {
+    ErrorCode::OutOfOrder(step)
+}
+
+impl<'a, C: PhaseClock> Session<'a, C> {
+    /// A fresh session over `store`. `info`'s capacities are clamped to what `store` holds and
+    /// its protocol version is set to ours; the rest (firmware version, harts) is passed through.
+    pub fn new(store: Storage<'a>, mut info: TargetInfo, clock: C) -> Self {
+        info.protocol_version = PROTOCOL_VERSION;
+        info.word_capacity = info.word_capacity.min(to_u32(store.words.len()));
+        info.tile_capacity = info.tile_capacity.min(to_u32(store.tiles.len()));
+        info.max_n = info.max_n.min(to_u32(store.max_n()));
+        Self {
+            store,
+            info,
+            clock,
+            compatible: true,
+            matrix: MatrixState::Empty,
+            rhs: VectorState::Empty,
+            guess: VectorState::Empty,
+            solution: None,
+        }
+    }
+
+    /// What this session answers `Hello` with.
+    pub fn info(&self) -> &TargetInfo {
+        &self.info
+    }
+
+    /// The clock lent to the solver.
+    pub fn clock(&self) -> &C {
+        &self.clock
+    }
+
+    /// True once a matrix is completely uploaded and validated.
+    pub fn matrix_loaded(&self) -> bool {
+        matches!(self.matrix, MatrixState::Loaded(_))
+    }
+
+    /// Turns one request into its response.
+    pub fn handle(&mut self, req: Request) -> Response {
+        match self.dispatch(req) {
+            Ok(response) => response,
+            Err(code) => Response::Error(code),
+        }
+    }
+
+    fn dispatch(&mut self, req: Request) -> Result<Response, ErrorCode> {
+        if let Request::Hello { protocol_version } = req {
+            return Ok(self.hello(protocol_version));
+        }
+        if !self.compatible {
+            return Err(ErrorCode::VersionMismatch {
+                target: PROTOCOL_VERSION,
+            });
+        }
+        match req {
+            Request::Hello { .. } => Ok(self.hello(PROTOCOL_VERSION)),
+            Request::BeginMatrix {
+                n,
+                frac_bits,
+                tiles,
+                words,
+            } => self.begin_matrix(Shape {
+                n,
+                frac_bits,
+                tiles,
+                words,
+            }),
+            Request::Tile(header) => self.tile(header),
+            Request::Words { offset, words } => self.words(offset, &words),
+            Request::EndMatrix { crc32 } => self.end_matrix(crc32),
+            Request::BeginVector {
+                slot,
+                exponent,
+                len,
+            } => self.begin_vector(slot, exponent, len),
+            Request::VectorData {
+                slot,
+                offset,
+                mantissas,
+            } => self.vector_data(slot, offset, &mantissas),
+            Request::Solve(params) => self.solve(&params),
+            Request::ReadSolution { offset } => self.read_solution(offset),
+        }
+    }
+
+    fn hello(&mut self, protocol_version: u16) -> Response {
+        self.compatible = protocol_version == PROTOCOL_VERSION;
+        self.drop_matrix();
+        Response::Hello(self.info.clone())
+    }
+
+    /// Forgets the matrix, the vectors that belong to it and the solution.
+    fn drop_matrix(&mut self) {
+        self.matrix = MatrixState::Empty;
+        self.rhs = VectorState::Empty;
+        self.guess = VectorState::Empty;
+        self.solution = None;
+    }
+
+    fn begin_matrix(&mut self, shape: Shape) -> Result<Response, ErrorCode> {
+        self.drop_matrix();
+        if shape.n == 0 || shape.tiles == 0 {
+            return Err(ErrorCode::Matrix(MatrixError::EmptyTile { tile: 0 }));
+        }
+        if shape.n > self.info.max_n {
+            return Err(ErrorCode::DimensionTooLarge {
+                requested: shape.n,
+                capacity: self.info.max_n,
+            });
+        }
+        if shape.words > self.info.word_capacity {
+            return Err(ErrorCode::TooManyWords {
+                requested: shape.words,
+                capacity: self.info.word_capacity,
+            });
+        }
+        if shape.tiles > self.info.tile_capacity {
+            return Err(ErrorCode::TooManyTiles {
+                requested: shape.tiles,
+                capacity: self.info.tile_capacity,
+            });
+        }
+        if shape.frac_bits > MAX_FRAC_BITS {
+            return Err(ErrorCode::BadFracBits(shape.frac_bits));
+        }
+        self.matrix = MatrixState::Uploading(Upload {
+            shape,
+            tiles_done: 0,
+            words_done: 0,
+            current: None,
+        });
+        Ok(Response::Ack)
+    }
+
+    fn upload(&self) -> Result<Upload, ErrorCode> {
+        match self.matrix {
+            MatrixState::Uploading(up) => Ok(up),
+            _ => Err(out_of_order(SessionStep::NoMatrixUpload)),
+        }
+    }
+
+    fn tile(&mut self, header: TileHeader) -> Result<Response, ErrorCode> {
+        let mut up = self.upload()?;
+        if up.current.is_some() {
+            return Err(out_of_order(SessionStep::TileIncomplete));
+        }
+        if up.tiles_done >= up.shape.tiles {
+            return Err(ErrorCode::ChunkTooLong);
+        }
+        let tile = up.tiles_done;
+        if header.rows == 0 || header.words == 0 {
+            return Err(ErrorCode::Matrix(MatrixError::EmptyTile { tile }));
+        }
+        if header
+            .row_base
+            .checked_add(header.rows)
+            .is_none_or(|end| end > up.shape.n)
+        {
+            return Err(ErrorCode::Matrix(MatrixError::RowsOutOfRange { tile }));
+        }
+        if up
+            .words_done
+            .checked_add(header.words)
+            .is_none_or(|end| end > up.shape.words)
+        {
+            return Err(ErrorCode::Matrix(MatrixError::TotalWordsMismatch {
+                expected: up.shape.words,
+                found: up.words_done.saturating_add(header.words),
+            }));
+        }
+        // `tiles ≤ tile_capacity ≤ tiles.len()` was checked by `BeginMatrix`.
+        let slot = self
+            .store
+            .tiles
+            .get_mut(to_usize(tile))
+            .ok_or(ErrorCode::TooManyTiles {
+                requested: up.shape.tiles,
+                capacity: self.info.tile_capacity,
+            })?;
+        *slot = header;
+        up.current = Some((header, up.words_done));
+        self.matrix = MatrixState::Uploading(up);
+        Ok(Response::Ack)
+    }
+
+    fn words(&mut self, offset: u32, words: &[u32]) -> Result<Response, ErrorCode> {
+        let mut up = self.upload()?;
+        let Some((header, start)) = up.current else {
+            return Err(if up.tiles_done < up.shape.tiles {
+                out_of_order(SessionStep::TileExpected)
+            } else {
+                ErrorCode::ChunkTooLong
+            });
+        };
+        if offset != up.words_done {
+            return Err(ErrorCode::UnexpectedOffset {
+                expected: up.words_done,
+                got: offset,
+            });
+        }
+        let tile_end = start
+            .checked_add(header.words)
+            .ok_or(ErrorCode::ChunkTooLong)?;
+        let end = u32::try_from(words.len())
+            .ok()
+            .and_then(|len| offset.checked_add(len))
+            .filter(|&end| end <= tile_end)
+            .ok_or(ErrorCode::ChunkTooLong)?;
+        // `tile_end ≤ words ≤ word_capacity ≤ words.len()` was checked by `Tile`/`BeginMatrix`.
+        let dst = self
+            .store
+            .words
+            .get_mut(to_usize(offset)..to_usize(end))
+            .ok_or(ErrorCode::ChunkTooLong)?;
+        for (d, s) in dst.iter_mut().zip(words) {
+            *d = *s;
+        }
+        up.words_done = end;
+        if end == tile_end {
+            up.current = None;
+            let tile = up.tiles_done;
+            let stored = self
+                .store
+                .words
+                .get(to_usize(start)..to_usize(end))
+                .unwrap_or(&[]);
+            if let Err(e) = validate_tile(tile, &header, stored, up.shape.n) {
+                self.matrix = MatrixState::Empty;
+                return Err(ErrorCode::Matrix(e));
+            }
+            up.tiles_done = tile.saturating_add(1);
+        }
+        self.matrix = MatrixState::Uploading(up);
+        Ok(Response::Ack)
+    }
+
+    fn end_matrix(&mut self, crc32: u32) -> Result<Response, ErrorCode> {
+        let up = self.upload()?;
+        if up.current.is_some() {
+            return Err(out_of_order(SessionStep::TileIncomplete));
+        }
+        if up.tiles_done < up.shape.tiles {
+            return Err(out_of_order(SessionStep::TilesMissing));
+        }
+        if up.words_done != up.shape.words {
+            self.matrix = MatrixState::Empty;
+            return Err(ErrorCode::Matrix(MatrixError::TotalWordsMismatch {
+                expected: up.shape.words,
+                found: up.words_done,
+            }));
+        }
+        let computed = words_crc(
+            self.store
+                .words
+                .get(..to_usize(up.words_done))
+                .unwrap_or(&[]),
+        );
+        if computed != crc32 {
+            self.matrix = MatrixState::Empty;
+            return Err(ErrorCode::MatrixCrc { computed });
+        }
+        self.matrix = MatrixState::Loaded(up.shape);
+        Ok(Response::Ack)
+    }
+
+    fn loaded(&self) -> Result<Shape, ErrorCode> {
+        match self.matrix {
+            MatrixState::Loaded(shape) => Ok(shape),
+            _ => Err(out_of_order(SessionStep::NoMatrix)),
+        }
+    }
+
+    fn slot_state(&mut self, slot: VectorSlot) -> &mut VectorState {
+        match slot {
+            VectorSlot::Rhs => &mut self.rhs,
+            VectorSlot::InitialGuess => &mut self.guess,
+        }
+    }
+
+    fn begin_vector(
+        &mut self,
+        slot: VectorSlot,
+        exponent: i32,
+        len: u32,
+    ) -> Result<Response, ErrorCode> {
+        *self.slot_state(slot) = VectorState::Empty;
+        let shape = self.loaded()?;
+        if len != shape.n {
+            return Err(ErrorCode::LengthMismatch {
+                expected: shape.n,
+                got: len,
+            });
+        }
+        *self.slot_state(slot) = VectorState::Uploading {
+            exponent,
+            received: 0,
+        };
+        Ok(Response::Ack)
+    }
+
+    fn vector_data(
+        &mut self,
+        slot: VectorSlot,
+        offset: u32,
+        mantissas: &[i32],
+    ) -> Result<Response, ErrorCode> {
+        let VectorState::Uploading { exponent, received } = *self.slot_state(slot) else {
+            return Err(out_of_order(SessionStep::NoVectorUpload));
+        };
+        // A vector upload only exists while its matrix is loaded.
+        let shape = self.loaded()?;
+        if offset != received {
+            return Err(ErrorCode::UnexpectedOffset {
+                expected: received,
+                got: offset,
+            });
+        }
+        let end = u32::try_from(mantissas.len())
+            .ok()
+            .and_then(|len| offset.checked_add(len))
+            .filter(|&end| end <= shape.n)
+            .ok_or(ErrorCode::ChunkTooLong)?;
+        if mantissas
+            .iter()
+            .any(|&m| i64::from(m).abs() >= MANTISSA_LIMIT)
+        {
+            return Err(ErrorCode::MantissaOutOfRange);
+        }
+        let vector = match slot {
+            VectorSlot::Rhs => &mut *self.store.b,
+            VectorSlot::InitialGuess => &mut *self.store.x0,
+        };
+        let dst = vector
+            .get_mut(to_usize(offset)..to_usize(end))
+            .ok_or(ErrorCode::ChunkTooLong)?;
+        for (d, s) in dst.iter_mut().zip(mantissas) {
+            *d = *s;
+        }
+        *self.slot_state(slot) = if end == shape.n {
+            VectorState::Complete { exponent }
+        } else {
+            VectorState::Uploading {
+                exponent,
+                received: end,
+            }
+        };
+        Ok(Response::Ack)
+    }
+
+    fn solve(&mut self, params: &SolveParams) -> Result<Response, ErrorCode> {
+        let shape = self.loaded()?;
+        let b_exponent = self.rhs.exponent(SessionStep::NoRhs)?;
+        let n = to_usize(shape.n);
+        // Every slice below is within the storage: n ≤ max_n and the matrix's counts ≤ its
+        // capacities were checked when it was announced. Should that ever not hold, refuse.
+        let too_large = ErrorCode::DimensionTooLarge {
+            requested: shape.n,
+            capacity: self.info.max_n,
+        };
+        let Storage {
+            words,
+            tiles,
+            b,
+            x,
+            x0,
+            r,
+            p,
+            kp,
+        } = &mut self.store;
+        let (Some(b), Some(x), Some(x0), Some(r), Some(p), Some(kp)) = (
+            b.get(..n),
+            x.get_mut(..n),
+            x0.get(..n),
+            r.get_mut(..n),
+            p.get_mut(..n.saturating_add(DIRECTION_PAD)),
+            kp.get_mut(..n),
+        ) else {
+            return Err(too_large);
+        };
+        let (Some(tiles), Some(words)) = (
+            tiles.get(..to_usize(shape.tiles)),
+            words.get(..to_usize(shape.words)),
+        ) else {
+            return Err(too_large);
+        };
+        let mut x_exponent = match params.start {
+            Start::Zero => {
+                x.fill(0);
+                0
+            }
+            Start::Previous => self
+                .solution
+                .ok_or(out_of_order(SessionStep::NoPreviousSolution))?,
+            Start::Uploaded => {
+                let exponent = self.guess.exponent(SessionStep::NoInitialGuess)?;
+                for (d, s) in x.iter_mut().zip(x0) {
+                    *d = *s;
+                }
+                exponent
+            }
+        };
+        self.solution = None;
+        let matrix = Matrix {
+            n,
+            frac_bits: shape.frac_bits,
+            tiles,
+            words,
+        };
+        let scratch = Scratch { r, p, kp };
+        match cg::solve(
+            &matrix,
+            b,
+            b_exponent,
+            x,
+            &mut x_exponent,
+            scratch,
+            params,
+            &self.clock,
+        ) {
+            Ok(report) => {
+                self.solution = Some(x_exponent);
+                Ok(Response::Solved(report))
+            }
+            Err(failure) => Err(ErrorCode::Solve(failure)),
+        }
+    }
+
+    fn read_solution(&mut self, offset: u32) -> Result<Response, ErrorCode> {
+        let exponent = self.solution.ok_or(out_of_order(SessionStep::NoSolution))?;
+        let shape = self.loaded()?;
+        if offset >= shape.n {
+            return Err(ErrorCode::ChunkTooLong);
+        }
+        let end = offset.saturating_add(to_u32(CHUNK_LEN)).min(shape.n);
+        let values = self
+            .store
+            .x
+            .get(to_usize(offset)..to_usize(end))
+            .ok_or(ErrorCode::ChunkTooLong)?;
+        let mantissas = heapless::Vec::from_slice(values).map_err(|_| ErrorCode::ChunkTooLong)?;
+        Ok(Response::Solution {
+            offset,
+            exponent,
+            mantissas,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,1465 @@
+//! Session tests: every error path, the happy path against a direct f64 solve, and a proptest
+//! that throws random request sequences at a session with small buffers.
+
+use super::*;
+use crate::cg::NoClock;
+use deform_shared::frame;
+use deform_shared::protocol::{Envelope, SolveFailure, SolveReport, MAX_FRAME_LEN};
+use deform_shared::qformat::{block_exponent, from_mantissa, quantize, to_mantissa};
+use deform_shared::word::Word;
+use proptest::prelude::*;
+
+// ---------------------------------------------------------------------------------------------
+// Fixtures
+
+/// Owned buffers to lend a session.
+struct Bufs {
+    words: Vec<u32>,
+    tiles: Vec<TileHeader>,
+    b: Vec<i32>,
+    x: Vec<i32>,
+    x0: Vec<i32>,
+    r: Vec<i32>,
+    p: Vec<i32>,
+    kp: Vec<i64>,
+}
+
+impl Bufs {
+    fn new(words: usize, tiles: usize, max_n: usize) -> Self {
+        Bufs {
+            words: vec![0; words],
+            tiles: vec![TileHeader::default(); tiles],
+            b: vec![0; max_n],
+            x: vec![0; max_n],
+            x0: vec![0; max_n],
+            r: vec![0; max_n],
+            p: vec![0; max_n + DIRECTION_PAD],
+            kp: vec![0; max_n],
+        }
+    }
+
+    fn session(&mut self) -> Session<'_, NoClock> {
+        let storage = Storage {
+            words: &mut self.words,
+            tiles: &mut self.tiles,
+            b: &mut self.b,
+            x: &mut self.x,
+            x0: &mut self.x0,
+            r: &mut self.r,
+            p: &mut self.p,
+            kp: &mut self.kp,
+        };
+        Session::new(storage, info(), NoClock)
+    }
+}
+
+fn info() -> TargetInfo {
+    TargetInfo {
+        protocol_version: 0,
+        firmware_version: heapless::String::try_from("test").unwrap(),
+        harts: 1,
+        word_capacity: u32::MAX,
+        tile_capacity: u32::MAX,
+        max_n: u32::MAX,
+    }
+}
+
+/// A matrix encoded as tiles, ready to upload.
+#[derive(Debug, Clone)]
+struct Encoded {
+    n: u32,
+    frac_bits: u8,
+    tiles: Vec<TileHeader>,
+    words: Vec<u32>,
+}
+
+/// Encodes the rows `row(i) = [(column, value)]` of an n×n matrix, `rows_per_tile` rows per
+/// tile, each tile's column window starting at its smallest column.
+fn encode(
+    n: usize,
+    rows_per_tile: usize,
+    frac_bits: u8,
+    row: impl Fn(usize) -> Vec<(usize, f64)>,
+) -> Encoded {
+    let mut tiles = Vec::new();
+    let mut words = Vec::new();
+    for base in (0..n).step_by(rows_per_tile) {
+        let rows: Vec<_> = (base..n.min(base + rows_per_tile)).map(&row).collect();
+        let col_base = rows.iter().flatten().map(|&(c, _)| c).min().unwrap_or(0);
+        let start = words.len();
+        for entries in &rows {
+            if entries.is_empty() {
+                words.push(Word::empty_row(false).bits());
+            }
+            for (k, &(c, v)) in entries.iter().enumerate() {
+                let raw = quantize(v, frac_bits).unwrap() as i64;
+                let er = k + 1 == entries.len();
+                words.push(
+                    Word::new((c - col_base) as u32, raw, er, false)
+                        .unwrap()
+                        .bits(),
+                );
+            }
+        }
+        *words.last_mut().unwrap() |= deform_shared::word::EM_BIT;
+        tiles.push(TileHeader {
+            row_base: base as u32,
+            col_base: col_base as u32,
+            rows: rows.len() as u32,
+            words: (words.len() - start) as u32,
+        });
+    }
+    Encoded {
+        n: n as u32,
+        frac_bits,
+        tiles,
+        words,
+    }
+}
+
+/// tridiag(−1, 2, −1), the 1-D Laplacian.
+fn laplacian_row(n: usize) -> impl Fn(usize) -> Vec<(usize, f64)> {
+    move |i| {
+        let mut r = Vec::new();
+        if i > 0 {
+            r.push((i - 1, -1.0));
+        }
+        r.push((i, 2.0));
+        if i + 1 < n {
+            r.push((i + 1, -1.0));
+        }
+        r
+    }
+}
+
+fn laplacian(n: usize, rows_per_tile: usize) -> Encoded {
+    encode(n, rows_per_tile, 18, laplacian_row(n))
+}
+
+fn dense(e: &Encoded) -> Vec<Vec<f64>> {
+    let n = e.n as usize;
+    let mut a = vec![vec![0.0; n]; n];
+    let mut words = e.words.iter();
+    for t in &e.tiles {
+        let mut row = t.row_base as usize;
+        for _ in 0..t.words {
+            let w = Word(*words.next().unwrap());
+            let v = w.raw_value() as f64 / (1u64 << e.frac_bits) as f64;
+            a[row][t.col_base as usize + w.column() as usize] += v;
+            if w.end_of_row() {
+                row += 1;
+            }
+        }
+    }
+    a
+}
+
+/// Gaussian elimination with partial pivoting.
+fn direct_solve(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Vec<f64> {
+    let n = b.len();
+    for k in 0..n {
+        let piv = (k..n)
+            .max_by(|&i, &j| a[i][k].abs().total_cmp(&a[j][k].abs()))
+            .unwrap();
+        a.swap(k, piv);
+        b.swap(k, piv);
+        for i in k + 1..n {
+            let f = a[i][k] / a[k][k];
+            if f != 0.0 {
+                let (top, bottom) = a.split_at_mut(i);
+                for (aij, akj) in bottom[0][k..].iter_mut().zip(&top[k][k..]) {
+                    *aij -= f * akj;
+                }
+                b[i] -= f * b[k];
+            }
+        }
+    }
+    let mut x = vec![0.0; n];
+    for i in (0..n).rev() {
+        let s: f64 = (i + 1..n).map(|j| a[i][j] * x[j]).sum();
+        x[i] = (b[i] - s) / a[i][i];
+    }
+    x
+}
+
+fn chunk<T: Copy, const N: usize>(s: &[T]) -> heapless::Vec<T, N> {
+    heapless::Vec::from_slice(s).unwrap()
+}
+
+fn begin(e: &Encoded) -> Request {
+    Request::BeginMatrix {
+        n: e.n,
+        frac_bits: e.frac_bits,
+        tiles: e.tiles.len() as u32,
+        words: e.words.len() as u32,
+    }
+}
+
+/// The requests that upload `e` in chunks of `chunk_len` words.
+fn matrix_requests(e: &Encoded, chunk_len: usize) -> Vec<Request> {
+    let mut reqs = vec![begin(e)];
+    let mut offset = 0usize;
+    for t in &e.tiles {
+        reqs.push(Request::Tile(*t));
+        let end = offset + t.words as usize;
+        while offset < end {
+            let stop = end.min(offset + chunk_len);
+            reqs.push(Request::Words {
+                offset: offset as u32,
+                words: chunk(&e.words[offset..stop]),
+            });
+            offset = stop;
+        }
+    }
+    reqs.push(Request::EndMatrix {
+        crc32: words_crc(&e.words),
+    });
+    reqs
+}
+
+fn vector_requests(slot: VectorSlot, exponent: i32, m: &[i32], chunk_len: usize) -> Vec<Request> {
+    let mut reqs = vec![Request::BeginVector {
+        slot,
+        exponent,
+        len: m.len() as u32,
+    }];
+    for (k, c) in m.chunks(chunk_len).enumerate() {
+        reqs.push(Request::VectorData {
+            slot,
+            offset: (k * chunk_len) as u32,
+            mantissas: chunk(c),
+        });
+    }
+    reqs
+}
+
+/// Block-floating-point form of `v`.
+fn to_block(v: &[f64]) -> (i32, Vec<i32>) {
+    let e = block_exponent(v.iter().fold(0.0f64, |m, x| m.max(x.abs())));
+    (e, v.iter().map(|&x| to_mantissa(x, e).unwrap()).collect())
+}
+
+fn all_ack(s: &mut Session<'_, NoClock>, reqs: Vec<Request>) {
+    for req in reqs {
+        let what = format!("{req:?}");
+        assert_eq!(s.handle(req), Response::Ack, "{what}");
+    }
+}
+
+fn load(s: &mut Session<'_, NoClock>, e: &Encoded) {
+    all_ack(s, matrix_requests(e, CHUNK_LEN));
+}
+
+fn load_rhs(s: &mut Session<'_, NoClock>, b: &[f64]) {
+    let (e, m) = to_block(b);
+    all_ack(s, vector_requests(VectorSlot::Rhs, e, &m, CHUNK_LEN));
+}
+
+fn err(code: ErrorCode) -> Response {
+    Response::Error(code)
+}
+
+fn ooo(step: SessionStep) -> Response {
+    Response::Error(ErrorCode::OutOfOrder(step))
+}
+
+fn solve_req(start: Start) -> Request {
+    Request::Solve(SolveParams {
+        max_iterations: 1000,
+        tolerance: 1e-9,
+        start,
+    })
+}
+
+fn solved(r: Response) -> SolveReport {
+    match r {
+        Response::Solved(report) => report,
+        other => panic!("expected Solved, got {other:?}"),
+    }
+}
+
+/// Reads the whole solution back, chunk by chunk.
+fn read_all(s: &mut Session<'_, NoClock>, n: usize) -> Vec<f64> {
+    let mut out = Vec::new();
+    while out.len() < n {
+        match s.handle(Request::ReadSolution {
+            offset: out.len() as u32,
+        }) {
+            Response::Solution {
+                offset,
+                exponent,
+                mantissas,
+            } => {
+                assert_eq!(offset as usize, out.len());
+                assert!(!mantissas.is_empty() && mantissas.len() <= CHUNK_LEN);
+                out.extend(mantissas.iter().map(|&m| from_mantissa(m, exponent)));
+            }
+            other => panic!("expected Solution, got {other:?}"),
+        }
+    }
+    assert_eq!(out.len(), n);
+    out
+}
+
+fn max_rel_err(got: &[f64], want: &[f64]) -> f64 {
+    let scale = want.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    got.iter()
+        .zip(want)
+        .map(|(g, w)| (g - w).abs() / scale)
+        .fold(0.0, f64::max)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Hello and capacities
+
+#[test]
+fn hello_reports_capacities_clamped_to_the_storage() {
+    let mut bufs = Bufs::new(100, 7, 20);
+    let mut s = bufs.session();
+    let Response::Hello(info) = s.handle(Request::Hello {
+        protocol_version: PROTOCOL_VERSION,
+    }) else {
+        panic!()
+    };
+    assert_eq!(info.protocol_version, PROTOCOL_VERSION);
+    assert_eq!(
+        (info.word_capacity, info.tile_capacity, info.max_n),
+        (100, 7, 20)
+    );
+    assert_eq!(info.firmware_version.as_str(), "test");
+    assert_eq!(&info, s.info());
+}
+
+#[test]
+fn advertised_capacities_below_the_storage_are_kept_and_enforced() {
+    let mut bufs = Bufs::new(100, 7, 20);
+    let storage = Storage {
+        words: &mut bufs.words,
+        tiles: &mut bufs.tiles,
+        b: &mut bufs.b,
+        x: &mut bufs.x,
+        x0: &mut bufs.x0,
+        r: &mut bufs.r,
+        p: &mut bufs.p[..15 + DIRECTION_PAD], // p limits max_n to 15
+        kp: &mut bufs.kp,
+    };
+    let mut s = Session::new(
+        storage,
+        TargetInfo {
+            word_capacity: 50,
+            ..info()
+        },
+        NoClock,
+    );
+    assert_eq!(
+        (
+            s.info().word_capacity,
+            s.info().tile_capacity,
+            s.info().max_n
+        ),
+        (50, 7, 15)
+    );
+    let r = s.handle(Request::BeginMatrix {
+        n: 16,
+        frac_bits: 0,
+        tiles: 1,
+        words: 1,
+    });
+    assert_eq!(
+        r,
+        err(ErrorCode::DimensionTooLarge {
+            requested: 16,
+            capacity: 15
+        })
+    );
+    let r = s.handle(Request::BeginMatrix {
+        n: 15,
+        frac_bits: 0,
+        tiles: 1,
+        words: 51,
+    });
+    assert_eq!(
+        r,
+        err(ErrorCode::TooManyWords {
+            requested: 51,
+            capacity: 50
+        })
+    );
+}
+
+#[test]
+fn a_fresh_session_needs_no_hello() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    load(&mut s, &laplacian(10, 10));
+    assert!(s.matrix_loaded());
+}
+
+#[test]
+fn a_version_mismatch_answers_hello_then_refuses_until_a_matching_hello() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let e = laplacian(10, 10);
+    load(&mut s, &e);
+    let other = PROTOCOL_VERSION.wrapping_add(1);
+    let Response::Hello(info) = s.handle(Request::Hello {
+        protocol_version: other,
+    }) else {
+        panic!()
+    };
+    assert_eq!(info.protocol_version, PROTOCOL_VERSION);
+    assert!(!s.matrix_loaded(), "Hello resets the session");
+    let mismatch = err(ErrorCode::VersionMismatch {
+        target: PROTOCOL_VERSION,
+    });
+    assert_eq!(s.handle(begin(&e)), mismatch);
+    assert_eq!(s.handle(Request::ReadSolution { offset: 0 }), mismatch);
+    assert!(matches!(
+        s.handle(Request::Hello {
+            protocol_version: PROTOCOL_VERSION
+        }),
+        Response::Hello(_)
+    ));
+    load(&mut s, &e);
+}
+
+#[test]
+fn hello_resets_a_loaded_matrix_and_an_upload() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let e = laplacian(10, 10);
+    load(&mut s, &e);
+    s.handle(Request::Hello {
+        protocol_version: PROTOCOL_VERSION,
+    });
+    assert_eq!(
+        s.handle(Request::BeginVector {
+            slot: VectorSlot::Rhs,
+            exponent: 0,
+            len: 10
+        }),
+        ooo(SessionStep::NoMatrix)
+    );
+    assert_eq!(s.handle(begin(&e)), Response::Ack);
+    s.handle(Request::Hello {
+        protocol_version: PROTOCOL_VERSION,
+    });
+    assert_eq!(
+        s.handle(Request::Tile(e.tiles[0])),
+        ooo(SessionStep::NoMatrixUpload)
+    );
+}
+
+// ---------------------------------------------------------------------------------------------
+// BeginMatrix
+
+#[test]
+fn begin_matrix_checks_the_announced_shape() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let bm = |n, frac_bits, tiles, words| Request::BeginMatrix {
+        n,
+        frac_bits,
+        tiles,
+        words,
+    };
+    assert_eq!(
+        s.handle(bm(17, 0, 1, 1)),
+        err(ErrorCode::DimensionTooLarge {
+            requested: 17,
+            capacity: 16
+        })
+    );
+    assert_eq!(
+        s.handle(bm(u32::MAX, 0, 1, 1)),
+        err(ErrorCode::DimensionTooLarge {
+            requested: u32::MAX,
+            capacity: 16
+        })
+    );
+    assert_eq!(
+        s.handle(bm(16, 0, 1, 101)),
+        err(ErrorCode::TooManyWords {
+            requested: 101,
+            capacity: 100
+        })
+    );
+    assert_eq!(
+        s.handle(bm(16, 0, 5, 100)),
+        err(ErrorCode::TooManyTiles {
+            requested: 5,
+            capacity: 4
+        })
+    );
+    assert_eq!(
+        s.handle(bm(16, 21, 4, 100)),
+        err(ErrorCode::BadFracBits(21))
+    );
+    assert_eq!(
+        s.handle(bm(16, 255, 4, 100)),
+        err(ErrorCode::BadFracBits(255))
+    );
+    assert_eq!(
+        s.handle(bm(0, 0, 1, 1)),
+        err(ErrorCode::Matrix(MatrixError::EmptyTile { tile: 0 }))
+    );
+    assert_eq!(
+        s.handle(bm(16, 0, 0, 0)),
+        err(ErrorCode::Matrix(MatrixError::EmptyTile { tile: 0 }))
+    );
+    assert_eq!(s.handle(bm(16, 20, 4, 100)), Response::Ack);
+    assert_eq!(s.handle(bm(1, 0, 1, 1)), Response::Ack);
+}
+
+#[test]
+fn begin_matrix_drops_the_loaded_matrix_even_when_refused() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let e = laplacian(10, 10);
+    load(&mut s, &e);
+    load_rhs(&mut s, &[1.0; 10]);
+    let r = s.handle(Request::BeginMatrix {
+        n: 99,
+        frac_bits: 0,
+        tiles: 1,
+        words: 1,
+    });
+    assert!(matches!(
+        r,
+        Response::Error(ErrorCode::DimensionTooLarge { .. })
+    ));
+    assert!(!s.matrix_loaded());
+    assert_eq!(s.handle(solve_req(Start::Zero)), ooo(SessionStep::NoMatrix));
+    // The vectors went with the matrix.
+    load(&mut s, &e);
+    assert_eq!(s.handle(solve_req(Start::Zero)), ooo(SessionStep::NoRhs));
+}
+
+// ---------------------------------------------------------------------------------------------
+// Tiles and words
+
+#[test]
+fn tiles_and_words_without_an_upload_are_out_of_order() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let e = laplacian(10, 10);
+    assert_eq!(
+        s.handle(Request::Tile(e.tiles[0])),
+        ooo(SessionStep::NoMatrixUpload)
+    );
+    assert_eq!(
+        s.handle(Request::Words {
+            offset: 0,
+            words: chunk(&e.words[..4])
+        }),
+        ooo(SessionStep::NoMatrixUpload)
+    );
+    assert_eq!(
+        s.handle(Request::EndMatrix { crc32: 0 }),
+        ooo(SessionStep::NoMatrixUpload)
+    );
+    // Nor once the matrix is loaded.
+    load(&mut s, &e);
+    assert_eq!(
+        s.handle(Request::Tile(e.tiles[0])),
+        ooo(SessionStep::NoMatrixUpload)
+    );
+    assert_eq!(
+        s.handle(Request::EndMatrix {
+            crc32: words_crc(&e.words)
+        }),
+        ooo(SessionStep::NoMatrixUpload)
+    );
+}
+
+#[test]
+fn words_need_a_tile_and_a_tile_needs_its_words() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let e = laplacian(10, 5);
+    assert_eq!(s.handle(begin(&e)), Response::Ack);
+    assert_eq!(
+        s.handle(Request::Words {
+            offset: 0,
+            words: chunk(&e.words[..4])
+        }),
+        ooo(SessionStep::TileExpected)
+    );
+    assert_eq!(s.handle(Request::Tile(e.tiles[0])), Response::Ack);
+    assert_eq!(
+        s.handle(Request::Tile(e.tiles[1])),
+        ooo(SessionStep::TileIncomplete)
+    );
+    assert_eq!(
+        s.handle(Request::EndMatrix {
+            crc32: words_crc(&e.words)
+        }),
+        ooo(SessionStep::TileIncomplete)
+    );
+    let first = e.tiles[0].words as usize;
+    assert_eq!(
+        s.handle(Request::Words {
+            offset: 0,
+            words: chunk(&e.words[..first])
+        }),
+        Response::Ack
+    );
+    assert_eq!(
+        s.handle(Request::EndMatrix {
+            crc32: words_crc(&e.words)
+        }),
+        ooo(SessionStep::TilesMissing)
+    );
+    assert_eq!(
+        s.handle(Request::Words {
+            offset: first as u32,
+            words: chunk(&e.words[first..])
+        }),
+        ooo(SessionStep::TileExpected)
+    );
+    assert_eq!(s.handle(Request::Tile(e.tiles[1])), Response::Ack);
+    assert_eq!(
+        s.handle(Request::Words {
+            offset: first as u32,
+            words: chunk(&e.words[first..])
+        }),
+        Response::Ack
+    );
+    // All tiles are in: more tiles or words run past the announced size.
+    assert_eq!(
+        s.handle(Request::Tile(e.tiles[1])),
+        err(ErrorCode::ChunkTooLong)
+    );
+    assert_eq!(
+        s.handle(Request::Words {
+            offset: e.words.len() as u32,
+            words: chunk(&[1])
+        }),
+        err(ErrorCode::ChunkTooLong)
+    );
+    assert_eq!(
+        s.handle(Request::EndMatrix {
+            crc32: words_crc(&e.words)
+        }),
+        Response::Ack
+    );
+}
+
+#[test]
+fn word_chunks_must_be_in_order_and_within_the_tile() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let e = laplacian(10, 5);
+    let first = e.tiles[0].words as usize;
+    s.handle(begin(&e));
+    s.handle(Request::Tile(e.tiles[0]));
+    let w = |offset: u32, range: core::ops::Range<usize>| Request::Words {
+        offset,
+        words: chunk(&e.words[range]),
+    };
+    assert_eq!(
+        s.handle(w(1, 0..3)),
+        err(ErrorCode::UnexpectedOffset {
+            expected: 0,
+            got: 1
+        })
+    );
+    assert_eq!(
+        s.handle(w(u32::MAX, 0..3)),
+        err(ErrorCode::UnexpectedOffset {
+            expected: 0,
+            got: u32::MAX
+        })
+    );
+    assert_eq!(s.handle(w(0, 0..first + 1)), err(ErrorCode::ChunkTooLong));
+    assert_eq!(s.handle(w(0, 0..3)), Response::Ack);
+    assert_eq!(
+        s.handle(Request::Words {
+            offset: 3,
+            words: heapless::Vec::new()
+        }),
+        Response::Ack
+    );
+    // A resent chunk is refused with the offset the target expects, and changes nothing.
+    assert_eq!(
+        s.handle(w(0, 0..3)),
+        err(ErrorCode::UnexpectedOffset {
+            expected: 3,
+            got: 0
+        })
+    );
+    assert_eq!(s.handle(w(3, 3..first + 1)), err(ErrorCode::ChunkTooLong));
+    assert_eq!(s.handle(w(3, 3..first)), Response::Ack);
+    // The next tile's chunks count on from the start of the stream.
+    s.handle(Request::Tile(e.tiles[1]));
+    assert_eq!(
+        s.handle(w(0, first..first + 2)),
+        err(ErrorCode::UnexpectedOffset {
+            expected: first as u32,
+            got: 0
+        })
+    );
+    assert_eq!(
+        s.handle(w(first as u32, first..e.words.len())),
+        Response::Ack
+    );
+    assert_eq!(
+        s.handle(Request::EndMatrix {
+            crc32: words_crc(&e.words)
+        }),
+        Response::Ack
+    );
+}
+
+#[test]
+fn tile_headers_are_checked_on_arrival_and_a_refused_header_changes_nothing() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let e = laplacian(10, 5);
+    s.handle(begin(&e));
+    let t = e.tiles[0];
+    let m = |e| err(ErrorCode::Matrix(e));
+    assert_eq!(
+        s.handle(Request::Tile(TileHeader { rows: 0, ..t })),
+        m(MatrixError::EmptyTile { tile: 0 })
+    );
+    assert_eq!(
+        s.handle(Request::Tile(TileHeader { words: 0, ..t })),
+        m(MatrixError::EmptyTile { tile: 0 })
+    );
+    assert_eq!(
+        s.handle(Request::Tile(TileHeader { row_base: 6, ..t })),
+        m(MatrixError::RowsOutOfRange { tile: 0 })
+    );
+    assert_eq!(
+        s.handle(Request::Tile(TileHeader {
+            row_base: u32::MAX,
+            ..t
+        })),
+        m(MatrixError::RowsOutOfRange { tile: 0 })
+    );
+    assert_eq!(
+        s.handle(Request::Tile(TileHeader { words: 29, ..t })),
+        m(MatrixError::TotalWordsMismatch {
+            expected: 28,
+            found: 29
+        })
+    );
+    assert_eq!(
+        s.handle(Request::Tile(TileHeader {
+            words: u32::MAX,
+            ..t
+        })),
+        m(MatrixError::TotalWordsMismatch {
+            expected: 28,
+            found: u32::MAX
+        })
+    );
+    // The upload goes on.
+    for req in matrix_requests(&e, 5).into_iter().skip(1) {
+        assert_eq!(s.handle(req), Response::Ack);
+    }
+}
+
+#[test]
+fn a_malformed_tile_aborts_the_upload() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let mut e = laplacian(10, 5);
+    let last = e.tiles[0].words as usize - 1;
+    e.words[last] &= !deform_shared::word::EM_BIT;
+    let reqs = matrix_requests(&e, 4);
+    let mut answers = reqs.into_iter().map(|r| s.handle(r));
+    let first_error = answers.find(|a| *a != Response::Ack);
+    assert_eq!(
+        first_error,
+        Some(err(ErrorCode::Matrix(MatrixError::MissingEnd { tile: 0 })))
+    );
+    // Everything after it finds no upload.
+    assert!(answers.all(|a| a == ooo(SessionStep::NoMatrixUpload)));
+}
+
+#[test]
+fn each_tile_is_validated_against_n_when_complete() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    // Column 10 in a 10×10 matrix.
+    let e = encode(10, 5, 18, |i| {
+        if i == 7 {
+            vec![(10, 1.0)]
+        } else {
+            vec![(i, 2.0)]
+        }
+    });
+    let answers: Vec<_> = matrix_requests(&e, 64)
+        .into_iter()
+        .map(|r| s.handle(r))
+        .collect();
+    assert!(
+        answers.contains(&err(ErrorCode::Matrix(MatrixError::ColumnOutOfRange {
+            tile: 1,
+            column: 10
+        })))
+    );
+    // A row count that does not match the header.
+    let mut e = laplacian(10, 10);
+    e.words[0] |= deform_shared::word::ER_BIT;
+    let answers: Vec<_> = matrix_requests(&e, 64)
+        .into_iter()
+        .map(|r| s.handle(r))
+        .collect();
+    assert!(
+        answers.contains(&err(ErrorCode::Matrix(MatrixError::RowCountMismatch {
+            tile: 0,
+            expected: 10,
+            found: 11
+        })))
+    );
+}
+
+#[test]
+fn end_matrix_checks_the_word_total_and_the_crc() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let e = laplacian(10, 10);
+    // Tiles that hold fewer words than announced.
+    let mut reqs = matrix_requests(&e, 64);
+    reqs[0] = Request::BeginMatrix {
+        n: 10,
+        frac_bits: 18,
+        tiles: 1,
+        words: 40,
+    };
+    let end = reqs.pop().unwrap();
+    all_ack(&mut s, reqs);
+    assert_eq!(
+        s.handle(end),
+        err(ErrorCode::Matrix(MatrixError::TotalWordsMismatch {
+            expected: 40,
+            found: 28
+        }))
+    );
+    assert_eq!(
+        s.handle(Request::EndMatrix {
+            crc32: words_crc(&e.words)
+        }),
+        ooo(SessionStep::NoMatrixUpload)
+    );
+    // A wrong CRC reports the computed one and aborts.
+    let mut reqs = matrix_requests(&e, 64);
+    reqs.pop();
+    all_ack(&mut s, reqs);
+    let crc = words_crc(&e.words);
+    assert_eq!(
+        s.handle(Request::EndMatrix { crc32: !crc }),
+        err(ErrorCode::MatrixCrc { computed: crc })
+    );
+    assert!(!s.matrix_loaded());
+    assert_eq!(
+        s.handle(Request::EndMatrix { crc32: crc }),
+        ooo(SessionStep::NoMatrixUpload)
+    );
+}
+
+// ---------------------------------------------------------------------------------------------
+// Vectors
+
+#[test]
+fn vectors_need_a_matrix_of_their_length() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let bv = |slot, len| Request::BeginVector {
+        slot,
+        exponent: 0,
+        len,
+    };
+    assert_eq!(
+        s.handle(bv(VectorSlot::Rhs, 10)),
+        ooo(SessionStep::NoMatrix)
+    );
+    assert_eq!(
+        s.handle(Request::VectorData {
+            slot: VectorSlot::Rhs,
+            offset: 0,
+            mantissas: chunk(&[1])
+        }),
+        ooo(SessionStep::NoVectorUpload)
+    );
+    let e = laplacian(10, 10);
+    s.handle(begin(&e));
+    assert_eq!(
+        s.handle(bv(VectorSlot::Rhs, 10)),
+        ooo(SessionStep::NoMatrix),
+        "an upload is not a matrix"
+    );
+    load(&mut s, &e);
+    assert_eq!(
+        s.handle(bv(VectorSlot::Rhs, 9)),
+        err(ErrorCode::LengthMismatch {
+            expected: 10,
+            got: 9
+        })
+    );
+    assert_eq!(
+        s.handle(bv(VectorSlot::InitialGuess, u32::MAX)),
+        err(ErrorCode::LengthMismatch {
+            expected: 10,
+            got: u32::MAX
+        })
+    );
+    assert_eq!(s.handle(bv(VectorSlot::InitialGuess, 10)), Response::Ack);
+}
+
+#[test]
+fn vector_chunks_are_checked() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    load(&mut s, &laplacian(10, 10));
+    let slot = VectorSlot::InitialGuess;
+    let vd = |offset, m: &[i32]| Request::VectorData {
+        slot,
+        offset,
+        mantissas: chunk(m),
+    };
+    assert_eq!(s.handle(vd(0, &[1])), ooo(SessionStep::NoVectorUpload));
+    s.handle(Request::BeginVector {
+        slot,
+        exponent: -3,
+        len: 10,
+    });
+    // The other slot has no upload.
+    assert_eq!(
+        s.handle(Request::VectorData {
+            slot: VectorSlot::Rhs,
+            offset: 0,
+            mantissas: chunk(&[1])
+        }),
+        ooo(SessionStep::NoVectorUpload)
+    );
+    assert_eq!(
+        s.handle(vd(2, &[1])),
+        err(ErrorCode::UnexpectedOffset {
+            expected: 0,
+            got: 2
+        })
+    );
+    assert_eq!(s.handle(vd(0, &[0; 11])), err(ErrorCode::ChunkTooLong));
+    let limit = 1 << 30;
+    assert_eq!(
+        s.handle(vd(0, &[1, limit])),
+        err(ErrorCode::MantissaOutOfRange)
+    );
+    assert_eq!(
+        s.handle(vd(0, &[-limit])),
+        err(ErrorCode::MantissaOutOfRange)
+    );
+    assert_eq!(
+        s.handle(vd(0, &[i32::MIN])),
+        err(ErrorCode::MantissaOutOfRange)
+    );
+    assert_eq!(
+        s.handle(vd(0, &[i32::MAX])),
+        err(ErrorCode::MantissaOutOfRange)
+    );
+    assert_eq!(s.handle(vd(0, &[limit - 1, 1 - limit])), Response::Ack);
+    assert_eq!(s.handle(vd(2, &[])), Response::Ack);
+    assert_eq!(
+        s.handle(vd(0, &[1])),
+        err(ErrorCode::UnexpectedOffset {
+            expected: 2,
+            got: 0
+        })
+    );
+    assert_eq!(s.handle(vd(2, &[0; 9])), err(ErrorCode::ChunkTooLong));
+    assert_eq!(
+        s.handle(solve_req(Start::Uploaded)),
+        ooo(SessionStep::NoRhs)
+    );
+    load_rhs(&mut s, &[1.0; 10]);
+    assert_eq!(
+        s.handle(solve_req(Start::Uploaded)),
+        ooo(SessionStep::VectorIncomplete)
+    );
+    assert_eq!(s.handle(vd(2, &[0; 8])), Response::Ack);
+    // Complete: no more data.
+    assert_eq!(s.handle(vd(10, &[0])), ooo(SessionStep::NoVectorUpload));
+    // A new BeginVector drops the old vector, even when refused.
+    assert_eq!(
+        s.handle(Request::BeginVector {
+            slot,
+            exponent: 0,
+            len: 3
+        }),
+        err(ErrorCode::LengthMismatch {
+            expected: 10,
+            got: 3
+        })
+    );
+    assert_eq!(
+        s.handle(solve_req(Start::Uploaded)),
+        ooo(SessionStep::NoInitialGuess)
+    );
+}
+
+#[test]
+fn a_new_matrix_invalidates_the_vectors() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let e = laplacian(10, 10);
+    load(&mut s, &e);
+    let (exp, m) = to_block(&[1.0; 10]);
+    let mut reqs = vector_requests(VectorSlot::Rhs, exp, &m, 4);
+    let last = reqs.pop().unwrap();
+    all_ack(&mut s, reqs);
+    load(&mut s, &e);
+    assert_eq!(s.handle(last), ooo(SessionStep::NoVectorUpload));
+    assert_eq!(s.handle(solve_req(Start::Zero)), ooo(SessionStep::NoRhs));
+}
+
+// ---------------------------------------------------------------------------------------------
+// Solve preconditions (no solver call)
+
+#[test]
+fn solve_checks_its_inputs_before_touching_anything() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    assert_eq!(s.handle(solve_req(Start::Zero)), ooo(SessionStep::NoMatrix));
+    assert_eq!(
+        s.handle(Request::ReadSolution { offset: 0 }),
+        ooo(SessionStep::NoSolution)
+    );
+    load(&mut s, &laplacian(10, 10));
+    assert_eq!(s.handle(solve_req(Start::Zero)), ooo(SessionStep::NoRhs));
+    let (exp, m) = to_block(&[1.0; 10]);
+    let mut reqs = vector_requests(VectorSlot::Rhs, exp, &m, 4);
+    let last = reqs.pop().unwrap();
+    all_ack(&mut s, reqs);
+    assert_eq!(
+        s.handle(solve_req(Start::Zero)),
+        ooo(SessionStep::VectorIncomplete)
+    );
+    assert_eq!(s.handle(last), Response::Ack);
+    assert_eq!(
+        s.handle(solve_req(Start::Previous)),
+        ooo(SessionStep::NoPreviousSolution)
+    );
+    assert_eq!(
+        s.handle(solve_req(Start::Uploaded)),
+        ooo(SessionStep::NoInitialGuess)
+    );
+    assert_eq!(
+        s.handle(Request::ReadSolution { offset: 0 }),
+        ooo(SessionStep::NoSolution)
+    );
+}
+
+// ---------------------------------------------------------------------------------------------
+// Happy paths (these call cg::solve)
+
+#[test]
+fn solves_the_1d_laplacian_like_a_direct_solver() {
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let n = 10;
+    let e = laplacian(n, n);
+    assert_eq!(e.tiles.len(), 1);
+    all_ack(&mut s, matrix_requests(&e, 8));
+    let b: Vec<f64> = (0..n).map(|i| 1.0 + 0.25 * i as f64).collect();
+    let (b_exp, b_m) = to_block(&b);
+    all_ack(&mut s, vector_requests(VectorSlot::Rhs, b_exp, &b_m, 3));
+    let report = solved(s.handle(solve_req(Start::Zero)));
+    assert!(report.converged, "{report:?}");
+    assert!(report.iterations <= 3 * n as u32, "{report:?}");
+    assert_eq!(report.words_per_iteration, e.words.len() as u32);
+    let want = direct_solve(
+        dense(&e),
+        b.iter()
+            .enumerate()
+            .map(|(i, _)| from_mantissa(b_m[i], b_exp))
+            .collect(),
+    );
+    let got = read_all(&mut s, n);
+    assert!(
+        max_rel_err(&got, &want) < 1e-6,
+        "got {got:?}\nwant {want:?}"
+    );
+    // Past the end.
+    assert_eq!(
+        s.handle(Request::ReadSolution { offset: n as u32 }),
+        err(ErrorCode::ChunkTooLong)
+    );
+    assert_eq!(
+        s.handle(Request::ReadSolution { offset: u32::MAX }),
+        err(ErrorCode::ChunkTooLong)
+    );
+
+    // A warm start from the previous solution needs (almost) no iterations to reach a looser
+    // tolerance, where a cold start needs several.
+    let loose = |start| {
+        Request::Solve(SolveParams {
+            max_iterations: 1000,
+            tolerance: 1e-6,
+            start,
+        })
+    };
+    assert!(solved(s.handle(loose(Start::Zero))).iterations > 2);
+    let warm = solved(s.handle(loose(Start::Previous)));
+    assert!(warm.converged && warm.iterations <= 2, "{warm:?}");
+    assert!(max_rel_err(&read_all(&mut s, n), &want) < 1e-6);
+
+    // An uploaded initial guess (the exact solution) likewise.
+    let (x_exp, x_m) = to_block(&want);
+    all_ack(
+        &mut s,
+        vector_requests(VectorSlot::InitialGuess, x_exp, &x_m, 64),
+    );
+    let guessed = solved(s.handle(loose(Start::Uploaded)));
+    assert!(guessed.converged && guessed.iterations <= 2, "{guessed:?}");
+    assert!(max_rel_err(&read_all(&mut s, n), &want) < 1e-6);
+
+    // A new right-hand side keeps the solution; the matrix stays resident.
+    let b2: Vec<f64> = (0..n).map(|i| if i == 3 { -5.0 } else { 0.0 }).collect();
+    load_rhs(&mut s, &b2);
+    assert!(matches!(
+        s.handle(Request::ReadSolution { offset: 0 }),
+        Response::Solution { .. }
+    ));
+    assert!(solved(s.handle(solve_req(Start::Previous))).converged);
+    let want2 = direct_solve(dense(&e), b2.clone());
+    assert!(max_rel_err(&read_all(&mut s, n), &want2) < 1e-6);
+}
+
+#[test]
+fn solves_a_matrix_of_several_tiles_sent_in_many_chunks() {
+    let n = 600;
+    let mut bufs = Bufs::new(2000, 8, n);
+    let mut s = bufs.session();
+    // Rows split 250/250/100, each tile's column window starting one column before its rows.
+    let e = laplacian(n, 250);
+    assert_eq!(e.tiles.len(), 3);
+    assert_eq!(e.tiles[1].col_base, 249);
+    all_ack(&mut s, matrix_requests(&e, 64));
+    let b: Vec<f64> = (0..n).map(|i| ((i * 7919) % 13) as f64 - 6.0).collect();
+    load_rhs(&mut s, &b);
+    let r = s.handle(Request::Solve(SolveParams {
+        max_iterations: 5000,
+        tolerance: 1e-10,
+        start: Start::Zero,
+    }));
+    let report = solved(r);
+    assert!(report.converged, "{report:?}");
+    let (b_exp, b_m) = to_block(&b);
+    let bq: Vec<f64> = b_m.iter().map(|&m| from_mantissa(m, b_exp)).collect();
+    let want = direct_solve(dense(&e), bq);
+    let got = read_all(&mut s, n);
+    assert!(
+        max_rel_err(&got, &want) < 1e-5,
+        "{}",
+        max_rel_err(&got, &want)
+    );
+}
+
+#[test]
+fn rows_split_between_tiles_add_up() {
+    // The Laplacian's lower part and diagonal in one tile, its upper part in another.
+    let n = 10;
+    let lower = encode(n, n, 18, |i| {
+        laplacian_row(n)(i)
+            .into_iter()
+            .filter(|&(c, _)| c <= i)
+            .collect()
+    });
+    let upper = encode(n, n, 18, |i| {
+        laplacian_row(n)(i)
+            .into_iter()
+            .filter(|&(c, _)| c > i)
+            .collect()
+    });
+    let mut e = lower.clone();
+    e.tiles.extend(&upper.tiles);
+    e.words.extend(&upper.words);
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    all_ack(&mut s, matrix_requests(&e, 5));
+    load_rhs(&mut s, &[1.0; 10]);
+    assert!(solved(s.handle(solve_req(Start::Zero))).converged);
+    // x_i = (i+1)(n-i)/2 for b = 1.
+    let want: Vec<f64> = (0..n).map(|i| ((i + 1) * (n - i)) as f64 / 2.0).collect();
+    assert!(max_rel_err(&read_all(&mut s, n), &want) < 1e-6);
+}
+
+#[test]
+fn a_failed_solve_leaves_no_solution() {
+    let n = 10;
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    load(&mut s, &laplacian(n, n));
+    load_rhs(&mut s, &[1.0; 10]);
+    assert!(solved(s.handle(solve_req(Start::Zero))).converged);
+    // −L is negative definite.
+    let neg = encode(n, n, 18, |i| {
+        laplacian_row(n)(i)
+            .into_iter()
+            .map(|(c, v)| (c, -v))
+            .collect()
+    });
+    load(&mut s, &neg);
+    load_rhs(&mut s, &[1.0; 10]);
+    let r = s.handle(solve_req(Start::Zero));
+    assert!(
+        matches!(
+            r,
+            Response::Error(ErrorCode::Solve(SolveFailure::NotPositiveDefinite { .. }))
+        ),
+        "{r:?}"
+    );
+    assert_eq!(
+        s.handle(Request::ReadSolution { offset: 0 }),
+        ooo(SessionStep::NoSolution)
+    );
+    assert_eq!(
+        s.handle(solve_req(Start::Previous)),
+        ooo(SessionStep::NoPreviousSolution)
+    );
+}
+
+// ---------------------------------------------------------------------------------------------
+// Random request sequences
+
+/// Numbers that are mostly small (so that requests often fit the state), sometimes huge.
+fn num(small: u32) -> impl Strategy<Value = u32> {
+    prop_oneof![6 => 0..=small, 1 => any::<u32>(), 1 => Just(u32::MAX)]
+}
+
+fn slot() -> impl Strategy<Value = VectorSlot> {
+    prop_oneof![Just(VectorSlot::Rhs), Just(VectorSlot::InitialGuess)]
+}
+
+fn start() -> impl Strategy<Value = Start> {
+    prop_oneof![
+        Just(Start::Zero),
+        Just(Start::Previous),
+        Just(Start::Uploaded)
+    ]
+}
+
+fn any_word() -> impl Strategy<Value = u32> {
+    prop_oneof![
+        any::<u32>(),
+        // Small columns and values, sometimes ER/EM: words that may validate.
+        (0u32..12, -8i64..8, any::<bool>(), prop::bool::weighted(0.2))
+            .prop_map(|(c, v, er, em)| Word::new(c, v, er, em).unwrap().bits()),
+    ]
+}
+
+fn mantissa() -> impl Strategy<Value = i32> {
+    prop_oneof![100 => -1000i32..1000, 1 => any::<i32>(), 1 => Just((1 << 30) - 1)]
+}
+
+fn raw_request() -> impl Strategy<Value = Request> {
+    prop_oneof![
+        prop_oneof![3 => Just(PROTOCOL_VERSION), 1 => any::<u16>()]
+            .prop_map(|protocol_version| Request::Hello { protocol_version }),
+        (num(12), 0u8..24, num(4), num(40)).prop_map(|(n, frac_bits, tiles, words)| {
+            Request::BeginMatrix {
+                n,
+                frac_bits,
+                tiles,
+                words,
+            }
+        }),
+        (num(12), num(12), num(12), num(40)).prop_map(|(row_base, col_base, rows, words)| {
+            Request::Tile(TileHeader {
+                row_base,
+                col_base,
+                rows,
+                words,
+            })
+        }),
+        (num(40), prop::collection::vec(any_word(), 0..=CHUNK_LEN)).prop_map(|(offset, w)| {
+            Request::Words {
+                offset,
+                words: chunk(&w),
+            }
+        }),
+        any::<u32>().prop_map(|crc32| Request::EndMatrix { crc32 }),
+        (slot(), any::<i32>(), num(12)).prop_map(|(slot, exponent, len)| Request::BeginVector {
+            slot,
+            exponent,
+            len
+        }),
+        (
+            slot(),
+            num(12),
+            prop::collection::vec(mantissa(), 0..=CHUNK_LEN)
+        )
+            .prop_map(|(slot, offset, m)| Request::VectorData {
+                slot,
+                offset,
+                mantissas: chunk(&m)
+            }),
+        (0u32..40, prop_oneof![Just(1e-6), any::<f64>()], start()).prop_map(
+            |(max_iterations, tolerance, start)| Request::Solve(SolveParams {
+                max_iterations,
+                tolerance,
+                start
+            })
+        ),
+        num(12).prop_map(|offset| Request::ReadSolution { offset }),
+    ]
+}
+
+/// A step of a random session: one raw request, or a well-formed upload that random requests
+/// then interleave with and corrupt (it may stop early).
+#[derive(Debug, Clone)]
+enum Step {
+    Raw(Request),
+    Matrix {
+        e: Encoded,
+        chunk_len: usize,
+        stop_after: usize,
+    },
+    /// A vector of the last uploaded matrix's length (`len: None`) or of the given length.
+    Vector {
+        slot: VectorSlot,
+        exponent: i32,
+        m: Vec<i32>,
+        len: Option<usize>,
+        chunk_len: usize,
+        stop_after: usize,
+    },
+}
+
+/// A diagonally dominant (so SPD) symmetric band matrix, or its negation.
+fn spd(n: usize, rows_per_tile: usize, off: f64, negate: bool) -> Encoded {
+    let sign = if negate { -1.0 } else { 1.0 };
+    encode(n, rows_per_tile, 16, move |i| {
+        let mut r = Vec::new();
+        if i > 0 {
+            r.push((i - 1, sign * off));
+        }
+        r.push((i, sign * 3.0));
+        if i + 1 < n {
+            r.push((i + 1, sign * off));
+        }
+        r
+    })
+}
+
+/// Stops an upload after `stop` requests now and then, else lets it finish.
+fn stop_after(stop: usize) -> usize {
+    if stop >= 6 {
+        usize::MAX
+    } else {
+        stop * 3
+    }
+}
+
+fn step() -> impl Strategy<Value = Step> {
+    let matrix = (
+        1usize..=12,
+        3usize..=12,
+        -1.0f64..1.0,
+        prop::bool::weighted(0.1),
+        1usize..=8,
+        0usize..20,
+    )
+        .prop_map(|(n, rows, off, negate, chunk_len, stop)| Step::Matrix {
+            e: spd(n, rows, off, negate),
+            chunk_len,
+            stop_after: stop_after(stop),
+        });
+    let vector = (
+        slot(),
+        -40i32..10,
+        prop::collection::vec(mantissa(), 13),
+        prop_oneof![8 => Just(None), 1 => (0usize..=13).prop_map(Some)],
+        1usize..=8,
+        0usize..20,
+    )
+        .prop_map(|(slot, exponent, m, len, chunk_len, stop)| Step::Vector {
+            slot,
+            exponent,
+            m,
+            len,
+            chunk_len,
+            stop_after: stop_after(stop),
+        });
+    let solve = (
+        0u32..40,
+        prop_oneof![4 => Just(1e-6), 1 => any::<f64>()],
+        start(),
+    )
+        .prop_map(|(max_iterations, tolerance, start)| {
+            Step::Raw(Request::Solve(SolveParams {
+                max_iterations,
+                tolerance,
+                start,
+            }))
+        });
+    let read = (0u32..14).prop_map(|offset| Step::Raw(Request::ReadSolution { offset }));
+    prop_oneof![
+        6 => raw_request().prop_map(Step::Raw),
+        1 => Just(Step::Raw(Request::Hello { protocol_version: PROTOCOL_VERSION })),
+        3 => matrix,
+        4 => vector,
+        3 => solve,
+        2 => read,
+    ]
+}
+
+/// The requests of `step`; `n` tracks the dimension of the last matrix upload begun.
+fn expand(step: Step, n: &mut usize) -> Vec<Request> {
+    match step {
+        Step::Raw(r) => vec![r],
+        Step::Matrix {
+            e,
+            chunk_len,
+            stop_after,
+        } => {
+            *n = e.n as usize;
+            matrix_requests(&e, chunk_len)
+                .into_iter()
+                .take(stop_after)
+                .collect()
+        }
+        Step::Vector {
+            slot,
+            exponent,
+            m,
+            len,
+            chunk_len,
+            stop_after,
+        } => {
+            let len = len.unwrap_or(*n).min(m.len());
+            vector_requests(slot, exponent, &m[..len], chunk_len)
+                .into_iter()
+                .take(stop_after)
+                .collect()
+        }
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 2000, ..ProptestConfig::default() })]
+
+    #[test]
+    fn random_request_sequences_never_panic(steps in prop::collection::vec(step(), 0..40)) {
+        // Small buffers: capacities are hit often.
+        let mut bufs = Bufs::new(40, 4, 12);
+        let mut s = bufs.session();
+        let mut frame = [0u8; MAX_FRAME_LEN];
+        let mut n = 0;
+        for req in steps.into_iter().flat_map(|step| expand(step, &mut n)) {
+            let was_read = matches!(req, Request::ReadSolution { .. });
+            let response = s.handle(req);
+            // Every answer fits a frame.
+            let envelope = Envelope { seq: 0, body: response.clone() };
+            prop_assert!(frame::encode(&envelope, &mut frame).is_ok(), "{:?}", response);
+            if let Response::Solution { offset, mantissas, .. } = &response {
+                prop_assert!(was_read);
+                prop_assert!(!mantissas.is_empty() && (*offset as usize) < 12);
+            }
+        }
+    }
+}
