@@ -1,2 +1,3 @@
 //! The deform host library; `main.rs` is a thin CLI over it.
 pub mod encode;
+pub mod link;

@@ -1,0 +1,394 @@
+//! # deform-hil-sim
+//!
+//! QEMU as a board. [`Qemu::start`] boots the firmware ELF on QEMU's `virt` machine with its
+//! first UART on a pseudo-terminal, and [`Qemu::pty_path`] names that pty: to the host it is a
+//! serial port like a real board's, so the host's ordinary serial client (`deform-host`'s `link`)
+//! is tested on exactly the code path it uses with hardware.
+//!
+//! Two properties of QEMU's pty backend shape how the host talks to it:
+//!
+//! - bytes the firmware sends while no one has the pty open are dropped, so the host must speak
+//!   first (every session starts with a handshake);
+//! - QEMU notices that the pty was opened only on its next poll, up to a second later; until then
+//!   the host's bytes wait in the pty, so the first answer may take that long.
+//!
+//! `-icount shift=0` makes the guest's cycle counters deterministic (one instruction per
+//! virtual nanosecond), which is what lets the firmware's `mcycle`/`minstret` reports be compared
+//! between runs.
+
+use std::ffi::OsString;
+use std::io::{BufRead, BufReader, Read};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+use std::thread;
+use std::time::{Duration, Instant};
+
+/// The QEMU binary that emulates the 32-bit RISC-V `virt` machine.
+pub const QEMU_BINARY: &str = "qemu-system-riscv32";
+
+/// Overrides [`firmware_elf`]'s default path when set.
+pub const FIRMWARE_ENV: &str = "DEFORM_FIRMWARE";
+
+/// The exit code with which the firmware's panic handler stops QEMU (via the SiFive test device).
+pub const PANIC_EXIT_CODE: i32 = 101;
+
+/// The line prefix with which QEMU announces the pty of a `-serial pty` device.
+const PTY_ANNOUNCEMENT: &str = "char device redirected to ";
+
+/// Where the firmware ELF is: `$DEFORM_FIRMWARE` if set, else the release build inside the
+/// firmware's own workspace (`cargo xtask firmware` puts it there).
+pub fn firmware_elf() -> PathBuf {
+    match std::env::var_os(FIRMWARE_ENV) {
+        Some(path) if !path.is_empty() => PathBuf::from(path),
+        _ => default_firmware_elf(),
+    }
+}
+
+/// The release build inside the firmware's workspace, which sits beside this crate.
+fn default_firmware_elf() -> PathBuf {
+    let manifest_dir = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let workspace_root = manifest_dir.parent().unwrap_or(manifest_dir);
+    workspace_root.join("firmware/target/riscv32imac-unknown-none-elf/release/deform-firmware")
+}
+
+/// Why QEMU could not be started or did not behave.
+#[derive(Debug, thiserror::Error)]
+pub enum HilError {
+    #[error(
+        "the firmware ELF {} does not exist: run `cargo xtask firmware` \
+         (or point ${FIRMWARE_ENV} at a built firmware)",
+        path.display()
+    )]
+    FirmwareMissing { path: PathBuf },
+    #[error(
+        "`{binary}` was not found: run `cargo xtask setup` \
+         or `apt-get install -y qemu-system-misc`"
+    )]
+    QemuMissing { binary: String },
+    #[error("could not start `{binary}`: {source}")]
+    Spawn {
+        binary: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("QEMU exited ({status}) before announcing its serial pty; its stderr:\n{stderr}")]
+    ExitedEarly { status: ExitStatus, stderr: String },
+    #[error(
+        "QEMU did not announce its serial pty within {after:?}; \
+         its output so far:\n{stdout}\nstderr:\n{stderr}"
+    )]
+    NoPty {
+        after: Duration,
+        stdout: String,
+        stderr: String,
+    },
+    #[error("waiting for QEMU failed: {0}")]
+    Wait(#[source] std::io::Error),
+}
+
+/// How to boot the firmware.
+#[derive(Debug, Clone)]
+pub struct QemuConfig {
+    /// The firmware ELF, loaded with `-kernel`.
+    pub elf: PathBuf,
+    /// Harts (`-smp`); the firmware tells in its `TargetInfo` how many it puts to work.
+    pub harts: u8,
+    /// The QEMU executable; [`QEMU_BINARY`] from `PATH` by default.
+    pub qemu: OsString,
+    /// How long QEMU may take to announce its pty.
+    pub start_timeout: Duration,
+}
+
+impl QemuConfig {
+    /// A single-hart board running `elf`.
+    pub fn new(elf: impl Into<PathBuf>) -> Self {
+        Self {
+            elf: elf.into(),
+            harts: 1,
+            qemu: QEMU_BINARY.into(),
+            start_timeout: Duration::from_secs(10),
+        }
+    }
+
+    pub fn harts(mut self, harts: u8) -> Self {
+        self.harts = harts.max(1);
+        self
+    }
+
+    /// The arguments QEMU is started with (without the binary).
+    pub fn args(&self) -> Vec<OsString> {
+        // icount ties virtual time to retired instructions; with several harts QEMU runs them
+        // round-robin on one thread, and `sleep=off` keeps idle harts from stalling the clock.
+        let icount = if self.harts > 1 {
+            "shift=0,sleep=off"
+        } else {
+            "shift=0"
+        };
+        let mut args: Vec<OsString> = [
+            "-machine", "virt", "-bios", "none", "-display", "none", "-monitor", "none", "-serial",
+            "pty", "-m", "64M",
+        ]
+        .iter()
+        .map(OsString::from)
+        .collect();
+        args.push("-smp".into());
+        args.push(self.harts.to_string().into());
+        args.push("-icount".into());
+        args.push(icount.into());
+        args.push("-kernel".into());
+        args.push(self.elf.clone().into_os_string());
+        args
+    }
+}
+
+impl Default for QemuConfig {
+    /// A single-hart board running [`firmware_elf`].
+    fn default() -> Self {
+        Self::new(firmware_elf())
+    }
+}
+
+/// A running QEMU board. Dropping it kills and reaps QEMU.
+pub struct Qemu {
+    child: Child,
+    pty: PathBuf,
+    /// Everything QEMU printed on stdout and stderr, collected by two reader threads so that QEMU
+    /// never blocks on a full pipe.
+    stdout: Arc<Mutex<String>>,
+    stderr: Arc<Mutex<String>>,
+    exit: Option<ExitStatus>,
+}
+
+impl Qemu {
+    /// Boots the firmware and waits until QEMU names the pty of the board's UART.
+    pub fn start(config: &QemuConfig) -> Result<Qemu, HilError> {
+        if !config.elf.is_file() {
+            return Err(HilError::FirmwareMissing {
+                path: config.elf.clone(),
+            });
+        }
+        let binary = config.qemu.to_string_lossy().into_owned();
+        let mut child = Command::new(&config.qemu)
+            .args(config.args())
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .map_err(|source| match source.kind() {
+                std::io::ErrorKind::NotFound => HilError::QemuMissing {
+                    binary: binary.clone(),
+                },
+                _ => HilError::Spawn {
+                    binary: binary.clone(),
+                    source,
+                },
+            })?;
+
+        let stdout = Arc::new(Mutex::new(String::new()));
+        let stderr = Arc::new(Mutex::new(String::new()));
+        let (pty_tx, pty_rx) = mpsc::channel();
+        let out_pipe = child.stdout.take().expect("stdout is piped");
+        let err_pipe = child.stderr.take().expect("stderr is piped");
+        spawn_line_collector(out_pipe, Arc::clone(&stdout), Some(pty_tx.clone()));
+        // QEMU versions differ on which stream the announcement goes to.
+        spawn_line_collector(err_pipe, Arc::clone(&stderr), Some(pty_tx));
+
+        let mut qemu = Qemu {
+            child,
+            pty: PathBuf::new(),
+            stdout,
+            stderr,
+            exit: None,
+        };
+        let deadline = Instant::now() + config.start_timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match pty_rx.recv_timeout(left.min(Duration::from_millis(50))) {
+                Ok(pty) => {
+                    qemu.pty = pty;
+                    return Ok(qemu);
+                }
+                Err(mpsc::RecvTimeoutError::Timeout)
+                | Err(mpsc::RecvTimeoutError::Disconnected) => {
+                    if let Some(status) = qemu.child.try_wait().map_err(HilError::Wait)? {
+                        qemu.exit = Some(status);
+                        // Let the reader threads collect QEMU's last words.
+                        thread::sleep(Duration::from_millis(50));
+                        return Err(HilError::ExitedEarly {
+                            status,
+                            stderr: qemu.stderr(),
+                        });
+                    }
+                    if left.is_zero() {
+                        return Err(HilError::NoPty {
+                            after: config.start_timeout,
+                            stdout: qemu.stdout(),
+                            stderr: qemu.stderr(),
+                        });
+                    }
+                }
+            }
+        }
+    }
+
+    /// The pseudo-terminal connected to the board's UART, e.g. `/dev/pts/3`.
+    pub fn pty_path(&self) -> &Path {
+        &self.pty
+    }
+
+    /// QEMU's process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// QEMU's exit code if it has exited ([`PANIC_EXIT_CODE`] after a firmware panic), `None`
+    /// while it runs. A QEMU killed by a signal reports -1.
+    pub fn try_exit_code(&mut self) -> Result<Option<i32>, HilError> {
+        if self.exit.is_none() {
+            self.exit = self.child.try_wait().map_err(HilError::Wait)?;
+        }
+        Ok(self.exit.map(exit_code))
+    }
+
+    /// Waits up to `timeout` for QEMU to exit; its exit code, or `None` if it still runs.
+    pub fn wait_exit(&mut self, timeout: Duration) -> Result<Option<i32>, HilError> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(code) = self.try_exit_code()? {
+                return Ok(Some(code));
+            }
+            if Instant::now() >= deadline {
+                return Ok(None);
+            }
+            thread::sleep(Duration::from_millis(10));
+        }
+    }
+
+    /// What QEMU printed on stderr so far (its error messages).
+    pub fn stderr(&self) -> String {
+        self.stderr.lock().map(|s| s.clone()).unwrap_or_default()
+    }
+
+    /// What QEMU printed on stdout so far.
+    pub fn stdout(&self) -> String {
+        self.stdout.lock().map(|s| s.clone()).unwrap_or_default()
+    }
+}
+
+impl Drop for Qemu {
+    fn drop(&mut self) {
+        if self.exit.is_none() {
+            // Killing an exited-but-unreaped child is harmless; the wait reaps it either way.
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+}
+
+fn exit_code(status: ExitStatus) -> i32 {
+    status.code().unwrap_or(-1)
+}
+
+/// Copies `pipe` line by line into `log`, and sends the path of a pty announcement to `pty_tx`.
+fn spawn_line_collector(
+    pipe: impl Read + Send + 'static,
+    log: Arc<Mutex<String>>,
+    pty_tx: Option<mpsc::Sender<PathBuf>>,
+) {
+    thread::spawn(move || {
+        let mut reader = BufReader::new(pipe);
+        let mut line = Vec::new();
+        loop {
+            line.clear();
+            match reader.read_until(b'\n', &mut line) {
+                Ok(0) | Err(_) => break,
+                Ok(_) => {}
+            }
+            let text = String::from_utf8_lossy(&line);
+            if let (Some(tx), Some(pty)) = (&pty_tx, parse_pty_announcement(&text)) {
+                let _ = tx.send(pty);
+            }
+            if let Ok(mut log) = log.lock() {
+                log.push_str(&text);
+            }
+        }
+    });
+}
+
+/// `char device redirected to /dev/pts/3 (label serial0)` → `/dev/pts/3`.
+fn parse_pty_announcement(line: &str) -> Option<PathBuf> {
+    let rest = &line[line.find(PTY_ANNOUNCEMENT)? + PTY_ANNOUNCEMENT.len()..];
+    let path = rest.split_whitespace().next()?;
+    path.starts_with('/').then(|| PathBuf::from(path))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_the_pty_announcement() {
+        assert_eq!(
+            parse_pty_announcement("char device redirected to /dev/pts/7 (label serial0)\n"),
+            Some(PathBuf::from("/dev/pts/7"))
+        );
+        assert_eq!(
+            parse_pty_announcement("qemu: char device redirected to /dev/pts/12 (label s)"),
+            Some(PathBuf::from("/dev/pts/12"))
+        );
+        assert_eq!(
+            parse_pty_announcement("VNC server running on ::1:5900"),
+            None
+        );
+    }
+
+    #[test]
+    fn several_harts_turn_off_icount_sleep() {
+        let one = QemuConfig::new("fw.elf").args();
+        let four = QemuConfig::new("fw.elf").harts(4).args();
+        let text = |a: &[OsString]| {
+            a.iter()
+                .map(|s| s.to_string_lossy())
+                .collect::<Vec<_>>()
+                .join(" ")
+        };
+        assert!(text(&one).contains("-smp 1 -icount shift=0 -kernel fw.elf"));
+        assert!(text(&four).contains("-smp 4 -icount shift=0,sleep=off"));
+        assert!(text(&one).contains("-bios none") && text(&one).contains("-serial pty"));
+    }
+
+    #[test]
+    fn a_missing_elf_says_how_to_build_it() {
+        let config = QemuConfig::new("/nonexistent/deform-firmware");
+        let err = Qemu::start(&config).err().expect("must fail");
+        assert!(err.to_string().contains("cargo xtask firmware"), "{err}");
+    }
+
+    #[test]
+    fn a_missing_qemu_says_how_to_install_it() {
+        let mut config = QemuConfig::new(env!("CARGO_MANIFEST_DIR").to_string() + "/Cargo.toml");
+        config.qemu = "qemu-system-riscv32-that-does-not-exist".into();
+        let err = Qemu::start(&config).err().expect("must fail");
+        let text = err.to_string();
+        assert!(
+            text.contains("cargo xtask setup") && text.contains("qemu-system-misc"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn the_default_firmware_path_is_inside_the_firmware_workspace() {
+        let elf = default_firmware_elf();
+        assert!(
+            elf.ends_with("firmware/target/riscv32imac-unknown-none-elf/release/deform-firmware")
+        );
+        assert!(elf.is_absolute());
+        assert!(elf
+            .parent()
+            .unwrap()
+            .ancestors()
+            .any(|dir| dir.join("Cargo.lock").is_file()));
+    }
+}

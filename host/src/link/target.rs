@@ -1,0 +1,636 @@
+use std::time::{Duration, Instant};
+
+use deform_shared::matrix::{validate_tile, words_crc, MatrixError};
+use deform_shared::protocol::{
+    ErrorCode, Request, Response, SolveParams, SolveReport, TargetInfo, VectorSlot, CHUNK_LEN,
+    PROTOCOL_VERSION,
+};
+use deform_shared::qformat::{block_exponent, from_mantissa, to_mantissa};
+use serialport::SerialPort;
+
+use super::wire::{UnreadableFrameAnswers, DEFAULT_REQUEST_TIMEOUT};
+use super::{open_serial, request_name, Capacity, Link, LinkError, LinkStats, Port};
+use crate::encode::EncodedMatrix;
+
+/// How long each kind of exchange may take.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Timeouts {
+    /// The whole handshake, retries included.
+    pub handshake: Duration,
+    /// How long one `Hello` waits before it is sent again. A QEMU pty passes the host's bytes to
+    /// the guest only once it notices the pty was opened (it polls once a second), and a board
+    /// may still be booting: a resent `Hello` is harmless, since `Hello` just resets the session.
+    pub hello_retry: Duration,
+    /// Every request but `Solve`.
+    pub request: Duration,
+    /// `Solve`: CG on the target may take far longer than a round trip.
+    pub solve: Duration,
+}
+
+impl Default for Timeouts {
+    fn default() -> Self {
+        Timeouts {
+            handshake: Duration::from_secs(10),
+            hello_retry: Duration::from_secs(2),
+            request: DEFAULT_REQUEST_TIMEOUT,
+            solve: Duration::from_secs(120),
+        }
+    }
+}
+
+/// How far a matrix upload has got, reported after every chunk.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct UploadProgress {
+    pub words_sent: usize,
+    pub words_total: usize,
+}
+
+/// A target after a successful handshake: the protocol session from the host's side.
+///
+/// The methods follow the session order of [`deform_shared::protocol`]: upload a matrix, then
+/// per right-hand side upload it, solve, and read the solution.
+pub struct Target<P: Port = Box<dyn SerialPort>> {
+    link: Link<P>,
+    info: TargetInfo,
+    timeouts: Timeouts,
+}
+
+impl Target<Box<dyn SerialPort>> {
+    /// Opens the serial port (a board's, or QEMU's pty) and shakes hands.
+    pub fn connect(port_path: &str, timeouts: Timeouts) -> Result<Self, LinkError> {
+        let link = Link::new(open_serial(port_path)?);
+        Target::handshake(link, timeouts)
+    }
+}
+
+impl<P: Port> Target<P> {
+    /// Shakes hands over an open link: `Hello` until the target answers, then checks that it
+    /// speaks our protocol version.
+    pub fn handshake(link: Link<P>, timeouts: Timeouts) -> Result<Self, LinkError> {
+        let mut link = link.with_timeout(timeouts.request);
+        let info = hello(&mut link, &timeouts)?;
+        Ok(Target {
+            link,
+            info,
+            timeouts,
+        })
+    }
+
+    /// What the target said it is and holds, at the last handshake.
+    pub fn info(&self) -> &TargetInfo {
+        &self.info
+    }
+
+    pub fn timeouts(&self) -> Timeouts {
+        self.timeouts
+    }
+
+    /// Changes the deadlines of the following requests (e.g. a longer solve).
+    pub fn set_timeouts(&mut self, timeouts: Timeouts) {
+        self.timeouts = timeouts;
+        self.link.set_timeout(timeouts.request);
+    }
+
+    pub fn stats(&self) -> LinkStats {
+        self.link.stats()
+    }
+
+    /// The link underneath, e.g. to put noise on the line in tests.
+    pub fn link_mut(&mut self) -> &mut Link<P> {
+        &mut self.link
+    }
+
+    /// Shakes hands again, which resets the target's session (matrix, vectors, solution).
+    pub fn reset(&mut self) -> Result<&TargetInfo, LinkError> {
+        self.info = hello(&mut self.link, &self.timeouts)?;
+        Ok(&self.info)
+    }
+
+    /// Refuses a matrix that exceeds one of the target's capacities.
+    pub fn check_matrix_fits(&self, matrix: &EncodedMatrix) -> Result<(), LinkError> {
+        fits(Capacity::Dimension, matrix.n as usize, self.info.max_n)?;
+        fits(
+            Capacity::MatrixWords,
+            matrix.words.len(),
+            self.info.word_capacity,
+        )?;
+        fits(
+            Capacity::MatrixTiles,
+            matrix.tiles.len(),
+            self.info.tile_capacity,
+        )
+    }
+
+    /// Uploads `matrix`, which then stays resident for any number of solves.
+    pub fn upload_matrix(&mut self, matrix: &EncodedMatrix) -> Result<(), LinkError> {
+        self.upload_matrix_with_progress(matrix, |_| {})
+    }
+
+    /// Like [`upload_matrix`](Self::upload_matrix), calling `progress` after every chunk.
+    ///
+    /// Nothing is sent unless the matrix fits the target's capacities and every tile passes the
+    /// same validation the target does, so a bad matrix fails fast with the host's diagnosis.
+    pub fn upload_matrix_with_progress(
+        &mut self,
+        matrix: &EncodedMatrix,
+        mut progress: impl FnMut(UploadProgress),
+    ) -> Result<(), LinkError> {
+        self.check_matrix_fits(matrix)?;
+        validate_matrix(matrix).map_err(LinkError::MalformedMatrix)?;
+        let words_total = matrix.words.len();
+        self.expect_ack(&Request::BeginMatrix {
+            n: matrix.n,
+            frac_bits: matrix.frac_bits,
+            tiles: matrix.tiles.len() as u32,
+            words: words_total as u32,
+        })?;
+        // Offsets count from the start of the whole word stream.
+        let mut offset = 0;
+        for header in &matrix.tiles {
+            self.expect_ack(&Request::Tile(*header))?;
+            let tile_words = &matrix.words[offset..offset + header.words as usize];
+            for chunk in tile_words.chunks(CHUNK_LEN) {
+                let words = chunk.iter().copied().collect();
+                self.expect_ack(&Request::Words {
+                    offset: offset as u32,
+                    words,
+                })?;
+                offset += chunk.len();
+                progress(UploadProgress {
+                    words_sent: offset,
+                    words_total,
+                });
+            }
+        }
+        self.expect_ack(&Request::EndMatrix {
+            crc32: words_crc(&matrix.words),
+        })
+    }
+
+    /// Uploads a vector (the right-hand side, or an initial guess) in block floating point.
+    /// Its length must be the uploaded matrix's n.
+    pub fn upload_vector(&mut self, slot: VectorSlot, values: &[f64]) -> Result<(), LinkError> {
+        fits(Capacity::Dimension, values.len(), self.info.max_n)?;
+        let max_abs = values.iter().fold(0.0f64, |max, v| max.max(v.abs()));
+        let exponent = block_exponent(max_abs);
+        let mantissas = values
+            .iter()
+            .enumerate()
+            .map(|(index, &value)| {
+                to_mantissa(value, exponent).ok_or(LinkError::NotFinite { slot, index, value })
+            })
+            .collect::<Result<Vec<i32>, _>>()?;
+        self.expect_ack(&Request::BeginVector {
+            slot,
+            exponent,
+            len: values.len() as u32,
+        })?;
+        for (i, chunk) in mantissas.chunks(CHUNK_LEN).enumerate() {
+            let offset = (i * CHUNK_LEN) as u32;
+            let mantissas = chunk.iter().copied().collect();
+            self.expect_ack(&Request::VectorData {
+                slot,
+                offset,
+                mantissas,
+            })?;
+        }
+        Ok(())
+    }
+
+    /// Runs CG on the target, waiting up to [`Timeouts::solve`].
+    pub fn solve(&mut self, params: SolveParams) -> Result<SolveReport, LinkError> {
+        let request = Request::Solve(params);
+        match self.link.request_within(&request, self.timeouts.solve)? {
+            Response::Solved(report) => Ok(report),
+            other => Err(unexpected(&request, "Solved", &other)),
+        }
+    }
+
+    /// Reads the first `n` entries of the last solution.
+    pub fn read_solution(&mut self, n: usize) -> Result<Vec<f64>, LinkError> {
+        let mut solution = Vec::with_capacity(n);
+        while solution.len() < n {
+            let offset = solution.len() as u32;
+            let request = Request::ReadSolution { offset };
+            match self.link.request(&request)? {
+                Response::Solution {
+                    offset: got,
+                    exponent,
+                    mantissas,
+                } if got == offset && !mantissas.is_empty() => {
+                    let wanted = n - solution.len();
+                    solution.extend(
+                        mantissas
+                            .iter()
+                            .take(wanted)
+                            .map(|&m| from_mantissa(m, exponent)),
+                    );
+                }
+                other => {
+                    return Err(unexpected(
+                        &request,
+                        "a non-empty Solution at the requested offset",
+                        &other,
+                    ))
+                }
+            }
+        }
+        Ok(solution)
+    }
+
+    /// Uploads `rhs`, solves and reads the solution: one right-hand side against the resident
+    /// matrix.
+    pub fn solve_for(
+        &mut self,
+        rhs: &[f64],
+        params: SolveParams,
+    ) -> Result<(SolveReport, Vec<f64>), LinkError> {
+        self.upload_vector(VectorSlot::Rhs, rhs)?;
+        let report = self.solve(params)?;
+        let solution = self.read_solution(rhs.len())?;
+        Ok((report, solution))
+    }
+
+    fn expect_ack(&mut self, request: &Request) -> Result<(), LinkError> {
+        match self.link.request(request)? {
+            Response::Ack => Ok(()),
+            other => Err(unexpected(request, "Ack", &other)),
+        }
+    }
+}
+
+/// `Hello` until an answer arrives within `timeouts.handshake`; checks the version.
+fn hello<P: Port>(link: &mut Link<P>, timeouts: &Timeouts) -> Result<TargetInfo, LinkError> {
+    let request = Request::Hello {
+        protocol_version: PROTOCOL_VERSION,
+    };
+    let deadline = Instant::now() + timeouts.handshake;
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let attempt = left.min(timeouts.hello_retry);
+        match link.exchange(&request, attempt, UnreadableFrameAnswers::Skip) {
+            Ok(Response::Hello(info)) if info.protocol_version == PROTOCOL_VERSION => {
+                return Ok(info)
+            }
+            Ok(Response::Hello(info)) => {
+                return Err(LinkError::VersionMismatch {
+                    host: PROTOCOL_VERSION,
+                    target: info.protocol_version,
+                })
+            }
+            Ok(other) => return Err(unexpected(&request, "Hello", &other)),
+            Err(LinkError::Target {
+                code: ErrorCode::VersionMismatch { target },
+                ..
+            }) => {
+                return Err(LinkError::VersionMismatch {
+                    host: PROTOCOL_VERSION,
+                    target,
+                })
+            }
+            Err(LinkError::Timeout { .. }) if Instant::now() < deadline => continue,
+            Err(LinkError::Timeout { request, .. }) => {
+                return Err(LinkError::Timeout {
+                    request,
+                    after: timeouts.handshake,
+                })
+            }
+            Err(e) => return Err(e),
+        }
+    }
+}
+
+fn fits(what: Capacity, requested: usize, capacity: u32) -> Result<(), LinkError> {
+    if requested as u64 > capacity as u64 {
+        return Err(LinkError::TooLarge {
+            what,
+            requested: requested as u64,
+            capacity,
+        });
+    }
+    Ok(())
+}
+
+/// The checks the target makes, made before anything is sent.
+fn validate_matrix(matrix: &EncodedMatrix) -> Result<(), MatrixError> {
+    if matrix.n == 0 || matrix.tiles.is_empty() {
+        return Err(MatrixError::EmptyTile { tile: 0 });
+    }
+    let declared: u64 = matrix.tiles.iter().map(|t| t.words as u64).sum();
+    if declared != matrix.words.len() as u64 {
+        return Err(MatrixError::TotalWordsMismatch {
+            expected: matrix.words.len() as u32,
+            found: declared.min(u32::MAX as u64) as u32,
+        });
+    }
+    let mut offset = 0;
+    for (i, header) in matrix.tiles.iter().enumerate() {
+        let end = offset + header.words as usize;
+        validate_tile(i as u32, header, &matrix.words[offset..end], matrix.n)?;
+        offset = end;
+    }
+    Ok(())
+}
+
+fn unexpected(request: &Request, expected: &'static str, got: &Response) -> LinkError {
+    LinkError::Protocol {
+        request: request_name(request),
+        expected,
+        got: format!("{got:?}"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::os::unix::net::UnixStream;
+    use std::sync::atomic::Ordering;
+
+    use deform_shared::frame::FrameError;
+    use deform_shared::protocol::{SessionStep, Start, UNKNOWN_SEQ};
+
+    use super::*;
+    use crate::link::fake_target::{answer_frame, info, serve, serve_session, Received};
+    use crate::link::test_systems::{laplacian_1d, laplacian_1d_solve, max_relative_error};
+
+    fn quick() -> Timeouts {
+        Timeouts {
+            handshake: Duration::from_secs(5),
+            hello_retry: Duration::from_millis(200),
+            request: Duration::from_secs(5),
+            solve: Duration::from_secs(30),
+        }
+    }
+
+    fn session_target(
+        info: TargetInfo,
+    ) -> (
+        Target<UnixStream>,
+        std::sync::Arc<std::sync::atomic::AtomicUsize>,
+    ) {
+        let (host, target) = UnixStream::pair().unwrap();
+        let requests = serve_session(target, info);
+        (
+            Target::handshake(Link::new(host), quick()).unwrap(),
+            requests,
+        )
+    }
+
+    fn params() -> SolveParams {
+        SolveParams {
+            max_iterations: 2000,
+            tolerance: 1e-9,
+            start: Start::Zero,
+        }
+    }
+
+    #[test]
+    fn solves_a_laplacian_against_the_firmware_session_logic() {
+        let (mut target, _) = session_target(info());
+        assert_eq!(target.info().firmware_version.as_str(), "fake");
+        let n = 250; // three tiles
+        let matrix = laplacian_1d(n);
+        assert_eq!(matrix.tiles.len(), 3);
+        let mut reports = Vec::new();
+        target
+            .upload_matrix_with_progress(&matrix, |p| reports.push(p))
+            .unwrap();
+        assert_eq!(reports.last().unwrap().words_sent, matrix.words.len());
+        assert!(reports
+            .windows(2)
+            .all(|w| w[0].words_sent < w[1].words_sent));
+        assert!(reports.iter().all(|p| p.words_total == matrix.words.len()));
+
+        // Two right-hand sides against the resident matrix, of very different scales.
+        for scale in [1.0, 3.0e-7] {
+            let rhs: Vec<f64> = (0..n)
+                .map(|i| scale * (1.0 + (i as f64 * 0.1).sin()))
+                .collect();
+            let (report, x) = target.solve_for(&rhs, params()).unwrap();
+            assert!(report.converged, "{report:?}");
+            let err = max_relative_error(&x, &laplacian_1d_solve(&rhs));
+            assert!(err < 1e-5, "max relative error {err:e} at scale {scale}");
+        }
+    }
+
+    #[test]
+    fn a_matrix_too_large_is_refused_before_anything_is_sent() {
+        let small = TargetInfo {
+            word_capacity: 100,
+            ..info()
+        };
+        let (mut target, requests) = session_target(small);
+        let sent_before = requests.load(Ordering::SeqCst);
+        let matrix = laplacian_1d(50); // 148 words
+        let err = target.upload_matrix(&matrix).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                LinkError::TooLarge {
+                    what: Capacity::MatrixWords,
+                    requested: 148,
+                    capacity: 100
+                }
+            ),
+            "{err:?}"
+        );
+        let text = err.to_string();
+        assert!(
+            text.contains("148 matrix words") && text.contains("at most 100"),
+            "{text}"
+        );
+        assert_eq!(
+            requests.load(Ordering::SeqCst),
+            sent_before,
+            "nothing may be sent"
+        );
+        assert_eq!(target.stats().requests, 1, "only the handshake");
+
+        let err = target.upload_matrix(&laplacian_1d(2000)).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                LinkError::TooLarge {
+                    what: Capacity::Dimension,
+                    capacity: 1024,
+                    ..
+                }
+            ),
+            "{err:?}"
+        );
+    }
+
+    #[test]
+    fn a_malformed_matrix_is_refused_before_anything_is_sent() {
+        let (mut target, requests) = session_target(info());
+        let mut matrix = laplacian_1d(10);
+        matrix.tiles[0].rows += 1;
+        let err = target.upload_matrix(&matrix).unwrap_err();
+        assert!(matches!(err, LinkError::MalformedMatrix(_)), "{err:?}");
+        matrix = laplacian_1d(10);
+        matrix.words.pop();
+        let err = target.upload_matrix(&matrix).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                LinkError::MalformedMatrix(MatrixError::TotalWordsMismatch { .. })
+            ),
+            "{err:?}"
+        );
+        assert_eq!(requests.load(Ordering::SeqCst), 1);
+    }
+
+    #[test]
+    fn the_targets_refusals_come_back_with_its_reason() {
+        let (mut target, _) = session_target(info());
+        let err = target
+            .upload_vector(VectorSlot::Rhs, &[1.0, 2.0])
+            .unwrap_err();
+        assert_eq!(
+            err.target_code(),
+            Some(ErrorCode::OutOfOrder(SessionStep::NoMatrix))
+        );
+        target.upload_matrix(&laplacian_1d(4)).unwrap();
+        let warm = SolveParams {
+            start: Start::Previous,
+            ..params()
+        };
+        let err = target.solve_for(&[1.0; 4], warm).unwrap_err();
+        assert_eq!(
+            err.target_code(),
+            Some(ErrorCode::OutOfOrder(SessionStep::NoPreviousSolution)),
+            "{err:?}"
+        );
+        assert!(err.to_string().contains("refused Solve"), "{err}");
+        let err = target
+            .upload_vector(VectorSlot::Rhs, &[1.0, f64::NAN, 0.0, 0.0])
+            .unwrap_err();
+        assert!(
+            matches!(err, LinkError::NotFinite { index: 1, .. }),
+            "{err:?}"
+        );
+    }
+
+    #[test]
+    fn a_reset_drops_the_matrix() {
+        let (mut target, _) = session_target(info());
+        target.upload_matrix(&laplacian_1d(4)).unwrap();
+        target.reset().unwrap();
+        let err = target
+            .upload_vector(VectorSlot::Rhs, &[1.0; 4])
+            .unwrap_err();
+        assert_eq!(
+            err.target_code(),
+            Some(ErrorCode::OutOfOrder(SessionStep::NoMatrix))
+        );
+    }
+
+    #[test]
+    fn another_protocol_version_is_named_with_ours() {
+        let (host, target) = UnixStream::pair().unwrap();
+        serve(target, |received| match received {
+            Received::Request(req) => answer_frame(
+                req.seq,
+                Response::Hello(TargetInfo {
+                    protocol_version: PROTOCOL_VERSION + 1,
+                    ..info()
+                }),
+            ),
+            Received::Unreadable(_) => Vec::new(),
+        });
+        let err = Target::handshake(Link::new(host), quick()).err().unwrap();
+        assert!(
+            matches!(err, LinkError::VersionMismatch { host, target } if host == PROTOCOL_VERSION && target == PROTOCOL_VERSION + 1),
+            "{err:?}"
+        );
+        let text = err.to_string();
+        assert!(
+            text.contains(&format!("version {PROTOCOL_VERSION}")),
+            "{text}"
+        );
+        assert!(
+            text.contains(&format!("version {}", PROTOCOL_VERSION + 1)),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn the_handshake_outlasts_complaints_about_noise_and_a_lost_hello() {
+        let (host, target) = UnixStream::pair().unwrap();
+        let mut hellos = 0;
+        serve(target, move |received| match received {
+            Received::Request(req) => {
+                hellos += 1;
+                // The first Hello is lost behind complaints about earlier noise.
+                let mut out = Vec::new();
+                for _ in 0..5 {
+                    out.extend(answer_frame(
+                        UNKNOWN_SEQ,
+                        Response::Error(ErrorCode::Frame(FrameError::Crc)),
+                    ));
+                }
+                if hellos > 1 {
+                    out.extend(answer_frame(req.seq, Response::Hello(info())));
+                }
+                out
+            }
+            Received::Unreadable(_) => Vec::new(),
+        });
+        let target = Target::handshake(Link::new(host), quick()).unwrap();
+        assert_eq!(target.stats().requests, 2);
+        assert_eq!(target.stats().stale_answers, 10);
+    }
+
+    #[test]
+    fn a_silent_target_fails_the_handshake_in_time() {
+        let (host, target) = UnixStream::pair().unwrap();
+        serve(target, |_| Vec::new());
+        let timeouts = Timeouts {
+            handshake: Duration::from_millis(500),
+            ..quick()
+        };
+        let started = Instant::now();
+        let err = Target::handshake(Link::new(host), timeouts).err().unwrap();
+        assert!(
+            matches!(
+                err,
+                LinkError::Timeout {
+                    request: "Hello",
+                    ..
+                }
+            ),
+            "{err:?}"
+        );
+        assert!(started.elapsed() < Duration::from_secs(2));
+    }
+
+    #[test]
+    fn a_solution_chunk_at_the_wrong_offset_is_a_protocol_error() {
+        let (host, target) = UnixStream::pair().unwrap();
+        serve(target, |received| match received {
+            Received::Request(req) => match req.body {
+                Request::Hello { .. } => answer_frame(req.seq, Response::Hello(info())),
+                _ => answer_frame(
+                    req.seq,
+                    Response::Solution {
+                        offset: 5,
+                        exponent: 0,
+                        mantissas: [1, 2].into_iter().collect(),
+                    },
+                ),
+            },
+            Received::Unreadable(_) => Vec::new(),
+        });
+        let mut target = Target::handshake(Link::new(host), quick()).unwrap();
+        let err = target.read_solution(3).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                LinkError::Protocol {
+                    request: "ReadSolution",
+                    ..
+                }
+            ),
+            "{err:?}"
+        );
+    }
+}

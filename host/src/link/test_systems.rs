@@ -1,0 +1,86 @@
+//! Small SPD systems with exact reference solutions, for the link's end-to-end unit tests.
+
+use deform_shared::matrix::TileHeader;
+use deform_shared::qformat::{choose_frac_bits, quantize};
+use deform_shared::word::Word;
+
+use crate::encode::EncodedMatrix;
+
+/// Rows per tile: a tile's rows `r` touch columns `r-1 ..= r+1`, well inside one 512-column
+/// window, and a small tile height makes even modest n span several tiles.
+const TILE_ROWS: u32 = 100;
+
+/// The 1-D Laplacian tridiag(-1, 2, -1) of order `n` (Dirichlet ends, so SPD).
+pub fn laplacian_1d(n: u32) -> EncodedMatrix {
+    let frac_bits = choose_frac_bits(2.0).unwrap();
+    let raw = |v: f64| quantize(v, frac_bits).unwrap() as i64;
+    let mut tiles = Vec::new();
+    let mut words = Vec::new();
+    for row_base in (0..n).step_by(TILE_ROWS as usize) {
+        let rows = TILE_ROWS.min(n - row_base);
+        let col_base = row_base.saturating_sub(1);
+        let first = words.len();
+        for r in row_base..row_base + rows {
+            let entries: Vec<(u32, f64)> = [(r.wrapping_sub(1), -1.0), (r, 2.0), (r + 1, -1.0)]
+                .into_iter()
+                .filter(|&(c, _)| c < n)
+                .collect();
+            for (k, &(c, v)) in entries.iter().enumerate() {
+                let end_of_row = k + 1 == entries.len();
+                let end_of_tile = end_of_row && r + 1 == row_base + rows;
+                words.push(
+                    Word::new(c - col_base, raw(v), end_of_row, end_of_tile)
+                        .unwrap()
+                        .bits(),
+                );
+            }
+        }
+        tiles.push(TileHeader {
+            row_base,
+            col_base,
+            rows,
+            words: (words.len() - first) as u32,
+        });
+    }
+    EncodedMatrix {
+        n,
+        frac_bits,
+        tiles,
+        words,
+    }
+}
+
+/// Solves tridiag(-1, 2, -1) x = b exactly in f64 (Thomas algorithm).
+pub fn laplacian_1d_solve(b: &[f64]) -> Vec<f64> {
+    let n = b.len();
+    // Forward sweep with sub- and super-diagonal -1: c'ᵢ = -1 / (2 + c'ᵢ₋₁),
+    // d'ᵢ = (bᵢ + d'ᵢ₋₁) / (2 + c'ᵢ₋₁).
+    let mut c = vec![0.0; n];
+    let mut d = vec![0.0; n];
+    for i in 0..n {
+        let (c_prev, d_prev) = if i > 0 {
+            (c[i - 1], d[i - 1])
+        } else {
+            (0.0, 0.0)
+        };
+        let denom = 2.0 + c_prev;
+        c[i] = -1.0 / denom;
+        d[i] = (b[i] + d_prev) / denom;
+    }
+    let mut x = vec![0.0; n];
+    for i in (0..n).rev() {
+        x[i] = d[i] - if i + 1 < n { c[i] * x[i + 1] } else { 0.0 };
+    }
+    x
+}
+
+/// max |got - want| / max |want|.
+pub fn max_relative_error(got: &[f64], want: &[f64]) -> f64 {
+    assert_eq!(got.len(), want.len());
+    let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    got.iter()
+        .zip(want)
+        .map(|(g, w)| (g - w).abs())
+        .fold(0.0, f64::max)
+        / scale
+}

@@ -1,0 +1,333 @@
+//! `cargo xtask <command>`: the project's automation, in Rust so that it runs wherever cargo
+//! does (the alias lives in `.cargo/config.toml`).
+//!
+//! - `setup`: installs what a fresh machine lacks: the RISC-V target, clippy and rustfmt, QEMU.
+//! - `firmware`: builds the firmware ELF that QEMU boots.
+//! - `run [-- ARGS…]`: setup, firmware, then `deform solve ARGS…` (default: the default scenario
+//!   solved on QEMU).
+//! - `test`: the whole gate CI runs: setup, firmware, formatting and clippy of both workspaces,
+//!   then every test, the QEMU hardware-in-the-loop tests included.
+//!
+//! Every step is printed before it runs, with its duration after; the first failure ends the
+//! command with a non-zero exit code.
+
+use std::env;
+use std::ffi::OsString;
+use std::path::{Path, PathBuf};
+use std::process::{Command, ExitCode};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+
+const RISCV_TARGET: &str = "riscv32imac-unknown-none-elf";
+const QEMU_BINARY: &str = "qemu-system-riscv32";
+/// The Debian package that holds `qemu-system-riscv32`.
+const QEMU_PACKAGE: &str = "qemu-system-misc";
+/// Where `cargo build --release` in `firmware/` puts the ELF (see `deform_hil_sim::firmware_elf`).
+const FIRMWARE_ELF: &str = "firmware/target/riscv32imac-unknown-none-elf/release/deform-firmware";
+/// Read by the HIL tests and by `deform --target qemu` to find the ELF.
+const FIRMWARE_ENV: &str = "DEFORM_FIRMWARE";
+/// The scenario `cargo xtask run` solves when given no arguments.
+const DEFAULT_RUN_ARGS: &[&str] = &["--target", "qemu"];
+
+/// Variables the outer `cargo xtask` may carry that would redirect or alter the firmware build,
+/// which must land where the tests look for it and compile for its own target with its own flags.
+const FIRMWARE_ENV_BLOCKLIST: &[&str] = &[
+    "CARGO_TARGET_DIR",
+    "CARGO_BUILD_TARGET_DIR",
+    "CARGO_BUILD_TARGET",
+    "RUSTFLAGS",
+    "CARGO_ENCODED_RUSTFLAGS",
+    "CARGO_BUILD_RUSTFLAGS",
+    "RUSTDOCFLAGS",
+    "CARGO_ENCODED_RUSTDOCFLAGS",
+    "RUSTC_WORKSPACE_WRAPPER",
+];
+
+const USAGE: &str = "usage: cargo xtask <command>
+
+commands:
+  setup              install the RISC-V target, clippy, rustfmt and QEMU if missing
+  firmware           build the firmware ELF (firmware/, release)
+  run [-- ARGS...]   setup + firmware, then `deform solve ARGS...` (default: --target qemu)
+  test               setup + firmware, fmt and clippy everywhere, then cargo test --workspace";
+
+fn main() -> ExitCode {
+    let args: Vec<String> = env::args().skip(1).collect();
+    let started = Instant::now();
+    let result = match args.first().map(String::as_str) {
+        Some("setup") => setup(),
+        Some("firmware") => build_firmware().map(|_| ()),
+        Some("run") => run(&args[1..]),
+        Some("test") => test(),
+        Some("help" | "--help" | "-h") => {
+            println!("{USAGE}");
+            return ExitCode::SUCCESS;
+        }
+        Some(other) => Err(anyhow::anyhow!("unknown command `{other}`\n\n{USAGE}")),
+        None => Err(anyhow::anyhow!("no command given\n\n{USAGE}")),
+    };
+    match result {
+        Ok(()) => {
+            eprintln!("\nxtask: done in {:.1?}", started.elapsed());
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("\nxtask: error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn workspace_root() -> PathBuf {
+    let manifest_dir = Path::new(env!("CARGO_MANIFEST_DIR"));
+    manifest_dir.parent().unwrap_or(manifest_dir).to_path_buf()
+}
+
+/// The cargo that runs us, so that every step uses the same toolchain.
+fn cargo() -> Command {
+    let mut cmd = Command::new(env::var_os("CARGO").unwrap_or_else(|| "cargo".into()));
+    cmd.current_dir(workspace_root());
+    cmd
+}
+
+/// A cargo for the firmware's own workspace, free of the outer build's settings.
+fn firmware_cargo() -> Command {
+    let mut cmd = cargo();
+    cmd.current_dir(workspace_root().join("firmware"));
+    for var in FIRMWARE_ENV_BLOCKLIST {
+        cmd.env_remove(var);
+    }
+    cmd
+}
+
+/// Prints the step, runs it, and fails unless it succeeds.
+fn step(description: &str, cmd: &mut Command) -> Result<()> {
+    let program = cmd.get_program().to_string_lossy().into_owned();
+    let args: Vec<_> = cmd
+        .get_args()
+        .map(|a| a.to_string_lossy().into_owned())
+        .collect();
+    eprintln!("\n==> {description}");
+    eprintln!("    $ {} {}", display_program(&program), args.join(" "));
+    let started = Instant::now();
+    let status = cmd
+        .status()
+        .with_context(|| format!("cannot start `{program}`"))?;
+    if !status.success() {
+        bail!("step failed: {description} ({status})");
+    }
+    eprintln!("    ok ({:.1?})", started.elapsed());
+    Ok(())
+}
+
+/// `cargo` rather than the full path rustup hands us in `$CARGO`.
+fn display_program(program: &str) -> &str {
+    Path::new(program)
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or(program)
+}
+
+/// Runs a command for its output; `None` if it cannot start or fails.
+fn output_of(program: &str, args: &[&str]) -> Option<String> {
+    let out = Command::new(program).args(args).output().ok()?;
+    out.status
+        .success()
+        .then(|| String::from_utf8_lossy(&out.stdout).into_owned())
+}
+
+fn on_path(program: &str) -> Option<PathBuf> {
+    let path = env::var_os("PATH")?;
+    env::split_paths(&path)
+        .map(|dir| dir.join(program))
+        .find(|candidate| is_executable(candidate))
+}
+
+fn is_executable(path: &Path) -> bool {
+    use std::os::unix::fs::PermissionsExt;
+    path.metadata()
+        .is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+}
+
+fn setup() -> Result<()> {
+    setup_rust()?;
+    setup_qemu()
+}
+
+fn setup_rust() -> Result<()> {
+    let Some(installed_targets) = output_of("rustup", &["target", "list", "--installed"]) else {
+        // Without rustup, the toolchain came some other way: check its sysroot directly.
+        let sysroot =
+            output_of("rustc", &["--print", "sysroot"]).context("neither rustup nor rustc runs")?;
+        let target_lib = Path::new(sysroot.trim())
+            .join("lib/rustlib")
+            .join(RISCV_TARGET);
+        if !target_lib.is_dir() {
+            bail!("the Rust target {RISCV_TARGET} is missing and there is no rustup to add it");
+        }
+        eprintln!("==> Rust target {RISCV_TARGET}: present (no rustup)");
+        return Ok(());
+    };
+    if installed_targets
+        .lines()
+        .any(|line| line.trim() == RISCV_TARGET)
+    {
+        eprintln!("==> Rust target {RISCV_TARGET}: present");
+    } else {
+        step(
+            &format!("install the Rust target {RISCV_TARGET}"),
+            Command::new("rustup").args(["target", "add", RISCV_TARGET]),
+        )?;
+    }
+    let components = output_of("rustup", &["component", "list", "--installed"]).unwrap_or_default();
+    let missing: Vec<&str> = ["clippy", "rustfmt"]
+        .into_iter()
+        .filter(|c| {
+            !components
+                .lines()
+                .any(|line| line.starts_with(&format!("{c}-")) || line.trim() == *c)
+        })
+        .collect();
+    if missing.is_empty() {
+        eprintln!("==> clippy and rustfmt: present");
+    } else {
+        step(
+            &format!("install {}", missing.join(" and ")),
+            Command::new("rustup")
+                .args(["component", "add"])
+                .args(&missing),
+        )?;
+    }
+    Ok(())
+}
+
+fn setup_qemu() -> Result<()> {
+    if let Some(path) = on_path(QEMU_BINARY) {
+        eprintln!("==> QEMU: {}", path.display());
+        return Ok(());
+    }
+    let apt_install = ["install", "-y", "--no-install-recommends", QEMU_PACKAGE];
+    let privileged = |program: &str| -> Result<Command> {
+        if is_root() {
+            Ok(Command::new(program))
+        } else if on_path("sudo").is_some() {
+            let mut cmd = Command::new("sudo");
+            cmd.arg(program);
+            Ok(cmd)
+        } else {
+            bail!(
+                "{QEMU_BINARY} is missing and installing it needs root; run as root:\n    \
+                 apt-get update && apt-get install -y {QEMU_PACKAGE}"
+            )
+        }
+    };
+    step(
+        "refresh the Debian package lists",
+        privileged("apt-get")?.arg("update"),
+    )?;
+    step(
+        &format!("install QEMU ({QEMU_PACKAGE})"),
+        privileged("apt-get")?
+            .args(apt_install)
+            .env("DEBIAN_FRONTEND", "noninteractive"),
+    )?;
+    match on_path(QEMU_BINARY) {
+        Some(path) => {
+            eprintln!("==> QEMU: {}", path.display());
+            Ok(())
+        }
+        None => bail!("{QEMU_PACKAGE} was installed but {QEMU_BINARY} is still not on PATH"),
+    }
+}
+
+fn is_root() -> bool {
+    output_of("id", &["-u"]).is_some_and(|uid| uid.trim() == "0")
+}
+
+/// Builds the firmware and returns the ELF's path.
+fn build_firmware() -> Result<PathBuf> {
+    let root = workspace_root();
+    if !root.join("firmware/Cargo.toml").is_file() {
+        bail!(
+            "{} does not exist: there is no firmware to build",
+            root.join("firmware/Cargo.toml").display()
+        );
+    }
+    step(
+        "build the firmware (release)",
+        firmware_cargo().args(["build", "--release"]),
+    )?;
+    let elf = root.join(FIRMWARE_ELF);
+    if !elf.is_file() {
+        bail!(
+            "the firmware built, but {} is missing: the firmware's binary must be named \
+             deform-firmware and built for {RISCV_TARGET}",
+            elf.display()
+        );
+    }
+    eprintln!("    firmware: {}", elf.display());
+    Ok(elf)
+}
+
+fn run(args: &[String]) -> Result<()> {
+    let args = match args.first().map(String::as_str) {
+        Some("--") => &args[1..],
+        _ => args,
+    };
+    let solve_args: Vec<OsString> = if args.is_empty() {
+        DEFAULT_RUN_ARGS.iter().map(OsString::from).collect()
+    } else {
+        args.iter().map(OsString::from).collect()
+    };
+    setup()?;
+    let elf = build_firmware()?;
+    step(
+        "deform solve",
+        cargo()
+            .args([
+                "run",
+                "--release",
+                "-p",
+                "deform-host",
+                "--bin",
+                "deform",
+                "--",
+                "solve",
+            ])
+            .args(solve_args)
+            .env(FIRMWARE_ENV, elf),
+    )
+}
+
+fn test() -> Result<()> {
+    setup()?;
+    let elf = build_firmware()?;
+    step(
+        "check formatting (workspace)",
+        cargo().args(["fmt", "--all", "--check"]),
+    )?;
+    step(
+        "clippy (workspace)",
+        cargo().args([
+            "clippy",
+            "--workspace",
+            "--all-targets",
+            "--",
+            "-D",
+            "warnings",
+        ]),
+    )?;
+    step(
+        "clippy (firmware)",
+        firmware_cargo().args(["clippy", "--release", "--", "-D", "warnings"]),
+    )?;
+    step(
+        "check formatting (firmware)",
+        firmware_cargo().args(["fmt", "--check"]),
+    )?;
+    step(
+        "test (workspace, QEMU hardware-in-the-loop included)",
+        cargo().args(["test", "--workspace"]).env(FIRMWARE_ENV, elf),
+    )
+}
