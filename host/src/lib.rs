@@ -1,4 +1,11 @@
 //! The deform host library; `main.rs` is a thin CLI over it.
+//!
+//! - [`model`]: the spring-network tissue model of thesis ch. 2 and its stiffness matrix (CSR);
+//! - [`reference`]: the f64 conjugate-gradient baseline;
+//! - [`encode`]: K as tiles of MVU instruction words;
+//! - [`cli_model`]: the model flags shared by subcommands; [`commands`]: the subcommands.
+pub mod cli_model;
+pub mod commands;
 pub mod encode;
 pub mod link;
 pub mod model;

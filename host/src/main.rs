@@ -1,1 +1,37 @@
-fn main() {}
+//! `deform`: parse the command line, dispatch to [`deform_host::commands`], report errors.
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+use deform_host::commands;
+
+/// Real-time soft-tissue deformation: builds the spring-network stiffness matrix K of a tissue
+/// grid, encodes it as MVU instruction words and solves K·l = f by conjugate gradients.
+#[derive(Debug, Parser)]
+#[command(name = "deform", version, propagate_version = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+/// One variant per subcommand, each wrapping that subcommand's `Args` from `commands::*`.
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Build the tissue model from the model flags and print the properties of its stiffness
+    /// matrix K (size, sparsity, bandwidth, symmetry) and of its instruction-word encoding.
+    Model(commands::model::ModelCommandArgs),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match &cli.command {
+        Command::Model(args) => commands::model::run(args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(error) => {
+            eprintln!("error: {error:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,5 @@
+//! One module per `deform` subcommand: each has a clap `Args` struct and a `run` that returns
+//! `anyhow::Result`, so that `main.rs` only parses and dispatches. This is the one layer that
+//! uses anyhow: the library modules return typed errors and the commands add context.
+
+pub mod model;

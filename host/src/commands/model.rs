@@ -1,0 +1,257 @@
+//! `deform model`: build the model from the flags and describe its stiffness matrix K (the
+//! properties of thesis 2.5) and its encoding as instruction words, optionally exporting K.
+
+use std::fmt;
+use std::fs::File;
+use std::io::{self, BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use clap::Args;
+
+use crate::cli_model::ModelArgs;
+use crate::encode::{encode, max_quantization_error, EncodedMatrix};
+use crate::model::matrix_market::write_matrix_market;
+use crate::model::{Axis, Csr, Model};
+
+/// Build the tissue model and print the properties of its stiffness matrix K and its encoding.
+#[derive(Debug, Clone, Args)]
+pub struct ModelCommandArgs {
+    #[command(flatten)]
+    pub model: ModelArgs,
+
+    /// Also write K for the x direction (k_x·A, fixed nodes applied) to FILE.mtx in Matrix
+    /// Market coordinate format (1-based, every nonzero of both triangles). Default: no export.
+    #[arg(long, value_name = "FILE.mtx")]
+    pub export_mtx: Option<PathBuf>,
+}
+
+/// Everything `deform model` prints, computed once so that it can be tested without stdout.
+#[derive(Debug, Clone)]
+pub struct ModelReport {
+    pub model_line: String,
+    pub n: usize,
+    pub nnz: usize,
+    pub max_row_nnz: usize,
+    pub sparsity: f64,
+    pub sparsity_estimate: f64,
+    pub bandwidth: usize,
+    pub symmetric: bool,
+    pub fixed_nodes: usize,
+    pub loads: String,
+    /// The encoding of A (what `deform solve` sends), or why it cannot be encoded.
+    pub encoding: Result<EncodingSummary, String>,
+}
+
+/// The size and precision of an encoded matrix.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EncodingSummary {
+    pub tiles: usize,
+    pub words: usize,
+    pub frac_bits: u8,
+    pub max_quantization_error: f64,
+}
+
+impl EncodingSummary {
+    fn of(matrix: &Csr, encoded: &EncodedMatrix) -> Self {
+        Self {
+            tiles: encoded.tiles.len(),
+            words: encoded.words.len(),
+            frac_bits: encoded.frac_bits,
+            max_quantization_error: max_quantization_error(matrix, encoded.frac_bits)
+                .expect("the encoder already quantized these values"),
+        }
+    }
+}
+
+impl ModelReport {
+    /// Describes K_x (the other directions differ only by the factor k_d/k_x) and the
+    /// encoding of A.
+    pub fn of(model: &Model) -> Self {
+        let k = model.stiffness_matrix(Axis::X);
+        let spec = model.spec();
+        let encoding = encode(model.unit_matrix())
+            .map(|encoded| EncodingSummary::of(model.unit_matrix(), &encoded))
+            .map_err(|e| e.to_string());
+        let force: Vec<f64> = Axis::ALL
+            .iter()
+            .map(|&axis| model.load(axis).iter().sum())
+            .collect();
+        let loads = format!(
+            "{} point load(s), total on free nodes ({}, {}, {}) N",
+            spec.loads.len(),
+            force[0],
+            force[1],
+            force[2]
+        );
+        Self {
+            model_line: format!(
+                "{} grid, {}, {}",
+                spec.grid, spec.connection, spec.elasticity
+            ),
+            n: k.n(),
+            nnz: k.nnz(),
+            max_row_nnz: k.max_row_nnz(),
+            sparsity: k.sparsity(),
+            sparsity_estimate: k.sparsity_estimate(),
+            bandwidth: k.bandwidth(),
+            symmetric: k.is_symmetric(),
+            fixed_nodes: model.fixed_count(),
+            loads,
+            encoding,
+        }
+    }
+}
+
+impl fmt::Display for ModelReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(f, "model          {}", self.model_line)?;
+        writeln!(f, "fixed nodes    {}", self.fixed_nodes)?;
+        writeln!(f, "loads          {}", self.loads)?;
+        writeln!(f, "n              {}", self.n)?;
+        writeln!(
+            f,
+            "nnz            {} (K_x; every direction has the same pattern)",
+            self.nnz
+        )?;
+        writeln!(
+            f,
+            "sparsity       {:.4} % exact (1 − nnz/n²), {:.4} % by thesis eq. 37 (1 − {}/n)",
+            100.0 * self.sparsity,
+            100.0 * self.sparsity_estimate,
+            self.max_row_nnz
+        )?;
+        writeln!(
+            f,
+            "bandwidth      {} (max |i − j| over nonzeros)",
+            self.bandwidth
+        )?;
+        writeln!(
+            f,
+            "symmetric      {}",
+            if self.symmetric {
+                "yes (checked)"
+            } else {
+                "NO"
+            }
+        )?;
+        match &self.encoding {
+            Ok(e) => {
+                let error = match e.max_quantization_error {
+                    0.0 => "0 (exact)".to_string(),
+                    error => format!("{error:.3e}"),
+                };
+                writeln!(
+                    f,
+                    "encoding of A  {} tile(s), {} words, {} fractional bits, max quantization error {error}",
+                    e.tiles, e.words, e.frac_bits
+                )
+            }
+            Err(reason) => writeln!(f, "encoding of A  not possible: {reason}"),
+        }
+    }
+}
+
+/// Runs `deform model`.
+pub fn run(args: &ModelCommandArgs) -> anyhow::Result<()> {
+    let model = args
+        .model
+        .build()
+        .context("the model flags do not describe a solvable model")?;
+    let report = ModelReport::of(&model);
+    let mut stdout = io::stdout().lock();
+    write!(stdout, "{report}").context("writing the report to stdout")?;
+    for node in model.loads_on_fixed_nodes() {
+        eprintln!("warning: the load at node {node} acts on a fixed node and is ignored");
+    }
+    if Axis::ALL
+        .iter()
+        .all(|&axis| model.load(axis).iter().all(|&f| f == 0.0))
+    {
+        eprintln!(
+            "warning: every load is zero (or on fixed nodes), so the displacements are all zero"
+        );
+    }
+    if let Some(path) = &args.export_mtx {
+        export_stiffness(&model, path)?;
+        writeln!(stdout, "exported K_x  {}", path.display()).context("writing to stdout")?;
+    }
+    Ok(())
+}
+
+/// Writes K_x to `path` in Matrix Market format.
+fn export_stiffness(model: &Model, path: &Path) -> anyhow::Result<()> {
+    let k = model.stiffness_matrix(Axis::X);
+    let spec = model.spec();
+    let comment = format!(
+        "deform: K_x = k_x·A, {} grid, {}, {}, {} fixed node(s)\nnode index = i + nx·(j + ny·k), 1-based here",
+        spec.grid,
+        spec.connection,
+        spec.elasticity,
+        model.fixed_count()
+    );
+    let file = File::create(path).with_context(|| format!("writing {}", path.display()))?;
+    write_matrix_market(&k, &comment, BufWriter::new(file))
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::{Connection, ModelSpec};
+
+    #[test]
+    fn report_of_the_thesis_example() {
+        let model = Model::build(&ModelSpec::thesis_example()).unwrap();
+        let report = ModelReport::of(&model);
+        assert_eq!(report.n, 1000);
+        assert_eq!(report.max_row_nnz, 7);
+        assert_eq!(report.bandwidth, 100);
+        assert!(report.symmetric);
+        assert_eq!(report.fixed_nodes, 8);
+        // 1000 diagonals + 2·2700 springs, minus the 2·3 spring entries at each corner.
+        assert_eq!(report.nnz, 1000 + 2 * 2700 - 8 * 6);
+        assert!((report.sparsity_estimate - 0.993).abs() < 1e-12);
+        let encoding = report.encoding.clone().unwrap();
+        assert_eq!(encoding.words, report.nnz);
+        assert_eq!(encoding.max_quantization_error, 0.0);
+        let text = report.to_string();
+        assert!(text.contains("symmetric      yes"), "{text}");
+        assert!(text.contains("bandwidth      100"), "{text}");
+    }
+
+    #[test]
+    fn report_says_why_a_wide_band_cannot_be_encoded() {
+        let grid = crate::model::Grid::new(16, 16, 16).unwrap();
+        let spec = ModelSpec {
+            grid,
+            connection: Connection::AxialShear,
+            loads: vec![ModelSpec::default_load(grid)],
+            ..ModelSpec::thesis_example()
+        };
+        let report = ModelReport::of(&Model::build(&spec).unwrap());
+        assert!(report.encoding.is_err());
+        assert!(report.to_string().contains("not possible"));
+    }
+
+    #[test]
+    fn export_writes_a_readable_file_and_reports_bad_paths() {
+        let model = Model::build(&ModelSpec::thesis_example()).unwrap();
+        let dir = std::env::temp_dir().join(format!("deform-model-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("k.mtx");
+        export_stiffness(&model, &path).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        let mut lines = text.lines().filter(|l| !l.starts_with('%'));
+        assert_eq!(lines.next(), Some("1000 1000 6352"));
+        assert_eq!(lines.count(), 6352);
+        std::fs::remove_dir_all(&dir).unwrap();
+
+        let missing = dir.join("no-such-dir").join("k.mtx");
+        let message = format!("{:#}", export_stiffness(&model, &missing).unwrap_err());
+        assert!(
+            message.starts_with("writing ") && message.contains("k.mtx"),
+            "{message}"
+        );
+    }
+}

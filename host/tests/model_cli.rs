@@ -1,0 +1,126 @@
+//! `deform model` end to end: exit codes, output and the exported Matrix Market file.
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+fn deform(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_deform"))
+        .args(args)
+        .output()
+        .expect("the deform binary runs")
+}
+
+fn stdout(output: &Output) -> String {
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+fn stderr(output: &Output) -> String {
+    String::from_utf8_lossy(&output.stderr).into_owned()
+}
+
+#[test]
+fn default_scenario_reports_the_thesis_example() {
+    let out = deform(&["model"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = stdout(&out);
+    for needle in [
+        "10×10×10 grid, model A",
+        "k_x = 1, k_y = 2, k_z = 0.5",
+        "fixed nodes    8",
+        "n              1000",
+        "nnz            6352",
+        "99.3000 % by thesis eq. 37",
+        "bandwidth      100",
+        "symmetric      yes",
+        "17 fractional bits",
+        "0 (exact)",
+    ] {
+        assert!(text.contains(needle), "'{needle}' missing from:\n{text}");
+    }
+}
+
+#[test]
+fn model_b_has_27_nonzeros_per_row_and_band_111() {
+    let out = deform(&["model", "--model", "b"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = stdout(&out);
+    assert!(
+        text.contains("1 − 27/n") && text.contains("bandwidth      111"),
+        "{text}"
+    );
+}
+
+#[test]
+fn exports_k_x_in_matrix_market_format() {
+    let dir = std::env::temp_dir().join(format!("deform-cli-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path: PathBuf = dir.join("k.mtx");
+    let out = deform(&[
+        "model",
+        "--grid",
+        "2,2,2",
+        "--k",
+        "2,1,1",
+        "--export-mtx",
+        path.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = std::fs::read_to_string(&path).unwrap();
+    std::fs::remove_dir_all(&dir).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(
+        lines.next(),
+        Some("%%MatrixMarket matrix coordinate real general")
+    );
+    let body: Vec<&str> = lines.filter(|l| !l.starts_with('%')).collect();
+    // 2×2×2 with all 8 corners fixed: K_x = 2·3·I, only the diagonal is left.
+    assert_eq!(body[0], "8 8 8");
+    let expected: Vec<String> = (1..=8).map(|p| format!("{p} {p} 6e0")).collect();
+    assert_eq!(
+        body[1..],
+        expected.iter().map(String::as_str).collect::<Vec<_>>()[..]
+    );
+}
+
+#[test]
+fn bad_flags_fail_with_a_clear_message() {
+    let cases: &[(&[&str], &str)] = &[
+        (&["model", "--grid", "10,10"], "--grid"),
+        (&["model", "--k", "0"], "greater than 0"),
+        (&["model", "--fix", "edges"], "'edges'"),
+        (&["model", "--load", "1,2,3"], "I,J,K:FX,FY,FZ"),
+        (
+            &["model", "--load", "10,0,0:1,0,0"],
+            "outside the 10×10×10 grid",
+        ),
+        (&["model", "--fix", "none"], "no node is fixed"),
+        (
+            &["model", "--export-mtx", "/nonexistent-dir/k.mtx"],
+            "writing /nonexistent-dir/k.mtx",
+        ),
+    ];
+    for (args, needle) in cases {
+        let out = deform(args);
+        assert!(!out.status.success(), "{args:?} succeeded");
+        let message = stderr(&out);
+        assert!(
+            message.contains(needle),
+            "{args:?}: '{needle}' not in {message}"
+        );
+        assert!(!message.contains("panicked"), "{args:?}: {message}");
+    }
+}
+
+#[test]
+fn loads_only_on_fixed_nodes_warn_but_succeed() {
+    let out = deform(&["model", "--load", "0,0,0:1,0,0"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(stderr(&out).contains("fixed node and is ignored"));
+}
+
+#[test]
+fn too_wide_a_band_is_reported() {
+    let out = deform(&["model", "--grid", "16,16,16", "--model", "b"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(stdout(&out).contains("not supported yet"));
+}
