@@ -19,7 +19,7 @@ use deform_target_core::session::{Session, Storage, DIRECTION_PAD};
 /// What the fake target got from the host.
 #[derive(Debug)]
 pub enum Received {
-    Request(Envelope<Request>),
+    Request(Box<Envelope<Request>>),
     Unreadable(FrameError),
 }
 
@@ -57,7 +57,7 @@ pub fn serve(mut stream: UnixStream, mut answer: impl FnMut(Received) -> Vec<u8>
                     Feed::Pending => continue,
                     Feed::Overflow => Received::Unreadable(FrameError::TooLong),
                     Feed::Frame(body) => match frame::decode(body) {
-                        Ok(envelope) => Received::Request(envelope),
+                        Ok(envelope) => Received::Request(Box::new(envelope)),
                         Err(e) => Received::Unreadable(e),
                     },
                 };
