@@ -4,9 +4,12 @@
 //! - [`reference`]: the f64 conjugate-gradient baseline;
 //! - [`encode`]: K as tiles of MVU instruction words;
 //! - [`cli_model`]: the model flags shared by subcommands; [`commands`]: the subcommands.
+pub mod board;
 pub mod cli_model;
 pub mod commands;
 pub mod encode;
 pub mod link;
 pub mod model;
+pub mod output;
 pub mod reference;
+pub mod refine;

@@ -20,12 +20,16 @@ enum Command {
     /// Build the tissue model from the model flags and print the properties of its stiffness
     /// matrix K (size, sparsity, bandwidth, symmetry) and of its instruction-word encoding.
     Model(commands::model::ModelCommandArgs),
+    /// Solve the model for the displacements of every node, on the QEMU soft core (default), a
+    /// real board (--port) or the host's f64 reference (--target host).
+    Solve(commands::solve::SolveArgs),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match &cli.command {
         Command::Model(args) => commands::model::run(args),
+        Command::Solve(args) => commands::solve::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

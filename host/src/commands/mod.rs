@@ -3,3 +3,4 @@
 //! uses anyhow: the library modules return typed errors and the commands add context.
 
 pub mod model;
+pub mod solve;

@@ -85,10 +85,7 @@ impl ModelReport {
             force[2]
         );
         Self {
-            model_line: format!(
-                "{} grid, {}, {}",
-                spec.grid, spec.connection, spec.elasticity
-            ),
+            model_line: spec.describe(),
             n: k.n(),
             nnz: k.nnz(),
             max_row_nnz: k.max_row_nnz(),

@@ -8,30 +8,29 @@ use super::LinkError;
 /// The target's UART speed. A pty ignores it; a USB-serial board needs it.
 pub const BAUD_RATE: u32 = 115_200;
 
-/// A byte stream to a target whose reads can be bounded in time.
+/// A byte stream to a target whose reads and writes can be bounded in time.
 ///
-/// [`Link`](super::Link) sets the read timeout before every read so that the overall deadline of
-/// a request holds whatever the peer does.
+/// [`Link`](super::Link) sets the timeout before every read and write so that the overall
+/// deadline of a request holds whatever the peer does.
 pub trait Port: Read + Write + Send {
-    /// Bounds the next reads: a read that receives nothing for `timeout` fails with
+    /// Bounds the next reads and writes: one that makes no progress for `timeout` fails with
     /// [`io::ErrorKind::TimedOut`] or [`io::ErrorKind::WouldBlock`].
-    fn set_read_timeout(&mut self, timeout: Duration) -> io::Result<()>;
+    fn set_timeout(&mut self, timeout: Duration) -> io::Result<()>;
 }
 
 impl Port for Box<dyn SerialPort> {
-    fn set_read_timeout(&mut self, timeout: Duration) -> io::Result<()> {
-        self.set_timeout(timeout).map_err(io::Error::from)
+    fn set_timeout(&mut self, timeout: Duration) -> io::Result<()> {
+        SerialPort::set_timeout(self.as_mut(), timeout).map_err(io::Error::from)
     }
 }
 
 #[cfg(unix)]
 impl Port for std::os::unix::net::UnixStream {
-    fn set_read_timeout(&mut self, timeout: Duration) -> io::Result<()> {
+    fn set_timeout(&mut self, timeout: Duration) -> io::Result<()> {
         // A zero timeout means "block forever" to the socket API.
-        std::os::unix::net::UnixStream::set_read_timeout(
-            self,
-            Some(timeout.max(Duration::from_millis(1))),
-        )
+        let timeout = Some(timeout.max(Duration::from_millis(1)));
+        self.set_read_timeout(timeout)?;
+        self.set_write_timeout(timeout)
     }
 }
 

@@ -8,7 +8,7 @@ use deform_shared::protocol::{
 use deform_shared::qformat::{block_exponent, from_mantissa, to_mantissa};
 use serialport::SerialPort;
 
-use super::wire::{UnreadableFrameAnswers, DEFAULT_REQUEST_TIMEOUT};
+use super::wire::{Exchange, DEFAULT_REQUEST_TIMEOUT};
 use super::{open_serial, request_name, Capacity, Link, LinkError, LinkStats, Port};
 use crate::encode::EncodedMatrix;
 
@@ -268,7 +268,7 @@ fn hello<P: Port>(link: &mut Link<P>, timeouts: &Timeouts) -> Result<TargetInfo,
     loop {
         let left = deadline.saturating_duration_since(Instant::now());
         let attempt = left.min(timeouts.hello_retry);
-        match link.exchange(&request, attempt, UnreadableFrameAnswers::Skip) {
+        match link.exchange(&request, attempt, Exchange::Handshake) {
             Ok(Response::Hello(info)) if info.protocol_version == PROTOCOL_VERSION => {
                 return Ok(info)
             }
@@ -578,6 +578,23 @@ mod tests {
         let target = Target::handshake(Link::new(host), quick()).unwrap();
         assert_eq!(target.stats().requests, 2);
         assert_eq!(target.stats().stale_answers, 10);
+    }
+
+    #[test]
+    fn the_handshake_skips_a_stale_answer_that_happens_to_carry_its_number() {
+        let (host, target) = UnixStream::pair().unwrap();
+        serve(target, |received| match received {
+            Received::Request(req) => {
+                let code = ErrorCode::OutOfOrder(SessionStep::NoMatrixUpload);
+                let mut out = answer_frame(req.seq, Response::Error(code));
+                out.extend(answer_frame(req.seq, Response::Ack));
+                out.extend(answer_frame(req.seq, Response::Hello(info())));
+                out
+            }
+            Received::Unreadable(_) => Vec::new(),
+        });
+        let target = Target::handshake(Link::new(host), quick()).unwrap();
+        assert_eq!(target.stats().stale_answers, 2);
     }
 
     #[test]

@@ -12,16 +12,18 @@ pub const DEFAULT_REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
 /// Bytes asked of the port per read.
 const READ_CHUNK: usize = 256;
 
-/// What the target said about frames it could not read, whose sequence number it therefore
-/// answered with [`UNKNOWN_SEQ`].
+/// Which answers an exchange takes as its own.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum UnreadableFrameAnswers {
-    /// Mid-session the line is clean, so such an answer is about our request: fail with it
-    /// rather than wait for an answer that will never come.
-    Fail,
-    /// While handshaking, such answers are about noise that preceded our request (a previous
-    /// session's leftovers, or our own flushing delimiter ending a partial frame): skip them.
-    Skip,
+pub(crate) enum Exchange {
+    /// Mid-session the line is clean: the answer with our sequence number is ours, and a
+    /// complaint about an unreadable frame ([`UNKNOWN_SEQ`]) is about our request, so it fails
+    /// the request rather than leave it waiting for an answer that will never come.
+    Request,
+    /// While handshaking, the line may still carry noise and a previous session's answers (and
+    /// our own flushing delimiter may end a partial frame, which the target then complains
+    /// about). Only a `Hello` or a version complaint with our sequence number is ours;
+    /// everything else is skipped.
+    Handshake,
 }
 
 /// Counters of what a [`Link`] saw, for diagnostics and tests.
@@ -108,11 +110,12 @@ impl<P: Port> Link<P> {
         request: &Request,
         timeout: Duration,
     ) -> Result<Response, LinkError> {
-        self.exchange(request, timeout, UnreadableFrameAnswers::Fail)
+        self.exchange(request, timeout, Exchange::Request)
     }
 
     /// Writes bytes as they are, outside any frame: for tests that put noise on the line.
     pub fn send_raw(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
+        self.port.set_timeout(self.timeout)?;
         self.port.write_all(bytes)?;
         self.port.flush()?;
         Ok(())
@@ -126,7 +129,7 @@ impl<P: Port> Link<P> {
         &mut self,
         request: &Request,
         timeout: Duration,
-        unreadable: UnreadableFrameAnswers,
+        kind: Exchange,
     ) -> Result<Response, LinkError> {
         let name = request_name(request);
         let seq = self.take_seq();
@@ -139,6 +142,8 @@ impl<P: Port> Link<P> {
                 source,
             },
         )?;
+        // A target that is slow to drain its input may hold up our write, but not forever.
+        self.port.set_timeout(timeout)?;
         self.port.write_all(&out[..start + len])?;
         self.port.flush()?;
         self.flushed = true;
@@ -152,7 +157,9 @@ impl<P: Port> Link<P> {
                     after: timeout,
                 });
             };
-            if answer.seq == seq {
+            let ours = answer.seq == seq
+                && (kind == Exchange::Request || is_handshake_answer(&answer.body));
+            if ours {
                 return match answer.body {
                     Response::Error(code) => Err(LinkError::Target {
                         request: name,
@@ -161,7 +168,7 @@ impl<P: Port> Link<P> {
                     body => Ok(body),
                 };
             }
-            if answer.seq == UNKNOWN_SEQ && unreadable == UnreadableFrameAnswers::Fail {
+            if answer.seq == UNKNOWN_SEQ && kind == Exchange::Request {
                 if let Response::Error(code @ ErrorCode::Frame(_)) = answer.body {
                     return Err(LinkError::Target {
                         request: name,
@@ -201,7 +208,7 @@ impl<P: Port> Link<P> {
             if left.is_zero() {
                 return Ok(None);
             }
-            self.port.set_read_timeout(left)?;
+            self.port.set_timeout(left)?;
             let mut buf = [0u8; READ_CHUNK];
             match self.port.read(&mut buf) {
                 Ok(0) => {
@@ -226,6 +233,13 @@ impl<P: Port> Link<P> {
             }
         }
     }
+}
+
+fn is_handshake_answer(body: &Response) -> bool {
+    matches!(
+        body,
+        Response::Hello(_) | Response::Error(ErrorCode::VersionMismatch { .. })
+    )
 }
 
 /// A starting sequence number that differs between runs, so that answers still in flight from

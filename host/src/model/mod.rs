@@ -54,6 +54,14 @@ pub struct ModelSpec {
 impl ModelSpec {
     /// The numerical example of thesis 2.6: a 10×10×10 cube, model A, k = (1, 2, 0.5) N/m, the
     /// eight corners fixed and 1 N in +x at the centre of the x = 0 face.
+    /// One line for people: grid, spring network and elasticity.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} grid, {}, {}",
+            self.grid, self.connection, self.elasticity
+        )
+    }
+
     pub fn thesis_example() -> Self {
         let grid = Grid::new(10, 10, 10).expect("10×10×10 is a valid grid");
         Self {

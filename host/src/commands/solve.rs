@@ -1,0 +1,365 @@
+//! `deform solve`: build the model, solve K_d·u_d = f_d for the three directions on the chosen
+//! target, compare with the f64 reference, print a summary and write the displacements.
+//!
+//! The target receives A once (thesis eq. 38: K_d = k_d·A) and solves A·u_d = f_d / k_d for each
+//! direction against the resident matrix.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{bail, Context};
+use clap::{Args, ValueEnum};
+use serde::Serialize;
+
+use crate::board::{Board, BoardChoice};
+use crate::cli_model::ModelArgs;
+use crate::encode::encode;
+use crate::link::Timeouts;
+use crate::model::{Axis, Model};
+use crate::output::{node_rows, write_displacements, OutputFormat};
+use crate::reference;
+use crate::refine::{solve_refined, RefineParams};
+
+/// Where CG runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum TargetKind {
+    /// Boot the firmware in QEMU (riscv32 `virt`) and drive it over its serial pty.
+    Qemu,
+    /// The f64 reference CG on this computer (the thesis's "general purpose computer").
+    Host,
+}
+
+/// Solve the tissue model for the displacements u_x, u_y, u_z of every node.
+#[derive(Debug, Clone, Args)]
+pub struct SolveArgs {
+    #[command(flatten)]
+    pub model: ModelArgs,
+
+    /// Where CG runs: `qemu` boots the firmware under QEMU, `host` uses the f64 reference solver.
+    /// Ignored when --port names a real board.
+    #[arg(long, value_enum, default_value_t = TargetKind::Qemu)]
+    pub target: TargetKind,
+
+    /// Serial device of a real board running the deform firmware (e.g. /dev/ttyUSB0).
+    /// Default: none, use --target.
+    #[arg(long, value_name = "PATH")]
+    pub port: Option<String>,
+
+    /// Firmware ELF for --target qemu. Default: $DEFORM_FIRMWARE, else the release build in
+    /// firmware/target (`cargo xtask firmware` builds it).
+    #[arg(long, value_name = "ELF")]
+    pub firmware: Option<PathBuf>,
+
+    /// Stop when the true relative residual ‖f − K·u‖₂/‖f‖₂ of each direction, measured in f64
+    /// on the host, is at most this. Below ~1e-7 the host refines the target's fixed-point
+    /// answer (see --max-solves).
+    #[arg(long, default_value_t = 1e-8, value_parser = parse_tolerance)]
+    pub tol: f64,
+
+    /// CG iterations allowed per target solve. Default: 10·n.
+    #[arg(long, value_name = "N")]
+    pub max_iter: Option<u32>,
+
+    /// Target solves allowed per direction: the first, plus refinement steps on the host's f64
+    /// residual.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_solves: u32,
+
+    /// Seconds one target solve may take before the host gives up.
+    #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u64).range(1..))]
+    pub timeout: u64,
+
+    /// Write the displacements: FILE.csv gets `i,j,k,ux,uy,uz` per node, FILE.json the same
+    /// plus the solver statistics. Default: no file, summary only.
+    #[arg(long, value_name = "FILE")]
+    pub out: Option<PathBuf>,
+}
+
+fn parse_tolerance(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(t) if t.is_finite() && t > 0.0 && t < 1.0 => Ok(t),
+        Ok(_) => Err("the tolerance must be a number in (0, 1)".into()),
+        Err(e) => Err(format!("not a number: {e}")),
+    }
+}
+
+/// Statistics of one direction's solve.
+#[derive(Debug, Clone, Serialize)]
+pub struct DirectionStats {
+    pub axis: &'static str,
+    /// The direction's spring elasticity k_d (K_d = k_d·A).
+    pub k: f64,
+    pub iterations: u32,
+    /// Target solves (1 + refinement steps); 0 for the host target or a zero load.
+    pub solves: u32,
+    /// True ‖f − K·u‖₂/‖f‖₂.
+    pub relative_residual: f64,
+    /// max |u − u_ref| / max |u_ref| against the f64 reference (target runs only).
+    pub deviation_from_reference: Option<f64>,
+    pub mvu_cycles: u64,
+    pub mvu_instructions: u64,
+    pub svu_cycles: u64,
+    pub svu_instructions: u64,
+    /// MVU instructions per executed instruction word (nonzero).
+    pub mvu_instructions_per_nonzero: Option<f64>,
+    /// (MVU + SVU) cycles per CG iteration.
+    pub cycles_per_iteration: Option<f64>,
+}
+
+/// Everything a solve reports (the JSON `stats` object).
+#[derive(Debug, Clone, Serialize)]
+pub struct SolveStats {
+    pub target: String,
+    pub model: String,
+    pub n: usize,
+    pub nnz: usize,
+    pub fixed_nodes: usize,
+    /// Instruction words and tiles of A as sent, and its value format.
+    pub words: Option<usize>,
+    pub tiles: Option<usize>,
+    pub frac_bits: Option<u8>,
+    pub tolerance: f64,
+    pub directions: Vec<DirectionStats>,
+    pub max_displacement: f64,
+    /// Largest deviation over all directions, relative to the largest reference |u|.
+    pub max_deviation_from_reference: Option<f64>,
+}
+
+/// A solved model: the displacements and how they were obtained.
+pub struct Solved {
+    pub u: [Vec<f64>; 3],
+    pub reference: [Vec<f64>; 3],
+    pub stats: SolveStats,
+}
+
+/// Where and how to solve, once the flags are parsed.
+pub struct SolvePlan {
+    /// `None`: the host's f64 reference only.
+    pub board: Option<BoardChoice>,
+    pub tol: f64,
+    pub max_iter: Option<u32>,
+    pub max_solves: u32,
+    pub solve_timeout: Duration,
+}
+
+impl SolveArgs {
+    pub fn plan(&self) -> SolvePlan {
+        let board = match (&self.port, self.target) {
+            (Some(port), _) => Some(BoardChoice::Port(port.clone())),
+            (None, TargetKind::Qemu) => Some(BoardChoice::Qemu {
+                firmware: self.firmware.clone(),
+            }),
+            (None, TargetKind::Host) => None,
+        };
+        SolvePlan {
+            board,
+            tol: self.tol,
+            max_iter: self.max_iter,
+            max_solves: self.max_solves,
+            solve_timeout: Duration::from_secs(self.timeout),
+        }
+    }
+}
+
+fn max_abs(v: &[f64]) -> f64 {
+    v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
+}
+
+fn axis_name(axis: Axis) -> &'static str {
+    ["x", "y", "z"][axis.position()]
+}
+
+/// Solves all three directions of `model` as `plan` says.
+pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
+    let a = model.unit_matrix();
+    let n = model.n();
+    let max_iter = plan
+        .max_iter
+        .unwrap_or((10 * n).min(u32::MAX as usize) as u32);
+    let rhs: Vec<Vec<f64>> = Axis::ALL.iter().map(|&d| model.scaled_rhs(d)).collect();
+
+    // The f64 reference, always: it is the answer for --target host and the yardstick otherwise.
+    let reference_tol = if plan.board.is_some() {
+        1e-12
+    } else {
+        plan.tol
+    };
+    let mut reference: Vec<reference::Solution> = Vec::new();
+    for (d, b) in Axis::ALL.iter().zip(&rhs) {
+        let sol = reference::solve(a, b, None, reference_tol, 10 * n.max(100))
+            .with_context(|| format!("f64 reference solve, {} direction", axis_name(*d)))?;
+        if !sol.converged {
+            bail!(
+                "the f64 reference CG did not converge in the {} direction (residual {:.3e})",
+                axis_name(*d),
+                sol.relative_residual
+            );
+        }
+        reference.push(sol);
+    }
+
+    let mut stats = SolveStats {
+        target: "host (f64 reference CG)".into(),
+        model: model.spec().describe(),
+        n,
+        nnz: a.nnz(),
+        fixed_nodes: model.fixed_count(),
+        words: None,
+        tiles: None,
+        frac_bits: None,
+        tolerance: plan.tol,
+        directions: Vec::new(),
+        max_displacement: 0.0,
+        max_deviation_from_reference: None,
+    };
+    let mut u: [Vec<f64>; 3] = Default::default();
+
+    match &plan.board {
+        None => {
+            for (d, sol) in Axis::ALL.iter().zip(&reference) {
+                u[d.position()] = sol.x.clone();
+                stats.directions.push(DirectionStats {
+                    axis: axis_name(*d),
+                    k: model.direction_scale(*d),
+                    iterations: sol.iterations as u32,
+                    solves: 0,
+                    relative_residual: sol.relative_residual,
+                    deviation_from_reference: None,
+                    mvu_cycles: 0,
+                    mvu_instructions: 0,
+                    svu_cycles: 0,
+                    svu_instructions: 0,
+                    mvu_instructions_per_nonzero: None,
+                    cycles_per_iteration: None,
+                });
+            }
+        }
+        Some(choice) => {
+            let encoded = encode(a).context("encoding A as instruction words")?;
+            stats.words = Some(encoded.words.len());
+            stats.tiles = Some(encoded.tiles.len());
+            stats.frac_bits = Some(encoded.frac_bits);
+            let timeouts = Timeouts {
+                solve: plan.solve_timeout,
+                ..Timeouts::default()
+            };
+            let mut board = Board::open(choice, timeouts)?;
+            stats.target = board.describe();
+            board
+                .target
+                .upload_matrix(&encoded)
+                .context("uploading A to the target")?;
+            let params = RefineParams {
+                tol: plan.tol,
+                max_solves: plan.max_solves,
+                max_iterations: max_iter,
+            };
+            let scale = reference.iter().map(|s| max_abs(&s.x)).fold(0.0, f64::max);
+            for (d, b) in Axis::ALL.iter().zip(&rhs) {
+                let got = solve_refined(&mut board.target, a, b, params).with_context(|| {
+                    format!("solving the {} direction on the target", axis_name(*d))
+                })?;
+                let reference_x = &reference[d.position()].x;
+                let deviation = got
+                    .x
+                    .iter()
+                    .zip(reference_x)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max);
+                let per_iteration =
+                    |v: u64| (got.iterations > 0).then(|| v as f64 / got.iterations as f64);
+                stats.directions.push(DirectionStats {
+                    axis: axis_name(*d),
+                    k: model.direction_scale(*d),
+                    iterations: got.iterations,
+                    solves: got.solves,
+                    relative_residual: got.relative_residual,
+                    deviation_from_reference: Some(if scale > 0.0 {
+                        deviation / scale
+                    } else {
+                        deviation
+                    }),
+                    mvu_cycles: got.mvu.cycles,
+                    mvu_instructions: got.mvu.instructions,
+                    svu_cycles: got.svu.cycles,
+                    svu_instructions: got.svu.instructions,
+                    mvu_instructions_per_nonzero: (got.iterations > 0
+                        && got.words_per_iteration > 0)
+                        .then(|| {
+                            got.mvu.instructions as f64
+                                / (got.iterations as f64 * got.words_per_iteration as f64)
+                        }),
+                    cycles_per_iteration: per_iteration(got.mvu.cycles + got.svu.cycles),
+                });
+                u[d.position()] = got.x;
+            }
+            stats.max_deviation_from_reference = stats
+                .directions
+                .iter()
+                .filter_map(|d| d.deviation_from_reference)
+                .reduce(f64::max);
+        }
+    }
+    stats.max_displacement = u.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+    let reference = reference
+        .into_iter()
+        .map(|s| s.x)
+        .collect::<Vec<_>>()
+        .try_into()
+        .unwrap_or_default();
+    Ok(Solved {
+        u,
+        reference,
+        stats,
+    })
+}
+
+/// Prints the summary a person reads after a solve.
+fn print_summary(stats: &SolveStats) {
+    println!("target      {}", stats.target);
+    println!("model       {}", stats.model);
+    println!(
+        "size        n = {}, nnz = {}, fixed nodes = {}",
+        stats.n, stats.nnz, stats.fixed_nodes
+    );
+    if let (Some(w), Some(t), Some(f)) = (stats.words, stats.tiles, stats.frac_bits) {
+        println!(
+            "encoding    {w} words in {t} tiles, Q{}.{f} values",
+            20 - f as i32
+        );
+    }
+    for d in &stats.directions {
+        print!(
+            "u{}  (k = {}) iterations {:>5}, solves {}, residual {:.2e}",
+            d.axis, d.k, d.iterations, d.solves, d.relative_residual
+        );
+        if let Some(dev) = d.deviation_from_reference {
+            print!(", deviation from f64 {dev:.2e}");
+        }
+        println!();
+        if let (Some(ipn), Some(cpi)) = (d.mvu_instructions_per_nonzero, d.cycles_per_iteration) {
+            println!(
+                "            MVU {} cycles / {} instr, SVU {} cycles / {} instr; {ipn:.2} MVU instr per nonzero, {cpi:.0} cycles per iteration",
+                d.mvu_cycles, d.mvu_instructions, d.svu_cycles, d.svu_instructions
+            );
+        }
+    }
+    println!("max |u|     {:.6e}", stats.max_displacement);
+    if let Some(dev) = stats.max_deviation_from_reference {
+        println!("max deviation from the f64 reference: {dev:.3e} of max |u|");
+    }
+}
+
+pub fn run(args: &SolveArgs) -> anyhow::Result<()> {
+    if let Some(out) = &args.out {
+        OutputFormat::of(out)?;
+    }
+    let model = args.model.build().context("building the model")?;
+    let solved = solve_model(&model, &args.plan())?;
+    print_summary(&solved.stats);
+    if let Some(out) = &args.out {
+        write_displacements(out, &node_rows(&model, &solved.u), &solved.stats)?;
+        println!("wrote       {}", out.display());
+    }
+    Ok(())
+}
