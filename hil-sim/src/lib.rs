@@ -158,6 +158,8 @@ pub struct Qemu {
     /// never blocks on a full pipe.
     stdout: Arc<Mutex<String>>,
     stderr: Arc<Mutex<String>>,
+    /// The collector threads, joined once QEMU has exited so that its last words are in.
+    collectors: Vec<thread::JoinHandle<()>>,
     exit: Option<ExitStatus>,
 }
 
@@ -191,15 +193,18 @@ impl Qemu {
         let (pty_tx, pty_rx) = mpsc::channel();
         let out_pipe = child.stdout.take().expect("stdout is piped");
         let err_pipe = child.stderr.take().expect("stderr is piped");
-        spawn_line_collector(out_pipe, Arc::clone(&stdout), Some(pty_tx.clone()));
-        // QEMU versions differ on which stream the announcement goes to.
-        spawn_line_collector(err_pipe, Arc::clone(&stderr), Some(pty_tx));
+        let collectors = vec![
+            spawn_line_collector(out_pipe, Arc::clone(&stdout), pty_tx.clone()),
+            // QEMU versions differ on which stream the announcement goes to.
+            spawn_line_collector(err_pipe, Arc::clone(&stderr), pty_tx),
+        ];
 
         let mut qemu = Qemu {
             child,
             pty: PathBuf::new(),
             stdout,
             stderr,
+            collectors,
             exit: None,
         };
         let deadline = Instant::now() + config.start_timeout;
@@ -212,10 +217,8 @@ impl Qemu {
                 }
                 Err(mpsc::RecvTimeoutError::Timeout)
                 | Err(mpsc::RecvTimeoutError::Disconnected) => {
-                    if let Some(status) = qemu.child.try_wait().map_err(HilError::Wait)? {
-                        qemu.exit = Some(status);
-                        // Let the reader threads collect QEMU's last words.
-                        thread::sleep(Duration::from_millis(50));
+                    if qemu.try_exit_code()?.is_some() {
+                        let status = qemu.exit.expect("try_exit_code saw the exit");
                         return Err(HilError::ExitedEarly {
                             status,
                             stderr: qemu.stderr(),
@@ -248,6 +251,12 @@ impl Qemu {
     pub fn try_exit_code(&mut self) -> Result<Option<i32>, HilError> {
         if self.exit.is_none() {
             self.exit = self.child.try_wait().map_err(HilError::Wait)?;
+            if self.exit.is_some() {
+                // The pipes are closed now, so the collectors finish promptly.
+                for collector in self.collectors.drain(..) {
+                    let _ = collector.join();
+                }
+            }
         }
         Ok(self.exit.map(exit_code))
     }
@@ -266,7 +275,8 @@ impl Qemu {
         }
     }
 
-    /// What QEMU printed on stderr so far (its error messages).
+    /// What QEMU printed on stderr so far (its error messages); all of it once
+    /// [`try_exit_code`](Self::try_exit_code) or [`wait_exit`](Self::wait_exit) saw it exit.
     pub fn stderr(&self) -> String {
         self.stderr.lock().map(|s| s.clone()).unwrap_or_default()
     }
@@ -295,8 +305,8 @@ fn exit_code(status: ExitStatus) -> i32 {
 fn spawn_line_collector(
     pipe: impl Read + Send + 'static,
     log: Arc<Mutex<String>>,
-    pty_tx: Option<mpsc::Sender<PathBuf>>,
-) {
+    pty_tx: mpsc::Sender<PathBuf>,
+) -> thread::JoinHandle<()> {
     thread::spawn(move || {
         let mut reader = BufReader::new(pipe);
         let mut line = Vec::new();
@@ -307,14 +317,14 @@ fn spawn_line_collector(
                 Ok(_) => {}
             }
             let text = String::from_utf8_lossy(&line);
-            if let (Some(tx), Some(pty)) = (&pty_tx, parse_pty_announcement(&text)) {
-                let _ = tx.send(pty);
+            if let Some(pty) = parse_pty_announcement(&text) {
+                let _ = pty_tx.send(pty);
             }
             if let Ok(mut log) = log.lock() {
                 log.push_str(&text);
             }
         }
-    });
+    })
 }
 
 /// `char device redirected to /dev/pts/3 (label serial0)` → `/dev/pts/3`.
@@ -376,6 +386,27 @@ mod tests {
             text.contains("cargo xtask setup") && text.contains("qemu-system-misc"),
             "{text}"
         );
+    }
+
+    /// Needs QEMU (`cargo xtask setup`): an empty kernel image makes it exit at once.
+    #[test]
+    fn a_qemu_exit_is_seen_with_its_stderr() {
+        let empty =
+            std::env::temp_dir().join(format!("deform-empty-kernel-{}", std::process::id()));
+        std::fs::write(&empty, b"").unwrap();
+        let started = Qemu::start(&QemuConfig::new(&empty));
+        let stderr = match started {
+            // QEMU may announce the pty before it tries the kernel.
+            Ok(mut qemu) => {
+                assert_eq!(qemu.wait_exit(Duration::from_secs(10)).unwrap(), Some(1));
+                assert_eq!(qemu.try_exit_code().unwrap(), Some(1));
+                qemu.stderr()
+            }
+            Err(HilError::ExitedEarly { stderr, .. }) => stderr,
+            Err(other) => panic!("unexpected error: {other}"),
+        };
+        std::fs::remove_file(&empty).unwrap();
+        assert!(stderr.contains("could not load kernel"), "{stderr:?}");
     }
 
     #[test]

@@ -1,0 +1,171 @@
+//! Shared by the QEMU tests: booting, connecting, and small SPD systems with f64 references.
+
+use std::time::Duration;
+
+use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
+use deform_host::encode::EncodedMatrix;
+use deform_host::link::{Target, Timeouts};
+use deform_shared::matrix::TileHeader;
+use deform_shared::qformat::{choose_frac_bits, dequantize, quantize};
+use deform_shared::word::{Word, COLUMN_WINDOW};
+
+/// Boots the firmware; a missing ELF or QEMU fails the test with the fix in the message.
+pub fn boot() -> Qemu {
+    let config = QemuConfig::new(firmware_elf());
+    Qemu::start(&config).unwrap_or_else(|e| panic!("cannot boot the firmware: {e}"))
+}
+
+/// Generous deadlines: CI machines are slow and QEMU notices the pty only once a second.
+pub fn timeouts() -> Timeouts {
+    Timeouts {
+        handshake: Duration::from_secs(20),
+        hello_retry: Duration::from_secs(2),
+        request: Duration::from_secs(20),
+        solve: Duration::from_secs(120),
+    }
+}
+
+/// Connects through the very code path a real board uses.
+pub fn connect(qemu: &Qemu) -> Target {
+    let pty = qemu.pty_path().to_str().expect("pty paths are ASCII");
+    Target::connect(pty, timeouts())
+        .unwrap_or_else(|e| panic!("no handshake: {e}\nQEMU stderr:\n{}", qemu.stderr()))
+}
+
+/// Asserts that QEMU is still running (the firmware did not panic or fault).
+pub fn assert_alive(qemu: &mut Qemu) {
+    let exit = qemu.try_exit_code().expect("QEMU's status");
+    assert_eq!(
+        exit,
+        None,
+        "QEMU exited (101 = firmware panic, 102 = CPU exception); stderr:\n{}",
+        qemu.stderr()
+    );
+}
+
+/// A symmetric banded matrix of order `n`: 2 on the diagonal and -1/h on the `h` nearest
+/// off-diagonals on either side. Every row sums to at most 0 but the first and last are strictly
+/// dominant, so it is SPD; `h = 1` is the 1-D Laplacian.
+pub fn banded_spd(n: u32, half_bandwidth: u32) -> EncodedMatrix {
+    let h = half_bandwidth;
+    assert!(h >= 1 && 2 * h < COLUMN_WINDOW);
+    let frac_bits = choose_frac_bits(2.0).unwrap();
+    let diagonal = quantize(2.0, frac_bits).unwrap() as i64;
+    let off_diagonal = quantize(-1.0 / h as f64, frac_bits).unwrap() as i64;
+    // A tile's rows touch `h` columns on either side; they must stay in its 512-column window.
+    let tile_rows = COLUMN_WINDOW - 2 * h;
+    let mut tiles = Vec::new();
+    let mut words = Vec::new();
+    let mut row_base = 0;
+    while row_base < n {
+        let rows = tile_rows.min(n - row_base);
+        let col_base = row_base.saturating_sub(h);
+        let first = words.len();
+        for r in row_base..row_base + rows {
+            let columns = r.saturating_sub(h)..=(r + h).min(n - 1);
+            let last_column = *columns.end();
+            for c in columns {
+                let raw = if c == r { diagonal } else { off_diagonal };
+                let end_of_row = c == last_column;
+                let end_of_tile = end_of_row && r + 1 == row_base + rows;
+                words.push(
+                    Word::new(c - col_base, raw, end_of_row, end_of_tile)
+                        .unwrap()
+                        .bits(),
+                );
+            }
+        }
+        tiles.push(TileHeader {
+            row_base,
+            col_base,
+            rows,
+            words: (words.len() - first) as u32,
+        });
+        row_base += rows;
+    }
+    EncodedMatrix {
+        n,
+        frac_bits,
+        tiles,
+        words,
+    }
+}
+
+/// The encoded matrix as the target sees it, dense, in f64.
+pub fn decode_dense(matrix: &EncodedMatrix) -> Vec<Vec<f64>> {
+    let n = matrix.n as usize;
+    let mut dense = vec![vec![0.0; n]; n];
+    let mut words = matrix.words.iter();
+    for tile in &matrix.tiles {
+        let mut row = tile.row_base as usize;
+        for &bits in words.by_ref().take(tile.words as usize) {
+            let word = Word(bits);
+            let column = (tile.col_base + word.column()) as usize;
+            dense[row][column] += dequantize(word.raw_value(), matrix.frac_bits).unwrap();
+            row += word.end_of_row() as usize;
+        }
+    }
+    dense
+}
+
+/// Solves the SPD system `a x = b` in f64 by Cholesky factorisation.
+pub fn cholesky_solve(a: &[Vec<f64>], b: &[f64]) -> Vec<f64> {
+    let n = b.len();
+    let mut l = vec![vec![0.0; n]; n];
+    for i in 0..n {
+        for j in 0..=i {
+            let dot: f64 = (0..j).map(|k| l[i][k] * l[j][k]).sum();
+            if i == j {
+                let pivot = a[i][i] - dot;
+                assert!(pivot > 0.0, "the reference matrix is not positive definite");
+                l[i][i] = pivot.sqrt();
+            } else {
+                l[i][j] = (a[i][j] - dot) / l[j][j];
+            }
+        }
+    }
+    let mut y = vec![0.0; n];
+    for i in 0..n {
+        y[i] = (b[i] - (0..i).map(|k| l[i][k] * y[k]).sum::<f64>()) / l[i][i];
+    }
+    let mut x = vec![0.0; n];
+    for i in (0..n).rev() {
+        x[i] = (y[i] - (i + 1..n).map(|k| l[k][i] * x[k]).sum::<f64>()) / l[i][i];
+    }
+    x
+}
+
+/// max |got - want| / max |want|.
+pub fn max_relative_error(got: &[f64], want: &[f64]) -> f64 {
+    assert_eq!(got.len(), want.len());
+    let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    got.iter()
+        .zip(want)
+        .map(|(g, w)| (g - w).abs())
+        .fold(0.0, f64::max)
+        / scale
+}
+
+/// A fixed-seed xorshift generator: the noise is the same in every run.
+pub struct Noise(u64);
+
+impl Noise {
+    pub fn new(seed: u64) -> Self {
+        Noise(seed.max(1))
+    }
+
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0
+    }
+
+    pub fn bytes(&mut self, len: usize) -> Vec<u8> {
+        (0..len).map(|_| self.next_u64() as u8).collect()
+    }
+
+    pub fn below(&mut self, bound: usize) -> usize {
+        (self.next_u64() % bound as u64) as usize
+    }
+}
