@@ -28,6 +28,11 @@ use std::time::{Duration, Instant};
 /// The QEMU binary that emulates the 32-bit RISC-V `virt` machine.
 pub const QEMU_BINARY: &str = "qemu-system-riscv32";
 
+/// Where `cargo build --release` in the firmware's workspace puts the ELF, relative to the
+/// workspace root (`cargo xtask firmware` builds it there).
+pub const FIRMWARE_BUILD_PATH: &str =
+    "firmware/target/riscv32imac-unknown-none-elf/release/deform-firmware";
+
 /// Overrides [`firmware_elf`]'s default path when set.
 pub const FIRMWARE_ENV: &str = "DEFORM_FIRMWARE";
 
@@ -50,7 +55,7 @@ pub fn firmware_elf() -> PathBuf {
 fn default_firmware_elf() -> PathBuf {
     let manifest_dir = Path::new(env!("CARGO_MANIFEST_DIR"));
     let workspace_root = manifest_dir.parent().unwrap_or(manifest_dir);
-    workspace_root.join("firmware/target/riscv32imac-unknown-none-elf/release/deform-firmware")
+    workspace_root.join(FIRMWARE_BUILD_PATH)
 }
 
 /// Why QEMU could not be started or did not behave.

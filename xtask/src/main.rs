@@ -18,15 +18,13 @@ use std::process::{Command, ExitCode};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
+// Where the firmware lands, which environment variable points the HIL tests and
+// `deform --target qemu` at it, and which QEMU runs it: one definition, in hil-sim.
+use deform_hil_sim::{FIRMWARE_BUILD_PATH, FIRMWARE_ENV, QEMU_BINARY};
 
 const RISCV_TARGET: &str = "riscv32imac-unknown-none-elf";
-const QEMU_BINARY: &str = "qemu-system-riscv32";
 /// The Debian package that holds `qemu-system-riscv32`.
 const QEMU_PACKAGE: &str = "qemu-system-misc";
-/// Where `cargo build --release` in `firmware/` puts the ELF (see `deform_hil_sim::firmware_elf`).
-const FIRMWARE_ELF: &str = "firmware/target/riscv32imac-unknown-none-elf/release/deform-firmware";
-/// Read by the HIL tests and by `deform --target qemu` to find the ELF.
-const FIRMWARE_ENV: &str = "DEFORM_FIRMWARE";
 /// The scenario `cargo xtask run` solves when given no arguments.
 const DEFAULT_RUN_ARGS: &[&str] = &["--target", "qemu"];
 
@@ -258,7 +256,7 @@ fn build_firmware() -> Result<PathBuf> {
         "build the firmware (release)",
         firmware_cargo().args(["build", "--release"]),
     )?;
-    let elf = root.join(FIRMWARE_ELF);
+    let elf = root.join(FIRMWARE_BUILD_PATH);
     if !elf.is_file() {
         bail!(
             "the firmware built, but {} is missing: the firmware's binary must be named \
@@ -270,16 +268,21 @@ fn build_firmware() -> Result<PathBuf> {
     Ok(elf)
 }
 
-fn run(args: &[String]) -> Result<()> {
+/// The arguments for `deform solve`: those after an optional `--`, or the default scenario.
+fn solve_args(args: &[String]) -> Vec<OsString> {
     let args = match args.first().map(String::as_str) {
         Some("--") => &args[1..],
         _ => args,
     };
-    let solve_args: Vec<OsString> = if args.is_empty() {
+    if args.is_empty() {
         DEFAULT_RUN_ARGS.iter().map(OsString::from).collect()
     } else {
         args.iter().map(OsString::from).collect()
-    };
+    }
+}
+
+fn run(args: &[String]) -> Result<()> {
+    let solve_args = solve_args(args);
     setup()?;
     let elf = build_firmware()?;
     step(
@@ -330,4 +333,44 @@ fn test() -> Result<()> {
         "test (workspace, QEMU hardware-in-the-loop included)",
         cargo().args(["test", "--workspace"]).env(FIRMWARE_ENV, elf),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn strings(args: &[&str]) -> Vec<String> {
+        args.iter().map(|a| a.to_string()).collect()
+    }
+
+    #[test]
+    fn run_passes_arguments_after_the_separator_or_the_default_scenario() {
+        assert_eq!(solve_args(&[]), ["--target", "qemu"]);
+        assert_eq!(solve_args(&strings(&["--"])), ["--target", "qemu"]);
+        assert_eq!(
+            solve_args(&strings(&["--", "--target", "host"])),
+            ["--target", "host"]
+        );
+        assert_eq!(solve_args(&strings(&["--json"])), ["--json"]);
+    }
+
+    #[test]
+    fn the_firmware_build_drops_settings_that_would_move_or_alter_it() {
+        let cmd = firmware_cargo();
+        let removed: Vec<_> = cmd
+            .get_envs()
+            .filter(|(_, v)| v.is_none())
+            .map(|(k, _)| k.to_owned())
+            .collect();
+        for var in ["CARGO_TARGET_DIR", "RUSTFLAGS", "CARGO_BUILD_TARGET"] {
+            assert!(
+                removed.iter().any(|k| k == var),
+                "{var} leaks into the firmware build"
+            );
+        }
+        assert_eq!(
+            cmd.get_current_dir(),
+            Some(workspace_root().join("firmware").as_path())
+        );
+    }
 }
