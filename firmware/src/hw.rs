@@ -1,0 +1,158 @@
+//! The QEMU `virt` devices the firmware touches: the ns16550 UART, the SiFive test device (to
+//! exit QEMU) and the hart's cycle/instruction counters. All the firmware's MMIO is here.
+
+use deform_shared::protocol::PhaseCounters;
+use deform_target_core::cg::PhaseClock;
+
+/// ns16550 UART0 of QEMU `virt`.
+const UART0: usize = 0x1000_0000;
+/// Receiver buffer (read) / transmitter holding register (write).
+const RBR_THR: usize = 0;
+/// Interrupt enable.
+const IER: usize = 1;
+/// Line status.
+const LSR: usize = 5;
+const LSR_DATA_READY: u8 = 1 << 0;
+const LSR_THR_EMPTY: u8 = 1 << 5;
+
+/// Platform-level interrupt controller of QEMU `virt`, and UART0's source number on it.
+const PLIC: usize = 0x0c00_0000;
+const PLIC_UART0: usize = 10;
+/// Per-source priority registers.
+const PLIC_PRIORITY: usize = PLIC;
+/// Enable bits of context 0 (hart 0, M-mode).
+const PLIC_ENABLE_CTX0: usize = PLIC + 0x2000;
+/// Priority threshold and claim/complete registers of context 0.
+const PLIC_THRESHOLD_CTX0: usize = PLIC + 0x20_0000;
+const PLIC_CLAIM_CTX0: usize = PLIC + 0x20_0004;
+/// IER bit: interrupt when received data is available.
+const IER_RX_AVAILABLE: u8 = 1 << 0;
+
+/// SiFive test device ("sifive,test0") of QEMU `virt`.
+const TEST_DEVICE: usize = 0x10_0000;
+const TEST_PASS: u32 = 0x5555;
+const TEST_FAIL: u32 = 0x3333;
+
+fn mmio_read32(addr: usize) -> u32 {
+    // SAFETY: only called with the PLIC register addresses above, always mapped on QEMU virt;
+    // reading them has no effect on Rust-visible memory.
+    unsafe { core::ptr::read_volatile(addr as *const u32) }
+}
+
+fn mmio_write32(addr: usize, value: u32) {
+    // SAFETY: only called with the PLIC and test device addresses above, always mapped on QEMU
+    // virt; writing them has no effect on Rust-visible memory (the test device may stop QEMU).
+    unsafe { core::ptr::write_volatile(addr as *mut u32, value) }
+}
+
+fn uart_read(offset: usize) -> u8 {
+    // SAFETY: UART0 + offset (offset ≤ 7) is a byte register of QEMU virt's ns16550, always
+    // mapped, with no side effect on Rust-visible memory.
+    unsafe { core::ptr::read_volatile((UART0 + offset) as *const u8) }
+}
+
+fn uart_write(offset: usize, value: u8) {
+    // SAFETY: as in `uart_read`.
+    unsafe { core::ptr::write_volatile((UART0 + offset) as *mut u8, value) }
+}
+
+// The UART's line settings and FIFOs are set up first thing at boot, before riscv-rt zeroes
+// .bss (riscv-rt's `pre-init` hook, which must be assembly): enabling the FIFOs resets them, and
+// zeroing our 4 MiB of storage takes 10–20 ms of real time under QEMU, during which a host that
+// is quick to send its first request would have had it cut short. Only t0/t1 are used, as
+// riscv-rt requires.
+//
+// - LCR = DLAB, DLL = 1, DLM = 0: divisor 1, the fastest rate. QEMU raises the receive
+//   interrupt for a partly filled FIFO only after 4 character times at the programmed rate (4 ms
+//   at its reset rate of 9600 baud, 0.1 ms at divisor 1), which is how long the last bytes of
+//   every frame would otherwise wait.
+// - LCR = 0x03: 8 data bits, no parity, 1 stop bit, DLAB off.
+// - FCR = 0xC7: FIFOs on and cleared, receive trigger level 14 (QEMU hands the UART at most
+//   trigger-level bytes at a time).
+core::arch::global_asm!(
+    r#".section .text.__pre_init, "ax"
+    .global __pre_init
+__pre_init:
+    li t0, {uart}
+    li t1, 0x80
+    sb t1, 3(t0)
+    li t1, 1
+    sb t1, 0(t0)
+    sb zero, 1(t0)
+    li t1, 0x03
+    sb t1, 3(t0)
+    li t1, 0xC7
+    sb t1, 2(t0)
+    ret"#,
+    uart = const UART0,
+);
+
+/// The UART, polled, with FIFOs on, 8N1.
+///
+/// While it waits for input the hart sleeps in `wfi` rather than spinning on the line status:
+/// the UART's receive interrupt is routed through the PLIC to `mie.MEIE`, which wakes `wfi`
+/// even though interrupts stay globally disabled (`mstatus.MIE` = 0, so no trap is taken).
+/// Under `-icount` this matters: a spinning hart holds QEMU's I/O back, and a 64-word `Words`
+/// round trip took ~11 ms instead of ~4 ms.
+pub struct Uart(());
+
+impl Uart {
+    /// Sets up the UART's wake-up path. Call once. (The line itself was set up by
+    /// `__pre_init`, before RAM initialisation; see above.)
+    pub fn init() -> Self {
+        uart_write(IER, IER_RX_AVAILABLE);
+        mmio_write32(PLIC_PRIORITY + 4 * PLIC_UART0, 1);
+        mmio_write32(PLIC_ENABLE_CTX0, 1 << PLIC_UART0);
+        mmio_write32(PLIC_THRESHOLD_CTX0, 0);
+        // SAFETY: enables only the wake-up of `wfi` by external interrupts; with
+        // `mstatus.MIE` clear (riscv-rt leaves it clear and nothing sets it) no trap is taken.
+        unsafe { riscv::register::mie::set_mext() };
+        Uart(())
+    }
+
+    /// Waits for the next received byte.
+    pub fn read(&mut self) -> u8 {
+        while uart_read(LSR) & LSR_DATA_READY == 0 {
+            riscv::asm::wfi();
+            // Claim and complete whatever woke us, so that the PLIC can signal the next one.
+            let source = mmio_read32(PLIC_CLAIM_CTX0);
+            if source != 0 {
+                mmio_write32(PLIC_CLAIM_CTX0, source);
+            }
+        }
+        uart_read(RBR_THR)
+    }
+
+    pub fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            while uart_read(LSR) & LSR_THR_EMPTY == 0 {}
+            uart_write(RBR_THR, b);
+        }
+    }
+}
+
+/// Ends the QEMU process: with status 0 for `code == 0`, else with status `code` (1..=0xFFFF).
+pub fn exit(code: u16) -> ! {
+    let value = if code == 0 {
+        TEST_PASS
+    } else {
+        (u32::from(code) << 16) | TEST_FAIL
+    };
+    mmio_write32(TEST_DEVICE, value);
+    // Not on QEMU (or the write did not stop it): park the hart.
+    loop {
+        core::hint::spin_loop();
+    }
+}
+
+/// Charges the solver's phases with `mcycle`/`minstret` (exact under QEMU `-icount shift=0`).
+pub struct CsrClock;
+
+impl PhaseClock for CsrClock {
+    fn now(&self) -> PhaseCounters {
+        PhaseCounters {
+            cycles: riscv::register::mcycle::read64(),
+            instructions: riscv::register::minstret::read64(),
+        }
+    }
+}

@@ -1,0 +1,99 @@
+//! The firmware's static storage: the matrix store and the vectors, lent to the session.
+
+use core::cell::UnsafeCell;
+use core::sync::atomic::{AtomicBool, Ordering};
+
+use deform_shared::matrix::TileHeader;
+use deform_target_core::session::{Storage, DIRECTION_PAD};
+
+/// Instruction words the matrix store holds (2 MiB).
+pub const WORD_CAPACITY: usize = 512 * 1024;
+/// Tile headers the matrix store holds (64 KiB).
+pub const TILE_CAPACITY: usize = 4096;
+/// Largest dimension: six vectors of 256 KiB (p 2 KiB more) and K·p of 512 KiB.
+pub const MAX_N: usize = 65536;
+
+/// Everything the session works in. All zero at boot, so it lands in `.bss`.
+pub struct Buffers {
+    words: [u32; WORD_CAPACITY],
+    tiles: [TileHeader; TILE_CAPACITY],
+    b: [i32; MAX_N],
+    x: [i32; MAX_N],
+    x0: [i32; MAX_N],
+    r: [i32; MAX_N],
+    p: [i32; MAX_N + DIRECTION_PAD],
+    kp: [i64; MAX_N],
+}
+
+const NO_TILE: TileHeader = TileHeader {
+    row_base: 0,
+    col_base: 0,
+    rows: 0,
+    words: 0,
+};
+
+impl Buffers {
+    const ZERO: Buffers = Buffers {
+        words: [0; WORD_CAPACITY],
+        tiles: [NO_TILE; TILE_CAPACITY],
+        b: [0; MAX_N],
+        x: [0; MAX_N],
+        x0: [0; MAX_N],
+        r: [0; MAX_N],
+        p: [0; MAX_N + DIRECTION_PAD],
+        kp: [0; MAX_N],
+    };
+
+    /// Lends all buffers to a session.
+    pub fn storage(&mut self) -> Storage<'_> {
+        Storage {
+            words: &mut self.words,
+            tiles: &mut self.tiles,
+            b: &mut self.b,
+            x: &mut self.x,
+            x0: &mut self.x0,
+            r: &mut self.r,
+            p: &mut self.p,
+            kp: &mut self.kp,
+        }
+    }
+}
+
+/// A `static` whose contents can be borrowed mutably exactly once, for the whole program.
+///
+/// This is the one place the firmware needs `unsafe` for memory: it turns a `static` into a
+/// `&'static mut` without `static mut`, guarded by an atomic flag so that a second `take` (from
+/// any hart) gets `None` instead of an aliasing reference.
+pub struct TakeOnce<T> {
+    taken: AtomicBool,
+    value: UnsafeCell<T>,
+}
+
+// SAFETY: `value` is only reached through the single `&mut` that `take` hands out, so sharing
+// the `TakeOnce` itself between harts shares nothing but the atomic flag; moving that `&mut T`
+// to another hart needs `T: Send`.
+unsafe impl<T: Send> Sync for TakeOnce<T> {}
+
+impl<T> TakeOnce<T> {
+    pub const fn new(value: T) -> Self {
+        Self {
+            taken: AtomicBool::new(false),
+            value: UnsafeCell::new(value),
+        }
+    }
+
+    /// The contents, the first time; `None` ever after.
+    // A `&mut` from a `&` is this type's purpose; the flag makes it unique.
+    #[allow(clippy::mut_from_ref)]
+    pub fn take(&'static self) -> Option<&'static mut T> {
+        if self.taken.swap(true, Ordering::AcqRel) {
+            return None;
+        }
+        // SAFETY: the swap returned `false`, which happens exactly once, so no other reference
+        // to `value` exists or will ever be created; it lives as long as the static.
+        Some(unsafe { &mut *self.value.get() })
+    }
+}
+
+/// The storage, taken once by `main`.
+pub static BUFFERS: TakeOnce<Buffers> = TakeOnce::new(Buffers::ZERO);
