@@ -29,6 +29,36 @@ fn boots_and_shakes_hands() {
 }
 
 #[test]
+fn a_second_host_session_can_follow_the_first() {
+    let mut qemu = boot();
+    let mut first = connect(&qemu);
+    first.upload_matrix(&banded_spd(32, 1)).unwrap();
+    // Leave mid-session with an upload half done, as a crashed host would.
+    first
+        .link_mut()
+        .request(&Request::BeginMatrix {
+            n: 32,
+            frac_bits: 18,
+            tiles: 1,
+            words: 94,
+        })
+        .unwrap();
+    drop(first);
+    // Long enough for QEMU to see the pty closed: it then drops the firmware's output and polls
+    // for a new reader only once a second, the state a board is in between two CLI runs.
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+
+    let mut second = connect(&qemu);
+    let matrix = banded_spd(32, 1);
+    second.upload_matrix(&matrix).unwrap();
+    let (report, x) = second.solve_for(&[1.0; 32], solve_params()).unwrap();
+    assert!(report.converged, "{report:?}");
+    let err = max_relative_error(&x, &cholesky_solve(&decode_dense(&matrix), &[1.0; 32]));
+    assert!(err < 1e-5, "max relative error {err:e}");
+    assert_alive(&mut qemu);
+}
+
+#[test]
 fn line_noise_neither_crashes_nor_confuses_the_firmware() {
     let mut qemu = boot();
     let pty = qemu.pty_path().to_str().unwrap().to_owned();
