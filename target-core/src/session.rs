@@ -49,13 +49,12 @@ use deform_shared::protocol::{
     CHUNK_LEN, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{MANTISSA_LIMIT, MAX_FRAC_BITS};
-use deform_shared::word::COLUMN_WINDOW;
 
 use crate::cg::{self, Matrix, PhaseClock, Scratch};
 
 /// Extra elements the search direction `p` needs beyond n: the MVU reads a tile's whole
-/// 512-column window of p (see [`cg::Scratch`]).
-pub const DIRECTION_PAD: usize = COLUMN_WINDOW as usize;
+/// 512-column window of p (see [`cg::Scratch`] and [`cg::direction_len`]).
+pub const DIRECTION_PAD: usize = cg::direction_len(0);
 
 /// The memory a [`Session`] works in, lent by its owner.
 ///
@@ -543,7 +542,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
             x.get_mut(..n),
             x0.get(..n),
             r.get_mut(..n),
-            p.get_mut(..n.saturating_add(DIRECTION_PAD)),
+            p.get_mut(..cg::direction_len(n)),
             kp.get_mut(..n),
         ) else {
             return Err(too_large);
