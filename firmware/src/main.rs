@@ -9,6 +9,9 @@
 //! - Storage ([`store`]): a matrix store of 512 Ki words and 4096 tiles, vectors for n ≤ 65536,
 //!   all static and zeroed at boot (`.bss`).
 //! - Timing: the solver's phases are charged with `mcycle`/`minstret`, exact under `-icount`.
+//! - UART ([`hw::Uart`]): set up in riscv-rt's pre-init hook, before the storage is zeroed, so
+//!   that a request sent as soon as QEMU starts is not cut short; while waiting for input the
+//!   hart sleeps in `wfi` (woken through the PLIC, interrupts stay globally off).
 //! - The byte stream can be anything: undecodable frames are answered with
 //!   `Error(Frame(..))` and sequence number [`UNKNOWN_SEQ`], overlong ones with
 //!   `Error(Frame(TooLong))`.

@@ -10,7 +10,7 @@
 //! # Capacities
 //!
 //! [`Session::new`] clamps the capacities advertised in the [`TargetInfo`] to what the lent
-//! slices really hold (`max_n` is the shortest vector), sets `protocol_version` to
+//! slices really hold (`max_n` is the largest n that all vectors hold), sets `protocol_version` to
 //! [`PROTOCOL_VERSION`], and then enforces exactly the capacities it advertises.
 //!
 //! # Policies
