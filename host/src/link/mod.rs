@@ -28,4 +28,4 @@ mod test_systems;
 pub use error::{Capacity, LinkError};
 pub use port::{open_serial, Port, BAUD_RATE};
 pub use target::{Target, Timeouts, UploadProgress};
-pub use wire::{request_name, Link, LinkStats};
+pub use wire::{request_name, Link, LinkStats, DEFAULT_REQUEST_TIMEOUT};
