@@ -671,7 +671,7 @@ mod tests {
         let m = encode(rows, 17, 250);
         assert_eq!(m.tiles.len(), 4);
         let mut b = vec![0.0; 1000];
-        b[50 * 10 + 50 / 10 * 0 + 0] = 1.0;
+        b[5 * 10 + 5 * 100] = 1.0; // node (0, 5, 5)
         let run = run(&m, &b, None, 1e-9).unwrap();
         assert!(run.report.converged, "{:?}", run.report);
         let reference = reference(&m.rows, &b);
