@@ -1,4 +1,6 @@
 //! Shared by the QEMU tests: booting, connecting, and small SPD systems with f64 references.
+// Each test binary that includes this module uses a different subset of it.
+#![allow(dead_code)]
 
 use std::time::Duration;
 

@@ -1,0 +1,95 @@
+//! Whole scenarios solved on the firmware in QEMU through `deform solve`'s own code path
+//! (`solve_model` over the pty with `serialport`), each displacement checked against the host's
+//! f64 reference solver.
+
+mod support;
+
+use std::time::Duration;
+
+use deform_host::board::BoardChoice;
+use deform_host::cli_model::{ConnectionArg, ModelArgs};
+use deform_host::commands::solve::{solve_model, SolvePlan, Solved};
+use deform_host::model::{Node, PointLoad};
+
+use support::*;
+
+/// Fails above this deviation from the f64 reference, relative to max |u|.
+const MAX_DEVIATION: f64 = 1e-3;
+
+fn solve_on_qemu(args: &ModelArgs, tol: f64, max_solves: u32) -> Solved {
+    let mut qemu = boot();
+    let model = args.build().expect("model builds");
+    let plan = SolvePlan {
+        board: Some(BoardChoice::Port(
+            qemu.pty_path().to_string_lossy().into_owned(),
+        )),
+        tol,
+        max_iter: None,
+        max_solves,
+        solve_timeout: Duration::from_secs(120),
+    };
+    let solved = solve_model(&model, &plan).expect("solve on QEMU");
+    assert_alive(&mut qemu);
+    solved
+}
+
+/// max over nodes and directions of |u − u_ref|, relative to max |u_ref|; printed and returned.
+fn deviation(label: &str, solved: &Solved) -> f64 {
+    let scale = solved
+        .reference
+        .iter()
+        .flatten()
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!(scale > 0.0, "{label}: the reference displacement is zero");
+    let worst = solved
+        .u
+        .iter()
+        .zip(&solved.reference)
+        .flat_map(|(u, r)| u.iter().zip(r).map(|(a, b)| (a - b).abs()))
+        .fold(0.0f64, f64::max);
+    let rel = worst / scale;
+    println!("{label}: max |u| = {scale:.6e}, max relative error against f64 = {rel:.3e}");
+    rel
+}
+
+#[test]
+fn default_scenario_matches_f64_from_fixed_point_alone() {
+    // One target solve per direction, no refinement: the fixed-point CG's own accuracy.
+    let solved = solve_on_qemu(&ModelArgs::default(), 1e-6, 1);
+    let rel = deviation("thesis cube, model A", &solved);
+    assert!(rel < MAX_DEVIATION, "deviation {rel:e}");
+    let x = &solved.stats.directions[0];
+    assert_eq!(x.solves, 1);
+    assert!(
+        x.iterations > 0 && x.mvu_instructions > 0 && x.svu_instructions > 0,
+        "{x:?}"
+    );
+    // The load pushes the loaded node in +x.
+    let loaded = 5 * 10 + 5 * 100;
+    assert!(solved.u[0][loaded] > 0.0);
+}
+
+#[test]
+fn model_b_with_loads_in_every_direction_matches_f64() {
+    let args = ModelArgs {
+        connection: ConnectionArg::B,
+        load: vec![
+            PointLoad {
+                node: Node { i: 5, j: 5, k: 9 },
+                force: [0.3, -1.0, 0.5],
+            },
+            PointLoad {
+                node: Node { i: 2, j: 7, k: 3 },
+                force: [0.0, 0.25, -2.0],
+            },
+        ],
+        ..ModelArgs::default()
+    };
+    let solved = solve_on_qemu(&args, 1e-10, 8);
+    let rel = deviation("10³ model B, three directions", &solved);
+    assert!(rel < MAX_DEVIATION, "deviation {rel:e}");
+    for d in &solved.stats.directions {
+        assert!(d.relative_residual <= 1e-10, "{d:?}");
+        assert!(d.iterations > 0, "{d:?}");
+    }
+}
