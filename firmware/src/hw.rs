@@ -10,6 +10,14 @@ const UART0: usize = 0x1000_0000;
 const RBR_THR: usize = 0;
 /// Interrupt enable.
 const IER: usize = 1;
+/// FIFO control (write).
+const FCR: usize = 2;
+/// Line control.
+const LCR: usize = 3;
+const LCR_DLAB: u8 = 1 << 7;
+/// Divisor latch, low and high byte (with `LCR_DLAB` set).
+const DLL: usize = 0;
+const DLM: usize = 1;
 /// Line status.
 const LSR: usize = 5;
 const LSR_DATA_READY: u8 = 1 << 0;
@@ -56,50 +64,34 @@ fn uart_write(offset: usize, value: u8) {
     unsafe { core::ptr::write_volatile((UART0 + offset) as *mut u8, value) }
 }
 
-// The UART's line settings and FIFOs are set up first thing at boot, before riscv-rt zeroes
-// .bss (riscv-rt's `pre-init` hook, which must be assembly): enabling the FIFOs resets them, and
-// zeroing our 4 MiB of storage takes 10–20 ms of real time under QEMU, during which a host that
-// is quick to send its first request would have had it cut short. Only t0/t1 are used, as
-// riscv-rt requires.
-//
-// - LCR = DLAB, DLL = 1, DLM = 0: divisor 1, the fastest rate. QEMU raises the receive
-//   interrupt for a partly filled FIFO only after 4 character times at the programmed rate (4 ms
-//   at its reset rate of 9600 baud, 0.1 ms at divisor 1), which is how long the last bytes of
-//   every frame would otherwise wait.
-// - LCR = 0x03: 8 data bits, no parity, 1 stop bit, DLAB off.
-// - FCR = 0xC7: FIFOs on and cleared, receive trigger level 14 (QEMU hands the UART at most
-//   trigger-level bytes at a time).
-core::arch::global_asm!(
-    r#".section .text.__pre_init, "ax"
-    .global __pre_init
-__pre_init:
-    li t0, {uart}
-    li t1, 0x80
-    sb t1, 3(t0)
-    li t1, 1
-    sb t1, 0(t0)
-    sb zero, 1(t0)
-    li t1, 0x03
-    sb t1, 3(t0)
-    li t1, 0xC7
-    sb t1, 2(t0)
-    ret"#,
-    uart = const UART0,
-);
-
-/// The UART, polled, with FIFOs on, 8N1.
+/// The UART, polled, 8N1, divisor 1.
 ///
 /// While it waits for input the hart sleeps in `wfi` rather than spinning on the line status:
 /// the UART's receive interrupt is routed through the PLIC to `mie.MEIE`, which wakes `wfi`
 /// even though interrupts stay globally disabled (`mstatus.MIE` = 0, so no trap is taken).
 /// Under `-icount` this matters: a spinning hart holds QEMU's I/O back, and a 64-word `Words`
 /// round trip took ~11 ms instead of ~4 ms.
-pub struct Uart(());
+///
+/// The FIFOs start off and are switched on by [`Uart::enable_fifos`] at the first quiet moment.
+/// Switching them on clears them, and the 4 MiB of storage take 10–20 ms of real time to zero
+/// at boot under QEMU, so enabling them during start-up regularly cut short a request the host
+/// had sent as soon as QEMU was up. Without FIFOs QEMU holds bytes back until the single
+/// receive register is read, so nothing is lost before then, only slower (one byte per wake-up).
+pub struct Uart {
+    fifos: bool,
+}
 
 impl Uart {
-    /// Sets up the UART's wake-up path. Call once. (The line itself was set up by
-    /// `__pre_init`, before RAM initialisation; see above.)
+    /// Sets the UART and its wake-up path up. Call once.
     pub fn init() -> Self {
+        // Divisor 1, the fastest rate. With FIFOs on, QEMU raises the receive interrupt for a
+        // partly filled FIFO only after 4 character times at the programmed rate (4 ms at its
+        // reset rate of 9600 baud, 0.1 ms at divisor 1), which is how long the last bytes of
+        // every frame would otherwise wait.
+        uart_write(LCR, LCR_DLAB);
+        uart_write(DLL, 1);
+        uart_write(DLM, 0);
+        uart_write(LCR, 0x03); // 8 data bits, no parity, 1 stop bit, DLAB off
         uart_write(IER, IER_RX_AVAILABLE);
         mmio_write32(PLIC_PRIORITY + 4 * PLIC_UART0, 1);
         mmio_write32(PLIC_ENABLE_CTX0, 1 << PLIC_UART0);
@@ -107,7 +99,17 @@ impl Uart {
         // SAFETY: enables only the wake-up of `wfi` by external interrupts; with
         // `mstatus.MIE` clear (riscv-rt leaves it clear and nothing sets it) no trap is taken.
         unsafe { riscv::register::mie::set_mext() };
-        Uart(())
+        Uart { fifos: false }
+    }
+
+    /// Switches the FIFOs on (receive trigger level 14: QEMU then hands the UART up to 14 bytes
+    /// at a time), once. Call it only when the peer is not sending: between a complete request
+    /// and its response (the host speaks only after each response), since it clears them.
+    pub fn enable_fifos(&mut self) {
+        if !self.fifos {
+            uart_write(FCR, 0xC7);
+            self.fifos = true;
+        }
     }
 
     /// Waits for the next received byte.

@@ -9,9 +9,9 @@
 //! - Storage ([`store`]): a matrix store of 512 Ki words and 4096 tiles, vectors for n ≤ 65536,
 //!   all static and zeroed at boot (`.bss`).
 //! - Timing: the solver's phases are charged with `mcycle`/`minstret`, exact under `-icount`.
-//! - UART ([`hw::Uart`]): set up in riscv-rt's pre-init hook, before the storage is zeroed, so
-//!   that a request sent as soon as QEMU starts is not cut short; while waiting for input the
-//!   hart sleeps in `wfi` (woken through the PLIC, interrupts stay globally off).
+//! - UART ([`hw::Uart`]): while waiting for input the hart sleeps in `wfi` (woken through the
+//!   PLIC; interrupts stay globally off). Its FIFOs go on only after the first request, so that
+//!   a request sent while the firmware still boots is not lost.
 //! - The byte stream can be anything: undecodable frames are answered with
 //!   `Error(Frame(..))` and sequence number [`UNKNOWN_SEQ`], overlong ones with
 //!   `Error(Frame(TooLong))`.
@@ -93,6 +93,8 @@ fn main() -> ! {
 /// Writes one framed response. Every response fits a frame (a shared test checks the largest);
 /// should one not, the peer gets `Error(Frame(BufferTooSmall))` with the same sequence number.
 fn send(uart: &mut Uart, out: &mut [u8], seq: u16, body: Response) {
+    // A request is complete and the host awaits its answer: the line is quiet.
+    uart.enable_fifos();
     let len = frame::encode(&Envelope { seq, body }, out).or_else(|e| {
         let body = Response::Error(ErrorCode::Frame(e));
         frame::encode(&Envelope { seq, body }, out)
