@@ -10,7 +10,8 @@
 use clap::{Args, ValueEnum};
 
 use crate::model::{
-    Connection, Elasticity, FixedNodeSet, Grid, Model, ModelError, ModelSpec, Node, PointLoad,
+    Connection, Elasticity, FacePressure, FixedNodeSet, Grid, Model, ModelError, ModelSpec, Node,
+    PointLoad, PrescribedDisplacement,
 };
 
 /// `--model`: the thesis's letters for the two spring networks.
@@ -91,6 +92,34 @@ pub struct ModelArgs {
         allow_hyphen_values = true
     )]
     pub load: Vec<PointLoad>,
+
+    /// Prescribed displacement (UX,UY,UZ) of node (I,J,K), e.g. a needle tip pushing tissue.
+    /// Repeatable. The node is held at exactly that value. Default: none.
+    #[arg(
+        help_heading = "Model",
+        long,
+        value_name = "I,J,K:UX,UY,UZ",
+        allow_hyphen_values = true
+    )]
+    pub displace: Vec<PrescribedDisplacement>,
+
+    /// A uniform face pressure: the total force (FX,FY,FZ) in N spread equally over the nodes
+    /// of FACE (x-, x+, y-, y+, z-, z+). Repeatable. Default: none.
+    #[arg(
+        help_heading = "Model",
+        long,
+        value_name = "FACE:FX,FY,FZ",
+        allow_hyphen_values = true
+    )]
+    pub pressure: Vec<FacePressure>,
+}
+
+/// Adds the thesis default load when nothing at all loads or moves the tissue.
+fn with_default_load(mut spec: ModelSpec) -> ModelSpec {
+    if spec.loads.is_empty() && spec.pressures.is_empty() && spec.prescribed.is_empty() {
+        spec.loads = vec![ModelSpec::default_load(spec.grid)];
+    }
+    spec
 }
 
 impl Default for ModelArgs {
@@ -104,6 +133,8 @@ impl Default for ModelArgs {
             fix: example.fixed_sets,
             fix_node: Vec::new(),
             load: Vec::new(),
+            displace: Vec::new(),
+            pressure: Vec::new(),
         }
     }
 }
@@ -111,24 +142,150 @@ impl Default for ModelArgs {
 impl ModelArgs {
     /// The model these flags describe.
     pub fn spec(&self) -> ModelSpec {
-        let loads = if self.load.is_empty() {
-            vec![ModelSpec::default_load(self.grid)]
-        } else {
-            self.load.clone()
-        };
-        ModelSpec {
+        with_default_load(ModelSpec {
             grid: self.grid,
             connection: self.connection.into(),
             elasticity: self.elasticity,
+            field: None,
             fixed_sets: self.fix.clone(),
             fixed_nodes: self.fix_node.clone(),
-            loads,
-        }
+            prescribed: self.displace.clone(),
+            loads: self.load.clone(),
+            pressures: self.pressure.clone(),
+        })
     }
 
     /// Checks the flags together and assembles the model.
     pub fn build(&self) -> Result<Model, ModelError> {
         Model::build(&self.spec())
+    }
+}
+
+/// The model flags of `deform solve` and `deform model`, which may also read a scenario file:
+/// every flag is optional, and a flag that is given overrides the file, which overrides the
+/// built-in defaults (the thesis 2.6 example). A list flag (--fix, --fix-node, --load,
+/// --displace, --pressure) that is given replaces the file's list of that kind.
+#[derive(Debug, Clone, Default, PartialEq, Args)]
+pub struct ModelFlags {
+    /// Nodes along x, y and z. Nodes are numbered x fastest, then y, then z:
+    /// index = i + NX·(j + NY·k). At most 2^24 nodes in all. [default: 10,10,10]
+    #[arg(
+        help_heading = "Model",
+        long,
+        value_name = "NX,NY,NZ",
+        allow_hyphen_values = true
+    )]
+    pub grid: Option<Grid>,
+
+    /// Spring network: `a` joins each node to its 6 axial neighbours, `b` to all 26 neighbours
+    /// (axial, edge and corner diagonals). [default: a]
+    #[arg(
+        help_heading = "Model",
+        long = "model",
+        value_name = "MODEL",
+        value_enum
+    )]
+    pub connection: Option<ConnectionArg>,
+
+    /// Homogeneous spring elasticity in N/m: one value K for every direction, or KX,KY,KZ for
+    /// the x-, y- and z-displacement systems. Each must be finite and greater than 0. Replaces a
+    /// scenario file's heterogeneous field. [default: 1,2,0.5]
+    #[arg(
+        help_heading = "Model",
+        long = "k",
+        value_name = "K|KX,KY,KZ",
+        allow_hyphen_values = true
+    )]
+    pub elasticity: Option<Elasticity>,
+
+    /// Node sets held at zero displacement, a comma-separated union of: `corners` (the 8
+    /// corners), faces `x-`, `x+`, `y-`, `y+`, `z-`, `z+` (e.g. `x-` is every node with i = 0),
+    /// or `none` (fix only the --fix-node nodes). At least one node must end up fixed or
+    /// prescribed. [default: corners]
+    #[arg(
+        help_heading = "Model",
+        long,
+        value_name = "SETS",
+        value_delimiter = ','
+    )]
+    pub fix: Option<Vec<FixedNodeSet>>,
+
+    /// Also fix node (I,J,K), 0-based grid indices. Repeatable; adds to --fix. [default: none]
+    #[arg(
+        help_heading = "Model",
+        long = "fix-node",
+        value_name = "I,J,K",
+        allow_hyphen_values = true
+    )]
+    pub fix_node: Vec<Node>,
+
+    /// A point load: force (FX,FY,FZ) in N at node (I,J,K). Repeatable; loads at one node add
+    /// up; loads on fixed or prescribed nodes are dropped. Default, if no load, pressure or
+    /// displacement is given by flags or file: 1 N in +x at node (0, NY/2, NZ/2).
+    #[arg(
+        help_heading = "Model",
+        long,
+        value_name = "I,J,K:FX,FY,FZ",
+        allow_hyphen_values = true
+    )]
+    pub load: Vec<PointLoad>,
+
+    /// Prescribed displacement (UX,UY,UZ) of node (I,J,K), e.g. a needle tip pushing tissue.
+    /// Repeatable. The node is held at exactly that value. [default: none]
+    #[arg(
+        help_heading = "Model",
+        long,
+        value_name = "I,J,K:UX,UY,UZ",
+        allow_hyphen_values = true
+    )]
+    pub displace: Vec<PrescribedDisplacement>,
+
+    /// A uniform face pressure: the total force (FX,FY,FZ) in N spread equally over the nodes
+    /// of FACE (x-, x+, y-, y+, z-, z+). Repeatable. [default: none]
+    #[arg(
+        help_heading = "Model",
+        long,
+        value_name = "FACE:FX,FY,FZ",
+        allow_hyphen_values = true
+    )]
+    pub pressure: Vec<FacePressure>,
+}
+
+impl ModelFlags {
+    /// The spec these flags give over `file` (a scenario file's model, or `None` for the
+    /// built-in defaults).
+    pub fn spec_over(&self, file: Option<&ModelSpec>) -> ModelSpec {
+        let mut spec = match file {
+            Some(spec) => spec.clone(),
+            None => ModelSpec {
+                loads: Vec::new(),
+                ..ModelSpec::thesis_example()
+            },
+        };
+        if let Some(grid) = self.grid {
+            spec.grid = grid;
+        }
+        if let Some(connection) = self.connection {
+            spec.connection = connection.into();
+        }
+        if let Some(elasticity) = self.elasticity {
+            spec.elasticity = elasticity;
+            spec.field = None;
+        }
+        if let Some(fix) = &self.fix {
+            spec.fixed_sets = fix.clone();
+        }
+        replace(&self.fix_node, &mut spec.fixed_nodes);
+        replace(&self.load, &mut spec.loads);
+        replace(&self.pressure, &mut spec.pressures);
+        replace(&self.displace, &mut spec.prescribed);
+        with_default_load(spec)
+    }
+}
+
+fn replace<T: Clone>(given: &[T], target: &mut Vec<T>) {
+    if !given.is_empty() {
+        *target = given.to_vec();
     }
 }
 
@@ -153,6 +310,40 @@ mod tests {
         let err = parse(args).unwrap_err();
         assert_eq!(err.kind(), ErrorKind::ValueValidation, "{err}");
         err.to_string()
+    }
+
+    #[derive(Debug, Parser)]
+    struct FlagsCli {
+        #[command(flatten)]
+        model: ModelFlags,
+    }
+
+    fn flags(args: &[&str]) -> ModelFlags {
+        let argv = std::iter::once("deform").chain(args.iter().copied());
+        FlagsCli::try_parse_from(argv).unwrap().model
+    }
+
+    #[test]
+    fn optional_flags_default_to_the_thesis_example_and_override_a_file() {
+        assert_eq!(flags(&[]).spec_over(None), ModelSpec::thesis_example());
+        let mut file = ModelSpec::thesis_example();
+        file.grid = Grid::new(4, 4, 4).unwrap();
+        file.field = Some(crate::model::StiffnessField::uniform(3.0));
+        file.prescribed = vec!["1,1,3:0,0,-1".parse().unwrap()];
+        file.loads = Vec::new();
+        // No flags: the file as it is (no default load, since something moves the tissue).
+        assert_eq!(flags(&[]).spec_over(Some(&file)), file);
+        let spec =
+            flags(&["--model", "b", "--k", "2", "--pressure", "z+:0,0,-1"]).spec_over(Some(&file));
+        assert_eq!(spec.grid, file.grid);
+        assert_eq!(spec.connection, Connection::AxialShear);
+        assert_eq!(spec.field, None);
+        assert_eq!(spec.elasticity, Elasticity::isotropic(2.0).unwrap());
+        assert_eq!(spec.pressures.len(), 1);
+        assert_eq!(spec.prescribed, file.prescribed);
+        let spec = flags(&["--displace", "0,0,3:1,0,0", "--fix", "z-"]).spec_over(Some(&file));
+        assert_eq!(spec.prescribed[0].node, Node::new(0, 0, 3));
+        assert_eq!(spec.fixed_sets, vec!["z-".parse().unwrap()]);
     }
 
     #[test]

@@ -21,6 +21,59 @@ pub enum Side {
     High,
 }
 
+/// One face of the grid box, e.g. `z+` (every node with k = nz − 1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Face {
+    pub axis: Axis,
+    pub side: Side,
+}
+
+impl Face {
+    /// Whether `node` of `grid` lies on this face.
+    pub fn contains(self, grid: Grid, node: Node) -> bool {
+        FixedNodeSet::Face {
+            axis: self.axis,
+            side: self.side,
+        }
+        .contains(grid, node)
+    }
+
+    /// The global indices of this face's nodes, in index order.
+    pub fn node_indices(self, grid: Grid) -> Vec<usize> {
+        grid.nodes()
+            .enumerate()
+            .filter(|&(_, node)| self.contains(grid, node))
+            .map(|(p, _)| p)
+            .collect()
+    }
+}
+
+impl fmt::Display for Face {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        FixedNodeSet::Face {
+            axis: self.axis,
+            side: self.side,
+        }
+        .fmt(f)
+    }
+}
+
+/// Why a face name did not parse.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown face '{0}'; expected x-, x+, y-, y+, z- or z+")]
+pub struct ParseFaceError(pub String);
+
+impl FromStr for Face {
+    type Err = ParseFaceError;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        match text.parse::<FixedNodeSet>() {
+            Ok(FixedNodeSet::Face { axis, side }) => Ok(Face { axis, side }),
+            _ => Err(ParseFaceError(text.trim().to_string())),
+        }
+    }
+}
+
 /// A named set of nodes to fix; a `--fix` value is a comma-separated union of these.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum FixedNodeSet {
@@ -175,6 +228,18 @@ mod tests {
         assert!(fixed_node_mask(grid, &[FixedNodeSet::None], &[])
             .iter()
             .all(|&f| !f));
+    }
+
+    #[test]
+    fn faces_parse_and_list_their_nodes() {
+        let grid = Grid::new(2, 3, 4).unwrap();
+        let z_high: Face = "z+".parse().unwrap();
+        assert_eq!(z_high.to_string(), "z+");
+        assert_eq!(z_high.node_indices(grid), (18..24).collect::<Vec<_>>());
+        let x_low: Face = "x-".parse().unwrap();
+        assert_eq!(x_low.node_indices(grid).len(), 12);
+        assert!("corners".parse::<Face>().is_err());
+        assert!("z".parse::<Face>().is_err());
     }
 
     #[test]

@@ -3,6 +3,7 @@
 use std::fmt;
 use std::str::FromStr;
 
+use super::boundary::Face;
 use super::grid::{Axis, Grid, Node};
 use super::triple::{parse_triple, TripleError};
 
@@ -55,6 +56,63 @@ impl FromStr for PointLoad {
             node: Node { i, j, k },
             force,
         })
+    }
+}
+
+/// A uniform pressure on one face of the grid: the total force `[fx, fy, fz]` (newtons) spread
+/// equally over the face's nodes (each of the m nodes gets force / m).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FacePressure {
+    pub face: Face,
+    pub force: [f64; 3],
+}
+
+impl fmt::Display for FacePressure {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let [fx, fy, fz] = self.force;
+        write!(f, "({fx}, {fy}, {fz}) N in total over face {}", self.face)
+    }
+}
+
+/// Why a `FACE:FX,FY,FZ` pressure did not parse.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ParsePressureError {
+    #[error("expected a pressure as FACE:FX,FY,FZ (a face x-, x+, y-, y+, z-, z+, a colon, the total force in N)")]
+    MissingColon,
+    #[error("expected a pressure as FACE:FX,FY,FZ: {0}")]
+    Face(#[from] super::boundary::ParseFaceError),
+    #[error("expected a pressure as FACE:FX,FY,FZ; in the force part FX,FY,FZ: {0}")]
+    Force(TripleError),
+    #[error("pressure force component {0} is not finite")]
+    NotFinite(String),
+}
+
+impl FromStr for FacePressure {
+    type Err = ParsePressureError;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        let (face, force) = text
+            .split_once(':')
+            .ok_or(ParsePressureError::MissingColon)?;
+        let face: Face = face.parse()?;
+        let force: [f64; 3] = parse_triple(force, "a number").map_err(ParsePressureError::Force)?;
+        if let Some(bad) = force.iter().find(|v| !v.is_finite()) {
+            return Err(ParsePressureError::NotFinite(bad.to_string()));
+        }
+        Ok(FacePressure { face, force })
+    }
+}
+
+/// Adds each pressure's share (total force / number of face nodes) to every node of its face.
+pub fn add_pressures(grid: Grid, pressures: &[FacePressure], vectors: &mut [Vec<f64>; 3]) {
+    for pressure in pressures {
+        let nodes = pressure.face.node_indices(grid);
+        let share = 1.0 / nodes.len() as f64;
+        for p in nodes {
+            for axis in Axis::ALL {
+                vectors[axis.position()][p] += pressure.force[axis.position()] * share;
+            }
+        }
     }
 }
 
@@ -126,6 +184,30 @@ mod tests {
             "1,2,3:0,NaN,0".parse::<PointLoad>(),
             Err(ParseLoadError::NotFinite(_))
         ));
+    }
+
+    #[test]
+    fn pressure_spreads_the_total_force_over_the_face() {
+        let p: FacePressure = "z+:0,0,-1".parse().unwrap();
+        assert_eq!(p.force, [0.0, 0.0, -1.0]);
+        assert!(matches!(
+            "z+".parse::<FacePressure>(),
+            Err(ParsePressureError::MissingColon)
+        ));
+        assert!(matches!(
+            "w:0,0,1".parse::<FacePressure>(),
+            Err(ParsePressureError::Face(_))
+        ));
+        assert!(matches!(
+            "x-:0,0".parse::<FacePressure>(),
+            Err(ParsePressureError::Force(_))
+        ));
+        let grid = Grid::new(2, 2, 2).unwrap();
+        let mut v = [(); 3].map(|_| vec![0.0; 8]);
+        add_pressures(grid, &[p, "x-:2,0,0".parse().unwrap()], &mut v);
+        assert_eq!(v[2], vec![0.0, 0.0, 0.0, 0.0, -0.25, -0.25, -0.25, -0.25]);
+        assert_eq!(v[0], vec![0.5, 0.0, 0.5, 0.0, 0.5, 0.0, 0.5, 0.0]);
+        assert!(v[1].iter().all(|&f| f == 0.0));
     }
 
     #[test]
