@@ -13,6 +13,26 @@
 //! 4. `Solve` → `Solved(SolveReport)`, then `ReadSolution` chunk by chunk.
 //!
 //! Steps 3–4 repeat for as many right-hand sides as wanted; the matrix stays resident.
+//!
+//! # Values-only update (protocol version 2)
+//!
+//! A displacement-dependent model (thesis 2.4.2, 3.2.2) changes K's values every time step but
+//! not its sparsity pattern. Instead of the whole word stream the host may then send only the
+//! new 21-bit value fields of the resident words:
+//!
+//! 5. `BeginUpdate { words, frac_bits }` (`words` must equal the resident matrix's word count;
+//!    `frac_bits` is the new Q-format of the values, it may differ from the upload's), then
+//!    `UpdateValues { offset, values }` chunks in order (raw two's complement values in
+//!    `VALUE_MIN..=VALUE_MAX`; offsets count words from the start of the stream, as for
+//!    `Words`), then `EndUpdate { crc32 }` with the CRC of the *resulting* words
+//!    ([`crate::matrix::words_crc`]) → `Ack`.
+//!
+//! Each value replaces bits 20..0 of the word at its position; the EM/ER bits and the column
+//! stay, so the tile structure validated at upload time still holds. While an update is in
+//! progress the matrix cannot be solved with (`OutOfOrder(UpdateIncomplete)`); vectors and the
+//! previous solution survive an update, so `Start::Previous` warm-starts after it. A CRC
+//! mismatch at `EndUpdate` drops the matrix (it is a mix of old and new values): upload it
+//! again.
 
 use heapless::Vec;
 use serde::{Deserialize, Serialize};
@@ -21,7 +41,7 @@ use crate::frame::FrameError;
 use crate::matrix::{MatrixError, TileHeader};
 
 /// Bumped on any change to these types or to the framing.
-pub const PROTOCOL_VERSION: u16 = 1;
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// Words or mantissas per chunk message. 64 × 4 bytes keeps a frame well under
 /// [`MAX_FRAME_LEN`] while the per-frame overhead stays small.
@@ -104,6 +124,20 @@ pub enum Request {
     ReadSolution {
         offset: u32,
     },
+    /// Starts a values-only update of the resident matrix (see the module doc).
+    BeginUpdate {
+        words: u32,
+        frac_bits: u8,
+    },
+    /// New raw values for the resident words `offset..offset + values.len()`.
+    UpdateValues {
+        offset: u32,
+        values: Vec<i32, CHUNK_LEN>,
+    },
+    /// Ends a values-only update: the CRC of all words as they now are.
+    EndUpdate {
+        crc32: u32,
+    },
 }
 
 /// What the target is and what it can hold.
@@ -184,6 +218,8 @@ pub enum ErrorCode {
     MantissaOutOfRange,
     #[error("solve failed: {0}")]
     Solve(SolveFailure),
+    #[error("matrix value {0} does not fit the 21-bit value field")]
+    ValueOutOfRange(i32),
 }
 
 /// The step a request arrived out of, for [`ErrorCode::OutOfOrder`].
@@ -211,6 +247,10 @@ pub enum SessionStep {
     NoPreviousSolution,
     #[error("no solution is available")]
     NoSolution,
+    #[error("no values-only update is in progress")]
+    NoUpdate,
+    #[error("the values-only update is incomplete")]
+    UpdateIncomplete,
 }
 
 // Chunk variants are large by design (one frame's worth of data); no_std has no Box to shrink them.
@@ -244,6 +284,18 @@ mod tests {
             },
         };
         let mut buf = [0u8; MAX_FRAME_LEN];
+        let n = frame::encode(&req, &mut buf).unwrap();
+        let back: Envelope<Request> = frame::decode(&mut buf[..n - 1]).unwrap();
+        assert_eq!(back, req);
+
+        let values: Vec<i32, CHUNK_LEN> = (0..CHUNK_LEN as i32).map(|i| i32::MIN + i).collect();
+        let req = Envelope {
+            seq: u16::MAX,
+            body: Request::UpdateValues {
+                offset: u32::MAX,
+                values,
+            },
+        };
         let n = frame::encode(&req, &mut buf).unwrap();
         let back: Envelope<Request> = frame::decode(&mut buf[..n - 1]).unwrap();
         assert_eq!(back, req);

@@ -42,6 +42,17 @@
 //! - **Solve** invalidates the previous solution only once its own checks passed; a failed solve
 //!   leaves no solution. `Start::Previous` uses the solution still in `x`.
 //! - **ReadSolution** at `offset ≥ n` is `ChunkTooLong`.
+//! - **Values-only update** (`BeginUpdate`, `UpdateValues`…, `EndUpdate`): needs a loaded
+//!   matrix (`OutOfOrder(NoMatrix)`; a `BeginUpdate` during an update starts it over) whose
+//!   word count equals `BeginUpdate`'s (`Matrix(TotalWordsMismatch)`), and `frac_bits ≤ 20`.
+//!   `UpdateValues` offsets continue exactly where the previous chunk ended, chunks may not run
+//!   past the word count (`ChunkTooLong`), and every raw value must fit 21 bits
+//!   (`ValueOutOfRange`); a refused chunk writes nothing. Each value replaces the value field of
+//!   the resident word in place, keeping EM, ER and the column. `EndUpdate` before all words
+//!   are replaced is `OutOfOrder(UpdateIncomplete)`; a CRC mismatch drops the matrix and its
+//!   vectors. During an update `Solve` is `OutOfOrder(UpdateIncomplete)`, while vectors may be
+//!   uploaded and the solution read; vectors and the solution survive a completed update, so
+//!   `Start::Previous` warm-starts after it.
 
 use deform_shared::matrix::{validate_tile, words_crc, MatrixError, TileHeader};
 use deform_shared::protocol::{
@@ -49,6 +60,7 @@ use deform_shared::protocol::{
     CHUNK_LEN, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{MANTISSA_LIMIT, MAX_FRAC_BITS};
+use deform_shared::word::{VALUE_BITS, VALUE_MAX, VALUE_MIN};
 
 use crate::cg::{self, Matrix, PhaseClock, Scratch};
 
@@ -117,11 +129,21 @@ struct Upload {
     current: Option<(TileHeader, u32)>,
 }
 
+/// Bits 20..0 of a word: the value field a values-only update replaces.
+const VALUE_FIELD: u32 = (1 << VALUE_BITS) - 1;
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum MatrixState {
     Empty,
     Uploading(Upload),
     Loaded(Shape),
+    /// A values-only update of the resident matrix `shape` (whose `frac_bits` becomes
+    /// `frac_bits` once it ends): `done` words have their new values.
+    Updating {
+        shape: Shape,
+        frac_bits: u8,
+        done: u32,
+    },
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -250,6 +272,9 @@ impl<'a, C: PhaseClock> Session<'a, C> {
             } => self.vector_data(slot, offset, &mantissas),
             Request::Solve(params) => self.solve(&params),
             Request::ReadSolution { offset } => self.read_solution(offset),
+            Request::BeginUpdate { words, frac_bits } => self.begin_update(words, frac_bits),
+            Request::UpdateValues { offset, values } => self.update_values(offset, &values),
+            Request::EndUpdate { crc32 } => self.end_update(crc32),
         }
     }
 
@@ -433,11 +458,105 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         Ok(Response::Ack)
     }
 
+    /// The matrix ready to solve with.
     fn loaded(&self) -> Result<Shape, ErrorCode> {
         match self.matrix {
             MatrixState::Loaded(shape) => Ok(shape),
+            MatrixState::Updating { .. } => Err(out_of_order(SessionStep::UpdateIncomplete)),
             _ => Err(out_of_order(SessionStep::NoMatrix)),
         }
+    }
+
+    /// The resident matrix's shape, also while its values are being updated (vectors and the
+    /// solution only need n).
+    fn resident(&self) -> Result<Shape, ErrorCode> {
+        match self.matrix {
+            MatrixState::Loaded(shape) | MatrixState::Updating { shape, .. } => Ok(shape),
+            _ => Err(out_of_order(SessionStep::NoMatrix)),
+        }
+    }
+
+    fn begin_update(&mut self, words: u32, frac_bits: u8) -> Result<Response, ErrorCode> {
+        let shape = self.resident()?;
+        if words != shape.words {
+            return Err(ErrorCode::Matrix(MatrixError::TotalWordsMismatch {
+                expected: shape.words,
+                found: words,
+            }));
+        }
+        if frac_bits > MAX_FRAC_BITS {
+            return Err(ErrorCode::BadFracBits(frac_bits));
+        }
+        self.matrix = MatrixState::Updating {
+            shape,
+            frac_bits,
+            done: 0,
+        };
+        Ok(Response::Ack)
+    }
+
+    fn update_values(&mut self, offset: u32, values: &[i32]) -> Result<Response, ErrorCode> {
+        let MatrixState::Updating {
+            shape,
+            frac_bits,
+            done,
+        } = self.matrix
+        else {
+            return Err(out_of_order(SessionStep::NoUpdate));
+        };
+        if offset != done {
+            return Err(ErrorCode::UnexpectedOffset {
+                expected: done,
+                got: offset,
+            });
+        }
+        let end = u32::try_from(values.len())
+            .ok()
+            .and_then(|len| offset.checked_add(len))
+            .filter(|&end| end <= shape.words)
+            .ok_or(ErrorCode::ChunkTooLong)?;
+        if let Some(&bad) = values
+            .iter()
+            .find(|&&v| !(VALUE_MIN..=VALUE_MAX).contains(&v))
+        {
+            return Err(ErrorCode::ValueOutOfRange(bad));
+        }
+        // `shape.words ≤ word_capacity ≤ words.len()` was checked when the matrix was announced.
+        let dst = self
+            .store
+            .words
+            .get_mut(to_usize(offset)..to_usize(end))
+            .ok_or(ErrorCode::ChunkTooLong)?;
+        for (d, &v) in dst.iter_mut().zip(values) {
+            *d = (*d & !VALUE_FIELD) | (v as u32 & VALUE_FIELD);
+        }
+        self.matrix = MatrixState::Updating {
+            shape,
+            frac_bits,
+            done: end,
+        };
+        Ok(Response::Ack)
+    }
+
+    fn end_update(&mut self, crc32: u32) -> Result<Response, ErrorCode> {
+        let MatrixState::Updating {
+            shape,
+            frac_bits,
+            done,
+        } = self.matrix
+        else {
+            return Err(out_of_order(SessionStep::NoUpdate));
+        };
+        if done != shape.words {
+            return Err(out_of_order(SessionStep::UpdateIncomplete));
+        }
+        let computed = words_crc(self.store.words.get(..to_usize(done)).unwrap_or(&[]));
+        if computed != crc32 {
+            self.drop_matrix();
+            return Err(ErrorCode::MatrixCrc { computed });
+        }
+        self.matrix = MatrixState::Loaded(Shape { frac_bits, ..shape });
+        Ok(Response::Ack)
     }
 
     fn slot_state(&mut self, slot: VectorSlot) -> &mut VectorState {
@@ -454,7 +573,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         len: u32,
     ) -> Result<Response, ErrorCode> {
         *self.slot_state(slot) = VectorState::Empty;
-        let shape = self.loaded()?;
+        let shape = self.resident()?;
         if len != shape.n {
             return Err(ErrorCode::LengthMismatch {
                 expected: shape.n,
@@ -477,8 +596,8 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         let VectorState::Uploading { exponent, received } = *self.slot_state(slot) else {
             return Err(out_of_order(SessionStep::NoVectorUpload));
         };
-        // A vector upload only exists while its matrix is loaded.
-        let shape = self.loaded()?;
+        // A vector upload only exists while its matrix is resident.
+        let shape = self.resident()?;
         if offset != received {
             return Err(ErrorCode::UnexpectedOffset {
                 expected: received,
@@ -597,7 +716,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
 
     fn read_solution(&mut self, offset: u32) -> Result<Response, ErrorCode> {
         let exponent = self.solution.ok_or(out_of_order(SessionStep::NoSolution))?;
-        let shape = self.loaded()?;
+        let shape = self.resident()?;
         if offset >= shape.n {
             return Err(ErrorCode::ChunkTooLong);
         }

@@ -27,5 +27,7 @@ mod test_systems;
 
 pub use error::{Capacity, LinkError};
 pub use port::{open_serial, Port, BAUD_RATE};
-pub use target::{Target, Timeouts, UploadProgress};
+pub use target::{
+    full_upload_bytes, update_bytes, Target, Timeouts, UpdateError, UpdateReport, UploadProgress,
+};
 pub use wire::{request_name, Link, LinkStats, DEFAULT_REQUEST_TIMEOUT};

@@ -1,11 +1,13 @@
 use std::time::{Duration, Instant};
 
-use deform_shared::matrix::{validate_tile, words_crc, MatrixError};
+use deform_shared::frame;
+use deform_shared::matrix::{validate_tile, words_crc, MatrixError, TileHeader};
 use deform_shared::protocol::{
-    ErrorCode, Request, Response, SolveParams, SolveReport, TargetInfo, VectorSlot, CHUNK_LEN,
-    PROTOCOL_VERSION,
+    Envelope, ErrorCode, Request, Response, SolveParams, SolveReport, TargetInfo, VectorSlot,
+    CHUNK_LEN, MAX_FRAME_LEN, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{block_exponent, from_mantissa, to_mantissa};
+use deform_shared::word::{Word, VALUE_BITS};
 use serialport::SerialPort;
 
 use super::wire::{Exchange, DEFAULT_REQUEST_TIMEOUT};
@@ -53,6 +55,123 @@ pub struct Target<P: Port = Box<dyn SerialPort>> {
     link: Link<P>,
     info: TargetInfo,
     timeouts: Timeouts,
+    /// The sparsity pattern of the matrix the target holds, as far as the host knows.
+    resident: Option<Pattern>,
+}
+
+/// A matrix without its values: what a values-only update must leave unchanged.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct Pattern {
+    n: u32,
+    tiles: Vec<TileHeader>,
+    /// Every word with its value field cleared (EM, ER and column).
+    structure: Vec<u32>,
+}
+
+/// Bits 20..0 of a word, its value.
+const VALUE_FIELD: u32 = (1 << VALUE_BITS) - 1;
+
+impl Pattern {
+    fn of(matrix: &EncodedMatrix) -> Pattern {
+        Pattern {
+            n: matrix.n,
+            tiles: matrix.tiles.clone(),
+            structure: matrix.words.iter().map(|w| w & !VALUE_FIELD).collect(),
+        }
+    }
+}
+
+/// What a values-only update sent, against what a full upload of the same matrix would send.
+/// Both count request frames as they go on the wire (COBS, CRC and delimiter included, each
+/// with a two-byte sequence number), not the target's answers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct UpdateReport {
+    pub bytes_sent: u64,
+    pub full_upload_bytes: u64,
+}
+
+impl UpdateReport {
+    pub fn bytes_saved(&self) -> u64 {
+        self.full_upload_bytes.saturating_sub(self.bytes_sent)
+    }
+}
+
+/// Why a values-only update was not made.
+#[derive(Debug, thiserror::Error)]
+pub enum UpdateError {
+    #[error("the target holds no matrix the host knows of; upload it in full")]
+    NoResidentMatrix,
+    #[error("the matrix's sparsity pattern (n, tiles, columns or row ends) differs from the resident one; upload it in full")]
+    PatternChanged,
+    #[error(transparent)]
+    Link(#[from] LinkError),
+}
+
+/// Bytes one request takes on the wire, framed, with a two-byte sequence number.
+fn frame_bytes(request: &Request) -> u64 {
+    let mut buf = [0u8; MAX_FRAME_LEN];
+    let envelope = Envelope {
+        seq: 0x1000,
+        body: request.clone(),
+    };
+    frame::encode(&envelope, &mut buf).map_or(0, |n| n as u64)
+}
+
+/// The requests of a full upload of `matrix`, in order.
+fn upload_requests(matrix: &EncodedMatrix) -> impl Iterator<Item = Request> + '_ {
+    let begin = Request::BeginMatrix {
+        n: matrix.n,
+        frac_bits: matrix.frac_bits,
+        tiles: matrix.tiles.len() as u32,
+        words: matrix.words.len() as u32,
+    };
+    let mut offset = 0usize;
+    let tiles = matrix.tile_words().flat_map(move |(header, words)| {
+        let start = offset;
+        offset += words.len();
+        std::iter::once(Request::Tile(*header)).chain(words.chunks(CHUNK_LEN).enumerate().map(
+            move |(i, chunk)| Request::Words {
+                offset: (start + i * CHUNK_LEN) as u32,
+                words: chunk.iter().copied().collect(),
+            },
+        ))
+    });
+    std::iter::once(begin)
+        .chain(tiles)
+        .chain(std::iter::once(Request::EndMatrix {
+            crc32: words_crc(&matrix.words),
+        }))
+}
+
+/// The requests of a values-only update to `matrix`'s values, in order.
+fn update_requests(matrix: &EncodedMatrix) -> impl Iterator<Item = Request> + '_ {
+    let begin = Request::BeginUpdate {
+        words: matrix.words.len() as u32,
+        frac_bits: matrix.frac_bits,
+    };
+    let chunks = matrix
+        .words
+        .chunks(CHUNK_LEN)
+        .enumerate()
+        .map(|(i, chunk)| Request::UpdateValues {
+            offset: (i * CHUNK_LEN) as u32,
+            values: chunk.iter().map(|&w| Word(w).raw_value()).collect(),
+        });
+    std::iter::once(begin)
+        .chain(chunks)
+        .chain(std::iter::once(Request::EndUpdate {
+            crc32: words_crc(&matrix.words),
+        }))
+}
+
+/// Bytes a full upload of `matrix` puts on the wire (see [`UpdateReport`]).
+pub fn full_upload_bytes(matrix: &EncodedMatrix) -> u64 {
+    upload_requests(matrix).map(|r| frame_bytes(&r)).sum()
+}
+
+/// Bytes a values-only update to `matrix` puts on the wire (see [`UpdateReport`]).
+pub fn update_bytes(matrix: &EncodedMatrix) -> u64 {
+    update_requests(matrix).map(|r| frame_bytes(&r)).sum()
 }
 
 impl Target<Box<dyn SerialPort>> {
@@ -73,6 +192,7 @@ impl<P: Port> Target<P> {
             link,
             info,
             timeouts,
+            resident: None,
         })
     }
 
@@ -102,6 +222,7 @@ impl<P: Port> Target<P> {
 
     /// Shakes hands again, which resets the target's session (matrix, vectors, solution).
     pub fn reset(&mut self) -> Result<&TargetInfo, LinkError> {
+        self.resident = None;
         self.info = hello(&mut self.link, &self.timeouts)?;
         Ok(&self.info)
     }
@@ -138,6 +259,7 @@ impl<P: Port> Target<P> {
         self.check_matrix_fits(matrix)?;
         validate_matrix(matrix).map_err(LinkError::MalformedMatrix)?;
         let words_total = matrix.words.len();
+        self.resident = None;
         self.expect_ack(&Request::BeginMatrix {
             n: matrix.n,
             frac_bits: matrix.frac_bits,
@@ -164,7 +286,64 @@ impl<P: Port> Target<P> {
         }
         self.expect_ack(&Request::EndMatrix {
             crc32: words_crc(&matrix.words),
+        })?;
+        self.resident = Some(Pattern::of(matrix));
+        Ok(())
+    }
+
+    /// True if the target holds a matrix with `matrix`'s sparsity pattern, so that
+    /// [`update_values`](Self::update_values) can replace its values.
+    pub fn pattern_matches(&self, matrix: &EncodedMatrix) -> bool {
+        self.resident.as_ref().is_some_and(|p| {
+            p.n == matrix.n && p.tiles == matrix.tiles && {
+                p.structure.len() == matrix.words.len()
+                    && p.structure
+                        .iter()
+                        .zip(&matrix.words)
+                        .all(|(s, w)| *s == w & !VALUE_FIELD)
+            }
         })
+    }
+
+    /// Replaces the values of the resident matrix by `matrix`'s (`BeginUpdate`,
+    /// `UpdateValues`…, `EndUpdate`): only the 21-bit value fields travel. `matrix` must have
+    /// the resident matrix's pattern (checked here, before anything is sent); its Q-format may
+    /// differ. The vectors and the previous solution stay on the target.
+    pub fn update_values(&mut self, matrix: &EncodedMatrix) -> Result<UpdateReport, UpdateError> {
+        if self.resident.is_none() {
+            return Err(UpdateError::NoResidentMatrix);
+        }
+        if !self.pattern_matches(matrix) {
+            return Err(UpdateError::PatternChanged);
+        }
+        let pattern = self.resident.take();
+        let mut bytes_sent = 0;
+        for request in update_requests(matrix) {
+            bytes_sent += frame_bytes(&request);
+            self.expect_ack(&request)?;
+        }
+        self.resident = pattern;
+        Ok(UpdateReport {
+            bytes_sent,
+            full_upload_bytes: full_upload_bytes(matrix),
+        })
+    }
+
+    /// A values-only update when the pattern allows it, else a full upload. Returns the
+    /// update's report, or `None` after a full upload.
+    pub fn upload_or_update(
+        &mut self,
+        matrix: &EncodedMatrix,
+    ) -> Result<Option<UpdateReport>, LinkError> {
+        if self.pattern_matches(matrix) {
+            match self.update_values(matrix) {
+                Ok(report) => return Ok(Some(report)),
+                Err(UpdateError::Link(e)) => return Err(e),
+                Err(_) => {}
+            }
+        }
+        self.upload_matrix(matrix)?;
+        Ok(None)
     }
 
     /// Uploads a vector (the right-hand side, or an initial guess) in block floating point.
@@ -410,6 +589,84 @@ mod tests {
             let err = max_relative_error(&x, &laplacian_1d_solve(&rhs));
             assert!(err < 1e-5, "max relative error {err:e} at scale {scale}");
         }
+    }
+
+    /// `factor` times `matrix`, in a Q-format with two fractional bits fewer (its raw values
+    /// must be multiples of 4).
+    fn scaled(matrix: &EncodedMatrix, factor: i64) -> EncodedMatrix {
+        let words = matrix
+            .words
+            .iter()
+            .map(|&w| {
+                let w = Word(w);
+                Word::new(
+                    w.column(),
+                    w.raw_value() as i64 * factor / 4,
+                    w.end_of_row(),
+                    w.end_of_matrix(),
+                )
+                .unwrap()
+                .bits()
+            })
+            .collect();
+        EncodedMatrix {
+            words,
+            frac_bits: matrix.frac_bits - 2,
+            ..matrix.clone()
+        }
+    }
+
+    #[test]
+    fn a_values_only_update_solves_like_a_fresh_upload_and_sends_less() {
+        let n = 250;
+        let a = laplacian_1d(n);
+        let a3 = scaled(&a, 3);
+        let rhs: Vec<f64> = (0..n).map(|i| 1.0 + (i as f64 * 0.1).sin()).collect();
+
+        let (mut fresh, _) = session_target(info());
+        fresh.upload_matrix(&a3).unwrap();
+        let (fresh_report, fresh_x) = fresh.solve_for(&rhs, params()).unwrap();
+
+        let (mut target, _) = session_target(info());
+        let err = target.update_values(&a3).unwrap_err();
+        assert!(matches!(err, UpdateError::NoResidentMatrix), "{err:?}");
+        target.upload_matrix(&a).unwrap();
+        target.solve_for(&rhs, params()).unwrap();
+        assert!(target.pattern_matches(&a3));
+        let report = target.update_values(&a3).unwrap();
+        let (got_report, x) = target.solve_for(&rhs, params()).unwrap();
+        assert_eq!(got_report, fresh_report);
+        assert_eq!(x, fresh_x);
+        assert_eq!(report.full_upload_bytes, full_upload_bytes(&a3));
+        assert_eq!(report.bytes_sent, update_bytes(&a3));
+        assert!(
+            report.bytes_saved() > 0 && report.bytes_sent < report.full_upload_bytes,
+            "{report:?}"
+        );
+        // The solution is x(A)/3.
+        let want: Vec<f64> = laplacian_1d_solve(&rhs).iter().map(|v| v / 3.0).collect();
+        assert!(max_relative_error(&x, &want) < 1e-5);
+    }
+
+    #[test]
+    fn an_update_with_another_pattern_is_refused_before_anything_is_sent() {
+        let (mut target, requests) = session_target(info());
+        target.upload_matrix(&laplacian_1d(20)).unwrap();
+        let sent = requests.load(Ordering::SeqCst);
+        let mut other = laplacian_1d(20);
+        other.words[3] ^= deform_shared::word::ER_BIT;
+        assert!(!target.pattern_matches(&other));
+        let err = target.update_values(&other).unwrap_err();
+        assert!(matches!(err, UpdateError::PatternChanged), "{err:?}");
+        let err = target.update_values(&laplacian_1d(21)).unwrap_err();
+        assert!(matches!(err, UpdateError::PatternChanged), "{err:?}");
+        assert_eq!(requests.load(Ordering::SeqCst), sent);
+        // upload_or_update falls back to a full upload, then updates.
+        assert_eq!(target.upload_or_update(&laplacian_1d(21)).unwrap(), None);
+        let report = target.upload_or_update(&scaled(&laplacian_1d(21), 2));
+        assert!(report.unwrap().is_some());
+        target.reset().unwrap();
+        assert!(!target.pattern_matches(&laplacian_1d(21)));
     }
 
     #[test]

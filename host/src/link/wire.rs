@@ -268,6 +268,9 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::VectorData { .. } => "VectorData",
         Request::Solve(_) => "Solve",
         Request::ReadSolution { .. } => "ReadSolution",
+        Request::BeginUpdate { .. } => "BeginUpdate",
+        Request::UpdateValues { .. } => "UpdateValues",
+        Request::EndUpdate { .. } => "EndUpdate",
     }
 }
 

@@ -6,7 +6,7 @@ use crate::cg::NoClock;
 use deform_shared::frame;
 use deform_shared::protocol::{Envelope, SolveFailure, SolveReport, MAX_FRAME_LEN};
 use deform_shared::qformat::{block_exponent, from_mantissa, quantize, to_mantissa};
-use deform_shared::word::Word;
+use deform_shared::word::{Word, VALUE_MAX, VALUE_MIN};
 use proptest::prelude::*;
 
 // ---------------------------------------------------------------------------------------------
@@ -212,6 +212,25 @@ fn matrix_requests(e: &Encoded, chunk_len: usize) -> Vec<Request> {
         }
     }
     reqs.push(Request::EndMatrix {
+        crc32: words_crc(&e.words),
+    });
+    reqs
+}
+
+/// The requests that replace the resident matrix's values by `e`'s, `chunk_len` per chunk.
+fn update_requests(e: &Encoded, chunk_len: usize) -> Vec<Request> {
+    let mut reqs = vec![Request::BeginUpdate {
+        words: e.words.len() as u32,
+        frac_bits: e.frac_bits,
+    }];
+    let values: Vec<i32> = e.words.iter().map(|&w| Word(w).raw_value()).collect();
+    for (k, c) in values.chunks(chunk_len).enumerate() {
+        reqs.push(Request::UpdateValues {
+            offset: (k * chunk_len) as u32,
+            values: chunk(c),
+        });
+    }
+    reqs.push(Request::EndUpdate {
         crc32: words_crc(&e.words),
     });
     reqs
@@ -1306,6 +1325,16 @@ fn raw_request() -> impl Strategy<Value = Request> {
             })
         ),
         num(12).prop_map(|offset| Request::ReadSolution { offset }),
+        (num(40), 0u8..24).prop_map(|(words, frac_bits)| Request::BeginUpdate { words, frac_bits }),
+        (
+            num(40),
+            prop::collection::vec(prop_oneof![8 => -8i32..8, 1 => any::<i32>()], 0..=CHUNK_LEN)
+        )
+            .prop_map(|(offset, v)| Request::UpdateValues {
+                offset,
+                values: chunk(&v)
+            }),
+        any::<u32>().prop_map(|crc32| Request::EndUpdate { crc32 }),
     ]
 }
 
@@ -1325,6 +1354,13 @@ enum Step {
         exponent: i32,
         m: Vec<i32>,
         len: Option<usize>,
+        chunk_len: usize,
+        stop_after: usize,
+    },
+    /// A values-only update to `e`'s values (it fits the resident matrix only if that has
+    /// `e`'s pattern).
+    Update {
+        e: Encoded,
         chunk_len: usize,
         stop_after: usize,
     },
@@ -1398,7 +1434,20 @@ fn step() -> impl Strategy<Value = Step> {
             }))
         });
     let read = (0u32..14).prop_map(|offset| Step::Raw(Request::ReadSolution { offset }));
+    let update = (
+        1usize..=12,
+        3usize..=12,
+        -1.0f64..1.0,
+        1usize..=8,
+        0usize..20,
+    )
+        .prop_map(|(n, rows, off, chunk_len, stop)| Step::Update {
+            e: spd(n, rows, off, false),
+            chunk_len,
+            stop_after: stop_after(stop),
+        });
     prop_oneof![
+        2 => update,
         6 => raw_request().prop_map(Step::Raw),
         1 => Just(Step::Raw(Request::Hello { protocol_version: PROTOCOL_VERSION })),
         3 => matrix,
@@ -1437,6 +1486,14 @@ fn expand(step: Step, n: &mut usize) -> Vec<Request> {
                 .take(stop_after)
                 .collect()
         }
+        Step::Update {
+            e,
+            chunk_len,
+            stop_after,
+        } => update_requests(&e, chunk_len)
+            .into_iter()
+            .take(stop_after)
+            .collect(),
     }
 }
 
@@ -1462,4 +1519,236 @@ proptest! {
             }
         }
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Values-only update
+
+/// The 1-D matrix tridiag(−off, d, −off) with the Laplacian's pattern, `frac_bits` fractional bits.
+fn band(n: usize, rows_per_tile: usize, frac_bits: u8, d: f64, off: f64) -> Encoded {
+    encode(n, rows_per_tile, frac_bits, move |i| {
+        let mut r = Vec::new();
+        if i > 0 {
+            r.push((i - 1, -off));
+        }
+        r.push((i, d));
+        if i + 1 < n {
+            r.push((i + 1, -off));
+        }
+        r
+    })
+}
+
+#[test]
+fn a_solve_after_an_update_equals_one_after_a_fresh_upload() {
+    let n = 100;
+    let old = band(n, 30, 18, 2.0, 1.0);
+    // Other values, another Q-format, the same pattern.
+    let new = band(n, 30, 16, 5.5, 1.75);
+    assert_eq!(old.tiles, new.tiles);
+    let b: Vec<f64> = (0..n).map(|i| 1.0 + (i as f64 * 0.3).cos()).collect();
+
+    let mut fresh_bufs = Bufs::new(400, 8, n);
+    let mut fresh = fresh_bufs.session();
+    load(&mut fresh, &new);
+    load_rhs(&mut fresh, &b);
+    let fresh_report = solved(fresh.handle(solve_req(Start::Zero)));
+    let fresh_x = read_all(&mut fresh, n);
+
+    let mut bufs = Bufs::new(400, 8, n);
+    let mut s = bufs.session();
+    load(&mut s, &old);
+    load_rhs(&mut s, &b);
+    solved(s.handle(solve_req(Start::Zero)));
+    all_ack(&mut s, update_requests(&new, 7));
+    // The rhs survived the update, and the stored words are now the fresh upload's.
+    let report = solved(s.handle(solve_req(Start::Zero)));
+    let x = read_all(&mut s, n);
+    assert_eq!(report, fresh_report);
+    assert_eq!(x, fresh_x);
+    drop(s);
+    assert_eq!(bufs.words[..new.words.len()], new.words[..]);
+    assert!(max_rel_err(&x, &direct_solve(dense(&new), b.clone())) < 1e-6);
+}
+
+#[test]
+fn the_previous_solution_survives_an_update_for_a_warm_start() {
+    let n = 40;
+    let old = band(n, 40, 18, 3.0, 1.0);
+    let new = band(n, 40, 18, 3.03, 1.01);
+    let b: Vec<f64> = (0..n).map(|i| (i as f64 * 0.2).sin() + 1.5).collect();
+    let mut bufs = Bufs::new(200, 4, n);
+    let mut s = bufs.session();
+    load(&mut s, &old);
+    load_rhs(&mut s, &b);
+    solved(s.handle(solve_req(Start::Zero)));
+    all_ack(&mut s, update_requests(&new, CHUNK_LEN));
+    let cold = solved(s.handle(solve_req(Start::Zero)));
+    let cold_x = read_all(&mut s, n);
+    // Rewind to the old solution and warm-start from it after updating again.
+    all_ack(&mut s, update_requests(&old, CHUNK_LEN));
+    solved(s.handle(solve_req(Start::Zero)));
+    all_ack(&mut s, update_requests(&new, CHUNK_LEN));
+    let warm = solved(s.handle(solve_req(Start::Previous)));
+    let warm_x = read_all(&mut s, n);
+    assert!(warm.iterations < cold.iterations, "{warm:?} vs {cold:?}");
+    assert!(max_rel_err(&warm_x, &cold_x) < 1e-6);
+}
+
+#[test]
+fn an_update_needs_a_resident_matrix_of_its_word_count() {
+    let e = band(10, 10, 18, 2.0, 1.0);
+    let words = e.words.len() as u32;
+    let mut bufs = Bufs::new(100, 4, 10);
+    let mut s = bufs.session();
+    let begin_update = |words, frac_bits| Request::BeginUpdate { words, frac_bits };
+    assert_eq!(
+        s.handle(begin_update(words, 18)),
+        ooo(SessionStep::NoMatrix)
+    );
+    assert_eq!(
+        s.handle(Request::UpdateValues {
+            offset: 0,
+            values: chunk(&[1])
+        }),
+        ooo(SessionStep::NoUpdate)
+    );
+    assert_eq!(
+        s.handle(Request::EndUpdate { crc32: 0 }),
+        ooo(SessionStep::NoUpdate)
+    );
+    // Mid-upload is not resident either.
+    s.handle(begin(&e));
+    assert_eq!(
+        s.handle(begin_update(words, 18)),
+        ooo(SessionStep::NoMatrix)
+    );
+    load(&mut s, &e);
+    assert_eq!(
+        s.handle(begin_update(words + 1, 18)),
+        err(ErrorCode::Matrix(MatrixError::TotalWordsMismatch {
+            expected: words,
+            found: words + 1
+        }))
+    );
+    assert_eq!(
+        s.handle(begin_update(words, 21)),
+        err(ErrorCode::BadFracBits(21))
+    );
+    // Refused: the matrix is still loaded and solvable.
+    load_rhs(&mut s, &[1.0; 10]);
+    solved(s.handle(solve_req(Start::Zero)));
+}
+
+#[test]
+fn update_chunks_are_checked_and_a_refused_chunk_writes_nothing() {
+    let e = band(10, 10, 18, 2.0, 1.0);
+    let words = e.words.len();
+    let mut bufs = Bufs::new(100, 4, 10);
+    let mut s = bufs.session();
+    load(&mut s, &e);
+    load_rhs(&mut s, &[1.0; 10]);
+    solved(s.handle(solve_req(Start::Zero)));
+    assert_eq!(
+        s.handle(Request::BeginUpdate {
+            words: words as u32,
+            frac_bits: 18
+        }),
+        Response::Ack
+    );
+    let values: Vec<i32> = e.words.iter().map(|&w| Word(w).raw_value()).collect();
+    let values_at = |offset: usize, v: &[i32]| Request::UpdateValues {
+        offset: offset as u32,
+        values: chunk(v),
+    };
+    assert_eq!(
+        s.handle(values_at(1, &values[1..3])),
+        err(ErrorCode::UnexpectedOffset {
+            expected: 0,
+            got: 1
+        })
+    );
+    let mut bad = values[..4].to_vec();
+    bad[2] = VALUE_MAX + 1;
+    assert_eq!(
+        s.handle(values_at(0, &bad)),
+        err(ErrorCode::ValueOutOfRange(VALUE_MAX + 1))
+    );
+    bad[2] = VALUE_MIN - 1;
+    assert_eq!(
+        s.handle(values_at(0, &bad)),
+        err(ErrorCode::ValueOutOfRange(VALUE_MIN - 1))
+    );
+    assert_eq!(s.handle(values_at(0, &values[..4])), Response::Ack);
+    assert_eq!(s.handle(values_at(4, &[])), Response::Ack);
+    // During the update: no solve, no early end; vectors and the solution stay available.
+    assert_eq!(
+        s.handle(solve_req(Start::Zero)),
+        ooo(SessionStep::UpdateIncomplete)
+    );
+    assert_eq!(
+        s.handle(Request::EndUpdate {
+            crc32: words_crc(&e.words)
+        }),
+        ooo(SessionStep::UpdateIncomplete)
+    );
+    assert_eq!(read_all(&mut s, 10).len(), 10);
+    load_rhs(&mut s, &[2.0; 10]);
+    let mut long = values[4..].to_vec();
+    long.push(0);
+    assert_eq!(s.handle(values_at(4, &long)), err(ErrorCode::ChunkTooLong));
+    assert_eq!(s.handle(values_at(4, &values[4..])), Response::Ack);
+    assert_eq!(
+        s.handle(Request::EndUpdate {
+            crc32: words_crc(&e.words)
+        }),
+        Response::Ack
+    );
+    drop(s);
+    assert_eq!(
+        bufs.words[..words],
+        e.words[..],
+        "nothing refused was written"
+    );
+}
+
+#[test]
+fn an_update_keeps_em_er_and_columns_and_a_crc_mismatch_drops_the_matrix() {
+    let e = band(10, 4, 18, 2.0, 1.0);
+    let words = e.words.len();
+    let mut bufs = Bufs::new(100, 4, 10);
+    let mut s = bufs.session();
+    load(&mut s, &e);
+    load_rhs(&mut s, &[1.0; 10]);
+    // All-ones value fields (-1 raw): the flags and columns must survive.
+    let mut reqs = update_requests(&e, 5);
+    for r in &mut reqs {
+        if let Request::UpdateValues { values, .. } = r {
+            values.iter_mut().for_each(|v| *v = -1);
+        }
+    }
+    let expected: Vec<u32> = e.words.iter().map(|&w| w | VALUE_FIELD).collect();
+    let last = reqs.len() - 1;
+    reqs[last] = Request::EndUpdate {
+        crc32: words_crc(&expected),
+    };
+    all_ack(&mut s, reqs);
+    // A wrong CRC: the matrix and its vectors are gone.
+    all_ack(&mut s, update_requests(&e, 5)[..last].to_vec());
+    let computed = words_crc(&e.words);
+    assert_eq!(
+        s.handle(Request::EndUpdate { crc32: 0 }),
+        err(ErrorCode::MatrixCrc { computed })
+    );
+    assert_eq!(s.handle(solve_req(Start::Zero)), ooo(SessionStep::NoMatrix));
+    assert_eq!(
+        s.handle(Request::BeginVector {
+            slot: VectorSlot::Rhs,
+            exponent: 0,
+            len: 10
+        }),
+        ooo(SessionStep::NoMatrix)
+    );
+    drop(s);
+    assert_eq!(bufs.words[..words], e.words[..]);
 }
