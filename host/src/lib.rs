@@ -13,3 +13,4 @@ pub mod model;
 pub mod output;
 pub mod reference;
 pub mod refine;
+pub mod scenario;

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use clap::Args;
 
-use crate::cli_model::ModelArgs;
+use crate::cli_model::ModelFlags;
 use crate::encode::{encode, max_quantization_error, EncodedMatrix};
 use crate::model::matrix_market::write_matrix_market;
 use crate::model::{Axis, Csr, Model};
@@ -17,8 +17,13 @@ use crate::model::{Axis, Csr, Model};
 /// Build the tissue model and print the properties of its stiffness matrix K and its encoding.
 #[derive(Debug, Clone, Args)]
 pub struct ModelCommandArgs {
+    /// A scenario file (TOML; see examples/). Flags given on the command line override it.
+    /// Default: none, the flags and their defaults (the thesis 2.6 example).
+    #[arg(value_name = "SCENARIO.toml")]
+    pub scenario: Option<PathBuf>,
+
     #[command(flatten)]
-    pub model: ModelArgs,
+    pub model: ModelFlags,
 
     /// Also write K for the x direction (k_x·A, fixed nodes applied) to FILE.mtx in Matrix
     /// Market coordinate format (1-based, every nonzero of both triangles). Default: no export.
@@ -78,8 +83,10 @@ impl ModelReport {
             .map(|&axis| model.load(axis).iter().sum())
             .collect();
         let loads = format!(
-            "{} point load(s), total on free nodes ({}, {}, {}) N",
+            "{} point load(s), {} face pressure(s), {} prescribed displacement(s); total force on free nodes ({}, {}, {}) N",
             spec.loads.len(),
+            spec.pressures.len(),
+            model.prescribed_count(),
             force[0],
             force[1],
             force[2]
@@ -151,10 +158,12 @@ impl fmt::Display for ModelReport {
 
 /// Runs `deform model`.
 pub fn run(args: &ModelCommandArgs) -> anyhow::Result<()> {
-    let model = args
-        .model
-        .build()
-        .context("the model flags do not describe a solvable model")?;
+    let scenario = match &args.scenario {
+        Some(path) => Some(crate::scenario::Scenario::load(path, args.model.grid)?),
+        None => None,
+    };
+    let spec = args.model.spec_over(scenario.as_ref().map(|s| &s.model));
+    let model = Model::build(&spec).context("the model does not describe a solvable system")?;
     let report = ModelReport::of(&model);
     let mut stdout = io::stdout().lock();
     write!(stdout, "{report}").context("writing the report to stdout")?;
@@ -163,10 +172,10 @@ pub fn run(args: &ModelCommandArgs) -> anyhow::Result<()> {
     }
     if Axis::ALL
         .iter()
-        .all(|&axis| model.load(axis).iter().all(|&f| f == 0.0))
+        .all(|&axis| model.scaled_rhs(axis).iter().all(|&f| f == 0.0))
     {
         eprintln!(
-            "warning: every load is zero (or on fixed nodes), so the displacements are all zero"
+            "warning: every load and prescribed displacement is zero (or on fixed nodes), so the displacements are all zero"
         );
     }
     if let Some(path) = &args.export_mtx {

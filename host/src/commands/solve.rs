@@ -12,13 +12,14 @@ use clap::{Args, ValueEnum};
 use serde::Serialize;
 
 use crate::board::{Board, BoardChoice};
-use crate::cli_model::ModelArgs;
+use crate::cli_model::ModelFlags;
 use crate::encode::encode;
 use crate::link::Timeouts;
-use crate::model::{Axis, Model};
+use crate::model::{Axis, Model, ModelSpec};
 use crate::output::{node_rows, write_displacements, OutputFormat};
 use crate::reference;
 use crate::refine::{solve_refined, RefineParams};
+use crate::scenario::{Scenario, TargetName};
 
 /// Where CG runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -32,13 +33,19 @@ pub enum TargetKind {
 /// Solve the tissue model for the displacements u_x, u_y, u_z of every node.
 #[derive(Debug, Clone, Args)]
 pub struct SolveArgs {
+    /// A scenario file (TOML: grid, model, elasticity, boundary conditions, loads, solver,
+    /// output; see examples/). Flags given on the command line override it. Default: none, the
+    /// flags and their defaults (the thesis 2.6 example).
+    #[arg(value_name = "SCENARIO.toml")]
+    pub scenario: Option<PathBuf>,
+
     #[command(flatten)]
-    pub model: ModelArgs,
+    pub model: ModelFlags,
 
     /// Where CG runs: `qemu` boots the firmware under QEMU, `host` uses the f64 reference solver.
-    /// Ignored when --port names a real board.
-    #[arg(long, value_enum, default_value_t = TargetKind::Qemu)]
-    pub target: TargetKind,
+    /// Ignored when --port names a real board. [default: qemu]
+    #[arg(long, value_enum)]
+    pub target: Option<TargetKind>,
 
     /// Serial device of a real board running the deform firmware (e.g. /dev/ttyUSB0).
     /// Default: none, use --target.
@@ -52,27 +59,40 @@ pub struct SolveArgs {
 
     /// Stop when the true relative residual ‖f − K·u‖₂/‖f‖₂ of each direction, measured in f64
     /// on the host, is at most this. Below ~1e-7 the host refines the target's fixed-point
-    /// answer (see --max-solves).
-    #[arg(long, default_value_t = 1e-8, value_parser = parse_tolerance)]
-    pub tol: f64,
+    /// answer (see --max-solves). [default: 1e-8]
+    #[arg(long, value_parser = parse_tolerance)]
+    pub tol: Option<f64>,
 
     /// CG iterations allowed per target solve. Default: 10·n.
     #[arg(long, value_name = "N")]
     pub max_iter: Option<u32>,
 
     /// Target solves allowed per direction: the first, plus refinement steps on the host's f64
-    /// residual.
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..))]
-    pub max_solves: u32,
+    /// residual. [default: 8]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_solves: Option<u32>,
 
-    /// Seconds one target solve may take before the host gives up.
-    #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u64).range(1..))]
-    pub timeout: u64,
+    /// Seconds one target solve may take before the host gives up. [default: 300]
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    pub timeout: Option<u64>,
 
     /// Write the displacements: FILE.csv gets `i,j,k,ux,uy,uz` per node, FILE.json the same
     /// plus the solver statistics. Default: no file, summary only.
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
+}
+
+/// The built-in solver defaults (what `--help` states).
+pub const DEFAULT_TOL: f64 = 1e-8;
+pub const DEFAULT_MAX_SOLVES: u32 = 8;
+pub const DEFAULT_TIMEOUT_SECONDS: u64 = 300;
+
+/// A solve's inputs once flags, scenario file and defaults are merged.
+pub struct ResolvedSolve {
+    pub spec: ModelSpec,
+    pub plan: SolvePlan,
+    pub out: Option<PathBuf>,
+    pub scenario: Option<Scenario>,
 }
 
 fn parse_tolerance(s: &str) -> Result<f64, String> {
@@ -143,21 +163,55 @@ pub struct SolvePlan {
 }
 
 impl SolveArgs {
-    pub fn plan(&self) -> SolvePlan {
-        let board = match (&self.port, self.target) {
+    /// Reads the scenario file, if any, and merges flags over it over the defaults.
+    pub fn resolve(&self) -> anyhow::Result<ResolvedSolve> {
+        let scenario = match &self.scenario {
+            Some(path) => Some(Scenario::load(path, self.model.grid)?),
+            None => None,
+        };
+        let file_solver = scenario
+            .as_ref()
+            .map(|s| s.solver.clone())
+            .unwrap_or_default();
+        let target = self
+            .target
+            .or(file_solver.target.map(|t| match t {
+                TargetName::Qemu => TargetKind::Qemu,
+                TargetName::Host => TargetKind::Host,
+            }))
+            .unwrap_or(TargetKind::Qemu);
+        let board = match (&self.port, target) {
             (Some(port), _) => Some(BoardChoice::Port(port.clone())),
             (None, TargetKind::Qemu) => Some(BoardChoice::Qemu {
                 firmware: self.firmware.clone(),
             }),
             (None, TargetKind::Host) => None,
         };
-        SolvePlan {
+        let plan = SolvePlan {
             board,
-            tol: self.tol,
-            max_iter: self.max_iter,
-            max_solves: self.max_solves,
-            solve_timeout: Duration::from_secs(self.timeout),
-        }
+            tol: self.tol.or(file_solver.tol).unwrap_or(DEFAULT_TOL),
+            max_iter: self.max_iter.or(file_solver.max_iter),
+            max_solves: self
+                .max_solves
+                .or(file_solver.max_solves)
+                .unwrap_or(DEFAULT_MAX_SOLVES),
+            solve_timeout: Duration::from_secs(
+                self.timeout
+                    .or(file_solver.timeout)
+                    .unwrap_or(DEFAULT_TIMEOUT_SECONDS),
+            ),
+        };
+        let spec = self.model.spec_over(scenario.as_ref().map(|s| &s.model));
+        let out = self
+            .out
+            .clone()
+            .or_else(|| scenario.as_ref().and_then(|s| s.out.clone()));
+        Ok(ResolvedSolve {
+            spec,
+            plan,
+            out,
+            scenario,
+        })
     }
 }
 
@@ -314,6 +368,17 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
     })
 }
 
+/// max over prescribed nodes and directions of |u − u_prescribed|.
+pub fn prescribed_error(model: &Model, u: &[Vec<f64>; 3]) -> f64 {
+    model
+        .prescribed()
+        .iter()
+        .enumerate()
+        .filter_map(|(p, v)| v.map(|v| (p, v)))
+        .flat_map(|(p, v)| (0..3).map(move |d| (u[d][p] - v[d]).abs()))
+        .fold(0.0, f64::max)
+}
+
 /// Prints the summary a person reads after a solve.
 fn print_summary(stats: &SolveStats) {
     println!("target      {}", stats.target);
@@ -351,13 +416,21 @@ fn print_summary(stats: &SolveStats) {
 }
 
 pub fn run(args: &SolveArgs) -> anyhow::Result<()> {
-    if let Some(out) = &args.out {
+    let resolved = args.resolve()?;
+    if let Some(out) = &resolved.out {
         OutputFormat::of(out)?;
     }
-    let model = args.model.build().context("building the model")?;
-    let solved = solve_model(&model, &args.plan())?;
+    let model = Model::build(&resolved.spec).context("building the model")?;
+    let solved = solve_model(&model, &resolved.plan)?;
     print_summary(&solved.stats);
-    if let Some(out) = &args.out {
+    if model.prescribed_count() > 0 {
+        let worst = prescribed_error(&model, &solved.u);
+        println!(
+            "prescribed  {} node(s), max |u − u_prescribed| = {worst:.3e}",
+            model.prescribed_count()
+        );
+    }
+    if let Some(out) = &resolved.out {
         write_displacements(out, &node_rows(&model, &solved.u), &solved.stats)?;
         println!("wrote       {}", out.display());
     }

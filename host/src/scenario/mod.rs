@@ -1,0 +1,608 @@
+//! Scenario files: a whole solve described in TOML, read by `deform solve FILE` and
+//! `deform model FILE`. Command-line flags override the file, which overrides the built-in
+//! defaults (the thesis 2.6 example); see [`crate::cli_model::ModelFlags`].
+//!
+//! ```toml
+//! grid = [10, 10, 10]          # NX, NY, NZ
+//! model = "a"                  # "a" (6 neighbours) or "b" (26)
+//!
+//! [elasticity]
+//! k = [1, 2, 0.5]              # homogeneous: K, or [KX, KY, KZ]
+//! # heterogeneous (any of these makes it so; one K for x, y and z):
+//! # background = 1.0           # default: k, if k is a single number
+//! # inclusion = [{ center = [5, 5, 5], radius = 2.5, k = 5 }]   # node-index units
+//! # field = "stiffness.csv"    # rows i,j,k,k; relative to this file; applied last
+//!
+//! [boundary]
+//! fix = ["corners"]            # corners, none, x-, x+, y-, y+, z-, z+ (a union)
+//! fix_nodes = [[0, 0, 0]]
+//! displace = [{ node = [5, 5, 9], u = [0, 0, -1] }]
+//!
+//! [loads]
+//! point = [{ node = [0, 5, 5], force = [1, 0, 0] }]
+//! pressure = [{ face = "z+", force = [0, 0, -1] }]   # total force over the face
+//!
+//! [solver]
+//! tol = 1e-8
+//! max_iter = 10000
+//! max_solves = 8
+//! target = "qemu"              # or "host"
+//! timeout = 300                # seconds per target solve
+//!
+//! [output]
+//! out = "u.csv"                # relative to the current directory, like --out
+//!
+//! [simulation]                 # for `deform simulate`; see [`simulation`]
+//! ```
+//!
+//! `deform solve` and `deform model` solve one static state: the `[boundary]` and `[loads]`
+//! tables plus every `[simulation]` schedule evaluated at the final time steps·dt (a scheduled
+//! displacement replaces a static one at the same node; scheduled loads add to the static ones).
+//!
+//! Every error names the file, the line and column, and the key: syntax, unknown keys and wrong
+//! types from the TOML parser, semantic errors (a node outside the grid, a bad face name, a
+//! non-positive stiffness, unsorted keyframes) from spans kept while parsing.
+
+pub mod simulation;
+
+use std::fmt;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+use toml::Spanned;
+
+use crate::model::{
+    Connection, Elasticity, FacePressure, FixedNodeSet, Grid, Inclusion, ModelSpec, Node,
+    PointLoad, PrescribedDisplacement, StiffnessField,
+};
+pub use simulation::{value_at, Keyframe, NodeSchedule, Nonlinear, Simulation};
+use simulation::{ScheduleToml, SimulationToml};
+
+/// A scenario-file error: where, which key, what.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{}:{line}:{column}: {key}: {message}", path.display())]
+pub struct ScenarioError {
+    pub path: PathBuf,
+    /// 1-based.
+    pub line: usize,
+    /// 1-based, in characters.
+    pub column: usize,
+    /// The key (with its table, e.g. `boundary.displace`) the error is about.
+    pub key: String,
+    pub message: String,
+}
+
+/// Where CG runs, as a scenario names it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TargetName {
+    Qemu,
+    Host,
+}
+
+/// `[solver]`: every field optional (a flag or the built-in default fills it in).
+#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SolverSettings {
+    pub tol: Option<f64>,
+    pub max_iter: Option<u32>,
+    pub max_solves: Option<u32>,
+    pub target: Option<TargetName>,
+    pub timeout: Option<u64>,
+}
+
+/// A loaded scenario file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scenario {
+    pub path: PathBuf,
+    /// The static state that `deform solve` solves (schedules at the final time applied).
+    pub model: ModelSpec,
+    pub solver: SolverSettings,
+    pub out: Option<PathBuf>,
+    pub simulation: Option<Simulation>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FileToml {
+    grid: Option<Spanned<[usize; 3]>>,
+    model: Option<ModelName>,
+    elasticity: Option<ElasticityToml>,
+    boundary: Option<BoundaryToml>,
+    loads: Option<LoadsToml>,
+    solver: Option<Spanned<SolverSettings>>,
+    output: Option<OutputToml>,
+    simulation: Option<SimulationToml>,
+}
+
+#[derive(Debug, Clone, Copy, Deserialize)]
+enum ModelName {
+    #[serde(rename = "a", alias = "A")]
+    A,
+    #[serde(rename = "b", alias = "B")]
+    B,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(untagged)]
+enum KToml {
+    One(f64),
+    Three([f64; 3]),
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ElasticityToml {
+    k: Option<Spanned<KToml>>,
+    background: Option<Spanned<f64>>,
+    #[serde(default)]
+    inclusion: Vec<Spanned<InclusionToml>>,
+    field: Option<Spanned<String>>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct InclusionToml {
+    center: [f64; 3],
+    radius: f64,
+    k: f64,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct BoundaryToml {
+    fix: Option<Vec<Spanned<String>>>,
+    #[serde(default)]
+    fix_nodes: Vec<Spanned<[usize; 3]>>,
+    #[serde(default)]
+    displace: Vec<DisplaceToml>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct DisplaceToml {
+    node: Spanned<[usize; 3]>,
+    u: Spanned<[f64; 3]>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LoadsToml {
+    #[serde(default)]
+    point: Vec<PointToml>,
+    #[serde(default)]
+    pressure: Vec<PressureToml>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PointToml {
+    node: Spanned<[usize; 3]>,
+    force: Spanned<[f64; 3]>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PressureToml {
+    face: Spanned<String>,
+    force: Spanned<[f64; 3]>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct OutputToml {
+    out: Option<PathBuf>,
+}
+
+/// 1-based line and column (in characters) of byte `offset` in `src`.
+pub fn line_column(src: &str, offset: usize) -> (usize, usize) {
+    let offset = offset.min(src.len());
+    let before = &src[..offset];
+    let line = before.matches('\n').count() + 1;
+    let line_start = before.rfind('\n').map_or(0, |p| p + 1);
+    (line, before[line_start..].chars().count() + 1)
+}
+
+/// A best guess at the key a parser error at `span` is about: the table header above it plus
+/// the key at the span (an unknown key) or the nearest `key =` before it (a bad value).
+fn key_at(src: &str, span: &Range<usize>) -> String {
+    let start = span.start.min(src.len());
+    let before = &src[..start];
+    let is_key = |s: &str| {
+        !s.is_empty()
+            && s.chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+    };
+    let at = src.get(span.clone()).unwrap_or("").trim();
+    let key = if is_key(at) && !at.chars().all(|c| c.is_ascii_digit() || c == '-') {
+        at.to_string()
+    } else {
+        let eq = before.rfind('=');
+        eq.map(|eq| {
+            let head = before[..eq].trim_end();
+            let from = head
+                .rfind(|c: char| !(c.is_ascii_alphanumeric() || c == '_' || c == '-'))
+                .map_or(0, |p| p + 1);
+            head[from..].to_string()
+        })
+        .unwrap_or_default()
+    };
+    let table = before
+        .lines()
+        .rev()
+        .map(str::trim)
+        .find(|l| l.starts_with('['))
+        .map(|l| l.trim_matches(|c| c == '[' || c == ']').trim().to_string());
+    match (table, key.is_empty()) {
+        (Some(t), false) => format!("{t}.{key}"),
+        (Some(t), true) => t,
+        (None, false) => key,
+        (None, true) => "(top level)".to_string(),
+    }
+}
+
+struct Ctx<'a> {
+    path: &'a Path,
+    src: &'a str,
+}
+
+impl Ctx<'_> {
+    fn err(&self, span: Range<usize>, key: &str, message: impl fmt::Display) -> ScenarioError {
+        let (line, column) = line_column(self.src, span.start);
+        ScenarioError {
+            path: self.path.to_path_buf(),
+            line,
+            column,
+            key: key.to_string(),
+            message: message.to_string(),
+        }
+    }
+
+    fn node(&self, grid: Grid, s: &Spanned<[usize; 3]>, key: &str) -> Result<Node, ScenarioError> {
+        let [i, j, k] = *s.get_ref();
+        let node = Node::new(i, j, k);
+        if grid.contains(node) {
+            Ok(node)
+        } else {
+            Err(self.err(
+                s.span(),
+                key,
+                format!(
+                    "node {node} is outside the {grid} grid (valid indices: i < {}, j < {}, k < {})",
+                    grid.nx(),
+                    grid.ny(),
+                    grid.nz()
+                ),
+            ))
+        }
+    }
+
+    fn finite(&self, s: &Spanned<[f64; 3]>, key: &str) -> Result<[f64; 3], ScenarioError> {
+        let v = *s.get_ref();
+        if v.iter().all(|x| x.is_finite()) {
+            Ok(v)
+        } else {
+            Err(self.err(s.span(), key, "every component must be finite"))
+        }
+    }
+}
+
+impl Scenario {
+    /// Reads and checks `path`. `grid_override` (a --grid flag) replaces the file's grid, and
+    /// the file's nodes are checked against it.
+    pub fn load(path: &Path, grid_override: Option<Grid>) -> Result<Self, ScenarioError> {
+        let src = std::fs::read_to_string(path).map_err(|e| ScenarioError {
+            path: path.to_path_buf(),
+            line: 0,
+            column: 0,
+            key: "(file)".into(),
+            message: format!("cannot read the scenario file: {e}"),
+        })?;
+        Self::parse(path, &src, grid_override)
+    }
+
+    /// Parses `src` as if read from `path` (which names the file in errors and anchors a
+    /// relative `field` path).
+    pub fn parse(
+        path: &Path,
+        src: &str,
+        grid_override: Option<Grid>,
+    ) -> Result<Self, ScenarioError> {
+        let cx = Ctx { path, src };
+        let file: FileToml = toml::from_str(src).map_err(|e| {
+            let span = e.span().unwrap_or(0..0);
+            let key = key_at(src, &span);
+            cx.err(span, &key, e.message().trim())
+        })?;
+
+        let mut spec = ModelSpec {
+            loads: Vec::new(),
+            ..ModelSpec::thesis_example()
+        };
+        if let Some(g) = &file.grid {
+            let [nx, ny, nz] = *g.get_ref();
+            spec.grid = Grid::new(nx, ny, nz).map_err(|e| cx.err(g.span(), "grid", e))?;
+        }
+        if let Some(grid) = grid_override {
+            spec.grid = grid;
+        }
+        let grid = spec.grid;
+        if let Some(m) = file.model {
+            spec.connection = match m {
+                ModelName::A => Connection::Axial,
+                ModelName::B => Connection::AxialShear,
+            };
+        }
+
+        if let Some(e) = &file.elasticity {
+            let mut single_k = None;
+            if let Some(k) = &e.k {
+                let el = match k.get_ref() {
+                    KToml::One(v) => {
+                        single_k = Some(*v);
+                        Elasticity::isotropic(*v)
+                    }
+                    KToml::Three([x, y, z]) => Elasticity::new(*x, *y, *z),
+                };
+                spec.elasticity = el.map_err(|err| cx.err(k.span(), "elasticity.k", err))?;
+            }
+            let heterogeneous =
+                e.background.is_some() || !e.inclusion.is_empty() || e.field.is_some();
+            if heterogeneous {
+                let background = match (&e.background, single_k) {
+                    (Some(b), _) => {
+                        let v = *b.get_ref();
+                        if !(v.is_finite() && v > 0.0) {
+                            return Err(cx.err(
+                                b.span(),
+                                "elasticity.background",
+                                "the background stiffness must be finite and greater than 0",
+                            ));
+                        }
+                        v
+                    }
+                    (None, Some(k)) => k,
+                    (None, None) => {
+                        let span =
+                            e.k.as_ref()
+                                .map(|k| k.span())
+                                .or_else(|| e.inclusion.first().map(|i| i.span()))
+                                .or_else(|| e.field.as_ref().map(|f| f.span()))
+                                .unwrap_or(0..0);
+                        return Err(cx.err(
+                            span,
+                            "elasticity.background",
+                            "a heterogeneous field (inclusion or field) needs one background stiffness: set background = K, or k = K (a single number)",
+                        ));
+                    }
+                };
+                let mut field = StiffnessField::uniform(background);
+                for inc in &e.inclusion {
+                    let v = inc.get_ref();
+                    let ok = v.k.is_finite()
+                        && v.k > 0.0
+                        && v.radius.is_finite()
+                        && v.radius >= 0.0
+                        && v.center.iter().all(|c| c.is_finite());
+                    if !ok {
+                        return Err(cx.err(
+                            inc.span(),
+                            "elasticity.inclusion",
+                            "k must be finite and greater than 0, radius finite and non-negative, center finite",
+                        ));
+                    }
+                    field.inclusions.push(Inclusion {
+                        center: v.center,
+                        radius: v.radius,
+                        k: v.k,
+                    });
+                }
+                if let Some(f) = &e.field {
+                    let csv = path.parent().unwrap_or(Path::new("")).join(f.get_ref());
+                    field.nodes = read_field_csv(&csv, grid)
+                        .map_err(|m| cx.err(f.span(), "elasticity.field", m))?;
+                }
+                spec.field = Some(field);
+            }
+        }
+
+        if let Some(b) = &file.boundary {
+            if let Some(fix) = &b.fix {
+                spec.fixed_sets = fix
+                    .iter()
+                    .map(|s| {
+                        s.get_ref()
+                            .parse::<FixedNodeSet>()
+                            .map_err(|e| cx.err(s.span(), "boundary.fix", e))
+                    })
+                    .collect::<Result<_, _>>()?;
+            }
+            for n in &b.fix_nodes {
+                spec.fixed_nodes
+                    .push(cx.node(grid, n, "boundary.fix_nodes")?);
+            }
+            for d in &b.displace {
+                spec.prescribed.push(PrescribedDisplacement {
+                    node: cx.node(grid, &d.node, "boundary.displace")?,
+                    u: cx.finite(&d.u, "boundary.displace")?,
+                });
+            }
+        }
+        if let Some(l) = &file.loads {
+            for p in &l.point {
+                spec.loads.push(PointLoad {
+                    node: cx.node(grid, &p.node, "loads.point")?,
+                    force: cx.finite(&p.force, "loads.point")?,
+                });
+            }
+            for p in &l.pressure {
+                spec.pressures.push(FacePressure {
+                    face: p
+                        .face
+                        .get_ref()
+                        .parse()
+                        .map_err(|e| cx.err(p.face.span(), "loads.pressure", e))?,
+                    force: cx.finite(&p.force, "loads.pressure")?,
+                });
+            }
+        }
+
+        let solver = match file.solver {
+            None => SolverSettings::default(),
+            Some(s) => {
+                let span = s.span();
+                let s = s.into_inner();
+                if let Some(t) = s.tol {
+                    if !(t.is_finite() && t > 0.0 && t < 1.0) {
+                        return Err(cx.err(
+                            span,
+                            "solver.tol",
+                            "the tolerance must be a number in (0, 1)",
+                        ));
+                    }
+                }
+                if s.max_solves == Some(0) {
+                    return Err(cx.err(span, "solver.max_solves", "must be at least 1"));
+                }
+                if s.timeout == Some(0) {
+                    return Err(cx.err(span, "solver.timeout", "must be at least 1 second"));
+                }
+                s
+            }
+        };
+
+        let simulation = match &file.simulation {
+            None => None,
+            Some(sim) => Some(resolve_simulation(&cx, grid, sim)?),
+        };
+        if let Some(sim) = &simulation {
+            let t = sim.end_time();
+            for s in &sim.displace {
+                let u = s.value_at(t);
+                spec.prescribed.retain(|d| d.node != s.node);
+                spec.prescribed
+                    .push(PrescribedDisplacement { node: s.node, u });
+            }
+            for s in &sim.load {
+                spec.loads.push(PointLoad {
+                    node: s.node,
+                    force: s.value_at(t),
+                });
+            }
+        }
+
+        Ok(Scenario {
+            path: path.to_path_buf(),
+            model: spec,
+            solver,
+            out: file.output.and_then(|o| o.out),
+            simulation,
+        })
+    }
+}
+
+fn resolve_simulation(
+    cx: &Ctx<'_>,
+    grid: Grid,
+    sim: &SimulationToml,
+) -> Result<Simulation, ScenarioError> {
+    let dt = *sim.dt.get_ref();
+    if !(dt.is_finite() && dt > 0.0) {
+        return Err(cx.err(
+            sim.dt.span(),
+            "simulation.dt",
+            "must be finite and greater than 0",
+        ));
+    }
+    if *sim.steps.get_ref() == 0 {
+        return Err(cx.err(sim.steps.span(), "simulation.steps", "must be at least 1"));
+    }
+    let schedules =
+        |list: &[ScheduleToml], key: &str| -> Result<Vec<NodeSchedule>, ScenarioError> {
+            list.iter()
+                .map(|s| {
+                    let node = cx.node(grid, &s.node, key)?;
+                    let frames = s.keyframes.get_ref();
+                    if frames.is_empty() {
+                        return Err(cx.err(
+                            s.keyframes.span(),
+                            key,
+                            "keyframes: give at least one [t, x, y, z]",
+                        ));
+                    }
+                    if frames.iter().flatten().any(|v| !v.is_finite()) {
+                        return Err(cx.err(
+                            s.keyframes.span(),
+                            key,
+                            "keyframes: every value must be finite",
+                        ));
+                    }
+                    if frames.windows(2).any(|w| w[1][0] < w[0][0]) {
+                        return Err(cx.err(
+                            s.keyframes.span(),
+                            key,
+                            "keyframes must be sorted by time",
+                        ));
+                    }
+                    Ok(NodeSchedule {
+                        node,
+                        keyframes: frames.clone(),
+                    })
+                })
+                .collect()
+        };
+    Ok(Simulation {
+        steps: *sim.steps.get_ref(),
+        dt,
+        displace: schedules(&sim.displace, "simulation.displace")?,
+        load: schedules(&sim.load, "simulation.load")?,
+        nonlinear: sim.nonlinear.clone(),
+    })
+}
+
+/// Reads a stiffness map: one `i,j,k,k` row per node (blank lines, `#` comments and a first
+/// header line that does not parse are skipped). Errors name the CSV file and line.
+pub fn read_field_csv(path: &Path, grid: Grid) -> Result<Vec<(Node, f64)>, String> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let mut out = Vec::new();
+    for (number, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let where_ = || format!("{}:{}", path.display(), number + 1);
+        let parts: Vec<&str> = line.split(',').map(str::trim).collect();
+        let parsed = (parts.len() == 4)
+            .then(|| {
+                let idx: Option<Vec<usize>> = parts[..3].iter().map(|p| p.parse().ok()).collect();
+                Some((idx?, parts[3].parse::<f64>().ok()?))
+            })
+            .flatten();
+        let Some((idx, k)) = parsed else {
+            if out.is_empty() && number == 0 {
+                continue; // a header
+            }
+            return Err(format!(
+                "{}: expected a row i,j,k,k (three node indices and a stiffness in N/m), got '{line}'",
+                where_()
+            ));
+        };
+        let node = Node::new(idx[0], idx[1], idx[2]);
+        if !grid.contains(node) {
+            return Err(format!(
+                "{}: node {node} is outside the {grid} grid",
+                where_()
+            ));
+        }
+        if !(k.is_finite() && k > 0.0) {
+            return Err(format!(
+                "{}: stiffness {k} must be finite and greater than 0",
+                where_()
+            ));
+        }
+        out.push((node, k));
+    }
+    Ok(out)
+}
