@@ -1,5 +1,9 @@
-//! Writing displacement fields: CSV (`i,j,k,ux,uy,uz`) or JSON (the same rows plus statistics).
-//! The format follows the file extension, checked before any work is done.
+//! Writing displacement fields: CSV (`i,j,k,ux,uy,uz`), JSON (the same rows plus statistics),
+//! or VTK XML for ParaView (`.vtu`/`.vts`, see [`vtk`]: the grid with the displacement vector,
+//! |u| and the node stiffness as point data). The format follows the file extension, checked
+//! before any work is done.
+
+pub mod vtk;
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -15,6 +19,10 @@ use crate::model::Model;
 pub enum OutputFormat {
     Csv,
     Json,
+    /// VTK XML unstructured grid (hexahedra).
+    Vtu,
+    /// VTK XML structured grid.
+    Vts,
 }
 
 impl OutputFormat {
@@ -28,15 +36,17 @@ impl OutputFormat {
         {
             Some("csv") => Ok(OutputFormat::Csv),
             Some("json") => Ok(OutputFormat::Json),
+            Some("vtu") => Ok(OutputFormat::Vtu),
+            Some("vts") => Ok(OutputFormat::Vts),
             _ => bail!(
-                "--out {}: unknown format; use a .csv or .json file name",
+                "--out {}: unknown format; use a .csv, .json, .vtu or .vts file name",
                 path.display()
             ),
         }
     }
 }
 
-/// One node's displacement, as written to CSV and JSON.
+/// One node's displacement, as written to CSV and JSON (and VTK, with the stiffness).
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct NodeDisplacement {
     pub i: usize,
@@ -45,10 +55,23 @@ pub struct NodeDisplacement {
     pub ux: f64,
     pub uy: f64,
     pub uz: f64,
+    /// The node's stiffness in N/m (VTK point data only; CSV and JSON leave it out).
+    #[serde(skip)]
+    pub stiffness: f64,
 }
 
-/// The rows of a displacement field `u = [ux, uy, uz]`, in node order.
+/// The rows of a displacement field `u = [ux, uy, uz]`, in node order, with the model's node
+/// stiffness.
 pub fn node_rows(model: &Model, u: &[Vec<f64>; 3]) -> Vec<NodeDisplacement> {
+    node_rows_with_stiffness(model, u, &model.node_stiffness())
+}
+
+/// Like [`node_rows`], with the node stiffness given (e.g. a displacement-dependent one).
+pub fn node_rows_with_stiffness(
+    model: &Model,
+    u: &[Vec<f64>; 3],
+    stiffness: &[f64],
+) -> Vec<NodeDisplacement> {
     (0..model.n())
         .map(|p| {
             let node = model.node(p);
@@ -59,6 +82,7 @@ pub fn node_rows(model: &Model, u: &[Vec<f64>; 3]) -> Vec<NodeDisplacement> {
                 ux: u[0][p],
                 uy: u[1][p],
                 uz: u[2][p],
+                stiffness: stiffness.get(p).copied().unwrap_or(f64::NAN),
             }
         })
         .collect()
@@ -70,11 +94,24 @@ pub fn write_displacements(
     rows: &[NodeDisplacement],
     stats: &impl Serialize,
 ) -> anyhow::Result<()> {
-    let format = OutputFormat::of(path)?;
+    match OutputFormat::of(path)? {
+        OutputFormat::Vtu => vtk::write_vtk(path, rows, vtk::VtkKind::Unstructured),
+        OutputFormat::Vts => vtk::write_vtk(path, rows, vtk::VtkKind::Structured),
+        OutputFormat::Csv => write_table(path, rows, None::<&()>),
+        OutputFormat::Json => write_table(path, rows, Some(stats)),
+    }
+}
+
+/// CSV (`stats` = `None`) or JSON.
+fn write_table(
+    path: &PathBuf,
+    rows: &[NodeDisplacement],
+    stats: Option<&impl Serialize>,
+) -> anyhow::Result<()> {
     let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
     let mut out = BufWriter::new(file);
-    match format {
-        OutputFormat::Csv => {
+    match stats {
+        None => {
             writeln!(out, "i,j,k,ux,uy,uz")?;
             for r in rows {
                 writeln!(
@@ -84,7 +121,7 @@ pub fn write_displacements(
                 )?;
             }
         }
-        OutputFormat::Json => {
+        Some(stats) => {
             #[derive(Serialize)]
             struct Document<'a, S: Serialize> {
                 stats: &'a S,
