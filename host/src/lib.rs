@@ -13,4 +13,5 @@ pub mod model;
 pub mod output;
 pub mod reference;
 pub mod refine;
+pub mod simulate;
 pub mod scenario;

@@ -23,6 +23,9 @@ enum Command {
     /// Solve the model for the displacements of every node, on the QEMU soft core (default), a
     /// real board (--port) or the host's f64 reference (--target host).
     Solve(commands::solve::SolveArgs),
+    /// Quasi-static time steps: loads ramped over --steps steps, K resident on the target,
+    /// warm starts, optional displacement-dependent springs (--alpha); per-step CSV and VTK.
+    Simulate(commands::simulate::SimulateArgs),
 }
 
 fn main() -> ExitCode {
@@ -30,6 +33,7 @@ fn main() -> ExitCode {
     let result = match &cli.command {
         Command::Model(args) => commands::model::run(args),
         Command::Solve(args) => commands::solve::run(args),
+        Command::Simulate(args) => commands::simulate::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -3,4 +3,5 @@
 //! uses anyhow: the library modules return typed errors and the commands add context.
 
 pub mod model;
+pub mod simulate;
 pub mod solve;

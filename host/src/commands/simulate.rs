@@ -1,0 +1,244 @@
+//! `deform simulate`: quasi-static time steps of the model on the target (see
+//! [`crate::simulate`]), with per-step CSV, one VTK file per step plus a `.pvd` collection, and
+//! a progress bar on a terminal.
+
+use std::fs::File;
+use std::io::{BufWriter, IsTerminal, Write};
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::board::{Board, BoardChoice};
+use crate::cli_model::ModelArgs;
+use crate::link::Timeouts;
+use crate::output::node_rows;
+use crate::output::vtk::{write_pvd, write_vtk, VtkKind};
+use crate::simulate::{simulate, Nonlinear, Schedule, StepParams, StepResult};
+
+/// Quasi-static time series: the model's loads ramped linearly from 0 to full over --steps
+/// steps of --dt, solved step by step on the target with K resident.
+#[derive(Debug, Clone, Args)]
+pub struct SimulateArgs {
+    #[command(flatten)]
+    pub model: ModelArgs,
+
+    /// Time steps.
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..))]
+    pub steps: u32,
+
+    /// Step length in seconds.
+    #[arg(long, default_value_t = 0.1)]
+    pub dt: f64,
+
+    /// Displacement-dependent springs k̃ = a0 + a1·ΣΔl + a2·ΣΔl² (thesis 3.2.2), as
+    /// `a0,a1,a2`. Default: the displacement-independent model.
+    #[arg(long, value_name = "A0,A1,A2", value_parser = parse_alpha)]
+    pub alpha: Option<[f64; 3]>,
+
+    /// Start every solve from zero instead of the previous step's solution.
+    #[arg(long)]
+    pub cold: bool,
+
+    /// Target CG tolerance per solve (relative residual; floored at 1e-7).
+    #[arg(long, default_value_t = 1e-7)]
+    pub tol: f64,
+
+    /// CG iterations allowed per target solve. Default: 10·n.
+    #[arg(long, value_name = "N")]
+    pub max_iter: Option<u32>,
+
+    /// Serial device of a real board. Default: boot the firmware in QEMU.
+    #[arg(long, value_name = "PATH")]
+    pub port: Option<String>,
+
+    /// Firmware ELF for QEMU. Default: $DEFORM_FIRMWARE, else the release build.
+    #[arg(long, value_name = "ELF")]
+    pub firmware: Option<PathBuf>,
+
+    /// Seconds one target solve may take.
+    #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u64).range(1..))]
+    pub timeout: u64,
+
+    /// Write `step,t,iterations,residual,max_u` per step to this CSV file.
+    #[arg(long, value_name = "FILE")]
+    pub steps_csv: Option<PathBuf>,
+
+    /// Directory for one `step_NNNN.vtu` per step and `series.pvd` (open it in ParaView).
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+
+    /// Also solve every step with the f64 reference and print the deviation.
+    #[arg(long)]
+    pub check: bool,
+}
+
+fn parse_alpha(s: &str) -> Result<[f64; 3], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>().map_err(|e| format!("{p:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    let a: [f64; 3] = v
+        .try_into()
+        .map_err(|_| "expected three numbers a0,a1,a2".to_string())?;
+    if a.iter().all(|x| x.is_finite()) && a[0] > 0.0 {
+        Ok(a)
+    } else {
+        Err("a0 must be positive and all three finite".into())
+    }
+}
+
+/// A bar on stderr when it is a terminal, else hidden.
+fn bar(len: u64, what: &str) -> ProgressBar {
+    if !std::io::stderr().is_terminal() {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(len);
+    bar.set_style(
+        ProgressStyle::with_template("{msg:>10} [{bar:40}] {pos}/{len} {elapsed}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    bar.set_message(what.to_string());
+    bar
+}
+
+pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
+    let model = args.model.build().context("building the model")?;
+    let n = model.n();
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let mut csv = match &args.steps_csv {
+        Some(path) => {
+            let mut f = BufWriter::new(
+                File::create(path).with_context(|| format!("creating {}", path.display()))?,
+            );
+            writeln!(f, "step,t,iterations,residual,max_u")?;
+            Some(f)
+        }
+        None => None,
+    };
+    let choice = match &args.port {
+        Some(port) => BoardChoice::Port(port.clone()),
+        None => BoardChoice::Qemu {
+            firmware: args.firmware.clone(),
+        },
+    };
+    let timeouts = Timeouts {
+        solve: Duration::from_secs(args.timeout),
+        ..Timeouts::default()
+    };
+    let mut board = Board::open(&choice, timeouts)?;
+    println!("target      {}", board.describe());
+    println!("model       {}", model.spec().describe());
+    let schedule = Schedule {
+        steps: args.steps,
+        dt: args.dt,
+    };
+    let params = StepParams {
+        warm_start: !args.cold,
+        tol: args.tol,
+        max_iterations: args
+            .max_iter
+            .unwrap_or((10 * n).min(u32::MAX as usize) as u32),
+        check_reference: args.check,
+    };
+    let nonlinear = args.alpha.map(|alpha| Nonlinear { alpha });
+    let steps_bar = bar(args.steps as u64, "steps");
+    let upload_bar = bar(0, "upload");
+    let mut pvd = Vec::new();
+    let mut total_iterations = 0u64;
+    let mut saved = 0u64;
+    let mut written: anyhow::Result<()> = Ok(());
+    let mut on_step = |r: &StepResult| {
+        total_iterations += r.iterations as u64;
+        let mut line = format!(
+            "step {:>4}  t = {:<8.4} iterations {:>5}  residual {:.2e}  max |u| {:.4e}",
+            r.step, r.t, r.iterations, r.residual, r.max_u
+        );
+        if let Some(dev) = r.deviation {
+            line += &format!("  deviation {dev:.1e}");
+        }
+        if let Some(u) = &r.update {
+            saved += u.bytes_saved();
+            line += &format!(
+                "  values-only update {} B (full upload {} B, saved {} B)",
+                u.bytes_sent,
+                u.full_upload_bytes,
+                u.bytes_saved()
+            );
+        }
+        steps_bar.suspend(|| println!("{line}"));
+        steps_bar.inc(1);
+        let mut write = || -> anyhow::Result<()> {
+            if let Some(f) = csv.as_mut() {
+                writeln!(
+                    f,
+                    "{},{},{},{:e},{:e}",
+                    r.step, r.t, r.iterations, r.residual, r.max_u
+                )?;
+            }
+            if let Some(dir) = &args.out {
+                let name = format!("step_{:04}.vtu", r.step);
+                // The node stiffness shown is the model's (a displacement-dependent model's
+                // springs change per step; that per-spring field is not written).
+                write_vtk(
+                    &dir.join(&name),
+                    &node_rows(&model, &r.u),
+                    VtkKind::Unstructured,
+                )?;
+                pvd.push((r.t, name));
+            }
+            Ok(())
+        };
+        if written.is_ok() {
+            written = write();
+        }
+    };
+    let results = simulate(
+        &mut board.target,
+        &model,
+        schedule,
+        nonlinear,
+        params,
+        |p| {
+            upload_bar.set_length(p.words_total as u64);
+            upload_bar.set_position(p.words_sent as u64);
+            if p.words_sent == p.words_total {
+                upload_bar.finish_and_clear();
+            }
+        },
+        &mut on_step,
+    )
+    .context("simulating on the target")?;
+    steps_bar.finish_and_clear();
+    written?;
+    if let Some(mut f) = csv {
+        f.flush()?;
+    }
+    println!(
+        "{} steps, {} CG iterations in all ({})",
+        results.len(),
+        total_iterations,
+        if args.cold {
+            "cold starts"
+        } else {
+            "warm starts from the previous step"
+        }
+    );
+    if nonlinear.is_some() {
+        println!("values-only updates saved {saved} bytes on the wire against full uploads");
+    }
+    if let Some(dir) = &args.out {
+        let path = dir.join("series.pvd");
+        write_pvd(&path, &pvd)?;
+        println!("wrote       {} (+{} .vtu files)", path.display(), pvd.len());
+    }
+    if let Some(path) = &args.steps_csv {
+        println!("wrote       {}", path.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,233 @@
+//! Quasi-static time series (thesis 2.4.2): the model solved at a sequence of time steps, each
+//! step's loads a function of time, with the target's matrix kept resident between steps.
+//!
+//! # Schedule
+//!
+//! Until scenario files carry a `[simulation]` table, a [`Schedule`] is `steps` steps of `dt`
+//! with every load (and prescribed displacement) ramped linearly from 0 at t = 0 to the model's
+//! full value at t = steps·dt: step s (1-based) solves at t = s·dt with the factor
+//! t / (steps·dt). A scenario's keyframed loads can be fed in later as another
+//! [`Schedule::load_factor`].
+//!
+//! # Displacement-independent model (the default)
+//!
+//! K (A, thesis eq. 38) is constant: it is uploaded once, and each step solves A·u_d = b_d(t)
+//! for d = x, y, z. With [`Start::Uploaded`] each solve warm-starts from the previous step's
+//! *full* solution of the same direction, uploaded as the `InitialGuess` (the target's own
+//! previous solution is the previous *direction's*, so `Start::Previous` would be wrong here).
+//! No refinement: one target solve per direction and step, to the target tolerance
+//! `max(tol, 1e-7)`; the reported residual is the true f64 residual.
+//!
+//! # Displacement-dependent model ([`Nonlinear`], thesis 3.2.2)
+//!
+//! Each spring p–q gets k̃ = α0 + α1·Σ_d Δl^d + α2·Σ_d (Δl^d)², with Δl^d = u_d[q] − u_d[p] the
+//! spring's length change along d at the previous step (0 before the first), one K for all
+//! three directions, K·u_d = f_d(t). K's pattern does not change, so from the second step on
+//! only the new values go to the target ([`Target::update_values`]); the bytes saved against a
+//! full upload are reported per step.
+
+use deform_shared::protocol::{SolveParams, Start, VectorSlot};
+
+use crate::encode::encode;
+use crate::link::{LinkError, Port, Target, UpdateReport, UploadProgress};
+use crate::model::assembly::assemble_laplacian;
+use crate::model::boundary::eliminate_fixed_nodes;
+use crate::model::{Axis, Csr, Model};
+use crate::reference;
+use crate::refine::FIXED_POINT_FLOOR;
+
+/// The time steps and how the loads follow them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Schedule {
+    pub steps: u32,
+    pub dt: f64,
+}
+
+impl Schedule {
+    /// t of step `s` (1-based).
+    pub fn time(&self, s: u32) -> f64 {
+        s as f64 * self.dt
+    }
+
+    /// The fraction of the model's loads applied at time `t`: a linear ramp to 1 at the end.
+    pub fn load_factor(&self, t: f64) -> f64 {
+        let end = self.steps as f64 * self.dt;
+        if end > 0.0 {
+            (t / end).clamp(0.0, 1.0)
+        } else {
+            1.0
+        }
+    }
+}
+
+/// Displacement-dependent spring stiffness k̃ = α0 + α1·Σ_d Δl^d + α2·Σ_d (Δl^d)².
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Nonlinear {
+    pub alpha: [f64; 3],
+}
+
+/// How to solve each step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepParams {
+    pub warm_start: bool,
+    /// Target CG tolerance (relative recursive residual), floored at 1e-7.
+    pub tol: f64,
+    pub max_iterations: u32,
+    /// Also solve each step with the f64 reference CG and report the deviation.
+    pub check_reference: bool,
+}
+
+/// What one step produced.
+#[derive(Debug, Clone)]
+pub struct StepResult {
+    pub step: u32,
+    pub t: f64,
+    /// Target CG iterations, summed over the three directions.
+    pub iterations: u32,
+    /// Largest true relative residual ‖b − K·u‖/‖b‖ over the directions.
+    pub residual: f64,
+    pub max_u: f64,
+    /// max |u − u_ref| / max |u_ref| against the f64 reference, if asked.
+    pub deviation: Option<f64>,
+    /// Nonlinear model: how K reached the target this step (`None`: full upload).
+    pub update: Option<UpdateReport>,
+    pub u: [Vec<f64>; 3],
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SimulateError {
+    #[error(transparent)]
+    Link(#[from] LinkError),
+    #[error(transparent)]
+    Update(#[from] crate::link::UpdateError),
+    #[error("encoding K: {0}")]
+    Encode(#[from] crate::encode::EncodeError),
+    #[error("assembling K: {0}")]
+    Assembly(#[from] crate::model::assembly::AssemblyError),
+    #[error("f64 reference: {0}")]
+    Reference(#[from] reference::SolveError),
+    #[error("the displacement-dependent model does not support prescribed displacements yet")]
+    PrescribedNonlinear,
+}
+
+fn max_abs(v: &[f64]) -> f64 {
+    v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
+}
+
+/// K for the nonlinear model after displacements `u` (fixed nodes eliminated).
+pub fn nonlinear_matrix(
+    model: &Model,
+    alpha: [f64; 3],
+    u: &[Vec<f64>; 3],
+) -> Result<Csr, SimulateError> {
+    let stiffness = |a: usize, b: usize| {
+        let dl = [u[0][b] - u[0][a], u[1][b] - u[1][a], u[2][b] - u[2][a]];
+        alpha[0]
+            + alpha[1] * dl.iter().sum::<f64>()
+            + alpha[2] * dl.iter().map(|d| d * d).sum::<f64>()
+    };
+    let free = assemble_laplacian(model.grid(), model.spec().connection, &stiffness)?;
+    Ok(eliminate_fixed_nodes(&free, model.fixed_mask()))
+}
+
+/// Runs the series on `target`, calling `on_upload` while a whole matrix streams and `on_step`
+/// after every step (for progress bars and output).
+pub fn simulate<P: Port>(
+    target: &mut Target<P>,
+    model: &Model,
+    schedule: Schedule,
+    nonlinear: Option<Nonlinear>,
+    params: StepParams,
+    mut on_upload: impl FnMut(UploadProgress),
+    mut on_step: impl FnMut(&StepResult),
+) -> Result<Vec<StepResult>, SimulateError> {
+    if nonlinear.is_some() && model.prescribed_count() > 0 {
+        return Err(SimulateError::PrescribedNonlinear);
+    }
+    let n = model.n();
+    let mut previous: [Vec<f64>; 3] = [vec![0.0; n], vec![0.0; n], vec![0.0; n]];
+    let mut results = Vec::new();
+    if nonlinear.is_none() {
+        target.upload_matrix_with_progress(&encode(model.unit_matrix())?, &mut on_upload)?;
+    }
+    for s in 1..=schedule.steps {
+        let t = schedule.time(s);
+        let factor = schedule.load_factor(t);
+        let (k, update, rhs): (Csr, Option<UpdateReport>, Vec<Vec<f64>>) = match nonlinear {
+            None => (
+                model.unit_matrix().clone(),
+                None,
+                Axis::ALL
+                    .iter()
+                    .map(|&d| model.scaled_rhs(d).iter().map(|b| b * factor).collect())
+                    .collect(),
+            ),
+            Some(Nonlinear { alpha }) => {
+                let k = nonlinear_matrix(model, alpha, &previous)?;
+                let encoded = encode(&k)?;
+                let update = if target.pattern_matches(&encoded) {
+                    Some(target.update_values(&encoded)?)
+                } else {
+                    target.upload_matrix_with_progress(&encoded, &mut on_upload)?;
+                    None
+                };
+                let rhs = Axis::ALL
+                    .iter()
+                    .map(|&d| model.load(d).iter().map(|f| f * factor).collect())
+                    .collect();
+                (k, update, rhs)
+            }
+        };
+        let mut result = StepResult {
+            step: s,
+            t,
+            iterations: 0,
+            residual: 0.0,
+            max_u: 0.0,
+            deviation: None,
+            update,
+            u: Default::default(),
+        };
+        let mut deviation: Option<f64> = None;
+        for (d, b) in Axis::ALL.iter().zip(&rhs) {
+            let p = d.position();
+            let x = if max_abs(b) == 0.0 {
+                vec![0.0; n]
+            } else {
+                let start = if params.warm_start && max_abs(&previous[p]) > 0.0 {
+                    target.upload_vector(VectorSlot::InitialGuess, &previous[p])?;
+                    Start::Uploaded
+                } else {
+                    Start::Zero
+                };
+                let solve = SolveParams {
+                    max_iterations: params.max_iterations,
+                    tolerance: params.tol.max(FIXED_POINT_FLOOR),
+                    start,
+                };
+                let (report, x) = target.solve_for(b, solve)?;
+                result.iterations += report.iterations;
+                result.residual = result.residual.max(reference::relative_residual(&k, b, &x));
+                if params.check_reference {
+                    let want = reference::solve(&k, b, None, 1e-12, 10 * n.max(100))?;
+                    let scale = max_abs(&want.x);
+                    let dev = x
+                        .iter()
+                        .zip(&want.x)
+                        .map(|(a, b)| (a - b).abs())
+                        .fold(0.0, f64::max)
+                        / if scale > 0.0 { scale } else { 1.0 };
+                    deviation = Some(deviation.map_or(dev, |m| m.max(dev)));
+                }
+                x
+            };
+            result.u[p] = x;
+        }
+        result.deviation = deviation;
+        result.max_u = result.u.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+        previous = result.u.clone();
+        on_step(&result);
+        results.push(result);
+    }
+    Ok(results)
+}
