@@ -13,5 +13,5 @@ pub mod model;
 pub mod output;
 pub mod reference;
 pub mod refine;
-pub mod simulate;
 pub mod scenario;
+pub mod simulate;
