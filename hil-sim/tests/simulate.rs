@@ -6,7 +6,9 @@ mod support;
 
 use deform_host::encode::encode;
 use deform_host::model::{Grid, Model, ModelSpec};
-use deform_host::simulate::{nonlinear_matrix, simulate, Nonlinear, Schedule, StepParams};
+use deform_host::simulate::{
+    nonlinear_matrix, simulate, simulate_with, Nonlinear, Schedule, StepModel, StepParams,
+};
 use deform_shared::protocol::{SolveParams, Start};
 
 use support::*;
@@ -116,5 +118,79 @@ fn the_nonlinear_model_updates_values_only_and_matches_a_fresh_upload() {
     assert_eq!(updated_report.iterations, fresh_report.iterations);
     assert_eq!(updated_report.residual, fresh_report.residual);
     assert_eq!(updated_x, fresh_x);
+    assert_alive(&mut qemu);
+}
+
+/// `deform simulate examples/needle-insertion.toml --steps 6 --dt 0.25`: the keyframed tip
+/// displacement (0 → −2 over t = 0 … 1, then held) is met at every step, and every step
+/// matches the f64 reference.
+#[test]
+fn the_needle_insertion_example_follows_its_keyframes() {
+    use clap::Parser;
+    use deform_host::commands::simulate::SimulateArgs;
+    use deform_host::model::Node;
+    use deform_host::scenario::value_at;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: SimulateArgs,
+    }
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/needle-insertion.toml"
+    );
+    let resolved = Cli::parse_from(["deform", path, "--steps", "6", "--dt", "0.25"])
+        .args
+        .resolve()
+        .expect("resolves");
+    assert_eq!(resolved.schedule, Schedule { steps: 6, dt: 0.25 });
+    let sim = resolved.simulation.clone().expect("[simulation]");
+    let model = Model::build(&resolved.spec).expect("model builds");
+    let tip = model.grid().index(Node::new(5, 5, 9)).unwrap();
+
+    let mut qemu = boot();
+    let mut target = connect(&qemu);
+    let step_model = |t: f64| resolved.model_at(t);
+    let steps = simulate_with(
+        &mut target,
+        &model,
+        resolved.schedule,
+        Some(&step_model as StepModel),
+        None,
+        params(true),
+        |_| {},
+        |_| {},
+    )
+    .expect("simulate on QEMU");
+    assert_eq!(steps.len(), 6);
+    for s in &steps {
+        let want = value_at(&sim.displace[0].keyframes, s.t);
+        let got = [0, 1, 2].map(|d| s.u[d][tip]);
+        let dev = s.deviation.expect("checked against f64");
+        println!(
+            "step {} t = {}: tip {got:?} (want {want:?}), {} iterations, deviation {dev:.2e}",
+            s.step, s.t, s.iterations
+        );
+        for d in 0..3 {
+            assert!(
+                (got[d] - want[d]).abs() < 1e-4,
+                "step {}: tip {got:?}, want {want:?}",
+                s.step
+            );
+        }
+        assert!(dev < 1e-5, "step {}: deviation {dev:e}", s.step);
+        assert!(
+            s.residual < 1e-5,
+            "step {}: residual {:e}",
+            s.step,
+            s.residual
+        );
+    }
+    assert_eq!(
+        steps[1].u[2][tip].round(),
+        -1.0,
+        "t = 0.5 is half of the 0 → −2 ramp"
+    );
     assert_alive(&mut qemu);
 }

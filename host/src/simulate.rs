@@ -3,11 +3,13 @@
 //!
 //! # Schedule
 //!
-//! Until scenario files carry a `[simulation]` table, a [`Schedule`] is `steps` steps of `dt`
-//! with every load (and prescribed displacement) ramped linearly from 0 at t = 0 to the model's
-//! full value at t = steps·dt: step s (1-based) solves at t = s·dt with the factor
-//! t / (steps·dt). A scenario's keyframed loads can be fed in later as another
-//! [`Schedule::load_factor`].
+//! A [`Schedule`] is `steps` steps of `dt`; step s (1-based) solves at t = s·dt. With
+//! [`simulate`] every load (and prescribed displacement) is ramped linearly from 0 at t = 0 to
+//! the model's full value at t = steps·dt (the factor t / (steps·dt)). With [`simulate_with`]
+//! a caller gives the model at each t instead (a scenario's `[simulation]` keyframes, see
+//! [`crate::scenario::Simulation::spec_at`]): its loads and its prescribed displacements, moved
+//! into the right-hand side by [`Model::build`] as for `--displace`. The prescribed nodes must
+//! be the same at every step, so the matrix is.
 //!
 //! # Displacement-independent model (the default)
 //!
@@ -108,7 +110,19 @@ pub enum SimulateError {
     Reference(#[from] reference::SolveError),
     #[error("the displacement-dependent model does not support prescribed displacements yet")]
     PrescribedNonlinear,
+    #[error("the model at t = {t}: {source}")]
+    StepModel {
+        t: f64,
+        source: crate::model::ModelError,
+    },
+    #[error(
+        "the model at t = {0} has another matrix (other fixed or prescribed nodes) than the first"
+    )]
+    MatrixChanged(f64),
 }
+
+/// The model at time t, for [`simulate_with`].
+pub type StepModel<'a> = &'a dyn Fn(f64) -> Result<Model, crate::model::ModelError>;
 
 fn max_abs(v: &[f64]) -> f64 {
     v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
@@ -130,12 +144,30 @@ pub fn nonlinear_matrix(
     Ok(eliminate_fixed_nodes(&free, model.fixed_mask()))
 }
 
-/// Runs the series on `target`, calling `on_upload` while a whole matrix streams and `on_step`
-/// after every step (for progress bars and output).
+/// Runs the series on `target` with `model`'s loads ramped linearly, calling `on_upload` while
+/// a whole matrix streams and `on_step` after every step (for progress bars and output).
 pub fn simulate<P: Port>(
     target: &mut Target<P>,
     model: &Model,
     schedule: Schedule,
+    nonlinear: Option<Nonlinear>,
+    params: StepParams,
+    on_upload: impl FnMut(UploadProgress),
+    on_step: impl FnMut(&StepResult),
+) -> Result<Vec<StepResult>, SimulateError> {
+    simulate_with(
+        target, model, schedule, None, nonlinear, params, on_upload, on_step,
+    )
+}
+
+/// Like [`simulate`], but with `step_model` given the loads and prescribed displacements of
+/// each step come from `step_model(t)` (whose matrix must equal `model`'s) instead of a ramp.
+#[allow(clippy::too_many_arguments)]
+pub fn simulate_with<P: Port>(
+    target: &mut Target<P>,
+    model: &Model,
+    schedule: Schedule,
+    step_model: Option<StepModel>,
     nonlinear: Option<Nonlinear>,
     params: StepParams,
     mut on_upload: impl FnMut(UploadProgress),
@@ -152,14 +184,28 @@ pub fn simulate<P: Port>(
     }
     for s in 1..=schedule.steps {
         let t = schedule.time(s);
-        let factor = schedule.load_factor(t);
+        let at_t = match step_model {
+            None => None,
+            Some(f) => {
+                let m = f(t).map_err(|source| SimulateError::StepModel { t, source })?;
+                if m.unit_matrix() != model.unit_matrix() {
+                    return Err(SimulateError::MatrixChanged(t));
+                }
+                Some(m)
+            }
+        };
+        // The ramp, or the step's own model at full value.
+        let (factor, step) = match &at_t {
+            None => (schedule.load_factor(t), model),
+            Some(m) => (1.0, m),
+        };
         let (k, update, rhs): (Csr, Option<UpdateReport>, Vec<Vec<f64>>) = match nonlinear {
             None => (
                 model.unit_matrix().clone(),
                 None,
                 Axis::ALL
                     .iter()
-                    .map(|&d| model.scaled_rhs(d).iter().map(|b| b * factor).collect())
+                    .map(|&d| step.scaled_rhs(d).iter().map(|b| b * factor).collect())
                     .collect(),
             ),
             Some(Nonlinear { alpha }) => {
@@ -173,7 +219,7 @@ pub fn simulate<P: Port>(
                 };
                 let rhs = Axis::ALL
                     .iter()
-                    .map(|&d| model.load(d).iter().map(|f| f * factor).collect())
+                    .map(|&d| step.load(d).iter().map(|f| f * factor).collect())
                     .collect();
                 (k, update, rhs)
             }

@@ -1,6 +1,11 @@
 //! `deform simulate`: quasi-static time steps of the model on the target (see
 //! [`crate::simulate`]), with per-step CSV, one VTK file per step plus a `.pvd` collection, and
 //! a progress bar on a terminal.
+//!
+//! Like `deform solve`, it takes an optional scenario file with flags overriding it. With a
+//! `[simulation]` table the steps, dt, keyframed loads and prescribed displacements and the
+//! displacement-dependent model come from the file (--steps, --dt, --alpha override them);
+//! without one, the model's loads are ramped linearly.
 
 use std::fs::File;
 use std::io::{BufWriter, IsTerminal, Write};
@@ -12,29 +17,38 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::board::{Board, BoardChoice};
-use crate::cli_model::ModelArgs;
+use crate::cli_model::ModelFlags;
+use crate::commands::solve::resolve_model;
 use crate::link::Timeouts;
+use crate::model::{Model, ModelError, ModelSpec};
 use crate::output::node_rows;
 use crate::output::vtk::{write_pvd, write_vtk, VtkKind};
-use crate::simulate::{simulate, Nonlinear, Schedule, StepParams, StepResult};
+use crate::scenario::Simulation;
+use crate::simulate::{simulate_with, Nonlinear, Schedule, StepParams, StepResult};
 
-/// Quasi-static time series: the model's loads ramped linearly from 0 to full over --steps
-/// steps of --dt, solved step by step on the target with K resident.
+/// Quasi-static time series solved step by step on the target with K resident: a scenario's
+/// `[simulation]` keyframes, or else the model's loads ramped linearly from 0 to full.
 #[derive(Debug, Clone, Args)]
 pub struct SimulateArgs {
+    /// A scenario file (TOML, see examples/); its `[simulation]` table gives the time steps,
+    /// keyframed loads and displacements. Flags given on the command line override it.
+    #[arg(value_name = "SCENARIO.toml")]
+    pub scenario: Option<PathBuf>,
+
     #[command(flatten)]
-    pub model: ModelArgs,
+    pub model: ModelFlags,
 
-    /// Time steps.
-    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..))]
-    pub steps: u32,
+    /// Time steps. [default: the scenario's, else 10]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    pub steps: Option<u32>,
 
-    /// Step length in seconds.
-    #[arg(long, default_value_t = 0.1)]
-    pub dt: f64,
+    /// Step length in seconds. [default: the scenario's, else 0.1]
+    #[arg(long)]
+    pub dt: Option<f64>,
 
     /// Displacement-dependent springs k̃ = a0 + a1·ΣΔl + a2·ΣΔl² (thesis 3.2.2), as
-    /// `a0,a1,a2`. Default: the displacement-independent model.
+    /// `a0,a1,a2`. Default: the scenario's `[simulation.nonlinear]`, else the
+    /// displacement-independent model.
     #[arg(long, value_name = "A0,A1,A2", value_parser = parse_alpha)]
     pub alpha: Option<[f64; 3]>,
 
@@ -105,8 +119,56 @@ fn bar(len: u64, what: &str) -> ProgressBar {
     bar
 }
 
+/// A simulation's inputs once flags, scenario file and defaults are merged.
+pub struct ResolvedSimulation {
+    /// The static model (a scenario's schedules at their final time).
+    pub spec: ModelSpec,
+    pub schedule: Schedule,
+    pub nonlinear: Option<Nonlinear>,
+    /// The scenario's `[simulation]`, whose keyframes drive the steps.
+    pub simulation: Option<Simulation>,
+}
+
+impl ResolvedSimulation {
+    /// The model at time `t`: the keyframes evaluated at t, or the static model.
+    pub fn model_at(&self, t: f64) -> Result<Model, ModelError> {
+        match &self.simulation {
+            Some(sim) => Model::build(&sim.spec_at(&self.spec, t)),
+            None => Model::build(&self.spec),
+        }
+    }
+}
+
+impl SimulateArgs {
+    /// Reads the scenario file, if any (as `deform solve` does), and merges flags over it.
+    pub fn resolve(&self) -> anyhow::Result<ResolvedSimulation> {
+        let (scenario, spec) = resolve_model(self.scenario.as_deref(), &self.model)?;
+        let simulation = scenario.and_then(|s| s.simulation);
+        let schedule = Schedule {
+            steps: self
+                .steps
+                .or(simulation.as_ref().map(|s| s.steps))
+                .unwrap_or(10),
+            dt: self.dt.or(simulation.as_ref().map(|s| s.dt)).unwrap_or(0.1),
+        };
+        let nonlinear = self
+            .alpha
+            .or(simulation
+                .as_ref()
+                .and_then(|s| s.nonlinear.as_ref().map(|n| n.alpha)))
+            .map(|alpha| Nonlinear { alpha });
+        Ok(ResolvedSimulation {
+            spec,
+            schedule,
+            nonlinear,
+            simulation,
+        })
+    }
+}
+
 pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
-    let model = args.model.build().context("building the model")?;
+    let resolved = args.resolve()?;
+    let model = Model::build(&resolved.spec).context("building the model")?;
     let n = model.n();
     if let Some(dir) = &args.out {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -134,10 +196,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     let mut board = Board::open(&choice, timeouts)?;
     println!("target      {}", board.describe());
     println!("model       {}", model.spec().describe());
-    let schedule = Schedule {
-        steps: args.steps,
-        dt: args.dt,
-    };
+    let schedule = resolved.schedule;
     let params = StepParams {
         warm_start: !args.cold,
         tol: args.tol,
@@ -146,8 +205,8 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
             .unwrap_or((10 * n).min(u32::MAX as usize) as u32),
         check_reference: args.check,
     };
-    let nonlinear = args.alpha.map(|alpha| Nonlinear { alpha });
-    let steps_bar = bar(args.steps as u64, "steps");
+    let nonlinear = resolved.nonlinear;
+    let steps_bar = bar(schedule.steps as u64, "steps");
     let upload_bar = bar(0, "upload");
     let mut pvd = Vec::new();
     let mut total_iterations = 0u64;
@@ -198,10 +257,15 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
             written = write();
         }
     };
-    let results = simulate(
+    let step_model = |t: f64| resolved.model_at(t);
+    let results = simulate_with(
         &mut board.target,
         &model,
         schedule,
+        resolved
+            .simulation
+            .is_some()
+            .then_some(&step_model as crate::simulate::StepModel),
         nonlinear,
         params,
         |p| {
@@ -241,4 +305,81 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         println!("wrote       {}", path.display());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: SimulateArgs,
+    }
+
+    fn resolve(argv: &[&str]) -> ResolvedSimulation {
+        let argv = std::iter::once("deform").chain(argv.iter().copied());
+        Cli::try_parse_from(argv).unwrap().args.resolve().unwrap()
+    }
+
+    const NEEDLE: &str = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/needle-insertion.toml"
+    );
+
+    #[test]
+    fn the_scenario_gives_the_schedule_and_flags_override_it() {
+        let r = resolve(&[NEEDLE]);
+        assert_eq!(
+            r.schedule,
+            Schedule {
+                steps: 75,
+                dt: 0.02
+            }
+        );
+        assert!(r.nonlinear.is_none());
+        let r = resolve(&[NEEDLE, "--steps", "5", "--dt", "0.1", "--alpha", "1,0,0.5"]);
+        assert_eq!(r.schedule, Schedule { steps: 5, dt: 0.1 });
+        assert_eq!(
+            r.nonlinear,
+            Some(Nonlinear {
+                alpha: [1.0, 0.0, 0.5]
+            })
+        );
+        let r = resolve(&[]);
+        assert_eq!(r.schedule, Schedule { steps: 10, dt: 0.1 });
+        assert!(r.simulation.is_none());
+    }
+
+    #[test]
+    fn each_step_prescribes_the_keyframed_displacement() {
+        let r = resolve(&[NEEDLE]);
+        let tip = r.spec.grid.index(crate::model::Node::new(5, 5, 9)).unwrap();
+        // The ramp 0 → −2 over t = 0 … 1, then held.
+        for (t, want) in [
+            (0.0, 0.0),
+            (0.25, -0.5),
+            (0.5, -1.0),
+            (1.0, -2.0),
+            (1.5, -2.0),
+        ] {
+            let m = r.model_at(t).unwrap();
+            assert_eq!(m.prescribed()[tip], Some([0.0, 0.0, want]), "t = {t}");
+            let u = crate::reference::solve(
+                m.unit_matrix(),
+                &m.scaled_rhs(crate::model::Axis::Z),
+                None,
+                1e-12,
+                10_000,
+            )
+            .unwrap();
+            assert!((u.x[tip] - want).abs() < 1e-9, "t = {t}: {}", u.x[tip]);
+            assert_eq!(m.unit_matrix(), r.model_at(0.0).unwrap().unit_matrix());
+        }
+        // A --displace flag replaces the file's schedule: the tip stays where the flag says.
+        let r = resolve(&[NEEDLE, "--displace", "5,5,9:0,0,-1"]);
+        let m = r.model_at(0.5).unwrap();
+        assert_eq!(m.prescribed()[tip], Some([0.0, 0.0, -1.0]));
+    }
 }

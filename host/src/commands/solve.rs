@@ -4,7 +4,7 @@
 //! The target receives A once (thesis eq. 38: K_d = k_d·A) and solves A·u_d = f_d / k_d for each
 //! direction against the resident matrix.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{bail, Context};
@@ -162,13 +162,24 @@ pub struct SolvePlan {
     pub solve_timeout: Duration,
 }
 
+/// Reads the scenario file at `path`, if any, and merges the model `flags` over it over the
+/// defaults: the model half of [`SolveArgs::resolve`], shared with `deform simulate`.
+pub fn resolve_model(
+    path: Option<&Path>,
+    flags: &ModelFlags,
+) -> anyhow::Result<(Option<Scenario>, ModelSpec)> {
+    let scenario = match path {
+        Some(path) => Some(Scenario::load(path, flags.grid)?),
+        None => None,
+    };
+    let spec = flags.spec_over(scenario.as_ref().map(|s| &s.model));
+    Ok((scenario, spec))
+}
+
 impl SolveArgs {
     /// Reads the scenario file, if any, and merges flags over it over the defaults.
     pub fn resolve(&self) -> anyhow::Result<ResolvedSolve> {
-        let scenario = match &self.scenario {
-            Some(path) => Some(Scenario::load(path, self.model.grid)?),
-            None => None,
-        };
+        let (scenario, spec) = resolve_model(self.scenario.as_deref(), &self.model)?;
         let file_solver = scenario
             .as_ref()
             .map(|s| s.solver.clone())
@@ -201,7 +212,6 @@ impl SolveArgs {
                     .unwrap_or(DEFAULT_TIMEOUT_SECONDS),
             ),
         };
-        let spec = self.model.spec_over(scenario.as_ref().map(|s| &s.model));
         let out = self
             .out
             .clone()

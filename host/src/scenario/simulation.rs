@@ -20,7 +20,7 @@
 
 use serde::Deserialize;
 
-use crate::model::Node;
+use crate::model::{ModelSpec, Node};
 
 /// One keyframe: `[t, x, y, z]`.
 pub type Keyframe = [f64; 4];
@@ -64,6 +64,40 @@ impl Simulation {
     /// The time of the last step, steps·dt.
     pub fn end_time(&self) -> f64 {
         self.steps as f64 * self.dt
+    }
+
+    /// The model at time `t`, from `final_spec`, the static model a scenario gives (the
+    /// schedules evaluated at [`Simulation::end_time`], see [`super`]) with any command-line
+    /// flags merged over it: each scheduled displacement and point load that is still there
+    /// with its final value takes its value at `t` instead. One the flags replaced (a --displace
+    /// or --load list given) is left as the flags say. The prescribed nodes are the same at
+    /// every t, so the model's matrix is too.
+    pub fn spec_at(&self, final_spec: &ModelSpec, t: f64) -> ModelSpec {
+        let end = self.end_time();
+        let mut spec = final_spec.clone();
+        for s in &self.displace {
+            let at_end = s.value_at(end);
+            if let Some(d) = spec
+                .prescribed
+                .iter_mut()
+                .find(|d| d.node == s.node && d.u == at_end)
+            {
+                d.u = s.value_at(t);
+            }
+        }
+        // The scenario appends the scheduled loads after the static ones, in order.
+        let mut tail = spec.loads.len();
+        for s in self.load.iter().rev() {
+            let at_end = s.value_at(end);
+            if let Some(i) = spec.loads[..tail]
+                .iter()
+                .rposition(|l| l.node == s.node && l.force == at_end)
+            {
+                spec.loads[i].force = s.value_at(t);
+                tail = i;
+            }
+        }
+        spec
     }
 }
 
@@ -143,5 +177,51 @@ mod tests {
         assert_eq!(value_at(&step, 0.5), [0.5, 0.0, 0.0]);
         assert_eq!(value_at(&step, 1.0), [5.0, 0.0, 0.0]);
         assert_eq!(value_at(&step, 2.0), [5.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn spec_at_follows_the_keyframes_and_leaves_static_loads() {
+        use crate::model::{PointLoad, PrescribedDisplacement};
+        let tip = Node::new(1, 1, 1);
+        let side = Node::new(0, 1, 1);
+        let sim = Simulation {
+            steps: 4,
+            dt: 0.5,
+            displace: vec![NodeSchedule {
+                node: tip,
+                keyframes: vec![[0.0, 0.0, 0.0, 0.0], [2.0, 0.0, 0.0, 2.0]],
+            }],
+            load: vec![NodeSchedule {
+                node: side,
+                keyframes: vec![[0.0, 0.0, 0.0, 0.0], [1.0, 4.0, 0.0, 0.0]],
+            }],
+            nonlinear: None,
+        };
+        let static_load = PointLoad {
+            node: side,
+            force: [1.0, 0.0, 0.0],
+        };
+        // What the scenario loader makes of it: the schedules at t = 2.
+        let mut spec = ModelSpec::thesis_example();
+        spec.loads = vec![
+            static_load,
+            PointLoad {
+                node: side,
+                force: [4.0, 0.0, 0.0],
+            },
+        ];
+        spec.prescribed = vec![PrescribedDisplacement {
+            node: tip,
+            u: [0.0, 0.0, 2.0],
+        }];
+        let at = sim.spec_at(&spec, 1.0);
+        assert_eq!(at.prescribed[0].u, [0.0, 0.0, 1.0]);
+        assert_eq!(at.loads[0], static_load);
+        assert_eq!(at.loads[1].force, [4.0, 0.0, 0.0]);
+        let at = sim.spec_at(&spec, 0.5);
+        assert_eq!(at.prescribed[0].u, [0.0, 0.0, 0.5]);
+        assert_eq!(at.loads[0], static_load);
+        assert_eq!(at.loads[1].force, [2.0, 0.0, 0.0]);
+        assert_eq!(sim.spec_at(&spec, sim.end_time()), spec);
     }
 }
