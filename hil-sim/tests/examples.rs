@@ -36,19 +36,8 @@ fn run_example(name: &str) {
     let solved = solve_model(&model, &plan).expect("solve on QEMU");
     assert_alive(&mut qemu);
 
-    let scale = solved
-        .reference
-        .iter()
-        .flatten()
-        .fold(0.0f64, |m, v| m.max(v.abs()));
+    let (rel, scale) = deviation_from_reference(&solved);
     assert!(scale > 0.0, "{name}: the reference displacement is zero");
-    let worst = solved
-        .u
-        .iter()
-        .zip(&solved.reference)
-        .flat_map(|(u, r)| u.iter().zip(r).map(|(a, b)| (a - b).abs()))
-        .fold(0.0f64, f64::max);
-    let rel = worst / scale;
     let prescribed = prescribed_error(&model, &solved.u);
     println!(
         "{name}: max |u| = {scale:.6e}, max relative error against f64 = {rel:.3e}, \

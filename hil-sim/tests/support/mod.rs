@@ -171,3 +171,19 @@ impl Noise {
         (self.next_u64() % bound as u64) as usize
     }
 }
+
+/// (max |u − u_ref| / max |u_ref|, max |u_ref|) over every node and direction of a solve.
+pub fn deviation_from_reference(solved: &deform_host::commands::solve::Solved) -> (f64, f64) {
+    let scale = solved
+        .reference
+        .iter()
+        .flatten()
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    let worst = solved
+        .u
+        .iter()
+        .zip(&solved.reference)
+        .flat_map(|(u, r)| u.iter().zip(r).map(|(a, b)| (a - b).abs()))
+        .fold(0.0f64, f64::max);
+    (worst / scale, scale)
+}
