@@ -387,20 +387,10 @@ impl<'a, C: PhaseClock> Session<'a, C> {
                 ErrorCode::ChunkTooLong
             });
         };
-        if offset != up.words_done {
-            return Err(ErrorCode::UnexpectedOffset {
-                expected: up.words_done,
-                got: offset,
-            });
-        }
         let tile_end = start
             .checked_add(header.words)
             .ok_or(ErrorCode::ChunkTooLong)?;
-        let end = u32::try_from(words.len())
-            .ok()
-            .and_then(|len| offset.checked_add(len))
-            .filter(|&end| end <= tile_end)
-            .ok_or(ErrorCode::ChunkTooLong)?;
+        let end = chunk_end(up.words_done, offset, words.len(), tile_end)?;
         // `tile_end ≤ words ≤ word_capacity ≤ words.len()` was checked by `Tile`/`BeginMatrix`.
         let dst = self
             .store
@@ -504,17 +494,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         else {
             return Err(out_of_order(SessionStep::NoUpdate));
         };
-        if offset != done {
-            return Err(ErrorCode::UnexpectedOffset {
-                expected: done,
-                got: offset,
-            });
-        }
-        let end = u32::try_from(values.len())
-            .ok()
-            .and_then(|len| offset.checked_add(len))
-            .filter(|&end| end <= shape.words)
-            .ok_or(ErrorCode::ChunkTooLong)?;
+        let end = chunk_end(done, offset, values.len(), shape.words)?;
         if let Some(&bad) = values
             .iter()
             .find(|&&v| !(VALUE_MIN..=VALUE_MAX).contains(&v))
@@ -598,17 +578,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         };
         // A vector upload only exists while its matrix is resident.
         let shape = self.resident()?;
-        if offset != received {
-            return Err(ErrorCode::UnexpectedOffset {
-                expected: received,
-                got: offset,
-            });
-        }
-        let end = u32::try_from(mantissas.len())
-            .ok()
-            .and_then(|len| offset.checked_add(len))
-            .filter(|&end| end <= shape.n)
-            .ok_or(ErrorCode::ChunkTooLong)?;
+        let end = chunk_end(received, offset, mantissas.len(), shape.n)?;
         if mantissas
             .iter()
             .any(|&m| i64::from(m).abs() >= MANTISSA_LIMIT)
@@ -733,6 +703,23 @@ impl<'a, C: PhaseClock> Session<'a, C> {
             mantissas,
         })
     }
+}
+
+/// Where an in-order chunk of `len` items at `offset` ends. Every upload (words, value updates,
+/// vectors) takes its chunks strictly in order, so the chunk must start at `expected`, where the
+/// previous one ended, and must not run past `limit`.
+fn chunk_end(expected: u32, offset: u32, len: usize, limit: u32) -> Result<u32, ErrorCode> {
+    if offset != expected {
+        return Err(ErrorCode::UnexpectedOffset {
+            expected,
+            got: offset,
+        });
+    }
+    u32::try_from(len)
+        .ok()
+        .and_then(|len| offset.checked_add(len))
+        .filter(|&end| end <= limit)
+        .ok_or(ErrorCode::ChunkTooLong)
 }
 
 #[cfg(test)]
