@@ -41,8 +41,22 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
-fn norm(a: &[f64]) -> f64 {
+/// ‖a‖₂.
+pub fn norm(a: &[f64]) -> f64 {
     dot(a, a).sqrt()
+}
+
+/// max |aᵢ|: the scale against which deviations from the reference are quoted.
+pub fn max_abs(a: &[f64]) -> f64 {
+    a.iter().fold(0.0f64, |m, x| m.max(x.abs()))
+}
+
+/// max |aᵢ − bᵢ|: how far a solution lies from the reference, node by node.
+pub fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
 }
 
 /// b − K·x.

@@ -11,6 +11,7 @@ use deform_shared::protocol::{PhaseCounters, SolveParams, Start};
 
 use crate::link::{LinkError, Port, Target};
 use crate::model::Csr;
+use crate::reference::{norm, residual};
 
 /// The target never gets an inner tolerance tighter than this: below it the fixed-point
 /// iteration only burns cycles, and refinement does better.
@@ -55,10 +56,6 @@ pub enum RefineError {
         solves: u32,
         tol: f64,
     },
-}
-
-fn norm(v: &[f64]) -> f64 {
-    v.iter().map(|x| x * x).sum::<f64>().sqrt()
 }
 
 fn add(total: &mut PhaseCounters, more: PhaseCounters) {
@@ -112,10 +109,7 @@ pub fn solve_refined<P: Port>(
         for (x, d) in out.x.iter_mut().zip(&d) {
             *x += d;
         }
-        let ax = a.mul_vec(&out.x);
-        for ((r, b), ax) in r.iter_mut().zip(b).zip(&ax) {
-            *r = b - ax;
-        }
+        r = residual(a, b, &out.x);
         out.relative_residual = norm(&r) / b_norm;
     }
     Ok(out)

@@ -35,7 +35,7 @@ use crate::link::{LinkError, Port, Target, UpdateReport, UploadProgress};
 use crate::model::assembly::assemble_laplacian;
 use crate::model::boundary::eliminate_fixed_nodes;
 use crate::model::{Axis, Csr, Model};
-use crate::reference;
+use crate::reference::{self, max_abs, max_abs_diff};
 use crate::refine::FIXED_POINT_FLOOR;
 
 /// The time steps and how the loads follow them.
@@ -123,10 +123,6 @@ pub enum SimulateError {
 
 /// The model at time t, for [`simulate_with`].
 pub type StepModel<'a> = &'a dyn Fn(f64) -> Result<Model, crate::model::ModelError>;
-
-fn max_abs(v: &[f64]) -> f64 {
-    v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
-}
 
 /// K for the nonlinear model after displacements `u` (fixed nodes eliminated).
 pub fn nonlinear_matrix(
@@ -257,12 +253,7 @@ pub fn simulate_with<P: Port>(
                 if params.check_reference {
                     let want = reference::solve(&k, b, None, 1e-12, 10 * n.max(100))?;
                     let scale = max_abs(&want.x);
-                    let dev = x
-                        .iter()
-                        .zip(&want.x)
-                        .map(|(a, b)| (a - b).abs())
-                        .fold(0.0, f64::max)
-                        / if scale > 0.0 { scale } else { 1.0 };
+                    let dev = max_abs_diff(&x, &want.x) / if scale > 0.0 { scale } else { 1.0 };
                     deviation = Some(deviation.map_or(dev, |m| m.max(dev)));
                 }
                 x

@@ -17,7 +17,7 @@ use crate::encode::encode;
 use crate::link::Timeouts;
 use crate::model::{Axis, Model, ModelSpec};
 use crate::output::{node_rows, write_displacements, OutputFormat};
-use crate::reference;
+use crate::reference::{self, max_abs, max_abs_diff};
 use crate::refine::{solve_refined, RefineParams};
 use crate::scenario::{Scenario, TargetName};
 
@@ -225,10 +225,6 @@ impl SolveArgs {
     }
 }
 
-fn max_abs(v: &[f64]) -> f64 {
-    v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
-}
-
 fn axis_name(axis: Axis) -> &'static str {
     ["x", "y", "z"][axis.position()]
 }
@@ -324,12 +320,7 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
                     format!("solving the {} direction on the target", axis_name(*d))
                 })?;
                 let reference_x = &reference[d.position()].x;
-                let deviation = got
-                    .x
-                    .iter()
-                    .zip(reference_x)
-                    .map(|(a, b)| (a - b).abs())
-                    .fold(0.0, f64::max);
+                let deviation = max_abs_diff(&got.x, reference_x);
                 let per_iteration =
                     |v: u64| (got.iterations > 0).then(|| v as f64 / got.iterations as f64);
                 stats.directions.push(DirectionStats {
