@@ -237,9 +237,17 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
         .max_iter
         .unwrap_or((10 * n).min(u32::MAX as usize) as u32);
     let rhs: Vec<Vec<f64>> = Axis::ALL.iter().map(|&d| model.scaled_rhs(d)).collect();
+    // Encode first: a matrix the target cannot take (e.g. a band too wide for a tile) is refused
+    // before any solving is done.
+    let board_and_matrix = plan
+        .board
+        .as_ref()
+        .map(|choice| encode(a).map(|encoded| (choice, encoded)))
+        .transpose()
+        .context("encoding A as instruction words")?;
 
     // The f64 reference, always: it is the answer for --target host and the yardstick otherwise.
-    let reference_tol = if plan.board.is_some() {
+    let reference_tol = if board_and_matrix.is_some() {
         1e-12
     } else {
         plan.tol
@@ -274,7 +282,7 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
     };
     let mut u: [Vec<f64>; 3] = Default::default();
 
-    match &plan.board {
+    match board_and_matrix {
         None => {
             for (d, sol) in Axis::ALL.iter().zip(&reference) {
                 u[d.position()] = sol.x.clone();
@@ -294,8 +302,7 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
                 });
             }
         }
-        Some(choice) => {
-            let encoded = encode(a).context("encoding A as instruction words")?;
+        Some((choice, encoded)) => {
             stats.words = Some(encoded.words.len());
             stats.tiles = Some(encoded.tiles.len());
             stats.frac_bits = Some(encoded.frac_bits);
