@@ -140,12 +140,7 @@ pub fn cholesky_solve(a: &[Vec<f64>], b: &[f64]) -> Vec<f64> {
 /// max |got - want| / max |want|.
 pub fn max_relative_error(got: &[f64], want: &[f64]) -> f64 {
     assert_eq!(got.len(), want.len());
-    let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    got.iter()
-        .zip(want)
-        .map(|(g, w)| (g - w).abs())
-        .fold(0.0, f64::max)
-        / scale
+    deform_host::reference::max_abs_diff(got, want) / deform_host::reference::max_abs(want)
 }
 
 /// A fixed-seed xorshift generator: the noise is the same in every run.
@@ -174,16 +169,17 @@ impl Noise {
 
 /// (max |u − u_ref| / max |u_ref|, max |u_ref|) over every node and direction of a solve.
 pub fn deviation_from_reference(solved: &deform_host::commands::solve::Solved) -> (f64, f64) {
+    use deform_host::reference::{max_abs, max_abs_diff};
     let scale = solved
         .reference
         .iter()
-        .flatten()
-        .fold(0.0f64, |m, v| m.max(v.abs()));
+        .map(|r| max_abs(r))
+        .fold(0.0, f64::max);
     let worst = solved
         .u
         .iter()
         .zip(&solved.reference)
-        .flat_map(|(u, r)| u.iter().zip(r).map(|(a, b)| (a - b).abs()))
-        .fold(0.0f64, f64::max);
+        .map(|(u, r)| max_abs_diff(u, r))
+        .fold(0.0, f64::max);
     (worst / scale, scale)
 }

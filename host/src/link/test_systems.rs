@@ -77,10 +77,5 @@ pub fn laplacian_1d_solve(b: &[f64]) -> Vec<f64> {
 /// max |got - want| / max |want|.
 pub fn max_relative_error(got: &[f64], want: &[f64]) -> f64 {
     assert_eq!(got.len(), want.len());
-    let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    got.iter()
-        .zip(want)
-        .map(|(g, w)| (g - w).abs())
-        .fold(0.0, f64::max)
-        / scale
+    crate::reference::max_abs_diff(got, want) / crate::reference::max_abs(want)
 }
