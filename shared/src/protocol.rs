@@ -41,7 +41,7 @@ use crate::frame::FrameError;
 use crate::matrix::{MatrixError, TileHeader};
 
 /// Bumped on any change to these types or to the framing.
-pub const PROTOCOL_VERSION: u16 = 2;
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// Words or mantissas per chunk message. 64 × 4 bytes keeps a frame well under
 /// [`MAX_FRAME_LEN`] while the per-frame overhead stays small.
@@ -181,8 +181,6 @@ pub struct SolveReport {
 pub enum SolveFailure {
     #[error("pᵀKp ≤ 0 at iteration {iteration}: the matrix is not positive definite (unconstrained or singular system)")]
     NotPositiveDefinite { iteration: u32 },
-    #[error("the right-hand side is zero")]
-    ZeroRhs,
     #[error("the solver's work vectors are shorter than the matrix needs (a firmware fault)")]
     WorkspaceTooSmall,
 }

@@ -187,7 +187,7 @@ pub fn ldexp(x: f64, k: i32) -> f64 {
 }
 
 /// ⌊log2 |x|⌋ for finite nonzero `x`.
-fn floor_log2(x: f64) -> i32 {
+pub fn floor_log2(x: f64) -> i32 {
     let bits = x.abs().to_bits();
     let biased = ((bits >> 52) & 0x7FF) as i32;
     if biased == 0 {

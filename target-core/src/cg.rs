@@ -22,7 +22,7 @@
 
 use deform_shared::matrix::TileHeader;
 use deform_shared::protocol::{PhaseCounters, SolveFailure, SolveParams, SolveReport, Start};
-use deform_shared::qformat::{block_exponent, ldexp, to_mantissa};
+use deform_shared::qformat::{block_exponent, floor_log2, ldexp, to_mantissa};
 use deform_shared::word::{COLUMN_WINDOW, ER_BIT, VALUE_BITS};
 
 /// Mantissas produced by the SVU stay below 2^OUTPUT_BITS.
@@ -111,11 +111,6 @@ struct Block {
 
 fn max_abs(m: &[i32]) -> u32 {
     m.iter().map(|v| v.unsigned_abs()).max().unwrap_or(0)
-}
-
-/// ⌊log2 x⌋ of a positive f64.
-fn floor_log2(x: f64) -> i32 {
-    (((x.to_bits() >> 52) & 0x7FF) as i32) - 1023
 }
 
 /// `v · 2^-s`, rounded to nearest, for a loop-invariant `s` of either sign.
