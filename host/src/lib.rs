@@ -3,7 +3,9 @@
 //! - [`model`]: the spring-network tissue model of thesis ch. 2 and its stiffness matrix (CSR);
 //! - [`reference`]: the f64 conjugate-gradient baseline;
 //! - [`encode`]: K as tiles of MVU instruction words;
-//! - [`cli_model`]: the model flags shared by subcommands; [`commands`]: the subcommands.
+//! - [`cli_model`]: the model flags shared by subcommands; [`commands`]: the subcommands;
+//! - [`bench`]: the performance analysis behind `deform bench`.
+pub mod bench;
 pub mod board;
 pub mod cli_model;
 pub mod commands;

@@ -26,6 +26,9 @@ enum Command {
     /// Quasi-static time steps: loads ramped over --steps steps, K resident on the target,
     /// warm starts, optional displacement-dependent springs (--alpha); per-step CSV and VTK.
     Simulate(commands::simulate::SimulateArgs),
+    /// Measure cycles per CG iteration, MFLOPS, convergence, the real-time budget and the
+    /// host baseline against the thesis's figures; JSON, CSV and SVG/PNG plots in --out.
+    Bench(commands::bench::BenchArgs),
 }
 
 fn main() -> ExitCode {
@@ -34,6 +37,7 @@ fn main() -> ExitCode {
         Command::Model(args) => commands::model::run(args),
         Command::Solve(args) => commands::solve::run(args),
         Command::Simulate(args) => commands::simulate::run(args),
+        Command::Bench(args) => commands::bench::run(args).map(|_| ()),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -28,7 +28,7 @@
 //! only the new values go to the target ([`Target::update_values`]); the bytes saved against a
 //! full upload are reported per step.
 
-use deform_shared::protocol::{SolveParams, Start, VectorSlot};
+use deform_shared::protocol::{PhaseCounters, SolveParams, Start, VectorSlot};
 
 use crate::encode::encode;
 use crate::link::{LinkError, Port, Target, UpdateReport, UploadProgress};
@@ -86,6 +86,9 @@ pub struct StepResult {
     pub t: f64,
     /// Target CG iterations, summed over the three directions.
     pub iterations: u32,
+    /// The target's MVU and SVU counters, summed over the three directions' solves.
+    pub mvu: PhaseCounters,
+    pub svu: PhaseCounters,
     /// Largest true relative residual ‖b − K·u‖/‖b‖ over the directions.
     pub residual: f64,
     pub max_u: f64,
@@ -224,6 +227,8 @@ pub fn simulate_with<P: Port>(
             step: s,
             t,
             iterations: 0,
+            mvu: PhaseCounters::default(),
+            svu: PhaseCounters::default(),
             residual: 0.0,
             max_u: 0.0,
             deviation: None,
@@ -249,6 +254,11 @@ pub fn simulate_with<P: Port>(
                 };
                 let (report, x) = target.solve_for(b, solve)?;
                 result.iterations += report.iterations;
+                for (total, phase) in [(&mut result.mvu, report.mvu), (&mut result.svu, report.svu)]
+                {
+                    total.cycles += phase.cycles;
+                    total.instructions += phase.instructions;
+                }
                 result.residual = result.residual.max(reference::relative_residual(&k, b, &x));
                 if params.check_reference {
                     let want = reference::solve(&k, b, None, 1e-12, 10 * n.max(100))?;

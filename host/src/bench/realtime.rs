@@ -1,0 +1,218 @@
+//! The real-time budget: a `deform simulate` scenario run on the target, each time step's
+//! cycles, and the step rate they allow at 100 MHz against haptic (1 kHz) and visual (60 Hz)
+//! rates.
+//!
+//! The scenario is the thesis cube's load ramped over `steps` steps (the `simulate` default:
+//! K resident, each direction warm-started from the previous step), for the grids the thesis
+//! quotes (about 500 nodes: 8³ = 512) and for 1000 nodes (10³). A step's cycles are the MVU and
+//! SVU counters of its three solves (one per direction), run one after the other.
+//!
+//! Two budgets are kept apart, because they have different cures:
+//! - **compute**: the CG cycles at 100 MHz, CPI 1;
+//! - **wire**: the bytes the step moves (right-hand sides and initial guesses up, solutions
+//!   down), as measured on the line, and their time at the serial line's 115200 baud (10 bits a
+//!   byte). Protocol handling on the target (framing, block-floating-point conversion) is in
+//!   neither: the firmware does not count it.
+
+use std::cell::Cell;
+use std::time::Duration;
+
+use anyhow::Context;
+use serde::{Deserialize, Serialize};
+
+use super::board::{BenchBoard, BenchBoardChoice, WireBytes};
+use super::{BenchModel, NOMINAL_CLOCK_HZ};
+use crate::link::{Timeouts, BAUD_RATE};
+use crate::model::Model;
+use crate::simulate::{simulate, Schedule, StepParams};
+
+/// Haptic feedback needs about 1 kHz, a visual display about 60 Hz.
+pub const HAPTIC_HZ: f64 = 1000.0;
+pub const VISUAL_HZ: f64 = 60.0;
+
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct RealtimeConfig {
+    pub edges: Vec<usize>,
+    pub models: Vec<BenchModel>,
+    pub steps: u32,
+    /// Target CG tolerance per solve (as `deform simulate --tol`).
+    pub tol: f64,
+    pub solve_timeout: Duration,
+}
+
+/// One time step's cost.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct StepBudget {
+    pub step: u32,
+    /// CG iterations, summed over x, y and z.
+    pub iterations: u32,
+    pub mvu_cycles: u64,
+    pub svu_cycles: u64,
+    pub cycles: u64,
+    pub wire_bytes: u64,
+}
+
+/// One scenario's steps and verdicts.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct RealtimeScenario {
+    pub model: BenchModel,
+    pub edge: usize,
+    pub n: usize,
+    pub nnz: usize,
+    pub tol: f64,
+    pub steps: Vec<StepBudget>,
+    /// The slowest step's cycles, and the step rate it allows at 100 MHz.
+    pub worst_step_cycles: u64,
+    pub compute_rate_hz: f64,
+    pub meets_haptic: bool,
+    pub meets_visual: bool,
+    /// The largest step's bytes, and the step rate the serial line allows for them.
+    pub worst_step_wire_bytes: u64,
+    pub wire_rate_hz_at_baud: f64,
+    pub baud: u32,
+    /// Wire bytes per CG iteration over the whole run (steps' bytes / steps' iterations).
+    pub wire_bytes_per_iteration: f64,
+    /// Bytes of the one-off upload of A.
+    pub wire_bytes_matrix_upload: u64,
+}
+
+/// Runs every (model, edge) scenario on its own fresh one-hart board.
+pub fn run(
+    config: &RealtimeConfig,
+    choice: &BenchBoardChoice,
+) -> anyhow::Result<Vec<RealtimeScenario>> {
+    let timeouts = Timeouts {
+        solve: config.solve_timeout,
+        ..Timeouts::default()
+    };
+    let mut out = Vec::new();
+    for &model in &config.models {
+        for &edge in &config.edges {
+            let mut board = BenchBoard::open(choice, 1, timeouts)?;
+            let scenario = run_one(&mut board, model, edge, config)?;
+            println!(
+                "budget {} {}³ (n = {}): worst step {} cycles → {:.0} steps/s at 100 MHz (1 kHz: {}, 60 Hz: {}); {} B on the wire per step → {:.1} steps/s at {} baud",
+                model,
+                edge,
+                scenario.n,
+                scenario.worst_step_cycles,
+                scenario.compute_rate_hz,
+                yes_no(scenario.meets_haptic),
+                yes_no(scenario.meets_visual),
+                scenario.worst_step_wire_bytes,
+                scenario.wire_rate_hz_at_baud,
+                scenario.baud
+            );
+            out.push(scenario);
+        }
+    }
+    Ok(out)
+}
+
+fn yes_no(b: bool) -> &'static str {
+    if b {
+        "yes"
+    } else {
+        "no"
+    }
+}
+
+/// Steps per second that `per_step` units allow at `rate` units per second.
+fn rate(per_step: f64, units_per_second: f64) -> f64 {
+    if per_step > 0.0 {
+        units_per_second / per_step
+    } else {
+        f64::INFINITY
+    }
+}
+
+fn run_one(
+    board: &mut BenchBoard,
+    model: BenchModel,
+    edge: usize,
+    config: &RealtimeConfig,
+) -> anyhow::Result<RealtimeScenario> {
+    let built = Model::build(&model.cube(edge)?).context("building the model")?;
+    let n = built.n();
+    let schedule = Schedule {
+        steps: config.steps,
+        dt: 1.0 / HAPTIC_HZ,
+    };
+    let params = StepParams {
+        warm_start: true,
+        tol: config.tol,
+        max_iterations: (10 * n).min(u32::MAX as usize) as u32,
+        check_reference: false,
+    };
+    let wire = board.wire.clone();
+    let start = wire.read();
+    let mark = Cell::new(start);
+    let upload = Cell::new(WireBytes::default());
+    let mut steps = Vec::new();
+    simulate(
+        &mut board.target,
+        &built,
+        schedule,
+        None,
+        params,
+        |p| {
+            if p.words_sent == p.words_total {
+                let now = wire.read();
+                upload.set(now.since(start));
+                mark.set(now);
+            }
+        },
+        |r| {
+            let now = wire.read();
+            steps.push(StepBudget {
+                step: r.step,
+                iterations: r.iterations,
+                mvu_cycles: r.mvu.cycles,
+                svu_cycles: r.svu.cycles,
+                cycles: r.mvu.cycles + r.svu.cycles,
+                wire_bytes: now.since(mark.get()).total(),
+            });
+            mark.set(now);
+        },
+    )
+    .with_context(|| format!("simulating {model} on a {edge}³ grid"))?;
+    let worst_step_cycles = steps.iter().map(|s| s.cycles).max().unwrap_or(0);
+    let worst_step_wire_bytes = steps.iter().map(|s| s.wire_bytes).max().unwrap_or(0);
+    let compute_rate_hz = rate(worst_step_cycles as f64, NOMINAL_CLOCK_HZ);
+    let iterations: u64 = steps.iter().map(|s| s.iterations as u64).sum();
+    let bytes: u64 = steps.iter().map(|s| s.wire_bytes).sum();
+    Ok(RealtimeScenario {
+        model,
+        edge,
+        n,
+        nnz: built.unit_matrix().nnz(),
+        tol: config.tol,
+        worst_step_cycles,
+        compute_rate_hz,
+        meets_haptic: compute_rate_hz >= HAPTIC_HZ,
+        meets_visual: compute_rate_hz >= VISUAL_HZ,
+        worst_step_wire_bytes,
+        // 8N1: ten bits on the line per byte.
+        wire_rate_hz_at_baud: rate(worst_step_wire_bytes as f64 * 10.0, BAUD_RATE as f64),
+        baud: BAUD_RATE,
+        wire_bytes_per_iteration: if iterations > 0 {
+            bytes as f64 / iterations as f64
+        } else {
+            0.0
+        },
+        wire_bytes_matrix_upload: upload.get().total(),
+        steps,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rates_follow_the_budget() {
+        assert_eq!(rate(100_000.0, NOMINAL_CLOCK_HZ), 1000.0);
+        assert!(rate(0.0, 1.0).is_infinite());
+    }
+}

@@ -1,0 +1,240 @@
+//! `deform bench`: the thesis's performance figures (Fig. 5-2, 5-3, 2-9), a real-time budget
+//! and the host baseline, measured and written as JSON, CSV, SVG and PNG (see
+//! [`crate::bench`]).
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::{Args, ValueEnum};
+
+use crate::bench::board::{BenchBoard, BenchBoardChoice};
+use crate::bench::convergence::{self, ConvergenceConfig};
+use crate::bench::host_baseline::{self, HostBaselineConfig};
+use crate::bench::realtime::{self, RealtimeConfig};
+use crate::bench::report::{write_files, BenchReport};
+use crate::bench::sweep::{self, SweepConfig};
+use crate::bench::{plots, BenchModel};
+use crate::link::Timeouts;
+
+/// The parts of the bench.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Part {
+    /// Cycles per iteration, MFLOPS, instructions per nonzero, wire bytes against n and MVUs
+    /// (thesis Fig. 5-2, 5-3). Target.
+    Sweep,
+    /// ∞-norm error against iterations on the thesis cube, fixed point and f64 (Fig. 2-9).
+    /// Target and host.
+    Convergence,
+    /// Cycles per time step of a simulate scenario against 1 kHz and 60 Hz. Target.
+    Realtime,
+    /// The f64 reference CG's wall time per iteration up to 64³ nodes. Host only.
+    Host,
+}
+
+/// Measure the target (QEMU with exact instruction counts, or a board) and the host against the
+/// thesis's figures; write bench.json, CSV tables and SVG/PNG plots to --out.
+#[derive(Debug, Clone, Args)]
+pub struct BenchArgs {
+    /// A small run for CI (about a minute): few sizes, short solves. Checks that everything
+    /// works, not the figures to quote.
+    #[arg(long)]
+    pub quick: bool,
+
+    /// Directory for bench.json, the CSV tables and the plots (created if missing).
+    #[arg(long, value_name = "DIR", default_value = "bench-out")]
+    pub out: PathBuf,
+
+    /// Run only these parts (comma-separated). [default: all]
+    #[arg(long, value_enum, value_delimiter = ',', value_name = "PART")]
+    pub only: Vec<Part>,
+
+    /// Shorthand for `--only host`: the host baseline alone, no target needed.
+    #[arg(long, conflicts_with = "only")]
+    pub host_baseline: bool,
+
+    /// Models to measure (comma-separated). [default: a,b]
+    #[arg(long, value_enum, value_delimiter = ',', value_name = "MODEL")]
+    pub models: Vec<BenchModel>,
+
+    /// Cube edges of the sweep, n = edge³ (comma-separated).
+    /// [default: 5,6,8,10,12,14,16,20,24; --quick: 4,6,8]
+    #[arg(long, value_delimiter = ',', value_name = "EDGE", value_parser = clap::value_parser!(u16).range(2..=64))]
+    pub edges: Vec<u16>,
+
+    /// MVU counts of the sweep (comma-separated); QEMU gets one hart per MVU. Counts above what
+    /// the firmware puts to work are listed as skipped. [default: 1,2,4,8]
+    #[arg(long, value_delimiter = ',', value_name = "N", value_parser = clap::value_parser!(u8).range(1..=8))]
+    pub mvus: Vec<u8>,
+
+    /// Cube edges of the host baseline (comma-separated).
+    /// [default: 8,12,16,24,32,48,64; --quick: 4,6,8]
+    #[arg(long, value_delimiter = ',', value_name = "EDGE", value_parser = clap::value_parser!(u16).range(2..=128))]
+    pub host_edges: Vec<u16>,
+
+    /// Serial device of a real board running the firmware. Default: QEMU.
+    #[arg(long, value_name = "PATH")]
+    pub port: Option<String>,
+
+    /// Firmware ELF for QEMU. Default: $DEFORM_FIRMWARE, else the release build.
+    #[arg(long, value_name = "ELF")]
+    pub firmware: Option<PathBuf>,
+
+    /// Seconds one target solve may take.
+    #[arg(long, default_value_t = 600, value_parser = clap::value_parser!(u64).range(1..))]
+    pub timeout: u64,
+}
+
+impl BenchArgs {
+    fn parts(&self) -> Vec<Part> {
+        if self.host_baseline {
+            vec![Part::Host]
+        } else if self.only.is_empty() {
+            vec![Part::Sweep, Part::Convergence, Part::Realtime, Part::Host]
+        } else {
+            self.only.clone()
+        }
+    }
+
+    fn models(&self) -> Vec<BenchModel> {
+        if self.models.is_empty() {
+            BenchModel::BOTH.to_vec()
+        } else {
+            self.models.clone()
+        }
+    }
+
+    fn choice(&self) -> BenchBoardChoice {
+        match &self.port {
+            Some(port) => BenchBoardChoice::Port(port.clone()),
+            None => BenchBoardChoice::Qemu {
+                firmware: self.firmware.clone(),
+            },
+        }
+    }
+
+    pub fn sweep_config(&self) -> SweepConfig {
+        let default_edges: &[u16] = if self.quick {
+            &[4, 6, 8]
+        } else {
+            &[5, 6, 8, 10, 12, 14, 16, 20, 24]
+        };
+        let edges = if self.edges.is_empty() {
+            default_edges
+        } else {
+            &self.edges
+        };
+        SweepConfig {
+            edges: edges.iter().map(|&e| e as usize).collect(),
+            models: self.models(),
+            mvus: if self.mvus.is_empty() {
+                if self.quick {
+                    vec![1]
+                } else {
+                    vec![1, 2, 4, 8]
+                }
+            } else {
+                self.mvus.clone()
+            },
+            short_iterations: 2,
+            long_iterations: if self.quick { 5 } else { 12 },
+            solve_timeout: Duration::from_secs(self.timeout),
+        }
+    }
+
+    pub fn convergence_config(&self) -> ConvergenceConfig {
+        ConvergenceConfig {
+            edge: if self.quick { 5 } else { 10 },
+            models: self.models(),
+            stride: if self.quick { 3 } else { 1 },
+            tol: 1e-12,
+            max_steps: 6,
+        }
+    }
+
+    pub fn realtime_config(&self) -> RealtimeConfig {
+        RealtimeConfig {
+            edges: if self.quick { vec![5] } else { vec![8, 10] },
+            models: self.models(),
+            steps: if self.quick { 3 } else { 10 },
+            tol: 1e-7,
+            solve_timeout: Duration::from_secs(self.timeout),
+        }
+    }
+
+    pub fn host_config(&self) -> HostBaselineConfig {
+        let default_edges: &[u16] = if self.quick {
+            &[4, 6, 8]
+        } else {
+            &[8, 12, 16, 24, 32, 48, 64]
+        };
+        let edges = if self.host_edges.is_empty() {
+            default_edges
+        } else {
+            &self.host_edges
+        };
+        HostBaselineConfig {
+            edges: edges.iter().map(|&e| e as usize).collect(),
+            models: self.models(),
+            target_time: Duration::from_millis(if self.quick { 20 } else { 300 }),
+        }
+    }
+}
+
+pub fn run(args: &BenchArgs) -> anyhow::Result<BenchReport> {
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let parts = args.parts();
+    let choice = args.choice();
+    let mut report = BenchReport::new(args.quick);
+    let timeouts = Timeouts {
+        solve: Duration::from_secs(args.timeout),
+        ..Timeouts::default()
+    };
+
+    if parts.contains(&Part::Sweep) {
+        let result = sweep::run(&args.sweep_config(), &choice).context("the sweep")?;
+        report.sweep = Some(result);
+    }
+    if parts.contains(&Part::Convergence) {
+        let config = args.convergence_config();
+        let mut board = BenchBoard::open(&choice, 1, timeouts)?;
+        report.target = Some(format!("{:?}", board.target.info()));
+        let mut series = Vec::new();
+        for &model in &config.models {
+            for s in [
+                convergence::f64_series(model, &config)?,
+                convergence::target_series(&mut board.target, model, &config)
+                    .with_context(|| format!("convergence of {model} on the target"))?,
+            ] {
+                println!(
+                    "error  {} {}³ {}: {:.3e} → {:.3e} in {} iterations, {} solve(s), residual {:.1e}",
+                    model,
+                    s.edge,
+                    s.arithmetic.label(),
+                    s.points.first().map_or(f64::NAN, |p| p.1),
+                    s.final_error(),
+                    s.total_iterations(),
+                    s.refinement_starts.len(),
+                    s.final_relative_residual
+                );
+                series.push(s);
+            }
+        }
+        report.convergence = Some(series);
+    }
+    if parts.contains(&Part::Realtime) {
+        report.realtime =
+            Some(realtime::run(&args.realtime_config(), &choice).context("the real-time budget")?);
+    }
+    if parts.contains(&Part::Host) {
+        report.host_baseline = Some(host_baseline::run(&args.host_config())?);
+    }
+
+    let mut written = write_files(&report, &args.out)?;
+    written.extend(plots::draw_all(&report, &args.out)?);
+    for path in &written {
+        println!("wrote  {}", path.display());
+    }
+    Ok(report)
+}
