@@ -168,6 +168,15 @@ fn quick_bench_runs_every_part_and_writes_sane_files() {
     ] {
         assert_picture(&dir, stem);
     }
+    // --replot redraws the pictures from bench.json alone.
+    std::fs::remove_file(dir.join("mflops.svg")).unwrap();
+    let cli = Cli::try_parse_from(["deform", "--replot", "--out", dir.to_str().unwrap()]).unwrap();
+    let replotted = run(&cli.args).expect("deform bench --replot");
+    assert_eq!(
+        replotted.sweep.map(|s| s.points.len()),
+        Some(sweep.points.len())
+    );
+    assert_picture(&dir, "mflops");
     for csv in ["convergence.csv", "realtime.csv", "host_baseline.csv"] {
         assert!(
             std::fs::read_to_string(dir.join(csv))

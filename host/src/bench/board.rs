@@ -102,6 +102,16 @@ impl<P: Port> Port for CountingPort<P> {
     }
 }
 
+/// The bench's deadlines: `solve` per solve, and a handshake long enough for QEMU on a busy
+/// machine (QEMU notices the pty only once a second, and CI shares its cores).
+pub fn timeouts(solve: Duration) -> Timeouts {
+    Timeouts {
+        handshake: Duration::from_secs(30),
+        solve,
+        ..Timeouts::default()
+    }
+}
+
 /// The bench's target type.
 pub type BenchTarget = Target<CountingPort<Box<dyn SerialPort>>>;
 

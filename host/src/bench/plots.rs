@@ -160,6 +160,20 @@ fn number(v: f64) -> String {
     }
 }
 
+/// Labels for a log axis: only values whose leading digit is 1, 2 or 5, so that the labels
+/// between decades do not run into each other.
+fn log_axis_number(v: f64) -> String {
+    if v <= 0.0 {
+        return String::new();
+    }
+    let lead = v / 10f64.powf(v.log10().floor());
+    if [1.0, 2.0, 5.0].iter().any(|d| (lead - d).abs() < 1e-6) {
+        number(v)
+    } else {
+        String::new()
+    }
+}
+
 fn plot_error(e: impl std::fmt::Display) -> anyhow::Error {
     anyhow!("drawing a plot: {e}")
 }
@@ -202,11 +216,23 @@ where
         .configure_mesh()
         .x_desc(panel.x_desc)
         .y_desc(panel.y_desc)
-        .x_label_formatter(&|v| number(*v))
-        .y_label_formatter(&|v| number(*v))
+        .x_label_formatter(&|v| {
+            if panel.log_x {
+                log_axis_number(*v)
+            } else {
+                number(*v)
+            }
+        })
+        .y_label_formatter(&|v| {
+            if panel.log_y {
+                log_axis_number(*v)
+            } else {
+                number(*v)
+            }
+        })
         .label_style((FONT, 14))
         .axis_desc_style((FONT, 16))
-        .light_line_style(RGBColor(235, 235, 235))
+        .light_line_style(TRANSPARENT)
         .draw()
         .map_err(plot_error)?;
     for line in &panel.lines {
@@ -218,7 +244,9 @@ where
                 .map_err(plot_error)?
                 .label(&line.label)
                 .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+                    EmptyElement::at((x, y))
+                        + PathElement::new(vec![(0, 0), (7, 0)], color.stroke_width(2))
+                        + PathElement::new(vec![(13, 0), (20, 0)], color.stroke_width(2))
                 });
         } else {
             chart
@@ -554,6 +582,9 @@ mod tests {
         assert_eq!(number(1500.0), "1500");
         assert_eq!(number(0.25), "0.25");
         assert_eq!(number(1e-7), "1e-7");
+        assert_eq!(log_axis_number(500.0), "500");
+        assert_eq!(log_axis_number(2000.0), "2000");
+        assert_eq!(log_axis_number(700.0), "");
     }
 
     #[test]

@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use super::board::{BenchBoard, BenchBoardChoice, WireBytes};
 use super::{BenchModel, NOMINAL_CLOCK_HZ};
-use crate::link::{Timeouts, BAUD_RATE};
+use crate::link::BAUD_RATE;
 use crate::model::Model;
 use crate::simulate::{simulate, Schedule, StepParams};
 
@@ -82,10 +82,7 @@ pub fn run(
     config: &RealtimeConfig,
     choice: &BenchBoardChoice,
 ) -> anyhow::Result<Vec<RealtimeScenario>> {
-    let timeouts = Timeouts {
-        solve: config.solve_timeout,
-        ..Timeouts::default()
-    };
+    let timeouts = super::board::timeouts(config.solve_timeout);
     let mut out = Vec::new();
     for &model in &config.models {
         for &edge in &config.edges {

@@ -22,7 +22,6 @@ use serde::{Deserialize, Serialize};
 use super::board::{BenchBoard, BenchBoardChoice, BenchTarget, WireBytes, WireCounter};
 use super::{mflops, micros, BenchModel};
 use crate::encode::encode;
-use crate::link::Timeouts;
 use crate::model::{Axis, Model};
 
 /// What to sweep.
@@ -94,13 +93,31 @@ pub fn run(config: &SweepConfig, choice: &BenchBoardChoice) -> anyhow::Result<Sw
         "the long solve must run more iterations than the short one"
     );
     let mut result = SweepResult::default();
-    let timeouts = Timeouts {
-        solve: config.solve_timeout,
-        ..Timeouts::default()
-    };
+    let timeouts = super::board::timeouts(config.solve_timeout);
     for &mvus in &config.mvus {
-        let mut board = BenchBoard::open(choice, mvus, timeouts)?;
+        let mut board = match BenchBoard::open(choice, mvus, timeouts) {
+            Ok(board) => board,
+            // One hart must work; more depend on the firmware, so they are reported, not fatal.
+            Err(e) if mvus > 1 => {
+                println!("sweep  {mvus} MVUs: skipped, the target did not come up: {e:#}");
+                for &model in &config.models {
+                    for &edge in &config.edges {
+                        result.skipped.push(SkippedPoint {
+                            model,
+                            edge,
+                            mvus,
+                            reason: format!("the target did not come up with {mvus} harts: {e:#}"),
+                        });
+                    }
+                }
+                continue;
+            }
+            Err(e) => return Err(e),
+        };
         let harts = board.target.info().harts;
+        if harts < mvus {
+            println!("sweep  {mvus} MVUs: skipped, the target puts only {harts} hart(s) to work");
+        }
         for &model in &config.models {
             for &edge in &config.edges {
                 let skip = |reason: String| SkippedPoint {

@@ -15,7 +15,6 @@ use crate::bench::realtime::{self, RealtimeConfig};
 use crate::bench::report::{write_files, BenchReport};
 use crate::bench::sweep::{self, SweepConfig};
 use crate::bench::{plots, BenchModel};
-use crate::link::Timeouts;
 
 /// The parts of the bench.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -71,6 +70,16 @@ pub struct BenchArgs {
     /// [default: 8,12,16,24,32,48,64; --quick: 4,6,8]
     #[arg(long, value_delimiter = ',', value_name = "EDGE", value_parser = clap::value_parser!(u16).range(2..=128))]
     pub host_edges: Vec<u16>,
+
+    /// Target CG tolerance of each solve in the real-time scenario (relative residual, floored
+    /// at 1e-7 as in `deform simulate`); a looser one trades accuracy for step rate.
+    #[arg(long, default_value_t = 1e-7, value_name = "TOL", value_parser = crate::commands::solve::parse_tolerance)]
+    pub realtime_tol: f64,
+
+    /// Measure nothing: redraw the plots (and rewrite the CSV tables) from the bench.json
+    /// already in --out.
+    #[arg(long, conflicts_with_all = ["only", "host_baseline", "quick"])]
+    pub replot: bool,
 
     /// Serial device of a real board running the firmware. Default: QEMU.
     #[arg(long, value_name = "PATH")]
@@ -157,7 +166,7 @@ impl BenchArgs {
             edges: if self.quick { vec![5] } else { vec![8, 10] },
             models: self.models(),
             steps: if self.quick { 3 } else { 10 },
-            tol: 1e-7,
+            tol: self.realtime_tol,
             solve_timeout: Duration::from_secs(self.timeout),
         }
     }
@@ -181,16 +190,32 @@ impl BenchArgs {
     }
 }
 
+/// Writes the files and plots of `report` into `dir` and lists them.
+fn write_all(report: &BenchReport, dir: &std::path::Path) -> anyhow::Result<()> {
+    let mut written = write_files(report, dir)?;
+    written.extend(plots::draw_all(report, dir)?);
+    for path in &written {
+        println!("wrote  {}", path.display());
+    }
+    Ok(())
+}
+
 pub fn run(args: &BenchArgs) -> anyhow::Result<BenchReport> {
+    if args.replot {
+        let path = args.out.join("bench.json");
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("reading {} (run `deform bench` first)", path.display()))?;
+        let report: BenchReport = serde_json::from_str(&text)
+            .with_context(|| format!("{} is not a bench report", path.display()))?;
+        write_all(&report, &args.out)?;
+        return Ok(report);
+    }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let parts = args.parts();
     let choice = args.choice();
     let mut report = BenchReport::new(args.quick);
-    let timeouts = Timeouts {
-        solve: Duration::from_secs(args.timeout),
-        ..Timeouts::default()
-    };
+    let timeouts = crate::bench::board::timeouts(Duration::from_secs(args.timeout));
 
     if parts.contains(&Part::Sweep) {
         let result = sweep::run(&args.sweep_config(), &choice).context("the sweep")?;
@@ -231,10 +256,77 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<BenchReport> {
         report.host_baseline = Some(host_baseline::run(&args.host_config())?);
     }
 
-    let mut written = write_files(&report, &args.out)?;
-    written.extend(plots::draw_all(&report, &args.out)?);
-    for path in &written {
-        println!("wrote  {}", path.display());
-    }
+    write_all(&report, &args.out)?;
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: BenchArgs,
+    }
+
+    fn parse(argv: &[&str]) -> Result<BenchArgs, clap::Error> {
+        Cli::try_parse_from(std::iter::once("deform").chain(argv.iter().copied())).map(|c| c.args)
+    }
+
+    #[test]
+    fn defaults_cover_the_thesis_range_and_quick_shrinks_it() {
+        let full = parse(&[]).unwrap();
+        assert_eq!(
+            full.parts(),
+            [Part::Sweep, Part::Convergence, Part::Realtime, Part::Host]
+        );
+        let sweep = full.sweep_config();
+        assert_eq!(sweep.mvus, [1, 2, 4, 8]);
+        assert_eq!(sweep.models, BenchModel::BOTH);
+        // n from 125 to beyond 4096.
+        assert_eq!(sweep.edges.first(), Some(&5));
+        assert!(sweep.edges.iter().any(|e| e.pow(3) > 4096));
+        assert_eq!(full.convergence_config().edge, 10);
+        assert_eq!(full.realtime_config().edges, [8, 10]);
+        assert_eq!(full.host_config().edges.last(), Some(&64));
+
+        let quick = parse(&["--quick"]).unwrap();
+        assert!(quick.sweep_config().edges.iter().all(|&e| e <= 8));
+        assert!(quick.host_config().edges.iter().all(|&e| e <= 8));
+        assert!(quick.convergence_config().edge < 10);
+    }
+
+    #[test]
+    fn flags_pick_parts_models_and_sizes() {
+        let args = parse(&["--host-baseline", "--models", "b", "--host-edges", "4,6"]).unwrap();
+        assert_eq!(args.parts(), [Part::Host]);
+        assert_eq!(args.host_config().models, [BenchModel::B]);
+        assert_eq!(args.host_config().edges, [4, 6]);
+        let args = parse(&[
+            "--only",
+            "sweep,convergence",
+            "--edges",
+            "4,5",
+            "--mvus",
+            "1,2",
+        ])
+        .unwrap();
+        assert_eq!(args.parts(), [Part::Sweep, Part::Convergence]);
+        assert_eq!(args.sweep_config().edges, [4, 5]);
+        assert_eq!(args.sweep_config().mvus, [1, 2]);
+        for bad in [
+            &["--mvus", "0"][..],
+            &["--mvus", "9"],
+            &["--edges", "1"],
+            &["--only", "nothing"],
+            &["--models", "c"],
+            &["--host-baseline", "--only", "sweep"],
+            &["--timeout", "0"],
+            &["--realtime-tol", "0"],
+        ] {
+            assert!(parse(bad).is_err(), "{bad:?}");
+        }
+    }
 }

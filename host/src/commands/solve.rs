@@ -95,7 +95,7 @@ pub struct ResolvedSolve {
     pub scenario: Option<Scenario>,
 }
 
-fn parse_tolerance(s: &str) -> Result<f64, String> {
+pub fn parse_tolerance(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(t) if t.is_finite() && t > 0.0 && t < 1.0 => Ok(t),
         Ok(_) => Err("the tolerance must be a number in (0, 1)".into()),
