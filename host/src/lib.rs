@@ -8,6 +8,7 @@ pub mod board;
 pub mod cli_model;
 pub mod commands;
 pub mod encode;
+pub mod inverse;
 pub mod link;
 pub mod model;
 pub mod output;

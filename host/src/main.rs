@@ -26,6 +26,10 @@ enum Command {
     /// Quasi-static time steps: loads ramped over --steps steps, K resident on the target,
     /// warm starts, optional displacement-dependent springs (--alpha); per-step CSV and VTK.
     Simulate(commands::simulate::SimulateArgs),
+    // Observe and Estimate take their help from their Args' doc comments (which document the
+    // observation file format).
+    Observe(commands::observe::ObserveArgs),
+    Estimate(commands::estimate::EstimateArgs),
 }
 
 fn main() -> ExitCode {
@@ -34,6 +38,8 @@ fn main() -> ExitCode {
         Command::Model(args) => commands::model::run(args),
         Command::Solve(args) => commands::solve::run(args),
         Command::Simulate(args) => commands::simulate::run(args),
+        Command::Observe(args) => commands::observe::run(args),
+        Command::Estimate(args) => commands::estimate::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

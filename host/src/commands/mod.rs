@@ -2,6 +2,8 @@
 //! `anyhow::Result`, so that `main.rs` only parses and dispatches. This is the one layer that
 //! uses anyhow: the library modules return typed errors and the commands add context.
 
+pub mod estimate;
 pub mod model;
+pub mod observe;
 pub mod simulate;
 pub mod solve;
