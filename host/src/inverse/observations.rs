@@ -46,8 +46,8 @@ pub struct Observations {
 /// line is at fault.
 #[derive(Debug, thiserror::Error)]
 pub enum ObservationsError {
-    #[error("{path}: {source}")]
-    Io { path: String, source: io::Error },
+    #[error("{path}: {error}")]
+    Io { path: String, error: io::Error },
     #[error("{path}:{line}: {what}")]
     Malformed {
         path: String,
@@ -88,9 +88,9 @@ impl Observations {
     /// Reads and checks the observation file at `path` against `grid`.
     pub fn read(path: &Path, grid: Grid) -> Result<Self, ObservationsError> {
         let name = path.display().to_string();
-        let file = File::open(path).map_err(|source| ObservationsError::Io {
+        let file = File::open(path).map_err(|error| ObservationsError::Io {
             path: name.clone(),
-            source,
+            error,
         })?;
         Self::parse(BufReader::new(file), &name, grid)
     }
@@ -109,9 +109,9 @@ impl Observations {
         let csv_error = |e: csv::Error| {
             let line = e.position().map_or(0, |p| p.line());
             match e.into_kind() {
-                csv::ErrorKind::Io(source) => ObservationsError::Io {
+                csv::ErrorKind::Io(error) => ObservationsError::Io {
                     path: name.to_string(),
-                    source,
+                    error,
                 },
                 csv::ErrorKind::UnequalLengths {
                     expected_len, len, ..

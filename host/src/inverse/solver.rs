@@ -36,13 +36,13 @@ pub struct SolveCount {
 
 #[derive(Debug, thiserror::Error)]
 pub enum SpdSolveError {
-    #[error("encoding the matrix as instruction words: {0}")]
+    #[error("encoding the matrix as instruction words")]
     Encode(#[from] EncodeError),
-    #[error("sending the matrix to the target: {0}")]
-    Upload(LinkError),
-    #[error("solving on the target: {0}")]
+    #[error("sending the matrix to the target")]
+    Upload(#[source] LinkError),
+    #[error("solving on the target")]
     Refine(#[from] RefineError),
-    #[error("f64 reference CG: {0}")]
+    #[error("f64 reference CG")]
     Reference(#[from] reference::SolveError),
     #[error("CG did not converge (relative residual {residual:.3e} after {iterations} iterations): the system is singular or badly conditioned")]
     NotConverged { residual: f64, iterations: usize },

@@ -28,9 +28,10 @@ pub struct Noise {
 pub enum SyntheticError {
     #[error("noise variance {0} must be finite and non-negative")]
     BadVariance(f64),
-    #[error("solving the forward model ({axis} direction): {source}")]
+    #[error("solving the forward model ({axis} direction)")]
     Solve {
         axis: Axis,
+        #[source]
         source: reference::SolveError,
     },
     #[error(
