@@ -51,6 +51,29 @@ fn balancing_loads(net: &Network, k: &[f64], u: &[Vec<f64>; 3]) -> [Vec<f64>; 3]
     })
 }
 
+/// One set per displacement field, each with the loads that balance it for the spring
+/// stiffnesses `k_of(u)` gives.
+fn balanced_observations(
+    grid: Grid,
+    net: &Network,
+    fields: Vec<[Vec<f64>; 3]>,
+    k_of: impl Fn(&[Vec<f64>; 3]) -> Vec<f64>,
+) -> Observations {
+    let sets = fields
+        .into_iter()
+        .enumerate()
+        .map(|(id, u)| {
+            let f = balancing_loads(net, &k_of(&u), &u);
+            ObservationSet {
+                id: id as u64,
+                u,
+                f,
+            }
+        })
+        .collect();
+    Observations { grid, sets }
+}
+
 /// Random displacement fields (0 at constrained nodes), `sets` of them.
 fn random_fields(net: &Network, sets: usize, seed: u64) -> Vec<[Vec<f64>; 3]> {
     let mut rng = StdRng::seed_from_u64(seed);
@@ -147,32 +170,17 @@ fn parametric_recovers_alpha_exactly_and_refuses_motionless_data() {
     for connection in [Connection::Axial, Connection::AxialShear] {
         let model = Model::build(&spec((4, 4, 3), connection, 1.0)).unwrap();
         let net = Network::of(&model);
-        let sets = random_fields(&net, 2, 3)
-            .into_iter()
-            .enumerate()
-            .map(|(id, u)| {
-                let k: Vec<f64> = net
-                    .springs()
-                    .iter()
-                    .map(|&(p, q)| {
-                        let dl = [0, 1, 2].map(|d| u[d][q] - u[d][p]);
-                        alpha[0]
-                            + alpha[1] * dl.iter().sum::<f64>()
-                            + alpha[2] * dl.iter().map(|x| x * x).sum::<f64>()
-                    })
-                    .collect();
-                let f = balancing_loads(&net, &k, &u);
-                ObservationSet {
-                    id: id as u64,
-                    u,
-                    f,
-                }
-            })
-            .collect();
-        let obs = Observations {
-            grid: model.grid(),
-            sets,
-        };
+        let obs = balanced_observations(model.grid(), &net, random_fields(&net, 2, 3), |u| {
+            net.springs()
+                .iter()
+                .map(|&(p, q)| {
+                    let dl = [0, 1, 2].map(|d| u[d][q] - u[d][p]);
+                    alpha[0]
+                        + alpha[1] * dl.iter().sum::<f64>()
+                        + alpha[2] * dl.iter().map(|x| x * x).sum::<f64>()
+                })
+                .collect()
+        });
         let est = parametric::estimate(&net, &obs).unwrap();
         for (got, want) in est.alpha.iter().zip(alpha) {
             assert!((got - want).abs() < 1e-9, "{connection}: {est:?}");
@@ -210,22 +218,12 @@ fn random_spring_data(
             k[s] = *anchor.entry(free).or_insert(k[s]);
         }
     }
-    let sets = random_fields(&net, fields, seed + 1)
-        .into_iter()
-        .enumerate()
-        .map(|(id, u)| {
-            let f = balancing_loads(&net, &k, &u);
-            ObservationSet {
-                id: id as u64,
-                u,
-                f,
-            }
-        })
-        .collect();
-    let obs = Observations {
-        grid: model.grid(),
-        sets,
-    };
+    let obs = balanced_observations(
+        model.grid(),
+        &net,
+        random_fields(&net, fields, seed + 1),
+        |_| k.clone(),
+    );
     (net, k, obs)
 }
 
