@@ -67,7 +67,7 @@ pub fn equation_error(
     if obs.sets.is_empty() {
         return Err(EstimateError::NoSets);
     }
-    let (mut fg, mut gg, mut ff) = ([0.0; 3], [0.0; 3], 0.0);
+    let (mut fg, mut gg, mut ff) = ([0.0; 3], [0.0; 3], [0.0; 3]);
     for set in &obs.sets {
         let u = net.effective_displacements(set);
         for d in 0..3 {
@@ -76,10 +76,11 @@ pub fn equation_error(
                 let f = set.f[d][p];
                 fg[d] += f * g;
                 gg[d] += g * g;
-                ff += f * f;
+                ff[d] += f * f;
             }
         }
     }
+    let ff_all: f64 = ff.iter().sum();
     let (fg_all, gg_all): (f64, f64) = (fg.iter().sum(), gg.iter().sum());
     if gg_all == 0.0 {
         return Err(EstimateError::Singular {
@@ -104,8 +105,13 @@ pub fn equation_error(
         method: "equation-error",
         k,
         standard_error: (variance / gg_all).sqrt(),
-        relative_residual: if ff > 0.0 { (rss / ff).sqrt() } else { 0.0 },
-        k_by_direction: [0, 1, 2].map(|d| (gg[d] > 0.0).then(|| fg[d] / gg[d])),
+        relative_residual: if ff_all > 0.0 {
+            (rss / ff_all).sqrt()
+        } else {
+            0.0
+        },
+        // A direction without loads says nothing about k̃ by itself.
+        k_by_direction: [0, 1, 2].map(|d| (gg[d] > 0.0 && ff[d] > 0.0).then(|| fg[d] / gg[d])),
         equations,
         solves: None,
     })

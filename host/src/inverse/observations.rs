@@ -65,13 +65,14 @@ pub enum ObservationsError {
         node: Node,
     },
     #[error(
-        "{path}: the observations cover a {found} grid but the model flags give {grid}; \
+        "{path}: the observations cover a {}×{}×{} grid but the model flags give {grid}; \
          pass the grid the observations were taken on (--grid {},{},{})",
-        found.nx(), found.ny(), found.nz()
+        found[0], found[1], found[2], found[0], found[1], found[2]
     )]
     GridMismatch {
         path: String,
-        found: Grid,
+        /// Nodes along x, y and z that the rows span (largest index + 1).
+        found: [usize; 3],
         grid: Grid,
     },
     #[error("{path}: set {set} has no row for node {node} ({missing} node(s) of the {grid} grid missing in that set); every set must give every node")]
@@ -208,7 +209,6 @@ impl Observations {
             }
         }
         if outside || (!sets.is_empty() && found != [grid.nx(), grid.ny(), grid.nz()]) {
-            let found = Grid::new(found[0], found[1], found[2]).unwrap_or(grid);
             return Err(ObservationsError::GridMismatch {
                 path: name.to_string(),
                 found,
