@@ -202,3 +202,44 @@ fn help_documents_the_file_format() {
         );
     }
 }
+
+#[test]
+fn displacement_dependent_observations_give_back_alpha() {
+    let dir = scratch("alpha");
+    let csv = dir.join("nl.csv");
+    let model = ["--grid", "5,5,5", "--fix", "z-"];
+    let mut args = vec![
+        "observe",
+        "--out",
+        path(&csv),
+        "--alpha",
+        "1,0.5,2",
+        "--load",
+        "2,2,4:0.3,0.2,-0.5",
+        "--load",
+        "0,2,2:0.4,0,0",
+    ];
+    args.extend(model);
+    ok(&args);
+    let mut args = vec![
+        "estimate",
+        path(&csv),
+        "--target",
+        "host",
+        "--parametric",
+        "--json",
+    ];
+    args.extend(model);
+    let report = json(&ok(&args));
+    let alpha = &report["parametric"]["alpha"];
+    for (i, want) in [1.0, 0.5, 2.0].into_iter().enumerate() {
+        let got = alpha[i].as_f64().unwrap();
+        assert!((got - want).abs() < 1e-9, "α{i}: {alpha}");
+    }
+    // Springs that go soft under a large load: the fixed point runs away, and says so.
+    let mut args = vec!["observe", "--out", path(&csv), "--alpha", "1,0.5,2"];
+    args.extend(["--load", "2,2,4:0,0,-50"]);
+    args.extend(model);
+    fails(&args, &["did not settle", "smaller loads"]);
+    std::fs::remove_dir_all(&dir).ok();
+}

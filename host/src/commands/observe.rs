@@ -9,8 +9,9 @@ use anyhow::Context;
 use clap::Args;
 
 use crate::cli_model::ModelFlags;
+use crate::commands::simulate::parse_alpha;
 use crate::commands::solve::resolve_model;
-use crate::inverse::synthetic::{forward, observe, Noise};
+use crate::inverse::synthetic::{forward, forward_displacement_dependent, observe, Noise};
 use crate::inverse::Observations;
 use crate::model::Model;
 use crate::reference::max_abs;
@@ -52,6 +53,11 @@ pub struct ObserveArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
 
+    /// Displacement-dependent springs k̃ = a0 + a1·ΣΔl + a2·ΣΔl² (thesis 3.2.2) as the truth,
+    /// for `deform estimate --parametric`. Default: the model's linear springs.
+    #[arg(long, value_name = "A0,A1,A2", value_parser = parse_alpha, allow_hyphen_values = true)]
+    pub alpha: Option<[f64; 3]>,
+
     /// Add the new sets to the existing FILE.csv (numbered after its highest set) instead of
     /// replacing it: several load cases in one file, one `observe --append` per case.
     #[arg(long)]
@@ -77,7 +83,11 @@ pub fn run(args: &ObserveArgs) -> anyhow::Result<()> {
         Vec::new()
     };
     let first = existing.last().map_or(0, |s| s.id + 1);
-    let truth = forward(&model).context("solving the forward model")?;
+    let truth = match args.alpha {
+        None => forward(&model),
+        Some(alpha) => forward_displacement_dependent(&model, alpha),
+    }
+    .context("solving the forward model")?;
     let sets = usize::try_from(args.sets).context("--sets is too large")?;
     let noise = Noise {
         displacement_variance: args.noise_u,
@@ -95,7 +105,13 @@ pub fn run(args: &ObserveArgs) -> anyhow::Result<()> {
         File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     all.write(file)
         .with_context(|| format!("writing {}", args.out.display()))?;
-    println!("model       {}", spec.describe());
+    match args.alpha {
+        None => println!("model       {}", spec.describe()),
+        Some([a0, a1, a2]) => println!(
+            "model       {} grid, {}, springs k̃ = {a0} + {a1}·ΣΔl + {a2}·ΣΔl²",
+            spec.grid, spec.connection
+        ),
+    }
     println!(
         "truth       max |u| = {:.6e} (f64 reference)",
         truth.iter().map(|u| max_abs(u)).fold(0.0, f64::max)

@@ -89,7 +89,8 @@ pub struct SimulateArgs {
     pub check: bool,
 }
 
-fn parse_alpha(s: &str) -> Result<[f64; 3], String> {
+/// `A0,A1,A2` for `--alpha` (also `deform observe`'s).
+pub(crate) fn parse_alpha(s: &str) -> Result<[f64; 3], String> {
     let v: Vec<f64> = s
         .split(',')
         .map(|p| p.trim().parse::<f64>().map_err(|e| format!("{p:?}: {e}")))

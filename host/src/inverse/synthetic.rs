@@ -12,7 +12,8 @@ use rand_distr::{Distribution, Normal};
 
 use super::{ObservationSet, Observations};
 use crate::model::{Axis, Model};
-use crate::reference;
+use crate::reference::{self, max_abs, max_abs_diff};
+use crate::simulate::{nonlinear_matrix, SimulateError};
 
 /// White noise to add: variances (not standard deviations), as the thesis's Table 3-1 states.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -38,6 +39,12 @@ pub enum SyntheticError {
         "the forward model did not converge in the {axis} direction (residual {residual:.3e})"
     )]
     NotConverged { axis: Axis, residual: f64 },
+    #[error("the displacement-dependent springs")]
+    Nonlinear(#[from] SimulateError),
+    #[error("the displacement-dependent model does not support prescribed displacements")]
+    PrescribedNonlinear,
+    #[error("the displacement-dependent forward model did not settle in {0} fixed-point steps (last change {1:.3e} of max |u|); use smaller loads or α1, α2")]
+    NotSettled(usize, f64),
 }
 
 /// The model's displacements u_x, u_y, u_z, by the f64 reference CG.
@@ -62,6 +69,57 @@ pub fn forward(model: &Model) -> Result<[Vec<f64>; 3], SyntheticError> {
         u[axis.position()] = sol.x;
     }
     Ok(u)
+}
+
+/// K·u = f solved for the model's loads with every K assembled as the f64 reference solves.
+fn solve_all(
+    model: &Model,
+    k: &crate::model::Csr,
+    tol: f64,
+) -> Result<[Vec<f64>; 3], SyntheticError> {
+    let mut u: [Vec<f64>; 3] = Default::default();
+    for axis in Axis::ALL {
+        let sol = reference::solve(k, model.load(axis), None, tol, 40 * model.n().max(100))
+            .map_err(|source| SyntheticError::Solve { axis, source })?;
+        if !sol.converged {
+            return Err(SyntheticError::NotConverged {
+                axis,
+                residual: sol.relative_residual,
+            });
+        }
+        u[axis.position()] = sol.x;
+    }
+    Ok(u)
+}
+
+/// The displacements of the displacement-dependent model of thesis 3.2.2 (springs
+/// k̃ = α0 + α1·ΣΔl + α2·ΣΔl², as `deform simulate --alpha` assembles them) under the model's
+/// full loads, by fixed-point iteration u ← K(u)⁻¹f until u changes by less than 1e-12 of
+/// max |u|, so that the observations satisfy the parametric model to rounding.
+pub fn forward_displacement_dependent(
+    model: &Model,
+    alpha: [f64; 3],
+) -> Result<[Vec<f64>; 3], SyntheticError> {
+    const MAX_STEPS: usize = 200;
+    if model.prescribed_count() > 0 {
+        return Err(SyntheticError::PrescribedNonlinear);
+    }
+    let mut u: [Vec<f64>; 3] = [(); 3].map(|_| vec![0.0; model.n()]);
+    let mut change = f64::INFINITY;
+    for _ in 0..MAX_STEPS {
+        let k = nonlinear_matrix(model, alpha, &u)?;
+        let next = solve_all(model, &k, 1e-14)?;
+        let scale = next.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+        change = (0..3)
+            .map(|d| max_abs_diff(&next[d], &u[d]))
+            .fold(0.0, f64::max)
+            / scale.max(f64::MIN_POSITIVE);
+        u = next;
+        if change < 1e-12 {
+            return Ok(u);
+        }
+    }
+    Err(SyntheticError::NotSettled(MAX_STEPS, change))
 }
 
 /// `sets` observation sets numbered from `first_id`: the displacements `truth` and the model's
