@@ -336,11 +336,19 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
             "                k̃ in [{:.4}, {:.4}], relative residual {:.3e}; {} target solve(s), {} CG iterations",
             f.min_k, f.max_k, f.relative_residual, f.solves.target_solves, f.solves.iterations
         );
-        let c = f.stiff_region.centre;
-        println!(
-            "stiffest region {} node(s) with k ≥ {:.3}, centred at ({:.2}, {:.2}, {:.2})",
-            f.stiff_region.nodes, f.stiff_region.threshold, c[0], c[1], c[2]
-        );
+        let r = &f.stiff_region;
+        if r.max - r.median <= 0.01 * r.median.abs() {
+            println!(
+                "stiffest region none: the map is uniform (max {:.4} within 1% of the median {:.4})",
+                r.max, r.median
+            );
+        } else {
+            let c = r.centre;
+            println!(
+                "stiffest region {} node(s) with k ≥ {:.3} (median {:.3}, max {:.3}), centred at ({:.2}, {:.2}, {:.2})",
+                r.nodes, r.threshold, r.median, r.max, c[0], c[1], c[2]
+            );
+        }
     }
     if let Some(map) = &args.map {
         println!("wrote           {}", map.display());

@@ -47,6 +47,8 @@ pub struct StiffRegion {
     pub nodes: usize,
     /// Halfway between the median and the maximum of the map.
     pub threshold: f64,
+    pub median: f64,
+    pub max: f64,
 }
 
 /// The per-spring estimate and what it took.
@@ -215,6 +217,8 @@ pub fn stiff_region(net: &Network, map: &[f64]) -> StiffRegion {
         centre: centre.map(|c| c / total),
         nodes,
         threshold,
+        median,
+        max,
     }
 }
 
