@@ -4,19 +4,25 @@ use core::cell::UnsafeCell;
 use core::sync::atomic::{AtomicBool, Ordering};
 
 use deform_shared::matrix::TileHeader;
-use deform_target_core::session::{Storage, DIRECTION_PAD};
+use deform_shared::protocol::MAX_DIRECTIONS;
+use deform_target_core::session::{DirectionStorage, Storage, DIRECTION_PAD};
 
 /// Instruction words the matrix store holds (2 MiB).
 pub const WORD_CAPACITY: usize = 512 * 1024;
 /// Tile headers the matrix store holds (64 KiB).
 pub const TILE_CAPACITY: usize = 4096;
-/// Largest dimension: six vectors of 256 KiB (p 2 KiB more) and K·p of 512 KiB.
+/// Largest dimension: per direction five vectors of 256 KiB (p 2 KiB more) and K·p of 512 KiB.
 pub const MAX_N: usize = 65536;
 
 /// Everything the session works in. All zero at boot, so it lands in `.bss`.
 pub struct Buffers {
     words: [u32; WORD_CAPACITY],
     tiles: [TileHeader; TILE_CAPACITY],
+    directions: [DirectionBuffers; MAX_DIRECTIONS],
+}
+
+/// The vectors of one direction of a fused solve.
+pub struct DirectionBuffers {
     b: [i32; MAX_N],
     x: [i32; MAX_N],
     x0: [i32; MAX_N],
@@ -30,12 +36,12 @@ const NO_TILE: TileHeader = TileHeader {
     col_base: 0,
     rows: 0,
     words: 0,
+    mvu: 0,
+    mirrored: false,
 };
 
-impl Buffers {
-    const ZERO: Buffers = Buffers {
-        words: [0; WORD_CAPACITY],
-        tiles: [NO_TILE; TILE_CAPACITY],
+impl DirectionBuffers {
+    const ZERO: DirectionBuffers = DirectionBuffers {
         b: [0; MAX_N],
         x: [0; MAX_N],
         x0: [0; MAX_N],
@@ -44,17 +50,32 @@ impl Buffers {
         kp: [0; MAX_N],
     };
 
-    /// Lends all buffers to a session.
-    pub fn storage(&mut self) -> Storage<'_> {
-        Storage {
-            words: &mut self.words,
-            tiles: &mut self.tiles,
+    fn storage(&mut self) -> DirectionStorage<'_> {
+        DirectionStorage {
             b: &mut self.b,
             x: &mut self.x,
             x0: &mut self.x0,
             r: &mut self.r,
             p: &mut self.p,
             kp: &mut self.kp,
+        }
+    }
+}
+
+impl Buffers {
+    const ZERO: Buffers = Buffers {
+        words: [0; WORD_CAPACITY],
+        tiles: [NO_TILE; TILE_CAPACITY],
+        directions: [DirectionBuffers::ZERO; MAX_DIRECTIONS],
+    };
+
+    /// Lends all buffers to a session.
+    pub fn storage(&mut self) -> Storage<'_> {
+        let [d0, d1, d2] = &mut self.directions;
+        Storage {
+            words: &mut self.words,
+            tiles: &mut self.tiles,
+            directions: [d0.storage(), d1.storage(), d2.storage()],
         }
     }
 }

@@ -168,6 +168,8 @@ pub fn encode(k: &Csr) -> Result<EncodedMatrix, EncodeError> {
             col_base: col_base as u32,
             rows: (block.end - block.start) as u32,
             words: (words.len() - tile_start) as u32,
+            mvu: 0,
+            mirrored: false,
         };
         validate_tile(tiles.len() as u32, &header, &words[tile_start..], n)?;
         tiles.push(header);
@@ -351,13 +353,17 @@ mod tests {
                     row_base: 0,
                     col_base: 0,
                     rows: 511,
-                    words: 3 * 511 - 1
+                    words: 3 * 511 - 1,
+                    mvu: 0,
+                    mirrored: false,
                 },
                 TileHeader {
                     row_base: 511,
                     col_base: 510,
                     rows: 89,
-                    words: 3 * 89 - 1
+                    words: 3 * 89 - 1,
+                    mvu: 0,
+                    mirrored: false,
                 },
             ]
         );

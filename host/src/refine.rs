@@ -89,6 +89,7 @@ pub fn solve_refined<P: Port>(
         max_iterations: params.max_iterations,
         tolerance: params.tol.max(FIXED_POINT_FLOOR),
         start: Start::Zero,
+        directions: 1,
     };
     let mut r = b.to_vec();
     out.relative_residual = 1.0;

@@ -237,7 +237,7 @@ pub fn simulate_with<P: Port>(
                 vec![0.0; n]
             } else {
                 let start = if params.warm_start && max_abs(&previous[p]) > 0.0 {
-                    target.upload_vector(VectorSlot::InitialGuess, &previous[p])?;
+                    target.upload_vector(VectorSlot::INITIAL_GUESS, &previous[p])?;
                     Start::Uploaded
                 } else {
                     Start::Zero
@@ -246,6 +246,7 @@ pub fn simulate_with<P: Port>(
                     max_iterations: params.max_iterations,
                     tolerance: params.tol.max(FIXED_POINT_FLOOR),
                     start,
+                    directions: 1,
                 };
                 let (report, x) = target.solve_for(b, solve)?;
                 result.iterations += report.iterations;

@@ -21,7 +21,9 @@
 //! static Q-format would stall.
 
 use deform_shared::matrix::TileHeader;
-use deform_shared::protocol::{PhaseCounters, SolveFailure, SolveParams, SolveReport, Start};
+use deform_shared::protocol::{
+    DirectionReport, IterationCost, PhaseCounters, SolveFailure, SolveParams, SolveReport, Start,
+};
 use deform_shared::qformat::{block_exponent, floor_log2, ldexp, to_mantissa};
 use deform_shared::word::{COLUMN_WINDOW, ER_BIT, VALUE_BITS};
 
@@ -227,25 +229,42 @@ fn mvu(a: &Matrix<'_>, p: &[i32], y: &mut [i64]) -> MvuResult {
         };
         let mut row = tile.row_base as usize;
         let mut acc: i64 = 0;
+        let mut mirror_acc: i64 = 0;
+        let n = a.n;
         for &w in words {
             let column = ((w >> VALUE_BITS) as usize) & (COLUMN_WINDOW as usize - 1);
             let value = ((w << (32 - VALUE_BITS)) as i32) >> (32 - VALUE_BITS);
             acc += value as i64 * window[column] as i64;
+            if tile.mirrored {
+                // Validated columns are < n, so the mirrored column exists.
+                let mirror = (n - 1).wrapping_sub(col_base + column);
+                mirror_acc += value as i64 * p.get(mirror).copied().unwrap_or(0) as i64;
+            }
             if w & ER_BIT != 0 {
-                if let (Some(out), Some(&pi)) = (y.get_mut(row), p.get(row)) {
-                    *out += acc;
-                    // p_i · acc exactly: acc is split so that both products fit i64.
-                    let lo = (pi as i64) * (acc as u32 as i64);
-                    let hi = (pi as i64) * (acc >> 32);
-                    p_kp += ((hi as i128) << 32) + lo as i128;
+                p_kp += add_row(y, p, row, acc);
+                if tile.mirrored {
+                    p_kp += add_row(y, p, (n - 1).wrapping_sub(row), mirror_acc);
                 }
                 acc = 0;
+                mirror_acc = 0;
                 row += 1;
             }
         }
     }
     let max = y.iter().map(|v| v.unsigned_abs()).max().unwrap_or(0);
     MvuResult { p_kp, max }
+}
+
+/// Adds a finished row sum to y[row] and returns its share p_row·acc of pᵀKp (exact).
+fn add_row(y: &mut [i64], p: &[i32], row: usize, acc: i64) -> i128 {
+    let (Some(out), Some(&pi)) = (y.get_mut(row), p.get(row)) else {
+        return 0;
+    };
+    *out += acc;
+    // p_i · acc exactly: acc is split so that both products fit i64.
+    let lo = (pi as i64) * (acc as u32 as i64);
+    let hi = (pi as i64) * (acc >> 32);
+    ((hi as i128) << 32) + lo as i128
 }
 
 /// The shift that brings raw MVU results below 2^30, and their max after it.
@@ -296,9 +315,14 @@ pub fn solve(
         iterations: 0,
         converged: false,
         residual: 0.0,
+        directions: heapless::Vec::new(),
         words_per_iteration: a.words.len() as u32,
+        mvus: 1,
+        overlapping: false,
         mvu: PhaseCounters::default(),
         svu: PhaseCounters::default(),
+        per_iteration: IterationCost::default(),
+        saturations: 0,
     };
 
     let t = clock.now();
@@ -314,6 +338,11 @@ pub fn solve(
         x.fill(0);
         *x_exponent = 0;
         report.converged = true;
+        let _ = report.directions.push(DirectionReport {
+            iterations: 0,
+            converged: true,
+            residual: 0.0,
+        });
         charge(&mut report.svu, t, clock);
         return Ok(report);
     }
@@ -418,6 +447,11 @@ pub fn solve(
     *x_exponent = x_block.e;
     report.converged = residual_sq <= tol_sq;
     report.residual = sqrt(residual_sq);
+    let _ = report.directions.push(DirectionReport {
+        iterations: report.iterations,
+        converged: report.converged,
+        residual: report.residual,
+    });
     Ok(report)
 }
 
@@ -471,6 +505,8 @@ mod tests {
                 col_base: col_base as u32,
                 rows: (end - start) as u32,
                 words: (words.len() - first) as u32,
+                mvu: 0,
+                mirrored: false,
             };
             validate_tile(tiles.len() as u32, &header, &words[first..], n as u32).unwrap();
             tiles.push(header);
@@ -612,6 +648,7 @@ mod tests {
             max_iterations: 10 * n as u32,
             tolerance: tol,
             start,
+            directions: 1,
         };
         let report = solve(
             &matrix,
@@ -770,6 +807,7 @@ mod tests {
             max_iterations: 5,
             tolerance: 1e-6,
             start: Start::Zero,
+            directions: 1,
         };
         let out = solve(
             &matrix,
@@ -803,6 +841,7 @@ mod tests {
             max_iterations: 3,
             tolerance: 1e-12,
             start: Start::Zero,
+            directions: 1,
         };
         let report = solve(
             &matrix,

@@ -54,10 +54,11 @@
 //!   uploaded and the solution read; vectors and the solution survive a completed update, so
 //!   `Start::Previous` warm-starts after it.
 
-use deform_shared::matrix::{validate_tile, words_crc, MatrixError, TileHeader};
+use deform_shared::matrix::{validate_mvu, validate_tile, words_crc, MatrixError, TileHeader};
 use deform_shared::protocol::{
-    ErrorCode, Request, Response, SessionStep, SolveParams, Start, TargetInfo, VectorSlot,
-    CHUNK_LEN, PROTOCOL_VERSION,
+    DirectionReport, ErrorCode, IterationCost, PhaseCounters, Request, Response, SessionStep,
+    SolveFailure, SolveParams, SolveReport, Start, TargetInfo, VectorSlot, CHUNK_LEN,
+    MAX_DIRECTIONS, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{MANTISSA_LIMIT, MAX_FRAC_BITS};
 use deform_shared::word::{VALUE_BITS, VALUE_MAX, VALUE_MIN};
@@ -77,6 +78,12 @@ pub struct Storage<'a> {
     pub words: &'a mut [u32],
     /// The matrix's tile headers.
     pub tiles: &'a mut [TileHeader],
+    /// One set of vectors per direction a fused solve can run.
+    pub directions: [DirectionStorage<'a>; MAX_DIRECTIONS],
+}
+
+/// The vectors of one direction.
+pub struct DirectionStorage<'a> {
     /// Right-hand side mantissas.
     pub b: &'a mut [i32],
     /// Solution mantissas (CG iterates on them in place).
@@ -94,6 +101,16 @@ pub struct Storage<'a> {
 impl Storage<'_> {
     /// The largest dimension all vectors can hold (`p` needs [`DIRECTION_PAD`] extra elements).
     pub fn max_n(&self) -> usize {
+        self.directions
+            .iter()
+            .map(DirectionStorage::max_n)
+            .min()
+            .unwrap_or(0)
+    }
+}
+
+impl DirectionStorage<'_> {
+    fn max_n(&self) -> usize {
         [
             self.b.len(),
             self.x.len(),
@@ -174,10 +191,10 @@ pub struct Session<'a, C: PhaseClock> {
     /// False after a `Hello` with another protocol version.
     compatible: bool,
     matrix: MatrixState,
-    rhs: VectorState,
-    guess: VectorState,
-    /// The exponent of the solution in `x`, if there is one.
-    solution: Option<i32>,
+    rhs: [VectorState; MAX_DIRECTIONS],
+    guess: [VectorState; MAX_DIRECTIONS],
+    /// Per direction, the exponent of the solution in its `x`, if there is one.
+    solution: [Option<i32>; MAX_DIRECTIONS],
 }
 
 fn to_usize(v: u32) -> usize {
@@ -206,9 +223,9 @@ impl<'a, C: PhaseClock> Session<'a, C> {
             clock,
             compatible: true,
             matrix: MatrixState::Empty,
-            rhs: VectorState::Empty,
-            guess: VectorState::Empty,
-            solution: None,
+            rhs: [VectorState::Empty; MAX_DIRECTIONS],
+            guess: [VectorState::Empty; MAX_DIRECTIONS],
+            solution: [None; MAX_DIRECTIONS],
         }
     }
 
@@ -271,7 +288,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
                 mantissas,
             } => self.vector_data(slot, offset, &mantissas),
             Request::Solve(params) => self.solve(&params),
-            Request::ReadSolution { offset } => self.read_solution(offset),
+            Request::ReadSolution { direction, offset } => self.read_solution(direction, offset),
             Request::BeginUpdate { words, frac_bits } => self.begin_update(words, frac_bits),
             Request::UpdateValues { offset, values } => self.update_values(offset, &values),
             Request::EndUpdate { crc32 } => self.end_update(crc32),
@@ -287,9 +304,9 @@ impl<'a, C: PhaseClock> Session<'a, C> {
     /// Forgets the matrix, the vectors that belong to it and the solution.
     fn drop_matrix(&mut self) {
         self.matrix = MatrixState::Empty;
-        self.rhs = VectorState::Empty;
-        self.guess = VectorState::Empty;
-        self.solution = None;
+        self.rhs = [VectorState::Empty; MAX_DIRECTIONS];
+        self.guess = [VectorState::Empty; MAX_DIRECTIONS];
+        self.solution = [None; MAX_DIRECTIONS];
     }
 
     fn begin_matrix(&mut self, shape: Shape) -> Result<Response, ErrorCode> {
@@ -343,6 +360,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
             return Err(ErrorCode::ChunkTooLong);
         }
         let tile = up.tiles_done;
+        validate_mvu(tile, &header, self.info.harts).map_err(ErrorCode::Matrix)?;
         if header.rows == 0 || header.words == 0 {
             return Err(ErrorCode::Matrix(MatrixError::EmptyTile { tile }));
         }
@@ -539,11 +557,16 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         Ok(Response::Ack)
     }
 
-    fn slot_state(&mut self, slot: VectorSlot) -> &mut VectorState {
-        match slot {
-            VectorSlot::Rhs => &mut self.rhs,
-            VectorSlot::InitialGuess => &mut self.guess,
-        }
+    /// The state of `slot`, or `DirectionOutOfRange`.
+    fn slot_state(&mut self, slot: VectorSlot) -> Result<&mut VectorState, ErrorCode> {
+        let d = direction_index(slot.direction())?;
+        let states = match slot {
+            VectorSlot::Rhs { .. } => &mut self.rhs,
+            VectorSlot::InitialGuess { .. } => &mut self.guess,
+        };
+        states
+            .get_mut(d)
+            .ok_or(direction_out_of_range(slot.direction()))
     }
 
     fn begin_vector(
@@ -552,7 +575,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         exponent: i32,
         len: u32,
     ) -> Result<Response, ErrorCode> {
-        *self.slot_state(slot) = VectorState::Empty;
+        *self.slot_state(slot)? = VectorState::Empty;
         let shape = self.resident()?;
         if len != shape.n {
             return Err(ErrorCode::LengthMismatch {
@@ -560,7 +583,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
                 got: len,
             });
         }
-        *self.slot_state(slot) = VectorState::Uploading {
+        *self.slot_state(slot)? = VectorState::Uploading {
             exponent,
             received: 0,
         };
@@ -573,7 +596,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         offset: u32,
         mantissas: &[i32],
     ) -> Result<Response, ErrorCode> {
-        let VectorState::Uploading { exponent, received } = *self.slot_state(slot) else {
+        let VectorState::Uploading { exponent, received } = *self.slot_state(slot)? else {
             return Err(out_of_order(SessionStep::NoVectorUpload));
         };
         // A vector upload only exists while its matrix is resident.
@@ -585,9 +608,15 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         {
             return Err(ErrorCode::MantissaOutOfRange);
         }
+        let d = direction_index(slot.direction())?;
+        let storage = self
+            .store
+            .directions
+            .get_mut(d)
+            .ok_or(direction_out_of_range(slot.direction()))?;
         let vector = match slot {
-            VectorSlot::Rhs => &mut *self.store.b,
-            VectorSlot::InitialGuess => &mut *self.store.x0,
+            VectorSlot::Rhs { .. } => &mut *storage.b,
+            VectorSlot::InitialGuess { .. } => &mut *storage.x0,
         };
         let dst = vector
             .get_mut(to_usize(offset)..to_usize(end))
@@ -595,7 +624,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         for (d, s) in dst.iter_mut().zip(mantissas) {
             *d = *s;
         }
-        *self.slot_state(slot) = if end == shape.n {
+        *self.slot_state(slot)? = if end == shape.n {
             VectorState::Complete { exponent }
         } else {
             VectorState::Uploading {
@@ -608,7 +637,12 @@ impl<'a, C: PhaseClock> Session<'a, C> {
 
     fn solve(&mut self, params: &SolveParams) -> Result<Response, ErrorCode> {
         let shape = self.loaded()?;
-        let b_exponent = self.rhs.exponent(SessionStep::NoRhs)?;
+        let directions = usize::from(params.directions);
+        if !(1..=MAX_DIRECTIONS).contains(&directions) {
+            return Err(ErrorCode::Solve(SolveFailure::BadDirections(
+                params.directions,
+            )));
+        }
         let n = to_usize(shape.n);
         // Every slice below is within the storage: n ≤ max_n and the matrix's counts ≤ its
         // capacities were checked when it was announced. Should that ever not hold, refuse.
@@ -616,76 +650,114 @@ impl<'a, C: PhaseClock> Session<'a, C> {
             requested: shape.n,
             capacity: self.info.max_n,
         };
+        // All checks first, so that a refused solve changes nothing.
+        let mut b_exponents = [0i32; MAX_DIRECTIONS];
+        let mut x_exponents = [0i32; MAX_DIRECTIONS];
+        for d in 0..directions {
+            b_exponents[d] = self.rhs[d].exponent(SessionStep::NoRhs)?;
+            x_exponents[d] = match params.start {
+                Start::Zero => 0,
+                Start::Previous => {
+                    self.solution[d].ok_or(out_of_order(SessionStep::NoPreviousSolution))?
+                }
+                Start::Uploaded => self.guess[d].exponent(SessionStep::NoInitialGuess)?,
+            };
+        }
         let Storage {
             words,
             tiles,
-            b,
-            x,
-            x0,
-            r,
-            p,
-            kp,
+            directions: vectors,
         } = &mut self.store;
-        let (Some(b), Some(x), Some(x0), Some(r), Some(p), Some(kp)) = (
-            b.get(..n),
-            x.get_mut(..n),
-            x0.get(..n),
-            r.get_mut(..n),
-            p.get_mut(..cg::direction_len(n)),
-            kp.get_mut(..n),
-        ) else {
-            return Err(too_large);
-        };
         let (Some(tiles), Some(words)) = (
             tiles.get(..to_usize(shape.tiles)),
             words.get(..to_usize(shape.words)),
         ) else {
             return Err(too_large);
         };
-        let mut x_exponent = match params.start {
-            Start::Zero => {
-                x.fill(0);
-                0
-            }
-            Start::Previous => self
-                .solution
-                .ok_or(out_of_order(SessionStep::NoPreviousSolution))?,
-            Start::Uploaded => {
-                let exponent = self.guess.exponent(SessionStep::NoInitialGuess)?;
-                for (d, s) in x.iter_mut().zip(x0) {
-                    *d = *s;
-                }
-                exponent
-            }
-        };
-        self.solution = None;
+        self.solution = [None; MAX_DIRECTIONS];
         let matrix = Matrix {
             n,
             frac_bits: shape.frac_bits,
             tiles,
             words,
         };
-        let scratch = Scratch { r, p, kp };
-        match cg::solve(
-            &matrix,
-            b,
-            b_exponent,
-            x,
-            &mut x_exponent,
-            scratch,
-            params,
-            &self.clock,
-        ) {
-            Ok(report) => {
-                self.solution = Some(x_exponent);
-                Ok(Response::Solved(report))
+        let single = SolveParams {
+            directions: 1,
+            ..*params
+        };
+        let mut report = SolveReport {
+            iterations: 0,
+            converged: true,
+            residual: 0.0,
+            directions: heapless::Vec::new(),
+            words_per_iteration: to_u32(words.len()),
+            mvus: tiles
+                .iter()
+                .map(|t| t.mvu)
+                .max()
+                .unwrap_or(0)
+                .saturating_add(1),
+            overlapping: false,
+            mvu: PhaseCounters::default(),
+            svu: PhaseCounters::default(),
+            per_iteration: IterationCost::default(),
+            saturations: 0,
+        };
+        for (d, v) in vectors.iter_mut().enumerate().take(directions) {
+            let DirectionStorage { b, x, x0, r, p, kp } = v;
+            let (Some(b), Some(x), Some(x0), Some(r), Some(p), Some(kp)) = (
+                b.get(..n),
+                x.get_mut(..n),
+                x0.get(..n),
+                r.get_mut(..n),
+                p.get_mut(..cg::direction_len(n)),
+                kp.get_mut(..n),
+            ) else {
+                return Err(too_large);
+            };
+            match params.start {
+                Start::Zero => x.fill(0),
+                Start::Previous => {}
+                Start::Uploaded => x.copy_from_slice(x0),
             }
-            Err(failure) => Err(ErrorCode::Solve(failure)),
+            let one = cg::solve(
+                &matrix,
+                b,
+                b_exponents[d],
+                x,
+                &mut x_exponents[d],
+                Scratch { r, p, kp },
+                &single,
+                &self.clock,
+            )
+            .map_err(ErrorCode::Solve)?;
+            report.iterations = report.iterations.max(one.iterations);
+            report.converged &= one.converged;
+            report.residual = report.residual.max(one.residual);
+            let _ = report.directions.push(DirectionReport {
+                iterations: one.iterations,
+                converged: one.converged,
+                residual: one.residual,
+            });
+            report.mvu.cycles += one.mvu.cycles;
+            report.mvu.instructions += one.mvu.instructions;
+            report.svu.cycles += one.svu.cycles;
+            report.svu.instructions += one.svu.instructions;
         }
+        for (solution, &e) in self.solution.iter_mut().zip(&x_exponents).take(directions) {
+            *solution = Some(e);
+        }
+        Ok(Response::Solved(report))
     }
 
-    fn read_solution(&mut self, offset: u32) -> Result<Response, ErrorCode> {
-        let exponent = self.solution.ok_or(out_of_order(SessionStep::NoSolution))?;
+    fn read_solution(&mut self, direction: u8, offset: u32) -> Result<Response, ErrorCode> {
+        let d = direction_index(direction)?;
+        let exponent = self
+            .solution
+            .get(d)
+            .copied()
+            .flatten()
+            .ok_or(out_of_order(SessionStep::NoSolution))?;
         let shape = self.resident()?;
         if offset >= shape.n {
             return Err(ErrorCode::ChunkTooLong);
@@ -693,15 +765,34 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         let end = offset.saturating_add(to_u32(CHUNK_LEN)).min(shape.n);
         let values = self
             .store
-            .x
-            .get(to_usize(offset)..to_usize(end))
+            .directions
+            .get(d)
+            .and_then(|v| v.x.get(to_usize(offset)..to_usize(end)))
             .ok_or(ErrorCode::ChunkTooLong)?;
         let mantissas = heapless::Vec::from_slice(values).map_err(|_| ErrorCode::ChunkTooLong)?;
         Ok(Response::Solution {
+            direction,
             offset,
             exponent,
             mantissas,
         })
+    }
+}
+
+fn direction_out_of_range(direction: u8) -> ErrorCode {
+    ErrorCode::DirectionOutOfRange {
+        direction,
+        max: MAX_DIRECTIONS as u8,
+    }
+}
+
+/// `direction` as an index into the per-direction state, or `DirectionOutOfRange`.
+fn direction_index(direction: u8) -> Result<usize, ErrorCode> {
+    let d = usize::from(direction);
+    if d < MAX_DIRECTIONS {
+        Ok(d)
+    } else {
+        Err(direction_out_of_range(direction))
     }
 }
 
