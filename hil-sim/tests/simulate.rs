@@ -26,6 +26,7 @@ fn params(warm_start: bool) -> StepParams {
         tol: 1e-7,
         max_iterations: 2000,
         check_reference: true,
+        layout: Default::default(),
     }
 }
 

@@ -18,7 +18,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::board::{Board, BoardChoice};
 use crate::cli_model::ModelFlags;
-use crate::commands::solve::resolve_model;
+use crate::commands::solve::{resolve_model, LayoutFlags};
 use crate::link::Timeouts;
 use crate::model::{Model, ModelError, ModelSpec};
 use crate::output::node_rows;
@@ -87,6 +87,9 @@ pub struct SimulateArgs {
     /// Also solve every step with the f64 reference and print the deviation.
     #[arg(long)]
     pub check: bool,
+
+    #[command(flatten)]
+    pub layout: LayoutFlags,
 }
 
 fn parse_alpha(s: &str) -> Result<[f64; 3], String> {
@@ -187,6 +190,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         Some(port) => BoardChoice::Port(port.clone()),
         None => BoardChoice::Qemu {
             firmware: args.firmware.clone(),
+            harts: args.layout.qemu_harts(),
         },
     };
     let timeouts = Timeouts {
@@ -194,6 +198,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         ..Timeouts::default()
     };
     let mut board = Board::open(&choice, timeouts)?;
+    let layout = args.layout.encode_options(board.target.info().harts)?;
     println!("target      {}", board.describe());
     println!("model       {}", model.spec().describe());
     let schedule = resolved.schedule;
@@ -204,6 +209,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
             .max_iter
             .unwrap_or((10 * n).min(u32::MAX as usize) as u32),
         check_reference: args.check,
+        layout,
     };
     let nonlinear = resolved.nonlinear;
     let steps_bar = bar(schedule.steps as u64, "steps");
