@@ -5,20 +5,28 @@ use core::sync::atomic::{AtomicBool, Ordering};
 
 use deform_shared::matrix::TileHeader;
 use deform_shared::protocol::MAX_DIRECTIONS;
-use deform_target_core::session::{DirectionStorage, Storage, DIRECTION_PAD};
+use deform_target_core::kernel::{Lanes, Sums};
+use deform_target_core::session::{DirectionStorage, Storage};
 
 /// Instruction words the matrix store holds (2 MiB).
 pub const WORD_CAPACITY: usize = 512 * 1024;
-/// Tile headers the matrix store holds (64 KiB).
+/// Tile headers the matrix store holds (80 KiB).
 pub const TILE_CAPACITY: usize = 4096;
-/// Largest dimension: per direction five vectors of 256 KiB (p 2 KiB more) and K·p of 512 KiB.
+/// Largest dimension. Per direction four vectors of 256 KiB (3 MiB for three directions), the
+/// interleaved search directions 1 MiB, K·p 1.5 MiB.
 pub const MAX_N: usize = 65536;
+/// Rows of private partial sums for MVUs whose row ranges overlap (1.5 MiB): the overlapping
+/// scheme (thesis 4.1.1) may use up to n of them beyond the rows themselves.
+pub const PARTIAL_ROWS: usize = 65536;
 
 /// Everything the session works in. All zero at boot, so it lands in `.bss`.
 pub struct Buffers {
     words: [u32; WORD_CAPACITY],
     tiles: [TileHeader; TILE_CAPACITY],
     directions: [DirectionBuffers; MAX_DIRECTIONS],
+    p: [Lanes; MAX_N],
+    kp: [Sums; MAX_N],
+    partial: [Sums; PARTIAL_ROWS],
 }
 
 /// The vectors of one direction of a fused solve.
@@ -27,8 +35,6 @@ pub struct DirectionBuffers {
     x: [i32; MAX_N],
     x0: [i32; MAX_N],
     r: [i32; MAX_N],
-    p: [i32; MAX_N + DIRECTION_PAD],
-    kp: [i64; MAX_N],
 }
 
 const NO_TILE: TileHeader = TileHeader {
@@ -46,8 +52,6 @@ impl DirectionBuffers {
         x: [0; MAX_N],
         x0: [0; MAX_N],
         r: [0; MAX_N],
-        p: [0; MAX_N + DIRECTION_PAD],
-        kp: [0; MAX_N],
     };
 
     fn storage(&mut self) -> DirectionStorage<'_> {
@@ -56,8 +60,6 @@ impl DirectionBuffers {
             x: &mut self.x,
             x0: &mut self.x0,
             r: &mut self.r,
-            p: &mut self.p,
-            kp: &mut self.kp,
         }
     }
 }
@@ -67,6 +69,9 @@ impl Buffers {
         words: [0; WORD_CAPACITY],
         tiles: [NO_TILE; TILE_CAPACITY],
         directions: [DirectionBuffers::ZERO; MAX_DIRECTIONS],
+        p: [[0; 4]; MAX_N],
+        kp: [[0; MAX_DIRECTIONS]; MAX_N],
+        partial: [[0; MAX_DIRECTIONS]; PARTIAL_ROWS],
     };
 
     /// Lends all buffers to a session.
@@ -76,6 +81,9 @@ impl Buffers {
             words: &mut self.words,
             tiles: &mut self.tiles,
             directions: [d0.storage(), d1.storage(), d2.storage()],
+            p: &mut self.p,
+            kp: &mut self.kp,
+            partial: &mut self.partial,
         }
     }
 }

@@ -55,6 +55,8 @@ pub enum MatrixError {
     ColumnOutOfRange { tile: u32, column: u32 },
     #[error("the tiles hold {found} words in all, the matrix header says {expected}")]
     TotalWordsMismatch { expected: u32, found: u32 },
+    #[error("row {row} (reached by tile {tile}) has more words than the MVU's exact 64-bit row sum allows")]
+    RowTooLong { tile: u32, row: u32 },
     #[error("tile {tile} is assigned to MVU {mvu}, but the target has {harts} harts")]
     MvuOutOfRange { tile: u32, mvu: u8, harts: u8 },
 }

@@ -56,23 +56,21 @@
 
 use deform_shared::matrix::{validate_mvu, validate_tile, words_crc, MatrixError, TileHeader};
 use deform_shared::protocol::{
-    DirectionReport, ErrorCode, IterationCost, PhaseCounters, Request, Response, SessionStep,
-    SolveFailure, SolveParams, SolveReport, Start, TargetInfo, VectorSlot, CHUNK_LEN,
-    MAX_DIRECTIONS, PROTOCOL_VERSION,
+    ErrorCode, Request, Response, SessionStep, SolveFailure, SolveParams, Start, TargetInfo,
+    VectorSlot, CHUNK_LEN, MAX_DIRECTIONS, MAX_HARTS, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{MANTISSA_LIMIT, MAX_FRAC_BITS};
 use deform_shared::word::{VALUE_BITS, VALUE_MAX, VALUE_MIN};
 
-use crate::cg::{self, Matrix, PhaseClock, Scratch};
+use crate::cg::{self, Matrix, Plan, PlanError, System, Work};
+use crate::exec::Executor;
+use crate::kernel::{Lanes, Sums};
 
 /// Extra elements the search direction `p` needs beyond n: the MVU reads a tile's whole
 /// 512-column window of p (see [`cg::Scratch`] and [`cg::direction_len`]).
-pub const DIRECTION_PAD: usize = cg::direction_len(0);
-
 /// The memory a [`Session`] works in, lent by its owner.
 ///
-/// The vectors may differ in length; the session's `max_n` is the largest n they all hold,
-/// `p` being [`DIRECTION_PAD`] longer than the others.
+/// The vectors may differ in length; the session's `max_n` is the largest n they all hold.
 pub struct Storage<'a> {
     /// The matrix's instruction words, all tiles back to back.
     pub words: &'a mut [u32],
@@ -80,6 +78,13 @@ pub struct Storage<'a> {
     pub tiles: &'a mut [TileHeader],
     /// One set of vectors per direction a fused solve can run.
     pub directions: [DirectionStorage<'a>; MAX_DIRECTIONS],
+    /// The search directions of all directions, interleaved (see [`crate::kernel`]).
+    pub p: &'a mut [Lanes],
+    /// K·p of all directions, in double width.
+    pub kp: &'a mut [Sums],
+    /// Private partial sums of MVUs whose rows overlap (thesis 4.1.1); its length limits how
+    /// much they may overlap.
+    pub partial: &'a mut [Sums],
 }
 
 /// The vectors of one direction.
@@ -92,18 +97,15 @@ pub struct DirectionStorage<'a> {
     pub x0: &'a mut [i32],
     /// CG residual.
     pub r: &'a mut [i32],
-    /// CG search direction: n + [`DIRECTION_PAD`] elements.
-    pub p: &'a mut [i32],
-    /// CG's K·p, in double width.
-    pub kp: &'a mut [i64],
 }
 
 impl Storage<'_> {
-    /// The largest dimension all vectors can hold (`p` needs [`DIRECTION_PAD`] extra elements).
+    /// The largest dimension all vectors can hold.
     pub fn max_n(&self) -> usize {
         self.directions
             .iter()
             .map(DirectionStorage::max_n)
+            .chain([self.p.len(), self.kp.len()])
             .min()
             .unwrap_or(0)
     }
@@ -111,17 +113,10 @@ impl Storage<'_> {
 
 impl DirectionStorage<'_> {
     fn max_n(&self) -> usize {
-        [
-            self.b.len(),
-            self.x.len(),
-            self.x0.len(),
-            self.r.len(),
-            self.p.len().saturating_sub(DIRECTION_PAD),
-            self.kp.len(),
-        ]
-        .into_iter()
-        .min()
-        .unwrap_or(0)
+        [self.b.len(), self.x.len(), self.x0.len(), self.r.len()]
+            .into_iter()
+            .min()
+            .unwrap_or(0)
     }
 }
 
@@ -184,10 +179,10 @@ impl VectorState {
 }
 
 /// The target's side of the protocol. See the module documentation for its policies.
-pub struct Session<'a, C: PhaseClock> {
+pub struct Session<'a, E: Executor> {
     store: Storage<'a>,
     info: TargetInfo,
-    clock: C,
+    exec: E,
     /// False after a `Hello` with another protocol version.
     compatible: bool,
     matrix: MatrixState,
@@ -195,6 +190,8 @@ pub struct Session<'a, C: PhaseClock> {
     guess: [VectorState; MAX_DIRECTIONS],
     /// Per direction, the exponent of the solution in its `x`, if there is one.
     solution: [Option<i32>; MAX_DIRECTIONS],
+    /// How the MVUs share the resident matrix.
+    plan: Option<Plan>,
 }
 
 fn to_usize(v: u32) -> usize {
@@ -209,18 +206,20 @@ const fn out_of_order(step: SessionStep) -> ErrorCode {
     ErrorCode::OutOfOrder(step)
 }
 
-impl<'a, C: PhaseClock> Session<'a, C> {
+impl<'a, E: Executor> Session<'a, E> {
     /// A fresh session over `store`. `info`'s capacities are clamped to what `store` holds and
     /// its protocol version is set to ours; the rest (firmware version, harts) is passed through.
-    pub fn new(store: Storage<'a>, mut info: TargetInfo, clock: C) -> Self {
+    pub fn new(store: Storage<'a>, mut info: TargetInfo, exec: E) -> Self {
         info.protocol_version = PROTOCOL_VERSION;
         info.word_capacity = info.word_capacity.min(to_u32(store.words.len()));
         info.tile_capacity = info.tile_capacity.min(to_u32(store.tiles.len()));
         info.max_n = info.max_n.min(to_u32(store.max_n()));
+        info.harts = info.harts.clamp(1, exec.harts().min(MAX_HARTS) as u8);
         Self {
             store,
             info,
-            clock,
+            exec,
+            plan: None,
             compatible: true,
             matrix: MatrixState::Empty,
             rhs: [VectorState::Empty; MAX_DIRECTIONS],
@@ -234,9 +233,9 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         &self.info
     }
 
-    /// The clock lent to the solver.
-    pub fn clock(&self) -> &C {
-        &self.clock
+    /// The executor lent to the solver.
+    pub fn executor(&self) -> &E {
+        &self.exec
     }
 
     /// True once a matrix is completely uploaded and validated.
@@ -462,6 +461,32 @@ impl<'a, C: PhaseClock> Session<'a, C> {
             self.matrix = MatrixState::Empty;
             return Err(ErrorCode::MatrixCrc { computed });
         }
+        let n = to_usize(up.shape.n);
+        let planned = cg::plan(
+            self.store
+                .tiles
+                .get(..to_usize(up.shape.tiles))
+                .unwrap_or(&[]),
+            self.store
+                .words
+                .get(..to_usize(up.shape.words))
+                .unwrap_or(&[]),
+            n,
+            self.store.kp,
+            self.store.partial.len(),
+        );
+        self.plan = match planned {
+            Ok(plan) => Some(plan),
+            Err(e) => {
+                self.matrix = MatrixState::Empty;
+                return Err(match e {
+                    PlanError::Overlap { rows, capacity } => {
+                        ErrorCode::OverlapTooLarge { rows, capacity }
+                    }
+                    PlanError::Matrix(e) => ErrorCode::Matrix(e),
+                });
+            }
+        };
         self.matrix = MatrixState::Loaded(up.shape);
         Ok(Response::Ack)
     }
@@ -663,10 +688,14 @@ impl<'a, C: PhaseClock> Session<'a, C> {
                 Start::Uploaded => self.guess[d].exponent(SessionStep::NoInitialGuess)?,
             };
         }
+        let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
         let Storage {
             words,
             tiles,
             directions: vectors,
+            p,
+            kp,
+            partial,
         } = &mut self.store;
         let (Some(tiles), Some(words)) = (
             tiles.get(..to_usize(shape.tiles)),
@@ -674,78 +703,38 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         ) else {
             return Err(too_large);
         };
+        let mut systems: heapless::Vec<System<'_>, MAX_DIRECTIONS> = heapless::Vec::new();
+        for (d, v) in vectors.iter_mut().enumerate().take(directions) {
+            let DirectionStorage { b, x, x0, r } = v;
+            let (Some(b), Some(x), Some(x0), Some(r)) =
+                (b.get(..n), x.get_mut(..n), x0.get(..n), r.get_mut(..n))
+            else {
+                return Err(too_large);
+            };
+            if params.start == Start::Uploaded {
+                x.copy_from_slice(x0);
+            }
+            let _ = systems.push(System {
+                b,
+                b_exponent: b_exponents[d],
+                x,
+                x_exponent: x_exponents[d],
+                r,
+            });
+        }
         self.solution = [None; MAX_DIRECTIONS];
         let matrix = Matrix {
             n,
             frac_bits: shape.frac_bits,
             tiles,
             words,
+            plan: &plan,
         };
-        let single = SolveParams {
-            directions: 1,
-            ..*params
-        };
-        let mut report = SolveReport {
-            iterations: 0,
-            converged: true,
-            residual: 0.0,
-            directions: heapless::Vec::new(),
-            words_per_iteration: to_u32(words.len()),
-            mvus: tiles
-                .iter()
-                .map(|t| t.mvu)
-                .max()
-                .unwrap_or(0)
-                .saturating_add(1),
-            overlapping: false,
-            mvu: PhaseCounters::default(),
-            svu: PhaseCounters::default(),
-            per_iteration: IterationCost::default(),
-            saturations: 0,
-        };
-        for (d, v) in vectors.iter_mut().enumerate().take(directions) {
-            let DirectionStorage { b, x, x0, r, p, kp } = v;
-            let (Some(b), Some(x), Some(x0), Some(r), Some(p), Some(kp)) = (
-                b.get(..n),
-                x.get_mut(..n),
-                x0.get(..n),
-                r.get_mut(..n),
-                p.get_mut(..cg::direction_len(n)),
-                kp.get_mut(..n),
-            ) else {
-                return Err(too_large);
-            };
-            match params.start {
-                Start::Zero => x.fill(0),
-                Start::Previous => {}
-                Start::Uploaded => x.copy_from_slice(x0),
-            }
-            let one = cg::solve(
-                &matrix,
-                b,
-                b_exponents[d],
-                x,
-                &mut x_exponents[d],
-                Scratch { r, p, kp },
-                &single,
-                &self.clock,
-            )
-            .map_err(ErrorCode::Solve)?;
-            report.iterations = report.iterations.max(one.iterations);
-            report.converged &= one.converged;
-            report.residual = report.residual.max(one.residual);
-            let _ = report.directions.push(DirectionReport {
-                iterations: one.iterations,
-                converged: one.converged,
-                residual: one.residual,
-            });
-            report.mvu.cycles += one.mvu.cycles;
-            report.mvu.instructions += one.mvu.instructions;
-            report.svu.cycles += one.svu.cycles;
-            report.svu.instructions += one.svu.instructions;
-        }
-        for (solution, &e) in self.solution.iter_mut().zip(&x_exponents).take(directions) {
-            *solution = Some(e);
+        let work = Work { p, kp, partial };
+        let report =
+            cg::solve(&matrix, &mut systems, work, params, &self.exec).map_err(ErrorCode::Solve)?;
+        for (solution, system) in self.solution.iter_mut().zip(&systems) {
+            *solution = Some(system.x_exponent);
         }
         Ok(Response::Solved(report))
     }

@@ -2,7 +2,10 @@
 //! that throws random request sequences at a session with small buffers.
 
 use super::*;
-use crate::cg::NoClock;
+use crate::exec::Sequential;
+
+/// The host's stand-in for the firmware's harts.
+const HARTS: Sequential = Sequential { harts: 4 };
 use deform_shared::frame;
 use deform_shared::protocol::{Envelope, SolveFailure, SolveReport, MAX_FRAME_LEN};
 use deform_shared::qformat::{block_exponent, from_mantissa, quantize, to_mantissa};
@@ -17,6 +20,9 @@ struct Bufs {
     words: Vec<u32>,
     tiles: Vec<TileHeader>,
     directions: [DirectionBufs; MAX_DIRECTIONS],
+    p: Vec<Lanes>,
+    kp: Vec<Sums>,
+    partial: Vec<Sums>,
 }
 
 struct DirectionBufs {
@@ -24,8 +30,6 @@ struct DirectionBufs {
     x: Vec<i32>,
     x0: Vec<i32>,
     r: Vec<i32>,
-    p: Vec<i32>,
-    kp: Vec<i64>,
 }
 
 impl DirectionBufs {
@@ -35,8 +39,6 @@ impl DirectionBufs {
             x: vec![0; max_n],
             x0: vec![0; max_n],
             r: vec![0; max_n],
-            p: vec![0; max_n + DIRECTION_PAD],
-            kp: vec![0; max_n],
         }
     }
 
@@ -46,8 +48,6 @@ impl DirectionBufs {
             x: &mut self.x,
             x0: &mut self.x0,
             r: &mut self.r,
-            p: &mut self.p,
-            kp: &mut self.kp,
         }
     }
 }
@@ -58,6 +58,9 @@ impl Bufs {
             words: vec![0; words],
             tiles: vec![TileHeader::default(); tiles],
             directions: std::array::from_fn(|_| DirectionBufs::new(max_n)),
+            p: vec![[0; 4]; max_n],
+            kp: vec![[0; MAX_DIRECTIONS]; max_n],
+            partial: vec![[0; MAX_DIRECTIONS]; 2 * max_n],
         }
     }
 
@@ -67,11 +70,14 @@ impl Bufs {
             words: &mut self.words,
             tiles: &mut self.tiles,
             directions: [d0.storage(), d1.storage(), d2.storage()],
+            p: &mut self.p,
+            kp: &mut self.kp,
+            partial: &mut self.partial,
         }
     }
 
-    fn session(&mut self) -> Session<'_, NoClock> {
-        Session::new(self.storage(), info(), NoClock)
+    fn session(&mut self) -> Session<'_, Sequential> {
+        Session::new(self.storage(), info(), HARTS)
     }
 }
 
@@ -282,18 +288,18 @@ fn to_block(v: &[f64]) -> (i32, Vec<i32>) {
     (e, v.iter().map(|&x| to_mantissa(x, e).unwrap()).collect())
 }
 
-fn all_ack(s: &mut Session<'_, NoClock>, reqs: Vec<Request>) {
+fn all_ack(s: &mut Session<'_, Sequential>, reqs: Vec<Request>) {
     for req in reqs {
         let what = format!("{req:?}");
         assert_eq!(s.handle(req), Response::Ack, "{what}");
     }
 }
 
-fn load(s: &mut Session<'_, NoClock>, e: &Encoded) {
+fn load(s: &mut Session<'_, Sequential>, e: &Encoded) {
     all_ack(s, matrix_requests(e, CHUNK_LEN));
 }
 
-fn load_rhs(s: &mut Session<'_, NoClock>, b: &[f64]) {
+fn load_rhs(s: &mut Session<'_, Sequential>, b: &[f64]) {
     let (e, m) = to_block(b);
     all_ack(s, vector_requests(VectorSlot::RHS, e, &m, CHUNK_LEN));
 }
@@ -323,12 +329,12 @@ fn solved(r: Response) -> SolveReport {
 }
 
 /// Reads the whole solution back, chunk by chunk.
-fn read_all(s: &mut Session<'_, NoClock>, n: usize) -> Vec<f64> {
+fn read_all(s: &mut Session<'_, Sequential>, n: usize) -> Vec<f64> {
     read_direction(s, 0, n)
 }
 
 /// Reads one direction's solution back, chunk by chunk.
-fn read_direction(s: &mut Session<'_, NoClock>, direction: u8, n: usize) -> Vec<f64> {
+fn read_direction(s: &mut Session<'_, Sequential>, direction: u8, n: usize) -> Vec<f64> {
     let mut out = Vec::new();
     while out.len() < n {
         match s.handle(Request::ReadSolution {
@@ -385,7 +391,7 @@ fn hello_reports_capacities_clamped_to_the_storage() {
 #[test]
 fn advertised_capacities_below_the_storage_are_kept_and_enforced() {
     let mut bufs = Bufs::new(100, 7, 20);
-    bufs.directions[1].p.truncate(15 + DIRECTION_PAD); // p of direction 1 limits max_n to 15
+    bufs.directions[1].r.truncate(15); // r of direction 1 limits max_n to 15
     let storage = bufs.storage();
     let mut s = Session::new(
         storage,
@@ -393,7 +399,7 @@ fn advertised_capacities_below_the_storage_are_kept_and_enforced() {
             word_capacity: 50,
             ..info()
         },
-        NoClock,
+        HARTS,
     );
     assert_eq!(
         (
@@ -1816,7 +1822,7 @@ fn an_update_keeps_em_er_and_columns_and_a_crc_mismatch_drops_the_matrix() {
 // ---------------------------------------------------------------------------------------------
 // Protocol version 4: directions, MVU assignment, mirrored tiles
 
-fn load_direction(s: &mut Session<'_, NoClock>, direction: u8, b: &[f64]) {
+fn load_direction(s: &mut Session<'_, Sequential>, direction: u8, b: &[f64]) {
     let (e, m) = to_block(b);
     all_ack(
         s,
