@@ -7,9 +7,14 @@ mod support;
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_host::encode::EncodedMatrix;
 use deform_shared::matrix::TileHeader;
+use deform_shared::protocol::MAX_DIRECTIONS;
 use deform_shared::protocol::{SolveParams, SolveReport, Start};
-use deform_shared::qformat::{choose_frac_bits, quantize};
+use deform_shared::qformat::{
+    block_exponent, choose_frac_bits, from_mantissa, quantize, to_mantissa,
+};
 use deform_shared::word::Word;
+use deform_target_core::cg::{self, Matrix, System, Work};
+use deform_target_core::exec::Sequential;
 use support::{assert_alive, cholesky_solve, connect, decode_dense, max_relative_error};
 
 fn boot(harts: u8) -> Qemu {
@@ -125,6 +130,57 @@ fn rhs(n: usize, d: usize) -> Vec<f64> {
         .collect()
 }
 
+/// The same solve on the host: the target's own CG code (its portable MVU loop) on a
+/// sequential executor, from the vectors exactly as the link uploads them.
+fn host_solve(matrix: &EncodedMatrix, b: &[&[f64]], mvus: usize) -> Vec<Vec<f64>> {
+    let n = matrix.n as usize;
+    let mut kp = vec![[0i64; MAX_DIRECTIONS]; n];
+    let mut partial = vec![[0i64; MAX_DIRECTIONS]; 8 * n];
+    let plan = cg::plan(&matrix.tiles, &matrix.words, n, &mut kp, partial.len()).unwrap();
+    // Per direction: b's mantissas and exponent, x, r.
+    type Vectors = (Vec<i32>, i32, Vec<i32>, Vec<i32>);
+    let mut vectors: Vec<Vectors> = b
+        .iter()
+        .map(|b| {
+            let e = block_exponent(b.iter().fold(0.0f64, |m, v| m.max(v.abs())));
+            let m = b.iter().map(|&v| to_mantissa(v, e).unwrap()).collect();
+            (m, e, vec![0; n], vec![0; n])
+        })
+        .collect();
+    let mut systems: Vec<System<'_>> = vectors
+        .iter_mut()
+        .map(|(b, e, x, r)| System {
+            b,
+            b_exponent: *e,
+            x,
+            x_exponent: 0,
+            r,
+        })
+        .collect();
+    let a = Matrix {
+        n,
+        frac_bits: matrix.frac_bits,
+        tiles: &matrix.tiles,
+        words: &matrix.words,
+        plan: &plan,
+    };
+    let work = Work {
+        p: &mut vec![[0; 4]; n],
+        kp: &mut kp,
+        partial: &mut partial,
+    };
+    let params = params(b.len() as u8);
+    cg::solve(&a, &mut systems, work, &params, &Sequential { harts: mvus }).unwrap();
+    systems
+        .iter()
+        .map(|s| {
+            s.x.iter()
+                .map(|&m| from_mantissa(m, s.x_exponent))
+                .collect()
+        })
+        .collect()
+}
+
 struct Outcome {
     report: SolveReport,
     x: Vec<Vec<f64>>,
@@ -163,6 +219,9 @@ fn one_to_eight_mvus_agree_bit_for_bit_and_with_f64() {
                 assert!(err < 1e-6, "{harts} harts: error {err:e}");
             }
             let cost = report.per_iteration;
+            // The firmware (assembly MVU loop, parallel harts) equals the host (portable loop,
+            // one thread) bit for bit.
+            assert_eq!(x, host_solve(&split, &refs, mvus), "{harts} harts vs host");
             match &baseline {
                 None => baseline = Some(Outcome { report, x }),
                 Some(base) => {
