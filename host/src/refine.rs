@@ -82,7 +82,21 @@ impl Refined {
             .sum()
     }
 
-    /// Hart 0's cycles in the MVU and SVU phases over all solves (the wall clock of the CG).
+    /// Critical-path cycles over all solves: each solve's measured T = T_MVU + T_SVU per
+    /// iteration (the slowest MVU plus the SVU, thesis eq. 55) times its iterations. The MVU and
+    /// SVU loops do not depend on the data, so one measured iteration stands for all of them.
+    pub fn critical_path_cycles(&self) -> u64 {
+        self.reports
+            .iter()
+            .map(|r| {
+                (r.per_iteration.mvu_critical + r.per_iteration.svu_critical) * r.iterations as u64
+            })
+            .sum()
+    }
+
+    /// Hart 0's `mcycle` over the MVU and SVU phases of all solves. Under QEMU `-icount` every
+    /// hart's counter follows one machine-wide instruction count, so with several harts this is
+    /// their sum, not the parallel time: see [`Refined::critical_path_cycles`] for that.
     pub fn cycles(&self) -> u64 {
         self.reports
             .iter()

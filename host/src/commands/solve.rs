@@ -198,7 +198,10 @@ pub struct EngineStats {
     pub words_fetched: u64,
     /// What the same iterations fetch with every direction solved on its own.
     pub words_fetched_unfused: u64,
-    /// Hart 0's MVU + SVU cycles over all solves.
+    /// Critical-path cycles (slowest MVU + SVU per iteration, times the iterations) over all
+    /// solves.
+    pub critical_path_cycles: u64,
+    /// Hart 0's MVU + SVU `mcycle` over all solves (under QEMU -icount: all harts' sum).
     pub cycles: u64,
 }
 
@@ -446,6 +449,7 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
                 target_solves: refined.reports.len(),
                 words_fetched: refined.words_fetched(),
                 words_fetched_unfused: refined.words_fetched_unfused(),
+                critical_path_cycles: refined.critical_path_cycles(),
                 cycles: refined.cycles(),
             });
         }
@@ -517,12 +521,12 @@ fn print_summary(stats: &SolveStats) {
     }
     if let Some(e) = &stats.engine {
         println!(
-            "runs        {} target solve(s), {}; {} matrix words fetched ({} if solved one direction at a time), {} cycles on hart 0",
+            "runs        {} target solve(s), {}; {} matrix words fetched ({} if solved one direction at a time); {} critical-path cycles in all",
             e.target_solves,
             if e.fused { "directions fused" } else { "one direction at a time" },
             e.words_fetched,
             e.words_fetched_unfused,
-            e.cycles
+            e.critical_path_cycles
         );
         if let Some(p) = &e.performance {
             println!(
