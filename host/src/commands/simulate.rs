@@ -201,6 +201,16 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     let layout = args.layout.encode_options(board.target.info().harts)?;
     println!("target      {}", board.describe());
     println!("model       {}", model.spec().describe());
+    println!(
+        "layout      {} MVU(s), partition {}, conjugate symmetry {}",
+        layout.mvus,
+        layout.partition,
+        if layout.use_symmetry {
+            "when K is persymmetric"
+        } else {
+            "off"
+        }
+    );
     let schedule = resolved.schedule;
     let params = StepParams {
         warm_start: !args.cold,
