@@ -21,29 +21,29 @@
 //! # Number formats
 //!
 //! - Matrix values are raw 21-bit integers q with value = q · 2^-F (`frac_bits` = F).
-//! - Every vector is a block: `i32` mantissas with one shared exponent. The SVU keeps them below
-//!   2^29 (uploaded vectors are below 2^30).
+//! - Every vector is a block: `i32` mantissas with one shared exponent, below 2^30 in
+//!   magnitude (uploaded vectors and SVU results alike), which keeps every MVU product below 2^50.
 //! - Scalars (α, β, norms) are `f64` on hart 0 (soft float, a few hundred instructions per
 //!   iteration, nothing per element).
 //!
 //! # The SVU's element operation, and why it cannot overflow
 //!
 //! Every vector update is z = a·u + b·y, done per element as
-//! `z_i = mulh(A, u_i << k_u) + mulh(B, y_i << k_y)` (mulh = high word of the 64-bit product):
-//! hart 0 folds the scalars, the exponents and the rounding shift into the two 32-bit
-//! multipliers A, B and the shifts k, which are fixed for the whole loop. That costs a
-//! `sll` and a `mulh` per term instead of a 64-bit variable shift. The shifts normalise u and y
-//! so that their largest element lies in [2^30, 2^31), which makes |A|, |B| < 2^30 (see
-//! [`Lin::new`]) — they keep ~30 significant bits. The output exponent is chosen from the
-//! tracked maxima so that |a·u + b·y| < 2^28 in output units; each `mulh` truncates by less than
-//! one unit, so |z| < 2^28 + 2 < 2^29: nothing can saturate. Because the maxima are measured in
-//! every pass (an OR of the magnitudes, which has the same highest bit as the maximum), the
-//! exponent follows the vector down as the residual shrinks, and each vector keeps ~28
-//! significant bits relative to its largest element.
+//! `z_i = round(A·(u_i << k_u) / 2^(32 + o_u)) + round(B·(y_i << k_y) / 2^(32 + o_y))`
+//! (`Term`): hart 0 folds the scalars and the exponents into two 32-bit multipliers A, B and
+//! loop-invariant shifts. That costs a `sll`, `mul`, `mulh`, a rounding carry and a `sra` per
+//! term instead of a 64-bit variable shift. The shifts k normalise u and y so that their largest
+//! element lies in [2^30, 2^31), and the shifts o keep |A|, |B| in [2^30, 2^31): the scalars
+//! keep 30 significant bits however small their term is next to the other. The output exponent
+//! is chosen from the tracked maxima so that |a·u + b·y| < 2^29 in output units; the two
+//! roundings add at most one unit, so |z| < 2^30: nothing can saturate. Because the maxima are
+//! measured in every pass (an OR of the magnitudes, which has the same highest bit as the
+//! maximum), the exponent follows the vector down as the residual shrinks, and each vector keeps
+//! ~28–29 significant bits relative to its largest element.
 //!
 //! K·p comes from the MVU as exact `i64` row sums; the r-update narrows each to 31 bits with a
 //! loop-invariant funnel shift chosen from max |Kp|. pᵀKp (exact `i128`) and Σr² (exact `u128`,
-//! summed in `u64` blocks of 32) are integers.
+//! summed in `u64` blocks of 8) are integers.
 //!
 //! Saturation is nonetheless detected: a multiplier that would not fit `i32`, a vector whose
 //! maximum breaks its bound, or a K·p beyond 2^62 is clamped and counted in

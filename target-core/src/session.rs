@@ -2,8 +2,9 @@
 //! [`deform_shared::protocol`].
 //!
 //! A [`Session`] owns no memory. The firmware (or a test) lends it a [`Storage`]: the matrix store
-//! (`words`, `tiles`), the vectors `b` (right-hand side), `x` (solution), `x0` (uploaded initial
-//! guess) and CG's scratch `r`, `p`, `kp`, plus a [`TargetInfo`] and a [`PhaseClock`]. The session
+//! (`words`, `tiles`), per direction the vectors `b` (right-hand side), `x` (solution), `x0`
+//! (uploaded initial guess) and `r`, the shared `p`, `kp` and partial sums, plus a
+//! [`TargetInfo`] and an [`Executor`] (the harts, or a host stand-in). The session
 //! never panics and never indexes out of bounds, whatever the requests: every access goes through
 //! `get`/`get_mut` and checked arithmetic, and a proptest throws random request sequences at it.
 //!
@@ -66,8 +67,6 @@ use crate::cg::{self, Matrix, Plan, PlanError, System, Work};
 use crate::exec::Executor;
 use crate::kernel::{Lanes, Sums};
 
-/// Extra elements the search direction `p` needs beyond n: the MVU reads a tile's whole
-/// 512-column window of p (see [`cg::Scratch`] and [`cg::direction_len`]).
 /// The memory a [`Session`] works in, lent by its owner.
 ///
 /// The vectors may differ in length; the session's `max_n` is the largest n they all hold.
