@@ -1,0 +1,183 @@
+//! The defmt global logger: log frames go into a RAM buffer, never straight onto the UART.
+//!
+//! The UART carries only protocol frames (COBS, `0x00`-delimited), so raw defmt bytes there would
+//! corrupt the link. Instead every log call encodes its frame (rzcobs: self-delimited, ending in
+//! `0x00`) into [`LOG_BUFFER_LEN`] bytes of RAM, and the main loop ships the buffer in
+//! `Response::Log` messages just before it answers a request ([`take_chunk`]), when the host is
+//! sure to be reading.
+//!
+//! A log call never blocks and never panics: when a frame does not fit, the whole frame is
+//! discarded (so the buffer only ever holds complete frames, and what arrives still decodes) and
+//! its bytes are counted; the next `Log` message reports the count.
+//!
+//! Several harts may log: a spin lock serialises them. No interrupt handler logs (interrupts are
+//! never taken), so a hart never waits for itself.
+
+use core::cell::UnsafeCell;
+use core::sync::atomic::{AtomicBool, Ordering};
+
+use deform_shared::protocol::LOG_CHUNK;
+use heapless::Vec;
+
+/// Bytes of log the target holds between two answers. A solve logs a few hundred bytes; a
+/// long upload's per-chunk trace lines are what overflow it first.
+pub const LOG_BUFFER_LEN: usize = 4096;
+
+struct LogBuffer {
+    encoder: defmt::Encoder,
+    store: Store,
+}
+
+/// The bytes, apart from the encoder so that the encoder can write into them.
+struct Store {
+    bytes: [u8; LOG_BUFFER_LEN],
+    /// Bytes of complete frames (and of the frame being written) in `bytes`.
+    len: usize,
+    /// Where the frame being written started.
+    frame_start: usize,
+    /// Bytes the frame being written has produced, including those that did not fit.
+    frame_bytes: u32,
+    /// The frame being written did not fit: it is discarded at its end.
+    frame_overflowed: bool,
+    /// Bytes discarded since the last [`take_chunk`].
+    dropped: u32,
+}
+
+impl Store {
+    fn push(&mut self, data: &[u8]) {
+        self.frame_bytes = self.frame_bytes.saturating_add(data.len() as u32);
+        if self.frame_overflowed {
+            return;
+        }
+        match self.bytes.get_mut(self.len..self.len + data.len()) {
+            Some(slot) => {
+                slot.copy_from_slice(data);
+                self.len += data.len();
+            }
+            None => self.frame_overflowed = true,
+        }
+    }
+}
+
+impl LogBuffer {
+    fn start_frame(&mut self) {
+        let LogBuffer { encoder, store } = self;
+        store.frame_start = store.len;
+        store.frame_bytes = 0;
+        store.frame_overflowed = false;
+        encoder.start_frame(|b| store.push(b));
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        let LogBuffer { encoder, store } = self;
+        encoder.write(bytes, |b| store.push(b));
+    }
+
+    /// Ends the frame; a frame that did not fit is removed whole and counted.
+    fn end_frame(&mut self) {
+        let LogBuffer { encoder, store } = self;
+        encoder.end_frame(|b| store.push(b));
+        if store.frame_overflowed {
+            store.len = store.frame_start;
+            store.dropped = store.dropped.saturating_add(store.frame_bytes);
+        }
+    }
+
+    fn take_chunk(&mut self) -> Option<(u32, Vec<u8, LOG_CHUNK>)> {
+        let store = &mut self.store;
+        let taken = store.len.min(LOG_CHUNK);
+        if taken == 0 && store.dropped == 0 {
+            return None;
+        }
+        let chunk = Vec::from_slice(&store.bytes[..taken]).unwrap_or_default();
+        store.bytes.copy_within(taken..store.len, 0);
+        store.len -= taken;
+        Some((core::mem::take(&mut store.dropped), chunk))
+    }
+}
+
+struct SharedLog {
+    locked: AtomicBool,
+    buffer: UnsafeCell<LogBuffer>,
+}
+
+// SAFETY: `buffer` is only reached between a successful `lock` and the matching `unlock`, so one
+// hart at a time.
+unsafe impl Sync for SharedLog {}
+
+static LOG: SharedLog = SharedLog {
+    locked: AtomicBool::new(false),
+    buffer: UnsafeCell::new(LogBuffer {
+        encoder: defmt::Encoder::new(),
+        store: Store {
+            bytes: [0; LOG_BUFFER_LEN],
+            len: 0,
+            frame_start: 0,
+            frame_bytes: 0,
+            frame_overflowed: false,
+            dropped: 0,
+        },
+    }),
+};
+
+impl SharedLog {
+    fn lock(&self) {
+        while self
+            .locked
+            .compare_exchange_weak(false, true, Ordering::Acquire, Ordering::Relaxed)
+            .is_err()
+        {
+            core::hint::spin_loop();
+        }
+    }
+
+    fn unlock(&self) {
+        self.locked.store(false, Ordering::Release);
+    }
+
+    /// The buffer; only between `lock` and `unlock`.
+    ///
+    /// # Safety
+    /// The caller holds the lock and keeps no other reference to the buffer.
+    #[allow(clippy::mut_from_ref)]
+    unsafe fn buffer(&self) -> &mut LogBuffer {
+        // SAFETY: the caller holds the lock, so this is the only reference.
+        unsafe { &mut *self.buffer.get() }
+    }
+}
+
+#[defmt::global_logger]
+struct BufferLogger;
+
+// SAFETY: `acquire` takes the lock that `release` gives back, so `write` and `release` run with
+// exclusive access to the buffer, as defmt requires; defmt calls them in this order only.
+unsafe impl defmt::Logger for BufferLogger {
+    fn acquire() {
+        LOG.lock();
+        // SAFETY: locked just above.
+        unsafe { LOG.buffer() }.start_frame();
+    }
+
+    unsafe fn flush() {}
+
+    unsafe fn release() {
+        // SAFETY: defmt calls `release` only after `acquire`, so we hold the lock.
+        unsafe { LOG.buffer() }.end_frame();
+        LOG.unlock();
+    }
+
+    unsafe fn write(bytes: &[u8]) {
+        // SAFETY: defmt calls `write` only between `acquire` and `release`: we hold the lock.
+        unsafe { LOG.buffer() }.write(bytes);
+    }
+}
+
+/// One `Log` message's worth of the buffer: up to [`LOG_CHUNK`] bytes from its start, and the
+/// bytes dropped since the previous call. `None` if there is nothing to report.
+pub fn take_chunk() -> Option<(u32, Vec<u8, LOG_CHUNK>)> {
+    LOG.lock();
+    // SAFETY: locked just above; the reference is gone before the unlock.
+    let chunk = unsafe { LOG.buffer() }.take_chunk();
+    LOG.unlock();
+    chunk
+}
