@@ -344,3 +344,61 @@ fn shorten(path: &Path) -> &Path {
         .and_then(|cwd| path.strip_prefix(cwd).ok())
         .unwrap_or(path)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn collecting(min_level: LogLevel) -> (FirmwareLogs, Arc<Mutex<Vec<LogLine>>>) {
+        let lines = Arc::new(Mutex::new(Vec::new()));
+        let sink = Arc::clone(&lines);
+        let logs = FirmwareLogs::new(
+            None,
+            min_level,
+            Box::new(move |line| sink.lock().unwrap().push(line.clone())),
+        );
+        (logs, lines)
+    }
+
+    #[test]
+    fn verbosity_picks_the_floor() {
+        assert_eq!(LogLevel::from_verbosity(0), LogLevel::Info);
+        assert_eq!(LogLevel::from_verbosity(1), LogLevel::Trace);
+        assert!(LogLevel::Trace < LogLevel::Debug && LogLevel::Warn < LogLevel::Error);
+        assert_eq!(format!("{:<5}|", LogLevel::Warn), "WARN |");
+    }
+
+    #[test]
+    fn dropped_bytes_and_lost_notices_are_reported_and_undecodable_logs_said_once() {
+        let (mut logs, lines) = collecting(LogLevel::Info);
+        let log = |dropped, frames: &[u8]| Response::Log {
+            dropped,
+            frames: frames.try_into().unwrap(),
+        };
+        logs.notice(7, &log(0, &[1, 2, 0]));
+        logs.notice(8, &log(120, &[3, 0]));
+        logs.notice(11, &log(0, &[4, 0]));
+        logs.notice(12, &Response::Ack); // not a log: ignored
+        let stats = logs.stats();
+        assert_eq!(stats.bytes, 7);
+        assert_eq!(stats.dropped_bytes, 120);
+        assert_eq!(stats.lost_notices, 2);
+        let lines = lines.lock().unwrap();
+        assert_eq!(lines.len(), 2, "{lines:#?}");
+        assert!(lines[0].message.contains("--elf"), "{}", lines[0]);
+        assert_eq!(lines[1].level, LogLevel::Warn);
+        assert!(lines[1].message.starts_with("120 bytes of log were dropped"));
+    }
+
+    #[test]
+    fn an_elf_without_a_defmt_table_is_refused_by_name() {
+        let path = std::env::temp_dir().join(format!("deform-no-table-{}", std::process::id()));
+        std::fs::write(&path, b"\x7fELF but not really").unwrap();
+        let err = FirmwareElf::load(&path).err().unwrap();
+        std::fs::remove_file(&path).ok();
+        assert!(matches!(err, LogError::NoTable { .. }), "{err}");
+        assert!(err.to_string().contains("deform-no-table"), "{err}");
+        let missing = FirmwareElf::load(Path::new("/nonexistent/fw.elf")).err().unwrap();
+        assert!(matches!(missing, LogError::Read { .. }), "{missing}");
+    }
+}

@@ -5,9 +5,10 @@
 //! Frames are the application's ([`crate::frame`]: postcard, CRC-32, COBS, `0x00`), each holding
 //! a [`LoaderEnvelope`]: the magic bytes [`LOADER_MAGIC`] and a sequence number. The magic makes
 //! the two programs' frames impossible to mistake for each other (no application frame starts
-//! with `'D'`), so each end can tell which program it is talking to. The host sends one request at a time and waits for
-//! the answer with the same sequence number (stop and wait: the image is small and the loader
-//! simple). A frame that does not decode is answered with [`LoaderError::Frame`] and sequence
+//! with the bytes `D L`), so each end can tell which program it is talking to.
+//!
+//! The host sends one request at a time and waits for the answer with the same sequence number
+//! (stop and wait: the image is small and the loader simple). A frame that does not decode is answered with [`LoaderError::Frame`] and sequence
 //! number [`UNKNOWN_SEQ`](crate::protocol::UNKNOWN_SEQ); the host then resends its request.
 //!
 //! Session:
@@ -143,6 +144,8 @@ pub struct LoaderInfo {
     pub loader_end: u32,
 }
 
+// `Chunk` is large by design (one frame's worth of image); no_std has no Box to shrink it.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub enum LoaderRequest {
     Hello {

@@ -12,7 +12,7 @@ use deform_shared::loader::{
     decode_frame, LoaderEnvelope, LoaderError, LoaderInfo, LoaderRequest, LoaderResponse,
     LOADER_FRAME_LEN, LOADER_PROTOCOL_VERSION,
 };
-use deform_shared::protocol::UNKNOWN_SEQ;
+use deform_shared::protocol::{Envelope, Request, PROTOCOL_VERSION, UNKNOWN_SEQ};
 
 use crate::link::Port;
 
@@ -149,7 +149,7 @@ impl<P: Port> LoaderLink<P> {
             attempts += 1;
             let left = deadline.saturating_duration_since(Instant::now());
             let wait = left.min(self.timeouts.hello_retry);
-            match self.exchange_once(&request, wait)? {
+            match self.exchange_once(&request, wait, false)? {
                 Some(LoaderResponse::Hello(info)) if info.version == LOADER_PROTOCOL_VERSION => {
                     return Ok(info)
                 }
@@ -165,21 +165,50 @@ impl<P: Port> LoaderLink<P> {
                         loader,
                     })
                 }
-                // A complaint about a partial frame our flushing delimiter ended, or noise.
-                Some(_) | None if Instant::now() < deadline => continue,
-                _ if self.stats.foreign_frames > 0 => {
-                    return Err(LoaderLinkError::NotTheLoader {
-                        frames: self.stats.foreign_frames,
-                    })
-                }
-                _ => {
-                    return Err(LoaderLinkError::Timeout {
-                        request: "Hello",
-                        attempts,
-                    })
-                }
+                // No answer, or a complaint about a partial frame that our flushing delimiter
+                // ended: try again, unless an application is what answers.
+                _ => {}
             }
+            if self.stats.foreign_frames > 0 {
+                return Err(LoaderLinkError::NotTheLoader {
+                    frames: self.stats.foreign_frames,
+                });
+            }
+            if Instant::now() >= deadline {
+                return Err(LoaderLinkError::Timeout {
+                    request: "Hello",
+                    attempts,
+                });
+            }
+            self.probe_application()?;
         }
+    }
+
+    /// Sends the application's `Hello`: an application (which stays silent to frames it cannot
+    /// read) answers it, the loader complains about it. Either way the next wait sees who is
+    /// there.
+    fn probe_application(&mut self) -> Result<(), LoaderLinkError> {
+        let probe = Envelope {
+            seq: 0,
+            body: Request::Hello {
+                protocol_version: PROTOCOL_VERSION,
+            },
+        };
+        let mut out = [0u8; 64];
+        let len = frame::encode(&probe, &mut out).map_err(|source| LoaderLinkError::Encode {
+            request: "Hello (application probe)",
+            source,
+        })?;
+        self.send_raw(&out[..len])
+    }
+
+    /// Writes bytes as they are, outside any frame: for tests that put noise on the line.
+    pub fn send_raw(&mut self, bytes: &[u8]) -> Result<(), LoaderLinkError> {
+        self.port.set_timeout(self.timeouts.request)?;
+        self.port.write_all(bytes)?;
+        self.port.flush()?;
+        self.stats.bytes_sent += bytes.len() as u64;
+        Ok(())
     }
 
     /// Sends `request` until its answer arrives (resending after a timeout or when the loader
@@ -190,7 +219,7 @@ impl<P: Port> LoaderLink<P> {
             if attempt > 0 {
                 self.stats.resends += 1;
             }
-            match self.exchange_once(request, self.timeouts.request)? {
+            match self.exchange_once(request, self.timeouts.request, true)? {
                 Some(LoaderResponse::Error(LoaderError::Frame(_))) | None => continue,
                 Some(LoaderResponse::Error(error)) => {
                     return Err(LoaderLinkError::Refused {
@@ -213,12 +242,14 @@ impl<P: Port> LoaderLink<P> {
     }
 
     /// Sends `request` once and waits up to `wait` for the answer with its sequence number.
-    /// `None`: none came. A complaint about an unreadable frame counts as the answer (it is
-    /// most likely about this request, which the caller then resends).
+    /// `None`: none came. With `complaints_answer`, a complaint about an unreadable frame counts
+    /// as the answer (mid-session it is most likely about this request, which the caller then
+    /// resends); while shaking hands the line may still carry noise, so they are skipped.
     fn exchange_once(
         &mut self,
         request: &LoaderRequest,
         wait: Duration,
+        complaints_answer: bool,
     ) -> Result<Option<LoaderResponse>, LoaderLinkError> {
         let seq = self.next_seq;
         self.next_seq = match seq.wrapping_add(1) {
@@ -252,7 +283,7 @@ impl<P: Port> LoaderLink<P> {
                     seq: UNKNOWN_SEQ,
                     body: body @ LoaderResponse::Error(LoaderError::Frame(_)),
                     ..
-                }) => return Ok(Some(body)),
+                }) if complaints_answer => return Ok(Some(body)),
                 Received::Answer(_) => {}
                 Received::Foreign => self.stats.foreign_frames += 1,
                 Received::Corrupt => self.stats.corrupt_frames += 1,
