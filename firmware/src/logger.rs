@@ -17,54 +17,24 @@ use core::cell::UnsafeCell;
 use core::sync::atomic::{AtomicBool, Ordering};
 
 use deform_shared::protocol::LOG_CHUNK;
+use deform_target_core::log_buffer::LogBuffer as Frames;
 use heapless::Vec;
 
-/// Bytes of log the target holds between two answers. A solve logs a few hundred bytes; a
-/// long upload's per-chunk trace lines are what overflow it first.
+/// Bytes of log the target holds between two answers. Today's milestone logging puts well under
+/// a hundred bytes between two answers; the rest is room for chattier code (e.g. per-iteration
+/// traces) before frames are dropped.
 pub const LOG_BUFFER_LEN: usize = 4096;
 
 struct LogBuffer {
     encoder: defmt::Encoder,
-    store: Store,
-}
-
-/// The bytes, apart from the encoder so that the encoder can write into them.
-struct Store {
-    bytes: [u8; LOG_BUFFER_LEN],
-    /// Bytes of complete frames (and of the frame being written) in `bytes`.
-    len: usize,
-    /// Where the frame being written started.
-    frame_start: usize,
-    /// Bytes the frame being written has produced, including those that did not fit.
-    frame_bytes: u32,
-    /// The frame being written did not fit: it is discarded at its end.
-    frame_overflowed: bool,
-    /// Bytes discarded since the last [`take_chunk`].
-    dropped: u32,
-}
-
-impl Store {
-    fn push(&mut self, data: &[u8]) {
-        self.frame_bytes = self.frame_bytes.saturating_add(data.len() as u32);
-        if self.frame_overflowed {
-            return;
-        }
-        match self.bytes.get_mut(self.len..self.len + data.len()) {
-            Some(slot) => {
-                slot.copy_from_slice(data);
-                self.len += data.len();
-            }
-            None => self.frame_overflowed = true,
-        }
-    }
+    /// The frames; its rules (whole frames dropped and counted) are unit-tested in target-core.
+    store: Frames<LOG_BUFFER_LEN>,
 }
 
 impl LogBuffer {
     fn start_frame(&mut self) {
         let LogBuffer { encoder, store } = self;
-        store.frame_start = store.len;
-        store.frame_bytes = 0;
-        store.frame_overflowed = false;
+        store.start_frame();
         encoder.start_frame(|b| store.push(b));
     }
 
@@ -73,26 +43,10 @@ impl LogBuffer {
         encoder.write(bytes, |b| store.push(b));
     }
 
-    /// Ends the frame; a frame that did not fit is removed whole and counted.
     fn end_frame(&mut self) {
         let LogBuffer { encoder, store } = self;
         encoder.end_frame(|b| store.push(b));
-        if store.frame_overflowed {
-            store.len = store.frame_start;
-            store.dropped = store.dropped.saturating_add(store.frame_bytes);
-        }
-    }
-
-    fn take_chunk(&mut self) -> Option<(u32, Vec<u8, LOG_CHUNK>)> {
-        let store = &mut self.store;
-        let taken = store.len.min(LOG_CHUNK);
-        if taken == 0 && store.dropped == 0 {
-            return None;
-        }
-        let chunk = Vec::from_slice(&store.bytes[..taken]).unwrap_or_default();
-        store.bytes.copy_within(taken..store.len, 0);
-        store.len -= taken;
-        Some((core::mem::take(&mut store.dropped), chunk))
+        store.end_frame();
     }
 }
 
@@ -109,14 +63,7 @@ static LOG: SharedLog = SharedLog {
     locked: AtomicBool::new(false),
     buffer: UnsafeCell::new(LogBuffer {
         encoder: defmt::Encoder::new(),
-        store: Store {
-            bytes: [0; LOG_BUFFER_LEN],
-            len: 0,
-            frame_start: 0,
-            frame_bytes: 0,
-            frame_overflowed: false,
-            dropped: 0,
-        },
+        store: Frames::new(),
     }),
 };
 
@@ -177,7 +124,7 @@ unsafe impl defmt::Logger for BufferLogger {
 pub fn take_chunk() -> Option<(u32, Vec<u8, LOG_CHUNK>)> {
     LOG.lock();
     // SAFETY: locked just above; the reference is gone before the unlock.
-    let chunk = unsafe { LOG.buffer() }.take_chunk();
+    let chunk = unsafe { LOG.buffer() }.store.take_chunk();
     LOG.unlock();
     chunk
 }
