@@ -107,18 +107,20 @@ pub fn run(args: &FlashArgs) -> anyhow::Result<()> {
         |p| {
             if p.attempt != last_attempt {
                 last_attempt = p.attempt;
-                bar.suspend(|| {
-                    eprintln!(
-                        "the image failed its verification; uploading it again \
-                         (attempt {} of {IMAGE_ATTEMPTS})",
-                        p.attempt
-                    )
-                });
+                eprintln!(
+                    "the image failed its verification; uploading it again \
+                     (attempt {} of {IMAGE_ATTEMPTS})",
+                    p.attempt
+                );
+                bar.reset();
             }
             bar.set_position(p.bytes_sent as u64);
+            if p.bytes_sent == p.bytes_total {
+                // Gone before the started firmware's first log lines print.
+                bar.finish_and_clear();
+            }
         },
     )?;
-    bar.finish_and_clear();
     println!("target      {}", board.describe());
     println!(
         "flashed     {} bytes in {} chunks, {:.0} ms ({:.1} KiB/s; {} bytes on the wire), \
