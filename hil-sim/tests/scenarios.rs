@@ -27,6 +27,8 @@ fn solve_on_qemu(args: &ModelArgs, tol: f64, max_solves: u32) -> Solved {
         max_iter: None,
         max_solves,
         solve_timeout: Duration::from_secs(120),
+        link: Default::default(),
+        logs: Default::default(),
     };
     let solved = solve_model(&model, &plan).expect("solve on QEMU");
     assert_alive(&mut qemu);

@@ -5,9 +5,12 @@
 //! - [`encode`]: K as tiles of MVU instruction words;
 //! - [`cli_model`]: the model flags shared by subcommands; [`commands`]: the subcommands.
 pub mod board;
+pub mod cli_logs;
 pub mod cli_model;
 pub mod commands;
 pub mod encode;
+pub mod firmware_logs;
+pub mod flash;
 pub mod link;
 pub mod model;
 pub mod output;

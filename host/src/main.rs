@@ -26,6 +26,9 @@ enum Command {
     /// Quasi-static time steps: loads ramped over --steps steps, K resident on the target,
     /// warm starts, optional displacement-dependent springs (--alpha); per-step CSV and VTK.
     Simulate(commands::simulate::SimulateArgs),
+    /// Upload a firmware ELF through the target's serial loader (a board on --port, or QEMU
+    /// booted with the loader), verify it by CRC in target RAM, start it and confirm it answers.
+    Flash(commands::flash::FlashArgs),
 }
 
 fn main() -> ExitCode {
@@ -34,6 +37,7 @@ fn main() -> ExitCode {
         Command::Model(args) => commands::model::run(args),
         Command::Solve(args) => commands::solve::run(args),
         Command::Simulate(args) => commands::simulate::run(args),
+        Command::Flash(args) => commands::flash::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -2,6 +2,7 @@
 //! `anyhow::Result`, so that `main.rs` only parses and dispatches. This is the one layer that
 //! uses anyhow: the library modules return typed errors and the commands add context.
 
+pub mod flash;
 pub mod model;
 pub mod simulate;
 pub mod solve;

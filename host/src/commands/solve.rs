@@ -12,9 +12,10 @@ use clap::{Args, ValueEnum};
 use serde::Serialize;
 
 use crate::board::{Board, BoardChoice};
+use crate::cli_logs::{LogFlags, LogOptions};
 use crate::cli_model::ModelFlags;
 use crate::encode::encode;
-use crate::link::Timeouts;
+use crate::link::{LinkFlags, Timeouts};
 use crate::model::{Axis, Model, ModelSpec};
 use crate::output::{node_rows, write_displacements, OutputFormat};
 use crate::reference::{self, max_abs, max_abs_diff};
@@ -75,6 +76,17 @@ pub struct SolveArgs {
     /// Seconds one target solve may take before the host gives up. [default: 300]
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout: Option<u64>,
+
+    #[command(flatten)]
+    pub link: LinkFlags,
+
+    /// Boot QEMU with the serial loader and flash the firmware through it (as `deform flash`
+    /// does) instead of booting the firmware directly. Only with --target qemu.
+    #[arg(long, conflicts_with = "port")]
+    pub via_loader: bool,
+
+    #[command(flatten)]
+    pub logs: LogFlags,
 
     /// Write the displacements: FILE.csv gets `i,j,k,ux,uy,uz` per node, FILE.json the same
     /// plus the solver statistics. Default: no file, summary only.
@@ -160,6 +172,10 @@ pub struct SolvePlan {
     pub max_iter: Option<u32>,
     pub max_solves: u32,
     pub solve_timeout: Duration,
+    /// How the target's logs are decoded and shown.
+    pub logs: LogOptions,
+    /// Link timeouts and retries (`--link-timeout`, `--retransmit-ms`, `--retries`).
+    pub link: LinkFlags,
 }
 
 /// Reads the scenario file at `path`, if any, and merges the model `flags` over it over the
@@ -193,6 +209,9 @@ impl SolveArgs {
             .unwrap_or(TargetKind::Qemu);
         let board = match (&self.port, target) {
             (Some(port), _) => Some(BoardChoice::Port(port.clone())),
+            (None, TargetKind::Qemu) if self.via_loader => Some(BoardChoice::QemuViaLoader {
+                firmware: self.firmware.clone(),
+            }),
             (None, TargetKind::Qemu) => Some(BoardChoice::Qemu {
                 firmware: self.firmware.clone(),
             }),
@@ -211,6 +230,8 @@ impl SolveArgs {
                     .or(file_solver.timeout)
                     .unwrap_or(DEFAULT_TIMEOUT_SECONDS),
             ),
+            logs: self.logs.options(),
+            link: self.link,
         };
         let out = self
             .out
@@ -306,11 +327,11 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
             stats.words = Some(encoded.words.len());
             stats.tiles = Some(encoded.tiles.len());
             stats.frac_bits = Some(encoded.frac_bits);
-            let timeouts = Timeouts {
+            let timeouts = plan.link.apply(Timeouts {
                 solve: plan.solve_timeout,
                 ..Timeouts::default()
-            };
-            let mut board = Board::open(choice, timeouts)?;
+            });
+            let mut board = Board::open(choice, timeouts, &plan.logs)?;
             stats.target = board.describe();
             board
                 .target
