@@ -109,7 +109,7 @@ impl RelayCounters {
 /// Why the relay could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum RelayError {
-    #[error("cannot open the target's pty {path}: {source}")]
+    #[error("cannot open the target's pty {}: {source}", path.display())]
     OpenTarget {
         path: PathBuf,
         #[source]
