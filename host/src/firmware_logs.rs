@@ -387,7 +387,9 @@ mod tests {
         assert_eq!(lines.len(), 2, "{lines:#?}");
         assert!(lines[0].message.contains("--elf"), "{}", lines[0]);
         assert_eq!(lines[1].level, LogLevel::Warn);
-        assert!(lines[1].message.starts_with("120 bytes of log were dropped"));
+        assert!(lines[1]
+            .message
+            .starts_with("120 bytes of log were dropped"));
     }
 
     #[test]
@@ -398,7 +400,9 @@ mod tests {
         std::fs::remove_file(&path).ok();
         assert!(matches!(err, LogError::NoTable { .. }), "{err}");
         assert!(err.to_string().contains("deform-no-table"), "{err}");
-        let missing = FirmwareElf::load(Path::new("/nonexistent/fw.elf")).err().unwrap();
+        let missing = FirmwareElf::load(Path::new("/nonexistent/fw.elf"))
+            .err()
+            .unwrap();
         assert!(matches!(missing, LogError::Read { .. }), "{missing}");
     }
 }
