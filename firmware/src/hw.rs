@@ -19,6 +19,9 @@ const DLM: usize = 1;
 const LSR: usize = 5;
 const LSR_DATA_READY: u8 = 1 << 0;
 const LSR_THR_EMPTY: u8 = 1 << 5;
+/// Transmitter holding register and shift register both empty.
+#[allow(dead_code)] // only the loader binary flushes
+const LSR_TRANSMITTER_EMPTY: u8 = 1 << 6;
 
 /// Platform-level interrupt controller of QEMU `virt`, and UART0's source number on it.
 const PLIC: usize = 0x0c00_0000;
@@ -126,10 +129,23 @@ impl Uart {
     }
 
     pub fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            while uart_read(LSR) & LSR_THR_EMPTY == 0 {}
-            uart_write(RBR_THR, b);
-        }
+        write_raw(bytes);
+    }
+
+    /// Waits until every byte written has left the transmitter (before the loader hands the
+    /// UART to the application it starts).
+    #[allow(dead_code)] // only the loader binary flushes
+    pub fn flush(&mut self) {
+        while uart_read(LSR) & LSR_TRANSMITTER_EMPTY == 0 {}
+    }
+}
+
+/// Writes bytes to the UART without a [`Uart`]: for the panic handler, which cannot reach the
+/// one `main` owns. Polls the transmitter like [`Uart::write`].
+pub fn write_raw(bytes: &[u8]) {
+    for &b in bytes {
+        while uart_read(LSR) & LSR_THR_EMPTY == 0 {}
+        uart_write(RBR_THR, b);
     }
 }
 

@@ -12,9 +12,14 @@
 //! - QEMU notices that the pty was opened only on its next poll, up to a second later; until then
 //!   the host's bytes wait in the pty, so the first answer may take that long.
 //!
+//! [`relay::FaultRelay`] puts a bad cable between the host and that pty: bit flips, lost,
+//! duplicated and inserted bytes, stalls and cuts, from a fixed seed.
+//!
 //! `-icount shift=0` makes the guest's cycle counters deterministic (one instruction per
 //! virtual nanosecond), which is what lets the firmware's `mcycle`/`minstret` reports be compared
 //! between runs.
+
+pub mod relay;
 
 use std::ffi::OsString;
 use std::io::{BufRead, BufReader, Read};
@@ -39,6 +44,13 @@ pub const FIRMWARE_BUILD_PATH: &str =
 /// Overrides [`firmware_elf`]'s default path when set.
 pub const FIRMWARE_ENV: &str = "DEFORM_FIRMWARE";
 
+/// Where the serial loader lands (the firmware package's second binary, built with it).
+pub const LOADER_BUILD_PATH: &str =
+    "firmware/target/riscv32imac-unknown-none-elf/release/deform-loader";
+
+/// Overrides [`loader_elf`]'s default path when set.
+pub const LOADER_ENV: &str = "DEFORM_LOADER";
+
 /// The exit code with which the firmware's panic handler stops QEMU (via the SiFive test device).
 pub const PANIC_EXIT_CODE: i32 = 101;
 
@@ -56,9 +68,22 @@ pub fn firmware_elf() -> PathBuf {
 
 /// The release build inside the firmware's workspace, which sits beside this crate.
 fn default_firmware_elf() -> PathBuf {
+    workspace_root().join(FIRMWARE_BUILD_PATH)
+}
+
+/// Where the serial loader ELF is: `$DEFORM_LOADER` if set, else its release build beside the
+/// firmware's (`cargo xtask firmware` builds both). Boot it like the firmware
+/// (`QemuConfig::new(loader_elf())`) and flash an application through its UART.
+pub fn loader_elf() -> PathBuf {
+    match std::env::var_os(LOADER_ENV) {
+        Some(path) if !path.is_empty() => PathBuf::from(path),
+        _ => workspace_root().join(LOADER_BUILD_PATH),
+    }
+}
+
+fn workspace_root() -> PathBuf {
     let manifest_dir = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let workspace_root = manifest_dir.parent().unwrap_or(manifest_dir);
-    workspace_root.join(FIRMWARE_BUILD_PATH)
+    manifest_dir.parent().unwrap_or(manifest_dir).to_path_buf()
 }
 
 /// Why QEMU could not be started or did not behave.
@@ -254,6 +279,18 @@ impl Qemu {
     /// QEMU's process id.
     pub fn pid(&self) -> u32 {
         self.child.id()
+    }
+
+    /// Kills QEMU now (a board losing power) and reaps it.
+    pub fn kill(&mut self) -> Result<(), HilError> {
+        if self.exit.is_none() {
+            let _ = self.child.kill();
+            self.exit = Some(self.child.wait().map_err(HilError::Wait)?);
+            for collector in self.collectors.drain(..) {
+                let _ = collector.join();
+            }
+        }
+        Ok(())
     }
 
     /// QEMU's exit code if it has exited ([`PANIC_EXIT_CODE`] after a firmware panic), `None`

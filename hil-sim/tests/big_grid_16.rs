@@ -45,6 +45,8 @@ fn plan(qemu: &Qemu, tol: f64, mvus: Option<u8>) -> SolvePlan {
         },
         precondition: Preconditioner::None,
         fuse: true,
+        link: Default::default(),
+        logs: Default::default(),
     }
 }
 

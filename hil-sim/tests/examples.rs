@@ -35,6 +35,8 @@ fn run_example(name: &str) {
         layout: Default::default(),
         precondition: Default::default(),
         fuse: true,
+        link: Default::default(),
+        logs: Default::default(),
     };
     let solved = solve_model(&model, &plan).expect("solve on QEMU");
     assert_alive(&mut qemu);

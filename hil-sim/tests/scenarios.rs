@@ -30,6 +30,8 @@ fn solve_on_qemu(args: &ModelArgs, tol: f64, max_solves: u32) -> Solved {
         layout: Default::default(),
         precondition: Default::default(),
         fuse: true,
+        link: Default::default(),
+        logs: Default::default(),
     };
     let solved = solve_model(&model, &plan).expect("solve on QEMU");
     assert_alive(&mut qemu);

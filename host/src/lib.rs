@@ -6,9 +6,12 @@
 //! - [`precondition`]: Jacobi as diagonal scaling; [`metrics`]: per-iteration figures;
 //! - [`cli_model`]: the model flags shared by subcommands; [`commands`]: the subcommands.
 pub mod board;
+pub mod cli_logs;
 pub mod cli_model;
 pub mod commands;
 pub mod encode;
+pub mod firmware_logs;
+pub mod flash;
 pub mod inverse;
 pub mod link;
 pub mod metrics;

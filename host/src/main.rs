@@ -30,6 +30,9 @@ enum Command {
     // observation file format).
     Observe(commands::observe::ObserveArgs),
     Estimate(commands::estimate::EstimateArgs),
+    /// Upload a firmware ELF through the target's serial loader (a board on --port, or QEMU
+    /// booted with the loader), verify it by CRC in target RAM, start it and confirm it answers.
+    Flash(commands::flash::FlashArgs),
 }
 
 fn main() -> ExitCode {
@@ -40,6 +43,7 @@ fn main() -> ExitCode {
         Command::Simulate(args) => commands::simulate::run(args),
         Command::Observe(args) => commands::observe::run(args),
         Command::Estimate(args) => commands::estimate::run(args),
+        Command::Flash(args) => commands::flash::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,8 +1,10 @@
 //! The request/response messages between the host and the target.
 //!
 //! The host always speaks first and the target answers every request with exactly one
-//! response carrying the request's sequence number (see [`Envelope`]): a frame that cannot be
-//! decoded at all is answered with [`ErrorCode::Frame`] and the sequence number 0xFFFF.
+//! response, which travels in an [`Uplink::Reply`](crate::transport::Uplink) carrying the
+//! request's sequence number. Sequencing, the window, acknowledgements and retransmission are the
+//! transport's business ([`crate::transport`], `docs/PROTOCOL.md`): by the time a request reaches
+//! the session it arrived intact, in order and exactly once.
 //!
 //! Session order (the firmware enforces it and says which step is out of order):
 //!
@@ -52,7 +54,11 @@ use crate::frame::FrameError;
 use crate::matrix::{MatrixError, TileHeader};
 
 /// Bumped on any change to these types or to the framing.
-pub const PROTOCOL_VERSION: u16 = 4;
+///
+/// Version 4 (link): the reliable transport ([`crate::transport`]: window, ACK/NAK, `Uplink` frames),
+/// fixed-width chunk payloads ([`crate::chunk`]) and 128-element chunks.
+/// Version 5 (engine): tiles carry their MVU and a mirrored flag, fused directions, per-hart costs.
+pub const PROTOCOL_VERSION: u16 = 5;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -60,17 +66,30 @@ pub const MAX_DIRECTIONS: usize = 3;
 /// Most harts (MVUs) a target may report; `TileHeader::mvu` must be below the reported count.
 pub const MAX_HARTS: usize = 8;
 
-/// Words or mantissas per chunk message. 64 × 4 bytes keeps a frame well under
-/// [`MAX_FRAME_LEN`] while the per-frame overhead stays small.
-pub const CHUNK_LEN: usize = 64;
+/// Words or mantissas per chunk message. Each element takes 4 bytes on the wire and a chunk
+/// frame adds about 17 bytes (sequence number, tag, offset, count, CRC, COBS, delimiter), so 128
+/// elements cost ≈ 4.13 bytes per element; 64 would cost ≈ 4.27. Larger chunks would save
+/// little more and lose more data to each corrupted frame on a noisy line.
+pub const CHUNK_LEN: usize = 128;
 
-/// Largest encoded frame, delimiter included, that either side must accept.
-pub const MAX_FRAME_LEN: usize = 512;
+/// Largest encoded frame, delimiter included, that either side must accept: the largest chunk
+/// message (≈ 540 bytes) with room for a few more header fields.
+pub const MAX_FRAME_LEN: usize = 576;
 
-/// Sequence number used in answers to frames whose own sequence number could not be read.
+/// Not used since protocol version 4, whose transport answers an unreadable frame with
+/// [`Uplink::Nak`](crate::transport::Uplink) instead; kept for code that still names it.
 pub const UNKNOWN_SEQ: u16 = 0xFFFF;
 
-/// Every frame carries one envelope: a sequence number and the message.
+/// Most log bytes one [`Response::Log`] carries: with its envelope it stays well inside
+/// [`MAX_FRAME_LEN`] even after the transport's own header.
+pub const LOG_CHUNK: usize = 256;
+
+/// Most bytes of build id [`TargetInfo::build_id`] holds: 20 for a SHA-1 GNU build id, 16 for
+/// md5/uuid, 8 for lld's default "fast" hash.
+pub const BUILD_ID_MAX: usize = 32;
+
+/// Every request travels in one envelope: its sequence number and the request (see
+/// [`crate::transport`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Envelope<T> {
     pub seq: u16,
@@ -142,6 +161,7 @@ pub enum Request {
     Tile(TileHeader),
     Words {
         offset: u32,
+        #[serde(with = "crate::chunk")]
         words: Vec<u32, CHUNK_LEN>,
     },
     EndMatrix {
@@ -155,6 +175,7 @@ pub enum Request {
     VectorData {
         slot: VectorSlot,
         offset: u32,
+        #[serde(with = "crate::chunk")]
         mantissas: Vec<i32, CHUNK_LEN>,
     },
     Solve(SolveParams),
@@ -170,6 +191,7 @@ pub enum Request {
     /// New raw values for the resident words `offset..offset + values.len()`.
     UpdateValues {
         offset: u32,
+        #[serde(with = "crate::chunk")]
         values: Vec<i32, CHUNK_LEN>,
     },
     /// Ends a values-only update: the CRC of all words as they now are.
@@ -191,6 +213,10 @@ pub struct TargetInfo {
     pub tile_capacity: u32,
     /// Largest dimension n the vectors hold.
     pub max_n: u32,
+    /// The firmware ELF's GNU build id (`.note.gnu.build-id`, a hash of the whole linked ELF,
+    /// defmt's string table included): the host decodes the firmware's logs only with an ELF
+    /// whose build id is the same. Empty if the firmware has none.
+    pub build_id: Vec<u8, BUILD_ID_MAX>,
 }
 
 /// Cycle and retired-instruction counts of one phase (`mcycle`/`minstret` deltas).
@@ -351,7 +377,17 @@ pub enum Response {
         direction: u8,
         offset: u32,
         exponent: i32,
+        #[serde(with = "crate::chunk")]
         mantissas: Vec<i32, CHUNK_LEN>,
+    },
+    /// Unsolicited: defmt log frames (rzcobs-encoded, each ending in `0x00`), sent by the target
+    /// just before an answer; the host decodes them against the firmware ELF. A chunk may end
+    /// inside a frame, the next `Log` continues it. `dropped` counts the log bytes the target
+    /// discarded since the previous `Log` because its log buffer was full (whole frames are
+    /// discarded, so what does arrive still decodes).
+    Log {
+        dropped: u32,
+        frames: Vec<u8, LOG_CHUNK>,
     },
 }
 
@@ -372,6 +408,7 @@ mod tests {
         };
         let mut buf = [0u8; MAX_FRAME_LEN];
         let n = frame::encode(&req, &mut buf).unwrap();
+        assert!(n + 16 <= MAX_FRAME_LEN, "{n}: leave room for new fields");
         let back: Envelope<Request> = frame::decode(&mut buf[..n - 1]).unwrap();
         assert_eq!(back, req);
 
@@ -388,8 +425,8 @@ mod tests {
         assert_eq!(back, req);
 
         let mantissas: Vec<i32, CHUNK_LEN> = (0..CHUNK_LEN as i32).map(|i| i32::MIN + i).collect();
-        let resp = Envelope {
-            seq: 7,
+        let resp = crate::transport::Uplink::Reply {
+            seq: u16::MAX,
             body: Response::Solution {
                 direction: 2,
                 offset: u32::MAX,
@@ -397,7 +434,8 @@ mod tests {
                 mantissas,
             },
         };
-        assert!(frame::encode(&resp, &mut buf).is_ok());
+        let n = frame::encode(&resp, &mut buf).unwrap();
+        assert!(n + 16 <= MAX_FRAME_LEN, "{n}: leave room for new fields");
         let direction = DirectionReport {
             iterations: u32::MAX,
             converged: false,
@@ -427,12 +465,13 @@ mod tests {
             },
             saturations: u32::MAX,
         };
-        let resp = Envelope {
+        let resp = crate::transport::Uplink::Reply {
             seq: u16::MAX,
             body: Response::Solved(report),
         };
         let n = frame::encode(&resp, &mut buf).unwrap();
-        let back: Envelope<Response> = frame::decode(&mut buf[..n - 1]).unwrap();
+        assert!(n + 16 <= MAX_FRAME_LEN, "{n}: leave room for new fields");
+        let back: crate::transport::Uplink = frame::decode(&mut buf[..n - 1]).unwrap();
         assert_eq!(back, resp);
         let info = TargetInfo {
             protocol_version: 1,
@@ -441,14 +480,44 @@ mod tests {
             word_capacity: u32::MAX,
             tile_capacity: u32::MAX,
             max_n: u32::MAX,
+            build_id: (0..BUILD_ID_MAX as u8).map(|b| 0xF0 | b).collect(),
         };
         assert!(frame::encode(
-            &Envelope {
+            &crate::transport::Uplink::Reply {
                 seq: 1,
                 body: Response::Hello(info)
             },
             &mut buf
         )
         .is_ok());
+        let log = Envelope {
+            seq: UNKNOWN_SEQ,
+            body: Response::Log {
+                dropped: u32::MAX,
+                frames: (0..LOG_CHUNK).map(|_| 0xFF).collect(),
+            },
+        };
+        let n = frame::encode(&log, &mut buf).unwrap();
+        assert!(
+            n <= MAX_FRAME_LEN - 64,
+            "{n}: leave room for a transport header"
+        );
+    }
+
+    /// The goal: at most 4.2 bytes on the wire per matrix nonzero (4 is the floor).
+    #[test]
+    fn a_full_words_chunk_costs_under_4_2_bytes_per_word() {
+        let words: Vec<u32, CHUNK_LEN> = (0..CHUNK_LEN as u32).map(|i| 0xC000_0000 | i).collect();
+        let req = Envelope {
+            seq: 0xFFFF,
+            body: Request::Words {
+                offset: 0x0010_0000,
+                words,
+            },
+        };
+        let mut buf = [0u8; MAX_FRAME_LEN];
+        let n = frame::encode(&req, &mut buf).unwrap();
+        let per_word = n as f64 / CHUNK_LEN as f64;
+        assert!(per_word <= 4.15, "{n} bytes: {per_word} per word");
     }
 }

@@ -24,6 +24,7 @@ pub fn timeouts() -> Timeouts {
         hello_retry: Duration::from_secs(2),
         request: Duration::from_secs(20),
         solve: Duration::from_secs(120),
+        ..Timeouts::default()
     }
 }
 

@@ -10,7 +10,8 @@ use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use serde::Serialize;
 
-use crate::board::{Board, BoardChoice};
+use crate::board::{Board, BoardChoice, DEFAULT_QEMU_HARTS};
+use crate::cli_logs::LogFlags;
 use crate::cli_model::ModelFlags;
 use crate::commands::solve::{
     resolve_model, TargetKind, DEFAULT_MAX_SOLVES, DEFAULT_TIMEOUT_SECONDS,
@@ -20,7 +21,7 @@ use crate::inverse::parametric::{self, ParametricEstimate};
 use crate::inverse::regularise::Regularisation;
 use crate::inverse::spring_field::{self, SpringFieldEstimate};
 use crate::inverse::{Network, Observations, SpdSolver};
-use crate::link::Timeouts;
+use crate::link::{LinkFlags, Timeouts};
 use crate::model::Model;
 use crate::output::vtk::{write_vtk, VtkKind};
 use crate::output::{node_rows_with_stiffness, OutputFormat};
@@ -103,6 +104,12 @@ pub struct EstimateArgs {
     /// Seconds one target solve may take.
     #[arg(long, default_value_t = DEFAULT_TIMEOUT_SECONDS, value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout: u64,
+
+    #[command(flatten)]
+    pub link: LinkFlags,
+
+    #[command(flatten)]
+    pub logs: LogFlags,
 
     /// Print every estimate as one JSON document (the homogeneous one under `k`) instead of
     /// the summary.
@@ -228,6 +235,7 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
         (Some(port), _) => Some(BoardChoice::Port(port.clone())),
         (None, TargetKind::Qemu) => Some(BoardChoice::Qemu {
             firmware: args.firmware.clone(),
+            harts: DEFAULT_QEMU_HARTS,
         }),
         (None, TargetKind::Host) => None,
     };
@@ -241,11 +249,11 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
             )
         }
         Some(choice) => {
-            let timeouts = Timeouts {
+            let timeouts = args.link.apply(Timeouts {
                 solve: Duration::from_secs(args.timeout),
                 ..Timeouts::default()
-            };
-            let mut board = Board::open(&choice, timeouts)?;
+            });
+            let mut board = Board::open(&choice, timeouts, &args.logs.options())?;
             let name = board.describe();
             let mut solver = SpdSolver::Target {
                 target: &mut board.target,

@@ -3,6 +3,7 @@
 //! uses anyhow: the library modules return typed errors and the commands add context.
 
 pub mod estimate;
+pub mod flash;
 pub mod model;
 pub mod observe;
 pub mod simulate;

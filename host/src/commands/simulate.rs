@@ -16,10 +16,11 @@ use anyhow::Context;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::board::{Board, BoardChoice};
+use crate::board::{self, Board, BoardChoice};
+use crate::cli_logs::LogFlags;
 use crate::cli_model::ModelFlags;
 use crate::commands::solve::{resolve_model, LayoutFlags};
-use crate::link::Timeouts;
+use crate::link::{LinkFlags, Timeouts};
 use crate::model::{Model, ModelError, ModelSpec};
 use crate::output::node_rows;
 use crate::output::vtk::{write_pvd, write_vtk, VtkKind};
@@ -72,9 +73,15 @@ pub struct SimulateArgs {
     #[arg(long, value_name = "ELF")]
     pub firmware: Option<PathBuf>,
 
+    #[command(flatten)]
+    pub logs: LogFlags,
+
     /// Seconds one target solve may take.
     #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout: u64,
+
+    #[command(flatten)]
+    pub link: LinkFlags,
 
     /// Write `step,t,iterations,residual,max_u` per step to this CSV file.
     #[arg(long, value_name = "FILE")]
@@ -194,11 +201,11 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
             harts: args.layout.qemu_harts(),
         },
     };
-    let timeouts = Timeouts {
+    let timeouts = args.link.apply(Timeouts {
         solve: Duration::from_secs(args.timeout),
         ..Timeouts::default()
-    };
-    let mut board = Board::open(&choice, timeouts)?;
+    });
+    let mut board = Board::open(&choice, timeouts, &args.logs.options())?;
     let layout = args.layout.encode_options(board.target.info().harts)?;
     println!("target      {}", board.describe());
     println!("model       {}", model.spec().describe());
@@ -224,6 +231,8 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     };
     let nonlinear = resolved.nonlinear;
     let steps_bar = bar(schedule.steps as u64, "steps");
+    // Firmware log lines print above the bar, not through it.
+    board::lock(board.logs()).set_progress(Some(steps_bar.clone()));
     let upload_bar = bar(0, "upload");
     let mut pvd = Vec::new();
     let mut total_iterations = 0u64;

@@ -15,9 +15,10 @@ use clap::{Args, ValueEnum};
 use serde::Serialize;
 
 use crate::board::{Board, BoardChoice, DEFAULT_QEMU_HARTS};
+use crate::cli_logs::{LogFlags, LogOptions};
 use crate::cli_model::ModelFlags;
 use crate::encode::{encode_with, EncodeOptions, Encoding, EncodingSummary, Partition};
-use crate::link::Timeouts;
+use crate::link::{LinkFlags, Timeouts};
 use crate::metrics::{performance, Performance};
 use crate::model::{Axis, Model, ModelSpec};
 use crate::output::{node_rows, write_displacements, OutputFormat};
@@ -85,6 +86,17 @@ pub struct SolveArgs {
     /// Seconds one target solve may take before the host gives up. [default: 300]
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout: Option<u64>,
+
+    #[command(flatten)]
+    pub link: LinkFlags,
+
+    /// Boot QEMU with the serial loader and flash the firmware through it (as `deform flash`
+    /// does) instead of booting the firmware directly. Only with --target qemu.
+    #[arg(long, conflicts_with = "port")]
+    pub via_loader: bool,
+
+    #[command(flatten)]
+    pub logs: LogFlags,
 
     /// Write the displacements: FILE.csv gets `i,j,k,ux,uy,uz` per node, FILE.json the same
     /// plus the solver statistics. Default: no file, summary only.
@@ -240,6 +252,10 @@ pub struct SolvePlan {
     pub max_iter: Option<u32>,
     pub max_solves: u32,
     pub solve_timeout: Duration,
+    /// How the target's logs are decoded and shown.
+    pub logs: LogOptions,
+    /// Link timeouts and retries (`--link-timeout`, `--retransmit-ms`, `--retries`).
+    pub link: LinkFlags,
     pub layout: LayoutFlags,
     pub precondition: Preconditioner,
     pub fuse: bool,
@@ -276,6 +292,10 @@ impl SolveArgs {
             .unwrap_or(TargetKind::Qemu);
         let board = match (&self.port, target) {
             (Some(port), _) => Some(BoardChoice::Port(port.clone())),
+            (None, TargetKind::Qemu) if self.via_loader => Some(BoardChoice::QemuViaLoader {
+                firmware: self.firmware.clone(),
+                harts: self.layout.qemu_harts(),
+            }),
             (None, TargetKind::Qemu) => Some(BoardChoice::Qemu {
                 firmware: self.firmware.clone(),
                 harts: self.layout.qemu_harts(),
@@ -298,6 +318,8 @@ impl SolveArgs {
             layout: self.layout.clone(),
             precondition: self.precondition,
             fuse: !self.no_fuse,
+            logs: self.logs.options(),
+            link: self.link,
         };
         let out = self
             .out
@@ -331,11 +353,11 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
         None => None,
         Some(choice) => {
             let scaled = precondition::scale(a, plan.precondition).context("preconditioning A")?;
-            let timeouts = Timeouts {
+            let timeouts = plan.link.apply(Timeouts {
                 solve: plan.solve_timeout,
                 ..Timeouts::default()
-            };
-            let board = Board::open(choice, timeouts)?;
+            });
+            let board = Board::open(choice, timeouts, &plan.logs)?;
             let options = plan.layout.encode_options(board.target.info().harts)?;
             let encoding =
                 encode_with(&scaled.matrix, &options).context("encoding A as instruction words")?;

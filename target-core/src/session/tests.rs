@@ -89,6 +89,7 @@ fn info() -> TargetInfo {
         word_capacity: u32::MAX,
         tile_capacity: u32::MAX,
         max_n: u32::MAX,
+        build_id: heapless::Vec::new(),
     }
 }
 
@@ -1405,6 +1406,8 @@ fn raw_request() -> impl Strategy<Value = Request> {
 /// A step of a random session: one raw request, or a well-formed upload that random requests
 /// then interleave with and corrupt (it may stop early).
 #[derive(Debug, Clone)]
+// A step is short-lived test data; boxing the request would only obscure the strategies.
+#[allow(clippy::large_enum_variant)]
 enum Step {
     Raw(Request),
     Matrix {
