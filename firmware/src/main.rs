@@ -86,12 +86,12 @@ fn main(hart: usize) -> ! {
         hw::exit(EXIT_NO_STORAGE)
     };
     defmt::info!(
-        "deform firmware {=str} up: {=usize} harts, {=usize} words, {=usize} tiles, n <= {=usize}",
+        "deform firmware {=str} up: {=usize} words, {=usize} tiles, n <= {=usize}, {=usize} harts",
         FIRMWARE_VERSION,
-        count,
         store::WORD_CAPACITY,
         store::TILE_CAPACITY,
-        store::MAX_N
+        store::MAX_N,
+        count
     );
     let mut handle = |body| activity::logged(body, |body| session.handle(body));
     loop {
