@@ -5,10 +5,12 @@
 //! framed response per frame (see [`deform_shared::protocol`]). The session and the CG solver
 //! are hardware-free and tested on the host; this crate adds only the devices and the storage.
 //!
-//! - One hart (hart 0) runs everything; riscv-rt parks any other.
-//! - Storage ([`store`]): a matrix store of 512 Ki words and 4096 tiles, vectors for n ≤ 65536,
-//!   all static and zeroed at boot (`.bss`).
-//! - Timing: the solver's phases are charged with `mcycle`/`minstret`, exact under `-icount`.
+//! - Hart 0 runs the protocol; every hart (up to 8, QEMU `-smp N`) is an MVU and runs its share
+//!   of each CG phase ([`harts`]). `TargetInfo::harts` reports how many came up.
+//! - Storage ([`store`]): a matrix store of 512 Ki words and 4096 tiles, vectors for n ≤ 65536
+//!   in three directions, all static and zeroed at boot (`.bss`).
+//! - Timing: the solver's phases are charged with `mcycle`/`minstret`, exact under `-icount`;
+//!   per-hart counts come from one iteration whose phases run one hart at a time.
 //! - UART ([`hw::Uart`]): while waiting for input the hart sleeps in `wfi` (woken through the
 //!   PLIC; interrupts stay globally off). Its FIFOs go on only after the first request, so that
 //!   a request sent while the firmware still boots is not lost.
@@ -26,6 +28,7 @@
 #![no_main]
 #![deny(unsafe_op_in_unsafe_fn, clippy::undocumented_unsafe_blocks)]
 
+mod harts;
 mod hw;
 mod store;
 
@@ -36,7 +39,8 @@ use deform_shared::protocol::{
 };
 use deform_target_core::session::Session;
 
-use hw::{CsrClock, Uart};
+use harts::Harts;
+use hw::Uart;
 
 /// QEMU exit status after a panic.
 pub const EXIT_PANIC: u16 = 101;
@@ -53,11 +57,11 @@ const _: () = assert!(
     "TargetInfo holds 16 bytes of version"
 );
 
-fn target_info() -> TargetInfo {
+fn target_info(harts: usize) -> TargetInfo {
     TargetInfo {
         protocol_version: PROTOCOL_VERSION,
         firmware_version: heapless::String::try_from(FIRMWARE_VERSION).unwrap_or_default(),
-        harts: 1,
+        harts: harts as u8,
         word_capacity: store::WORD_CAPACITY as u32,
         tile_capacity: store::TILE_CAPACITY as u32,
         max_n: store::MAX_N as u32,
@@ -65,12 +69,16 @@ fn target_info() -> TargetInfo {
 }
 
 #[riscv_rt::entry]
-fn main() -> ! {
+fn main(hart: usize) -> ! {
+    if hart != 0 {
+        harts::worker(hart);
+    }
     let mut uart = Uart::init();
     let Some(buffers) = store::BUFFERS.take() else {
         hw::exit(EXIT_NO_STORAGE)
     };
-    let mut session = Session::new(buffers.storage(), target_info(), CsrClock);
+    let count = harts::start_workers();
+    let mut session = Session::new(buffers.storage(), target_info(count), Harts { count });
     let mut frames = FrameAccumulator::<MAX_FRAME_LEN>::new();
     let mut out = [0u8; MAX_FRAME_LEN];
     loop {

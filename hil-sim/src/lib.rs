@@ -25,6 +25,9 @@ use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::{Duration, Instant};
 
+/// The most harts the firmware uses (its `_max_hart_id` is 7).
+pub const MAX_HARTS: u8 = 8;
+
 /// The QEMU binary that emulates the 32-bit RISC-V `virt` machine.
 pub const QEMU_BINARY: &str = "qemu-system-riscv32";
 
@@ -117,8 +120,10 @@ impl QemuConfig {
         }
     }
 
+    /// Harts (`-smp`), clamped to 1..=[`MAX_HARTS`]: the firmware puts up to 8 to work as MVUs,
+    /// and a hart beyond them would spin in riscv-rt's `abort`, stealing QEMU's time.
     pub fn harts(mut self, harts: u8) -> Self {
-        self.harts = harts.max(1);
+        self.harts = harts.clamp(1, MAX_HARTS);
         self
     }
 
@@ -372,6 +377,9 @@ mod tests {
         assert!(text(&one).contains("-smp 1 -icount shift=0 -kernel fw.elf"));
         assert!(text(&four).contains("-smp 4 -icount shift=0,sleep=off"));
         assert!(text(&one).contains("-bios none") && text(&one).contains("-serial pty"));
+        let many = QemuConfig::new("fw.elf").harts(200).args();
+        assert!(text(&many).contains("-smp 8 "));
+        assert!(text(&QemuConfig::new("fw.elf").harts(0).args()).contains("-smp 1 "));
     }
 
     #[test]

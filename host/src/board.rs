@@ -9,11 +9,19 @@ use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 
 use crate::link::{Target, Timeouts};
 
+/// Harts a QEMU board gets when `--mvus` does not say: the most a target may have
+/// ([`deform_shared::protocol::MAX_HARTS`]), so that by default every MVU is used.
+pub const DEFAULT_QEMU_HARTS: u8 = deform_shared::protocol::MAX_HARTS as u8;
+
 /// Where to run.
 #[derive(Debug, Clone)]
 pub enum BoardChoice {
-    /// Boot this firmware ELF in QEMU (`None`: the default build location).
-    Qemu { firmware: Option<PathBuf> },
+    /// Boot this firmware ELF in QEMU (`None`: the default build location) with `harts` harts
+    /// (`-smp`), each of which the firmware can use as an MVU.
+    Qemu {
+        firmware: Option<PathBuf>,
+        harts: u8,
+    },
     /// A board already running the firmware, on this serial device.
     Port(String),
 }
@@ -33,9 +41,10 @@ impl Board {
                     .with_context(|| format!("connecting to the board on {path}"))?;
                 Ok(Board { target, qemu: None })
             }
-            BoardChoice::Qemu { firmware } => {
+            BoardChoice::Qemu { firmware, harts } => {
                 let elf = firmware.clone().unwrap_or_else(firmware_elf);
-                let qemu = Qemu::start(&QemuConfig::new(&elf)).context("starting QEMU")?;
+                let qemu =
+                    Qemu::start(&QemuConfig::new(&elf).harts(*harts)).context("starting QEMU")?;
                 let pty = qemu.pty_path().to_string_lossy().into_owned();
                 let target = Target::connect(&pty, timeouts).with_context(|| {
                     format!(

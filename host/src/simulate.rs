@@ -30,7 +30,7 @@
 
 use deform_shared::protocol::{SolveParams, Start, VectorSlot};
 
-use crate::encode::encode;
+use crate::encode::{encode_with, EncodeOptions};
 use crate::link::{LinkError, Port, Target, UpdateReport, UploadProgress};
 use crate::model::assembly::assemble_laplacian;
 use crate::model::boundary::eliminate_fixed_nodes;
@@ -77,6 +77,10 @@ pub struct StepParams {
     pub max_iterations: u32,
     /// Also solve each step with the f64 reference CG and report the deviation.
     pub check_reference: bool,
+    /// How K is laid out over the MVUs. The displacement-dependent model never uses conjugate
+    /// symmetry: its K is persymmetric only by accident, and a layout that switched between
+    /// half and whole from step to step would defeat the values-only updates.
+    pub layout: EncodeOptions,
 }
 
 /// What one step produced.
@@ -176,7 +180,8 @@ pub fn simulate_with<P: Port>(
     let mut previous: [Vec<f64>; 3] = [vec![0.0; n], vec![0.0; n], vec![0.0; n]];
     let mut results = Vec::new();
     if nonlinear.is_none() {
-        target.upload_matrix_with_progress(&encode(model.unit_matrix())?, &mut on_upload)?;
+        let encoding = encode_with(model.unit_matrix(), &params.layout)?;
+        target.upload_matrix_with_progress(&encoding.matrix, &mut on_upload)?;
     }
     for s in 1..=schedule.steps {
         let t = schedule.time(s);
@@ -206,7 +211,11 @@ pub fn simulate_with<P: Port>(
             ),
             Some(Nonlinear { alpha }) => {
                 let k = nonlinear_matrix(model, alpha, &previous)?;
-                let encoded = encode(&k)?;
+                let layout = EncodeOptions {
+                    use_symmetry: false,
+                    ..params.layout
+                };
+                let encoded = encode_with(&k, &layout)?.matrix;
                 let update = if target.pattern_matches(&encoded) {
                     Some(target.update_values(&encoded)?)
                 } else {
@@ -237,7 +246,7 @@ pub fn simulate_with<P: Port>(
                 vec![0.0; n]
             } else {
                 let start = if params.warm_start && max_abs(&previous[p]) > 0.0 {
-                    target.upload_vector(VectorSlot::InitialGuess, &previous[p])?;
+                    target.upload_vector(VectorSlot::INITIAL_GUESS, &previous[p])?;
                     Start::Uploaded
                 } else {
                     Start::Zero
@@ -246,6 +255,7 @@ pub fn simulate_with<P: Port>(
                     max_iterations: params.max_iterations,
                     tolerance: params.tol.max(FIXED_POINT_FLOOR),
                     start,
+                    directions: 1,
                 };
                 let (report, x) = target.solve_for(b, solve)?;
                 result.iterations += report.iterations;

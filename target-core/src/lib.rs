@@ -7,7 +7,12 @@
 //! - [`session`]: the protocol state machine. It owns no memory: the firmware lends it the
 //!   matrix store and the vectors, and it turns each request into exactly one response.
 #![cfg_attr(not(test), no_std)]
-#![forbid(unsafe_code)]
+// `unsafe` is allowed only where harts share vectors (`exec`) and in the MVU kernel (`kernel`),
+// each with its invariants written down.
+#![deny(unsafe_code)]
+#![deny(clippy::undocumented_unsafe_blocks)]
 
 pub mod cg;
+pub mod exec;
+pub mod kernel;
 pub mod session;

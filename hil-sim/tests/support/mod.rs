@@ -82,6 +82,8 @@ pub fn banded_spd(n: u32, half_bandwidth: u32) -> EncodedMatrix {
             col_base,
             rows,
             words: (words.len() - first) as u32,
+            mvu: 0,
+            mirrored: false,
         });
         row_base += rows;
     }

@@ -18,7 +18,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::board::{Board, BoardChoice};
 use crate::cli_model::ModelFlags;
-use crate::commands::solve::resolve_model;
+use crate::commands::solve::{resolve_model, LayoutFlags};
 use crate::link::Timeouts;
 use crate::model::{Model, ModelError, ModelSpec};
 use crate::output::node_rows;
@@ -87,6 +87,9 @@ pub struct SimulateArgs {
     /// Also solve every step with the f64 reference and print the deviation.
     #[arg(long)]
     pub check: bool,
+
+    #[command(flatten)]
+    pub layout: LayoutFlags,
 }
 
 /// `A0,A1,A2` for `--alpha` (also `deform observe`'s).
@@ -188,6 +191,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         Some(port) => BoardChoice::Port(port.clone()),
         None => BoardChoice::Qemu {
             firmware: args.firmware.clone(),
+            harts: args.layout.qemu_harts(),
         },
     };
     let timeouts = Timeouts {
@@ -195,8 +199,19 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         ..Timeouts::default()
     };
     let mut board = Board::open(&choice, timeouts)?;
+    let layout = args.layout.encode_options(board.target.info().harts)?;
     println!("target      {}", board.describe());
     println!("model       {}", model.spec().describe());
+    println!(
+        "layout      {} MVU(s), partition {}, conjugate symmetry {}",
+        layout.mvus,
+        layout.partition,
+        if layout.use_symmetry {
+            "when K is persymmetric"
+        } else {
+            "off"
+        }
+    );
     let schedule = resolved.schedule;
     let params = StepParams {
         warm_start: !args.cold,
@@ -205,6 +220,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
             .max_iter
             .unwrap_or((10 * n).min(u32::MAX as usize) as u32),
         check_reference: args.check,
+        layout,
     };
     let nonlinear = resolved.nonlinear;
     let steps_bar = bar(schedule.steps as u64, "steps");

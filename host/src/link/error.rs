@@ -51,6 +51,8 @@ pub enum LinkError {
         index: usize,
         value: f64,
     },
+    #[error("{0} right-hand sides given; a fused solve takes 1 to {max}", max = deform_shared::protocol::MAX_DIRECTIONS)]
+    Directions(usize),
     #[error("cannot frame {request}: {source}")]
     Encode {
         request: &'static str,

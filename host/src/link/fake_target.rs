@@ -13,8 +13,8 @@ use deform_shared::matrix::TileHeader;
 use deform_shared::protocol::{
     Envelope, Request, Response, TargetInfo, MAX_FRAME_LEN, PROTOCOL_VERSION, UNKNOWN_SEQ,
 };
-use deform_target_core::cg::NoClock;
-use deform_target_core::session::{Session, Storage, DIRECTION_PAD};
+use deform_target_core::exec::Sequential;
+use deform_target_core::session::{DirectionStorage, Session, Storage};
 
 /// What the fake target got from the host.
 #[derive(Debug)]
@@ -76,17 +76,25 @@ pub fn serve_session(stream: UnixStream, info: TargetInfo) -> Arc<AtomicUsize> {
     let counter = Arc::clone(&requests);
     let n = info.max_n as usize;
     // The session borrows its storage, so the storage is leaked for the test's lifetime.
-    let storage = Storage {
-        words: vec![0; info.word_capacity as usize].leak(),
-        tiles: vec![TileHeader::default(); info.tile_capacity as usize].leak(),
+    let direction = || DirectionStorage {
         b: vec![0; n].leak(),
         x: vec![0; n].leak(),
         x0: vec![0; n].leak(),
         r: vec![0; n].leak(),
-        p: vec![0; n + DIRECTION_PAD].leak(),
-        kp: vec![0; n].leak(),
     };
-    let mut session = Session::new(storage, info, NoClock);
+    let storage = Storage {
+        words: vec![0; info.word_capacity as usize].leak(),
+        tiles: vec![TileHeader::default(); info.tile_capacity as usize].leak(),
+        directions: [direction(), direction(), direction()],
+        p: vec![[0; 4]; n].leak(),
+        kp: vec![[0; 3]; n].leak(),
+        partial: vec![[0; 3]; 2 * n].leak(),
+    };
+    // The session's MVUs run one after another on this thread, as many as `info` reports.
+    let harts = Sequential {
+        harts: usize::from(info.harts),
+    };
+    let mut session = Session::new(storage, info, harts);
     serve(stream, move |received| match received {
         Received::Request(req) => {
             counter.fetch_add(1, Ordering::SeqCst);

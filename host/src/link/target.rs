@@ -4,7 +4,7 @@ use deform_shared::frame;
 use deform_shared::matrix::{validate_tile, words_crc, MatrixError, TileHeader};
 use deform_shared::protocol::{
     Envelope, ErrorCode, Request, Response, SolveParams, SolveReport, TargetInfo, VectorSlot,
-    CHUNK_LEN, MAX_FRAME_LEN, PROTOCOL_VERSION,
+    CHUNK_LEN, MAX_DIRECTIONS, MAX_FRAME_LEN, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{block_exponent, from_mantissa, to_mantissa};
 use deform_shared::word::{Word, VALUE_BITS};
@@ -385,18 +385,28 @@ impl<P: Port> Target<P> {
         }
     }
 
-    /// Reads the first `n` entries of the last solution.
+    /// Reads the first `n` entries of the last solution (direction 0).
     pub fn read_solution(&mut self, n: usize) -> Result<Vec<f64>, LinkError> {
+        self.read_direction_solution(0, n)
+    }
+
+    /// Reads the first `n` entries of the last solution of `direction`.
+    pub fn read_direction_solution(
+        &mut self,
+        direction: u8,
+        n: usize,
+    ) -> Result<Vec<f64>, LinkError> {
         let mut solution = Vec::with_capacity(n);
         while solution.len() < n {
             let offset = solution.len() as u32;
-            let request = Request::ReadSolution { offset };
+            let request = Request::ReadSolution { direction, offset };
             match self.link.request(&request)? {
                 Response::Solution {
+                    direction: got_direction,
                     offset: got,
                     exponent,
                     mantissas,
-                } if got == offset && !mantissas.is_empty() => {
+                } if got == offset && got_direction == direction && !mantissas.is_empty() => {
                     let wanted = n - solution.len();
                     solution.extend(
                         mantissas
@@ -408,7 +418,7 @@ impl<P: Port> Target<P> {
                 other => {
                     return Err(unexpected(
                         &request,
-                        "a non-empty Solution at the requested offset",
+                        "a non-empty Solution of the requested direction and offset",
                         &other,
                     ))
                 }
@@ -418,16 +428,42 @@ impl<P: Port> Target<P> {
     }
 
     /// Uploads `rhs`, solves and reads the solution: one right-hand side against the resident
-    /// matrix.
+    /// matrix (direction 0; `params.directions` is taken as 1).
     pub fn solve_for(
         &mut self,
         rhs: &[f64],
         params: SolveParams,
     ) -> Result<(SolveReport, Vec<f64>), LinkError> {
-        self.upload_vector(VectorSlot::Rhs, rhs)?;
-        let report = self.solve(params)?;
-        let solution = self.read_solution(rhs.len())?;
-        Ok((report, solution))
+        let (report, mut solutions) = self.solve_fused(&[rhs], params)?;
+        Ok((report, solutions.pop().unwrap_or_default()))
+    }
+
+    /// Solves up to [`MAX_DIRECTIONS`] systems with the resident matrix in one fused CG run:
+    /// uploads `rhs[d]` as direction d's right-hand side, solves with
+    /// `params.directions = rhs.len()`, and reads every direction's solution. For
+    /// [`Start::Uploaded`](deform_shared::protocol::Start::Uploaded), upload each direction's
+    /// `InitialGuess { direction }` first.
+    pub fn solve_fused(
+        &mut self,
+        rhs: &[&[f64]],
+        params: SolveParams,
+    ) -> Result<(SolveReport, Vec<Vec<f64>>), LinkError> {
+        if rhs.is_empty() || rhs.len() > MAX_DIRECTIONS {
+            return Err(LinkError::Directions(rhs.len()));
+        }
+        for (d, b) in rhs.iter().enumerate() {
+            self.upload_vector(VectorSlot::Rhs { direction: d as u8 }, b)?;
+        }
+        let report = self.solve(SolveParams {
+            directions: rhs.len() as u8,
+            ..params
+        })?;
+        let solutions = rhs
+            .iter()
+            .enumerate()
+            .map(|(d, b)| self.read_direction_solution(d as u8, b.len()))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok((report, solutions))
     }
 
     fn expect_ack(&mut self, request: &Request) -> Result<(), LinkError> {
@@ -559,6 +595,7 @@ mod tests {
             max_iterations: 2000,
             tolerance: 1e-9,
             start: Start::Zero,
+            directions: 1,
         }
     }
 
@@ -589,6 +626,33 @@ mod tests {
             let err = max_relative_error(&x, &laplacian_1d_solve(&rhs));
             assert!(err < 1e-5, "max relative error {err:e} at scale {scale}");
         }
+    }
+
+    #[test]
+    fn a_fused_solve_returns_every_direction() {
+        let (mut target, _) = session_target(info());
+        let n = 150;
+        target.upload_matrix(&laplacian_1d(n)).unwrap();
+        let rhs: Vec<Vec<f64>> = (1..=3)
+            .map(|d| (0..n).map(|i| (i as f64 * 0.05 * d as f64).cos()).collect())
+            .collect();
+        let slices: Vec<&[f64]> = rhs.iter().map(Vec::as_slice).collect();
+        let (report, x) = target.solve_fused(&slices, params()).unwrap();
+        assert_eq!(report.directions.len(), 3);
+        assert!(report.converged, "{report:?}");
+        for (b, x) in rhs.iter().zip(&x) {
+            assert!(max_relative_error(x, &laplacian_1d_solve(b)) < 1e-5);
+        }
+        let (single, x1) = target.solve_for(&rhs[1], params()).unwrap();
+        assert_eq!(single.directions[0], report.directions[1]);
+        assert_eq!(x1, x[1]);
+        let err = target.solve_fused(&[], params()).unwrap_err();
+        assert!(matches!(err, LinkError::Directions(0)), "{err:?}");
+        let four = [slices[0]; 4];
+        assert!(matches!(
+            target.solve_fused(&four, params()),
+            Err(LinkError::Directions(4))
+        ));
     }
 
     /// `factor` times `matrix`, in a Q-format with two fractional bits fewer (its raw values
@@ -740,7 +804,7 @@ mod tests {
     fn the_targets_refusals_come_back_with_its_reason() {
         let (mut target, _) = session_target(info());
         let err = target
-            .upload_vector(VectorSlot::Rhs, &[1.0, 2.0])
+            .upload_vector(VectorSlot::RHS, &[1.0, 2.0])
             .unwrap_err();
         assert_eq!(
             err.target_code(),
@@ -759,7 +823,7 @@ mod tests {
         );
         assert!(err.to_string().contains("refused Solve"), "{err}");
         let err = target
-            .upload_vector(VectorSlot::Rhs, &[1.0, f64::NAN, 0.0, 0.0])
+            .upload_vector(VectorSlot::RHS, &[1.0, f64::NAN, 0.0, 0.0])
             .unwrap_err();
         assert!(
             matches!(err, LinkError::NotFinite { index: 1, .. }),
@@ -773,7 +837,7 @@ mod tests {
         target.upload_matrix(&laplacian_1d(4)).unwrap();
         target.reset().unwrap();
         let err = target
-            .upload_vector(VectorSlot::Rhs, &[1.0; 4])
+            .upload_vector(VectorSlot::RHS, &[1.0; 4])
             .unwrap_err();
         assert_eq!(
             err.target_code(),
@@ -886,6 +950,7 @@ mod tests {
                 _ => answer_frame(
                     req.seq,
                     Response::Solution {
+                        direction: 0,
                         offset: 5,
                         exponent: 0,
                         mantissas: [1, 2].into_iter().collect(),

@@ -373,7 +373,10 @@ mod tests {
         let started = Instant::now();
         let err = link
             .request_within(
-                &Request::ReadSolution { offset: 0 },
+                &Request::ReadSolution {
+                    direction: 0,
+                    offset: 0,
+                },
                 Duration::from_millis(150),
             )
             .unwrap_err();
@@ -451,7 +454,10 @@ mod tests {
             Received::Unreadable(_) => Vec::new(),
         });
         let err = link
-            .request(&Request::ReadSolution { offset: 0 })
+            .request(&Request::ReadSolution {
+                direction: 0,
+                offset: 0,
+            })
             .unwrap_err();
         assert_eq!(err.target_code(), Some(code));
         assert!(err.to_string().contains("no matrix is loaded"), "{err}");
