@@ -10,7 +10,7 @@ use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use serde::Serialize;
 
-use crate::board::{Board, BoardChoice};
+use crate::board::{Board, BoardChoice, DEFAULT_QEMU_HARTS};
 use crate::cli_model::ModelFlags;
 use crate::commands::solve::{
     resolve_model, TargetKind, DEFAULT_MAX_SOLVES, DEFAULT_TIMEOUT_SECONDS,
@@ -228,6 +228,7 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
         (Some(port), _) => Some(BoardChoice::Port(port.clone())),
         (None, TargetKind::Qemu) => Some(BoardChoice::Qemu {
             firmware: args.firmware.clone(),
+            harts: DEFAULT_QEMU_HARTS,
         }),
         (None, TargetKind::Host) => None,
     };

@@ -2,12 +2,14 @@
 //! instruction words, uploaded once, each right-hand side solved with mixed-precision
 //! refinement, exactly as `deform solve` does) or by the host's f64 reference CG.
 
+use deform_shared::protocol::MAX_DIRECTIONS;
 use serde::Serialize;
 use serialport::SerialPort;
 
-use crate::encode::{encode, EncodeError};
+use crate::encode::{encode_with, EncodeError, EncodeOptions, Partition};
 use crate::link::{LinkError, Port, Target};
 use crate::model::Csr;
+use crate::precondition::Scaled;
 use crate::reference;
 use crate::refine::{solve_refined, RefineError, RefineParams};
 
@@ -89,7 +91,16 @@ impl<P: Port> SpdSolver<'_, P> {
                 if !rhs.iter().any(nonzero) {
                     return Ok(vec![vec![0.0; n]; rhs.len()]);
                 }
-                let encoded = encode(a)?;
+                // Every MVU the target has, half storage when the system is persymmetric.
+                let options = EncodeOptions {
+                    mvus: target.info().harts.max(1),
+                    partition: Partition::Rows,
+                    use_symmetry: true,
+                };
+                let encoded = encode_with(a, &options)?.matrix;
+                target
+                    .check_matrix_fits(&encoded)
+                    .map_err(SpdSolveError::Upload)?;
                 target
                     .upload_matrix(&encoded)
                     .map_err(SpdSolveError::Upload)?;
@@ -97,18 +108,27 @@ impl<P: Port> SpdSolver<'_, P> {
                     tol: *tol,
                     max_solves: *max_solves,
                     max_iterations: (10 * n).min(u32::MAX as usize) as u32,
+                    fuse: true,
                 };
-                rhs.iter()
-                    .map(|b| {
-                        let got = solve_refined(target, a, b, params)?;
-                        if got.solves > 0 {
+                let unscaled = Scaled {
+                    matrix: a.clone(),
+                    scale: None,
+                };
+                let mut solutions = Vec::with_capacity(rhs.len());
+                // Up to three right-hand sides share each fused target solve.
+                for group in rhs.chunks(MAX_DIRECTIONS) {
+                    let group: Vec<&[f64]> = group.iter().map(Vec::as_slice).collect();
+                    let got = solve_refined(target, a, &unscaled, &group, params)?;
+                    count.target_solves += got.reports.len() as u32;
+                    for direction in got.directions {
+                        if direction.solves > 0 {
                             count.systems += 1;
                         }
-                        count.target_solves += got.solves;
-                        count.iterations += got.iterations as u64;
-                        Ok(got.x)
-                    })
-                    .collect()
+                        count.iterations += direction.iterations as u64;
+                        solutions.push(direction.x);
+                    }
+                }
+                Ok(solutions)
             }
         }
     }
