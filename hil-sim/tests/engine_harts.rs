@@ -239,6 +239,13 @@ fn one_to_eight_mvus_agree_bit_for_bit_and_with_f64() {
         let (single, x1) = target.solve_for(&b[1], params(1)).unwrap();
         assert_eq!(x1, base.x[1]);
         assert_eq!(single.directions[0], base.report.directions[1]);
+        // One direction on the mirrored half, its MVUs overlapping: the same bits again, and
+        // the firmware's mirrored loop equals the host's.
+        let mirrored = assign(&half, mvus, true);
+        target.upload_matrix(&mirrored).unwrap();
+        let (_, x0) = target.solve_for(&b[0], params(1)).unwrap();
+        assert_eq!(x0, base.x[0], "{harts} harts, mirrored, one direction");
+        assert_eq!(x0, host_solve(&mirrored, &[&b[0]], mvus)[0]);
         assert_alive(&mut qemu);
     }
     for (harts, cost) in &costs {

@@ -65,6 +65,11 @@ use crate::exec::{share, SharedSlice};
 pub use crate::exec::{Executor, NoClock, PhaseClock, Sequential};
 use crate::kernel::{run_tile_dyn, Lanes, Sums, TileRun};
 
+/// How often a direction's residual is recomputed as b − A·x after it converged on the
+/// recursive one. Fixed point cannot go below its own floor, so after this the recursive
+/// residual is accepted (the host's refinement takes over from there).
+const MAX_REPLACEMENTS: u32 = 2;
+
 /// Mantissas produced by the SVU stay below 2^OUTPUT_BITS (the MVU's exactness needs < 2^30).
 const OUTPUT_BITS: i32 = 30;
 /// The output exponent keeps the bound on |a·u + b·y| below 2^BOUND_BITS units, leaving room
@@ -411,6 +416,10 @@ struct Direction {
     p: Block,
     rr: u128,
     residual_sq: f64,
+    /// b's block, to restart r from.
+    b: Block,
+    /// Residual replacements done so far.
+    replacements: u32,
 }
 
 impl Direction {
@@ -738,6 +747,8 @@ pub fn solve(
         p: zero,
         rr: 0,
         residual_sq: 0.0,
+        b: zero,
+        replacements: 0,
     }; MAX_DIRECTIONS];
     let tol_sq = params.tolerance * params.tolerance;
     let Work { p, kp, partial } = work;
@@ -766,6 +777,7 @@ pub fn solve(
             e: s.b_exponent,
             bound: bound_of(or(&s.b[..n])),
         };
+        st.b = st.r;
         st.x.bound = if s.x[..n].iter().any(|&v| v != 0) {
             st.x.bound
         } else {
@@ -779,6 +791,7 @@ pub fn solve(
         }
     }
     let mut outs = [HartOut::default(); MAX_HARTS];
+    let systems_b: heapless::Vec<&[i32], MAX_DIRECTIONS> = systems.iter().map(|s| s.b).collect();
     let mut xs: heapless::Vec<SharedSlice<'_, i32>, MAX_DIRECTIONS> = heapless::Vec::new();
     let mut rs: heapless::Vec<SharedSlice<'_, i32>, MAX_DIRECTIONS> = heapless::Vec::new();
     let mut x_exponents = [0i32; MAX_DIRECTIONS];
@@ -944,6 +957,7 @@ pub fn solve(
         pass_a(&plans, &mut costs);
         let serial = exec.now();
         let mut p_plans = [None; MAX_DIRECTIONS];
+        let mut verify = [false; MAX_DIRECTIONS];
         for (d, plan) in plans.iter().enumerate() {
             let Some(plan) = plan else { continue };
             let st = &mut state[d];
@@ -958,6 +972,8 @@ pub fn solve(
             take_r(d, plan.r, st, &mut saturations);
             if st.residual_sq <= tol_sq || st.iterations >= params.max_iterations {
                 st.active = false;
+                // Converged on the recursive residual: check it against b − A·x below.
+                verify[d] = st.residual_sq <= tol_sq && st.replacements < MAX_REPLACEMENTS;
                 continue;
             }
             // β = r_newᵀr_new / rᵀr
@@ -967,6 +983,7 @@ pub fn solve(
         if costs.measuring {
             costs.serial(exec.now().instructions.wrapping_sub(serial.instructions));
         }
+        let mut verify_any = false;
         pass_b(&p_plans, &mut costs);
         let serial = exec.now();
         for (d, lin) in p_plans.iter().enumerate() {
@@ -985,6 +1002,64 @@ pub fn solve(
             costs.measuring = false;
         }
         charge(&mut report.svu, t, exec);
+
+        // Residual replacement: a direction that converged on its recursive residual gets
+        // r = b − A·x recomputed (one extra MVU pass); if that is still above the tolerance —
+        // the recursive residual drifts from the true one by the rounding of the updates —
+        // CG restarts from it with p = r.
+        for (d, v) in verify.iter().enumerate() {
+            if !v {
+                continue;
+            }
+            verify_any = true;
+            state[d].replacements += 1;
+            // SAFETY: no task runs; hart 0 has the vectors to itself.
+            let (p, x, r) = unsafe {
+                (
+                    engine.p.slice_mut(0..n),
+                    xs[d].as_slice(),
+                    rs[d].slice_mut(0..n),
+                )
+            };
+            for (pi, &xi) in p.iter_mut().zip(x) {
+                pi[d] = xi;
+            }
+            r.copy_from_slice(&systems_b[d][..n]);
+            state[d].r = state[d].b;
+        }
+        if verify_any {
+            let t = exec.now();
+            engine.mvu(&mut costs);
+            charge(&mut report.mvu, t, exec);
+            let t = exec.now();
+            let mut plans = [None; MAX_DIRECTIONS];
+            for (d, v) in verify.iter().enumerate() {
+                if *v {
+                    let st = Direction {
+                        p: state[d].x,
+                        ..state[d]
+                    };
+                    let (r, narrow) = r_plan(d, -1.0, &st, &mut saturations);
+                    plans[d] = Some(PassA { x: None, r, narrow });
+                }
+            }
+            pass_a(&plans, &mut costs);
+            for (d, plan) in plans.iter().enumerate() {
+                let Some(plan) = plan else { continue };
+                let st = &mut state[d];
+                take_r(d, plan.r, st, &mut saturations);
+                if st.residual_sq > tol_sq && st.iterations < params.max_iterations {
+                    st.active = true;
+                    // SAFETY: no task runs; hart 0 has the vectors to itself.
+                    let (p, r) = unsafe { (engine.p.slice_mut(0..n), rs[d].as_slice()) };
+                    for (pi, &ri) in p.iter_mut().zip(r) {
+                        pi[d] = ri;
+                    }
+                    st.p = st.r;
+                }
+            }
+            charge(&mut report.svu, t, exec);
+        }
     }
 
     drop(xs);

@@ -93,14 +93,20 @@ pub unsafe fn run_tile<const D: usize, const MIRROR: bool>(
         let mut acc = [0i64; D];
         let mut mirror_acc = [0i64; D];
         #[cfg(target_arch = "riscv32")]
-        let in_assembly = !MIRROR && (D == 1 || D == 3);
+        let in_assembly = D == 1 || D == 3;
         #[cfg(not(target_arch = "riscv32"))]
         let in_assembly = false;
         if in_assembly {
             #[cfg(target_arch = "riscv32")]
             {
-                // SAFETY: as for `portable_row`, whose sums this computes exactly.
-                w = unsafe { riscv::row(w, cols, &mut acc) };
+                // SAFETY: as for `portable_row`, whose sums these compute exactly.
+                w = unsafe {
+                    if MIRROR {
+                        riscv::mirrored_row(w, cols, mirror_cols, &mut acc, &mut mirror_acc)
+                    } else {
+                        riscv::row(w, cols, &mut acc)
+                    }
+                };
             }
         } else {
             // SAFETY: forwarded from the caller.
@@ -196,9 +202,9 @@ pub unsafe fn run_tile_dyn(
     }
 }
 
-/// The inner loop in RV32IM assembly, for one and for three directions (non-mirrored tiles):
-/// 15 instructions per word for one direction, 29 per word (9.67 per multiply-accumulate) for
-/// three. Rust's code generation spills the six accumulator words of the fused loop and adds
+/// The inner loop in RV32IM assembly, for one and for three directions: 15 instructions per
+/// word for one direction, 29 per word (9.67 per multiply-accumulate) for three; mirrored
+/// tiles 23 and 51 (11.5 and 8.5 per multiply-accumulate). Rust's code generation spills the six accumulator words of the fused loop and adds
 /// a bounds-free but longer address computation; this is the loop the thesis's MVU pipeline
 /// does in hardware. The portable loop in [`run_tile`] is the specification, and the HIL tests
 /// check that the firmware's results equal the host's bit for bit.
@@ -314,9 +320,168 @@ mod riscv {
                     options(nostack, readonly),
                 );
             }
-            let join = |lo: u32, hi: u32| ((u64::from(hi) << 32) | u64::from(lo)) as i64;
             let sums = [join(l0, h0), join(l1, h1), join(l2, h2)];
             acc.copy_from_slice(&sums[..D]);
+        }
+        wp
+    }
+
+    fn join(lo: u32, hi: u32) -> i64 {
+        ((u64::from(hi) << 32) | u64::from(lo)) as i64
+    }
+
+    /// [`row`] for a mirrored tile: each word also multiplies p[n − 1 − col_base − c] into the
+    /// mirror row's sums. 23 instructions per word for one direction (11.5 per
+    /// multiply-accumulate), 51 for three (8.5 per multiply-accumulate).
+    ///
+    /// # Safety
+    ///
+    /// As [`row`]; `mirror_cols` points at p[n − 1 − col_base].
+    #[inline(always)]
+    pub unsafe fn mirrored_row<const D: usize>(
+        w: *const u32,
+        cols: *const u8,
+        mirror_cols: *const u8,
+        acc: &mut [i64; D],
+        mirror_acc: &mut [i64; D],
+    ) -> *const u32 {
+        let mut wp = w;
+        if D == 1 {
+            let (mut l0, mut h0, mut m0, mut n0) = (0u32, 0u32, 0u32, 0u32);
+            // SAFETY: reads only the row's words, p[col_base + c] and p[n − 1 − col_base − c].
+            unsafe {
+                asm!(
+                    "2:",
+                    "lw {w}, 0({wp})",
+                    "srli {t}, {w}, 17",
+                    "and {t}, {t}, {mask}",
+                    "sub {tm}, {mbase}, {t}",
+                    "add {t}, {t}, {base}",
+                    "slli {v}, {w}, 11",
+                    "srai {v}, {v}, 11",
+                    "lw {p}, 0({t})",
+                    "mul {m}, {v}, {p}",
+                    "mulh {p}, {v}, {p}",
+                    "add {l0}, {l0}, {m}",
+                    "sltu {m}, {l0}, {m}",
+                    "add {h0}, {h0}, {p}",
+                    "add {h0}, {h0}, {m}",
+                    "lw {p}, 0({tm})",
+                    "mul {m}, {v}, {p}",
+                    "mulh {p}, {v}, {p}",
+                    "add {m0}, {m0}, {m}",
+                    "sltu {m}, {m0}, {m}",
+                    "add {n0}, {n0}, {p}",
+                    "add {n0}, {n0}, {m}",
+                    "addi {wp}, {wp}, 4",
+                    "bltu {w}, {er}, 2b",
+                    wp = inout(reg) wp,
+                    l0 = inout(reg) l0,
+                    h0 = inout(reg) h0,
+                    m0 = inout(reg) m0,
+                    n0 = inout(reg) n0,
+                    base = in(reg) cols,
+                    mbase = in(reg) mirror_cols,
+                    mask = in(reg) COLUMN_MASK,
+                    er = in(reg) ER_BIT,
+                    w = out(reg) _,
+                    t = out(reg) _,
+                    tm = out(reg) _,
+                    v = out(reg) _,
+                    p = out(reg) _,
+                    m = out(reg) _,
+                    options(nostack, readonly),
+                );
+            }
+            acc[0] = join(l0, h0);
+            mirror_acc[0] = join(m0, n0);
+        } else {
+            let mut a = [0u32; 12];
+            // SAFETY: as above, three lanes at offsets 0, 4, 8 of both addresses.
+            unsafe {
+                asm!(
+                    "2:",
+                    "lw {w}, 0({wp})",
+                    "srli {t}, {w}, 17",
+                    "and {t}, {t}, {mask}",
+                    "sub {tm}, {mbase}, {t}",
+                    "add {t}, {t}, {base}",
+                    "slli {v}, {w}, 11",
+                    "srai {v}, {v}, 11",
+                    "lw {p}, 0({t})",
+                    "mul {m}, {v}, {p}",
+                    "mulh {p}, {v}, {p}",
+                    "add {a0}, {a0}, {m}",
+                    "sltu {m}, {a0}, {m}",
+                    "add {a1}, {a1}, {p}",
+                    "add {a1}, {a1}, {m}",
+                    "lw {p}, 4({t})",
+                    "mul {m}, {v}, {p}",
+                    "mulh {p}, {v}, {p}",
+                    "add {a2}, {a2}, {m}",
+                    "sltu {m}, {a2}, {m}",
+                    "add {a3}, {a3}, {p}",
+                    "add {a3}, {a3}, {m}",
+                    "lw {p}, 8({t})",
+                    "mul {m}, {v}, {p}",
+                    "mulh {p}, {v}, {p}",
+                    "add {a4}, {a4}, {m}",
+                    "sltu {m}, {a4}, {m}",
+                    "add {a5}, {a5}, {p}",
+                    "add {a5}, {a5}, {m}",
+                    "lw {p}, 0({tm})",
+                    "mul {m}, {v}, {p}",
+                    "mulh {p}, {v}, {p}",
+                    "add {a6}, {a6}, {m}",
+                    "sltu {m}, {a6}, {m}",
+                    "add {a7}, {a7}, {p}",
+                    "add {a7}, {a7}, {m}",
+                    "lw {p}, 4({tm})",
+                    "mul {m}, {v}, {p}",
+                    "mulh {p}, {v}, {p}",
+                    "add {a8}, {a8}, {m}",
+                    "sltu {m}, {a8}, {m}",
+                    "add {a9}, {a9}, {p}",
+                    "add {a9}, {a9}, {m}",
+                    "lw {p}, 8({tm})",
+                    "mul {m}, {v}, {p}",
+                    "mulh {p}, {v}, {p}",
+                    "add {a10}, {a10}, {m}",
+                    "sltu {m}, {a10}, {m}",
+                    "add {a11}, {a11}, {p}",
+                    "add {a11}, {a11}, {m}",
+                    "addi {wp}, {wp}, 4",
+                    "bltu {w}, {er}, 2b",
+                    wp = inout(reg) wp,
+                    a0 = inout(reg) a[0],
+                    a1 = inout(reg) a[1],
+                    a2 = inout(reg) a[2],
+                    a3 = inout(reg) a[3],
+                    a4 = inout(reg) a[4],
+                    a5 = inout(reg) a[5],
+                    a6 = inout(reg) a[6],
+                    a7 = inout(reg) a[7],
+                    a8 = inout(reg) a[8],
+                    a9 = inout(reg) a[9],
+                    a10 = inout(reg) a[10],
+                    a11 = inout(reg) a[11],
+                    base = in(reg) cols,
+                    mbase = in(reg) mirror_cols,
+                    mask = in(reg) COLUMN_MASK,
+                    er = in(reg) ER_BIT,
+                    w = out(reg) _,
+                    t = out(reg) _,
+                    tm = out(reg) _,
+                    v = out(reg) _,
+                    p = out(reg) _,
+                    m = out(reg) _,
+                    options(nostack, readonly),
+                );
+            }
+            let own = [join(a[0], a[1]), join(a[2], a[3]), join(a[4], a[5])];
+            let mirrored = [join(a[6], a[7]), join(a[8], a[9]), join(a[10], a[11])];
+            acc.copy_from_slice(&own[..D]);
+            mirror_acc.copy_from_slice(&mirrored[..D]);
         }
         wp
     }
