@@ -79,7 +79,9 @@ fn whole_solves_through_a_noisy_line_match_the_clean_run_bit_for_bit() {
         started.elapsed(),
         clean.stats()
     );
-    assert_eq!(clean.stats().retransmits, 0, "{:?}", clean.stats());
+    // A clean line corrupts nothing (a loaded machine may still cause a spurious resend).
+    let stats = clean.stats();
+    assert_eq!((stats.corrupt_frames, stats.naks), (0, 0), "{stats:?}");
     drop(clean);
     drop(clean_relay);
     // Long enough for QEMU to notice the pty was closed and poll for the next reader.
@@ -107,11 +109,11 @@ fn whole_solves_through_a_noisy_line_match_the_clean_run_bit_for_bit() {
     assert_alive(&mut qemu);
 }
 
+/// Straight through QEMU's pty, no relay: the throughput a host sees from a QEMU board.
 #[test]
 fn a_large_matrix_upload_reports_bytes_per_nonzero_and_throughput() {
     let mut qemu = boot();
-    let relay = FaultRelay::start(qemu.pty_path(), FaultConfig::clean()).unwrap();
-    let mut target = connect_via(&relay, timeouts());
+    let mut target = connect(&qemu);
     let matrix = banded_spd(16_000, 4); // 9 nonzeros a row
     let words = matrix.words.len();
     let before = target.stats();
@@ -136,6 +138,7 @@ fn a_large_matrix_upload_reports_bytes_per_nonzero_and_throughput() {
         "sent {sent}, estimated {estimate}"
     );
     assert!(per_nonzero <= 4.2, "{per_nonzero} bytes per nonzero");
-    assert_eq!(target.stats().retransmits, 0);
+    let stats = target.stats();
+    assert_eq!((stats.corrupt_frames, stats.naks), (0, 0), "{stats:?}");
     assert_alive(&mut qemu);
 }
