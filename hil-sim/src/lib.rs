@@ -119,6 +119,8 @@ pub enum HilError {
     },
     #[error("waiting for QEMU failed: {0}")]
     Wait(#[source] std::io::Error),
+    #[error("talking to QEMU's monitor failed: {0}")]
+    Monitor(#[source] std::io::Error),
 }
 
 /// How to boot the firmware.
@@ -132,6 +134,9 @@ pub struct QemuConfig {
     pub qemu: OsString,
     /// How long QEMU may take to announce its pty.
     pub start_timeout: Duration,
+    /// A Unix socket for QEMU's monitor, so that a test can reset the board
+    /// ([`Qemu::system_reset`]); `None`: no monitor.
+    pub monitor: Option<PathBuf>,
 }
 
 impl QemuConfig {
@@ -142,7 +147,14 @@ impl QemuConfig {
             harts: 1,
             qemu: QEMU_BINARY.into(),
             start_timeout: Duration::from_secs(10),
+            monitor: None,
         }
+    }
+
+    /// Puts QEMU's monitor on a Unix socket at `path` (see [`Qemu::system_reset`]).
+    pub fn monitor(mut self, path: impl Into<PathBuf>) -> Self {
+        self.monitor = Some(path.into());
+        self
     }
 
     /// Harts (`-smp`), clamped to 1..=[`MAX_HARTS`]: the firmware puts up to 8 to work as MVUs,
@@ -162,12 +174,21 @@ impl QemuConfig {
             "shift=0"
         };
         let mut args: Vec<OsString> = [
-            "-machine", "virt", "-bios", "none", "-display", "none", "-monitor", "none", "-serial",
-            "pty", "-m", "64M",
+            "-machine", "virt", "-bios", "none", "-display", "none", "-serial", "pty", "-m", "64M",
         ]
         .iter()
         .map(OsString::from)
         .collect();
+        args.push("-monitor".into());
+        args.push(match &self.monitor {
+            Some(path) => {
+                let mut spec = OsString::from("unix:");
+                spec.push(path);
+                spec.push(",server=on,wait=off");
+                spec
+            }
+            None => "none".into(),
+        });
         args.push("-smp".into());
         args.push(self.harts.to_string().into());
         args.push("-icount".into());
@@ -279,6 +300,32 @@ impl Qemu {
     /// QEMU's process id.
     pub fn pid(&self) -> u32 {
         self.child.id()
+    }
+
+    /// Resets the board through QEMU's monitor (which [`QemuConfig::monitor`] must have put on
+    /// a socket): the firmware reboots, losing everything it held, while its UART stays on the
+    /// same pty, as a board whose reset button was pressed.
+    pub fn system_reset(&self, monitor: &Path) -> Result<(), HilError> {
+        use std::io::Write;
+        let mut socket =
+            std::os::unix::net::UnixStream::connect(monitor).map_err(HilError::Monitor)?;
+        socket
+            .set_read_timeout(Some(Duration::from_secs(5)))
+            .map_err(HilError::Monitor)?;
+        socket
+            .write_all(b"system_reset\n")
+            .map_err(HilError::Monitor)?;
+        // Wait for the monitor to echo the command back, i.e. to have executed it.
+        let mut seen = Vec::new();
+        let mut buf = [0u8; 256];
+        while !String::from_utf8_lossy(&seen).contains("system_reset") {
+            let n = socket.read(&mut buf).map_err(HilError::Monitor)?;
+            if n == 0 {
+                break;
+            }
+            seen.extend_from_slice(&buf[..n]);
+        }
+        Ok(())
     }
 
     /// Kills QEMU now (a board losing power) and reaps it.

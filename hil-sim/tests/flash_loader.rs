@@ -131,9 +131,9 @@ impl<P: Port> Port for Saboteur<P> {
 }
 
 fn solve_banded(target: &mut deform_host::link::Target<impl Port>) {
-    let matrix = banded_spd(300, 2);
+    let matrix = banded_spd(120, 2);
     target.upload_matrix(&matrix).unwrap();
-    let rhs: Vec<f64> = (0..300).map(|i| ((i % 7) as f64 - 3.0) * 0.25).collect();
+    let rhs: Vec<f64> = (0..120).map(|i| ((i % 7) as f64 - 3.0) * 0.25).collect();
     let (report, x) = target.solve_for(&rhs, params()).unwrap();
     assert!(report.converged, "{report:?}");
     let err = max_relative_error(&x, &cholesky_solve(&decode_dense(&matrix), &rhs));

@@ -80,7 +80,9 @@ fn whole_solves_through_a_noisy_line_match_the_clean_run_bit_for_bit() {
         started.elapsed(),
         clean.stats()
     );
-    assert_eq!(clean.stats().retransmits, 0, "{:?}", clean.stats());
+    // A clean line corrupts nothing (a loaded machine may still cause a spurious resend).
+    let stats = clean.stats();
+    assert_eq!((stats.corrupt_frames, stats.naks), (0, 0), "{stats:?}");
     drop(clean);
     drop(clean_relay);
     // Long enough for QEMU to notice the pty was closed and poll for the next reader.
@@ -108,26 +110,29 @@ fn whole_solves_through_a_noisy_line_match_the_clean_run_bit_for_bit() {
     assert_alive(&mut qemu);
 }
 
+/// Straight through QEMU's pty, no relay: the throughput a host sees from a QEMU board.
 #[test]
 fn a_large_matrix_upload_reports_bytes_per_nonzero_and_throughput() {
     let mut qemu = boot();
-    let relay = FaultRelay::start(qemu.pty_path(), FaultConfig::clean()).unwrap();
-    let mut target = connect_via(&relay, timeouts());
+    let mut target = connect(&qemu);
     let matrix = banded_spd(16_000, 4); // 9 nonzeros a row
     let words = matrix.words.len();
     let before = target.stats();
     let started = Instant::now();
     target.upload_matrix(&matrix).unwrap();
     let elapsed = started.elapsed();
-    let sent = target.stats().bytes_sent - before.bytes_sent;
+    // First transmissions only: on a loaded machine a frame may be resent spuriously.
+    let resent = target.stats().bytes_resent - before.bytes_resent;
+    let sent = target.stats().bytes_sent - before.bytes_sent - resent;
     let received = target.stats().bytes_received - before.bytes_received;
     let per_nonzero = sent as f64 / words as f64;
     println!(
         "upload of {words} words ({} tiles): {sent} bytes to the target ({per_nonzero:.3} per \
-         nonzero), {received} bytes of replies, {:.2?}: {:.0} KB/s, {:.0} nonzeros/s",
+         nonzero) and {resent} resent, {received} bytes of replies, {:.2?}: {:.0} KB/s, \
+         {:.0} nonzeros/s",
         matrix.tiles.len(),
         elapsed,
-        sent as f64 / elapsed.as_secs_f64() / 1e3,
+        (sent + resent) as f64 / elapsed.as_secs_f64() / 1e3,
         words as f64 / elapsed.as_secs_f64(),
     );
     // full_upload_bytes counts two-byte sequence numbers; real ones take up to three.
@@ -137,6 +142,7 @@ fn a_large_matrix_upload_reports_bytes_per_nonzero_and_throughput() {
         "sent {sent}, estimated {estimate}"
     );
     assert!(per_nonzero <= 4.2, "{per_nonzero} bytes per nonzero");
-    assert_eq!(target.stats().retransmits, 0);
+    let stats = target.stats();
+    assert_eq!((stats.corrupt_frames, stats.naks), (0, 0), "{stats:?}");
     assert_alive(&mut qemu);
 }

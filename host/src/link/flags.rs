@@ -13,8 +13,9 @@ pub struct LinkFlags {
           value_parser = clap::value_parser!(u64).range(1..))]
     pub link_timeout: u64,
 
-    /// Milliseconds a frame waits for its reply before it is sent again; doubled after each
-    /// retry of the same frame, up to 8×.
+    /// Most milliseconds a frame waits for its reply before it is sent again (the wait adapts
+    /// to the target's measured answer time and its variation, at least 20 ms); doubled after
+    /// each retry of the same frame, up to 8× this.
     #[arg(long, value_name = "MS", default_value_t = LinkConfig::default().retransmit.as_millis() as u64,
           value_parser = clap::value_parser!(u64).range(1..))]
     pub retransmit_ms: u64,

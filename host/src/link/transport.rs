@@ -4,7 +4,10 @@
 //! bounded waiting everywhere.
 //!
 //! The host owns every timer. A request's frame is sent again when the target NAKs it, or when
-//! no reply came within the retransmit timeout (doubled after each retry, up to 8×). A request
+//! no reply came within the retransmit timeout: the smoothed time the target takes per request
+//! plus four times its variation (RFC 6298; at least 20 ms, at most
+//! [`LinkConfig::retransmit`]), doubled after each retry of the same frame up to 8×
+//! [`LinkConfig::retransmit`]. A request
 //! fails with [`LinkError::Timeout`] after [`LinkConfig::retries`] retransmissions or once it has
 //! waited [`Link::timeout`] in all, whichever comes first; a long-running request (`Solve`) that
 //! the target acknowledged may wait its own, longer, deadline. Nothing here can block longer
@@ -24,14 +27,19 @@ use super::{open_serial, LinkError, Port};
 /// How long a request may wait for its reply, retransmissions included, unless told otherwise.
 pub const DEFAULT_REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
 
+/// The least retransmit timeout, however fast the target answers.
+const MIN_RETRANSMIT: Duration = Duration::from_millis(20);
+
 /// Bytes asked of the port per read.
 const READ_CHUNK: usize = 1024;
 
 /// Retransmission settings.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LinkConfig {
-    /// How long a frame waits for its reply (or an ACK) before it is sent again; doubled after
-    /// every retransmission of the same frame, up to 8×.
+    /// The longest a frame waits for its reply (or an ACK) before it is sent again, and the
+    /// wait until the link has measured how fast the target answers (it then waits that time
+    /// plus four times its variation, at least 20 ms, at most this); doubled after every retransmission of the same
+    /// frame, up to 8× this.
     pub retransmit: Duration,
     /// Retransmissions of one frame before the request fails.
     pub retries: u32,
@@ -82,6 +90,8 @@ pub struct LinkStats {
     pub stale_answers: u64,
     /// Bytes written to the port, retransmissions included.
     pub bytes_sent: u64,
+    /// Of those, bytes of retransmitted frames.
+    pub bytes_resent: u64,
     /// Bytes read from the port.
     pub bytes_received: u64,
     /// Notices (firmware logs) received, and how many the numbering says were lost.
@@ -122,8 +132,11 @@ pub struct Link<P: Port = Box<dyn SerialPort>> {
     stats: LinkStats,
     last_notice: Option<u16>,
     notice_handler: Option<NoticeHandler>,
-    /// Smoothed round trip of requests answered at the first send.
+    /// Smoothed service time: from the moment a request became the oldest without a reply to
+    /// its reply, for requests answered at the first send.
     srtt: Option<Duration>,
+    /// Its smoothed variation.
+    rttvar: Duration,
 }
 
 impl Link<Box<dyn SerialPort>> {
@@ -149,6 +162,7 @@ impl<P: Port> Link<P> {
             last_notice: None,
             notice_handler: None,
             srtt: None,
+            rttvar: Duration::ZERO,
         }
     }
 
@@ -344,7 +358,11 @@ impl<P: Port> Link<P> {
 
     /// The retransmit timeout for an entry's next retransmission.
     fn backoff(&self, entry: &InFlight) -> Duration {
-        let rto = self.config.retransmit * (1u32 << entry.retries.min(3));
+        // Doubling from the adaptive base up to 8× the configured timeout: a target that is
+        // merely slow (a long CRC check, a loaded host) is not given up on after a few quick
+        // resends; the request's overall timeout still bounds the wait.
+        let rto =
+            (self.base_rto() * (1u32 << entry.retries.min(10))).min(self.config.retransmit * 8);
         if entry.accepted.is_some() {
             // The target is working on it; resend only to recover a lost reply.
             rto.max(Duration::from_secs(1))
@@ -355,6 +373,7 @@ impl<P: Port> Link<P> {
 
     fn retransmit(&mut self, entry: &mut InFlight) -> Result<(), LinkError> {
         self.write(&entry.frame)?;
+        self.stats.bytes_resent += entry.frame.len() as u64;
         entry.last_sent = Instant::now();
         entry.timer = entry.last_sent;
         if entry.accepted.is_none() {
@@ -372,12 +391,11 @@ impl<P: Port> Link<P> {
                         let was_oldest = window.iter().position(|e| e.reply.is_none()) == Some(i);
                         window[i].reply = Some(body);
                         let now = Instant::now();
-                        if window[i].retries == 0 {
-                            let sample = now - window[i].first_sent;
-                            self.srtt = Some(match self.srtt {
-                                Some(srtt) => (srtt * 7 + sample) / 8,
-                                None => sample,
-                            });
+                        if was_oldest && window[i].retries == 0 && window[i].accepted.is_none() {
+                            // How long the target took for it once it was the oldest: its frame's
+                            // time on the line and its handling, without the queue before it.
+                            let sample = now - window[i].timer;
+                            self.measure(sample);
                         }
                         // The next request without a reply starts its timer now.
                         if was_oldest {
@@ -438,14 +456,40 @@ impl<P: Port> Link<P> {
         Ok(())
     }
 
-    /// The least time between two sends of a frame prompted by NAKs or later replies: a
-    /// quarter of the smoothed round trip. The target sends about one NAK per damaged frame,
-    /// and a NAK that arrives after a resend is as likely to be about the resent copy (which
+    /// Folds one service-time sample into `srtt` and `rttvar` (RFC 6298's estimator).
+    fn measure(&mut self, sample: Duration) {
+        match self.srtt {
+            Some(srtt) => {
+                let deviation = srtt.abs_diff(sample);
+                self.rttvar = (self.rttvar * 3 + deviation) / 4;
+                self.srtt = Some((srtt * 7 + sample) / 8);
+            }
+            None => {
+                self.srtt = Some(sample);
+                self.rttvar = sample / 2;
+            }
+        }
+    }
+
+    /// The retransmit timeout before back-off: the smoothed service time plus four times its
+    /// variation (RFC 6298), at least [`MIN_RETRANSMIT`], at most the configured
+    /// [`LinkConfig::retransmit`] (which is also the timeout until the first sample).
+    fn base_rto(&self) -> Duration {
+        let ceiling = self.config.retransmit;
+        match self.srtt {
+            Some(srtt) => (srtt + self.rttvar * 4).clamp(MIN_RETRANSMIT.min(ceiling), ceiling),
+            None => ceiling,
+        }
+    }
+
+    /// The least time between two sends of a frame prompted by NAKs or later replies: half the
+    /// smoothed service time (at most a quarter of the retransmit timeout). The target sends
+    /// about one NAK per damaged frame, and a NAK that arrives after a resend is as likely to be about the resent copy (which
     /// then waits behind the rest of the window) as about an older one: resending too often
     /// costs a frame's time on the line, not resending costs a retransmit timeout.
     fn nak_guard(&self) -> Duration {
-        let rto = self.config.retransmit;
-        (self.srtt.unwrap_or(rto) / 4).min(rto / 4)
+        let rto = self.base_rto();
+        (self.srtt.unwrap_or(rto) / 2).min(rto / 4)
     }
 
     fn on_notice(&mut self, seq: u16, body: Response) {
