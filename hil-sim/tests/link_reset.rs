@@ -25,6 +25,7 @@ fn a_board_reset_mid_session_is_noticed_and_the_matrix_sent_again() {
         max_iterations: 5000,
         tolerance: 1e-10,
         start: Start::Zero,
+        directions: 1,
     };
     let before = target.solve_for(&rhs, params).unwrap();
 
