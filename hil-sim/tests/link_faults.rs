@@ -80,9 +80,11 @@ fn whole_solves_through_a_noisy_line_match_the_clean_run_bit_for_bit() {
         started.elapsed(),
         clean.stats()
     );
-    // A clean line corrupts nothing (a loaded machine may still cause a spurious resend).
+    // A clean line corrupts nothing. A loaded machine may still cause spurious resends, and a
+    // resend the target has already answered and forgotten (beyond its reply cache) is NAKed,
+    // so NAKs are not counted here.
     let stats = clean.stats();
-    assert_eq!((stats.corrupt_frames, stats.naks), (0, 0), "{stats:?}");
+    assert_eq!(stats.corrupt_frames, 0, "{stats:?}");
     drop(clean);
     drop(clean_relay);
     // Long enough for QEMU to notice the pty was closed and poll for the next reader.
