@@ -1,8 +1,5 @@
-//! The QEMU `virt` devices the firmware touches: the ns16550 UART, the SiFive test device (to
-//! exit QEMU) and the hart's cycle/instruction counters. All the firmware's MMIO is here.
-
-use deform_shared::protocol::PhaseCounters;
-use deform_target_core::cg::PhaseClock;
+//! The QEMU `virt` devices the firmware touches besides the CLINT (which `harts` owns): the
+//! ns16550 UART and the SiFive test device (to exit QEMU).
 
 /// ns16550 UART0 of QEMU `virt`.
 const UART0: usize = 0x1000_0000;
@@ -22,6 +19,9 @@ const DLM: usize = 1;
 const LSR: usize = 5;
 const LSR_DATA_READY: u8 = 1 << 0;
 const LSR_THR_EMPTY: u8 = 1 << 5;
+/// Transmitter holding register and shift register both empty.
+#[allow(dead_code)] // only the loader binary flushes
+const LSR_TRANSMITTER_EMPTY: u8 = 1 << 6;
 
 /// Platform-level interrupt controller of QEMU `virt`, and UART0's source number on it.
 const PLIC: usize = 0x0c00_0000;
@@ -84,10 +84,7 @@ pub struct Uart {
 impl Uart {
     /// Sets the UART and its wake-up path up. Call once.
     pub fn init() -> Self {
-        // Divisor 1, the fastest rate. With FIFOs on, QEMU raises the receive interrupt for a
-        // partly filled FIFO only after 4 character times at the programmed rate (4 ms at its
-        // reset rate of 9600 baud, 0.1 ms at divisor 1), which is how long the last bytes of
-        // every frame would otherwise wait.
+        // Divisor 1, the fastest rate (QEMU's transmit timing follows it).
         uart_write(LCR, LCR_DLAB);
         uart_write(DLL, 1);
         uart_write(DLM, 0);
@@ -102,12 +99,18 @@ impl Uart {
         Uart { fifos: false }
     }
 
-    /// Switches the FIFOs on (receive trigger level 14: QEMU then hands the UART up to 14 bytes
-    /// at a time), once. Call it only when the peer is not sending: between a complete request
-    /// and its response (the host speaks only after each response), since it clears them.
+    /// Switches the FIFOs on, once. Call it only when the peer is not sending: between a
+    /// complete request and its response (the host speaks only after each response), since it
+    /// clears them.
+    ///
+    /// The receive trigger level is 1 byte: the interrupt is raised as soon as anything is in
+    /// the FIFO, and [`read`](Self::read) drains all of it per wake-up (QEMU fills up to 16 bytes
+    /// at a time). A higher level would leave a frame's tail to QEMU's FIFO-timeout timer, which
+    /// runs on the virtual clock: with `-icount …,sleep=off` (several harts) that clock stands
+    /// still while every hart sleeps, so the tail would never arrive.
     pub fn enable_fifos(&mut self) {
         if !self.fifos {
-            uart_write(FCR, 0xC7);
+            uart_write(FCR, 0x07);
             self.fifos = true;
         }
     }
@@ -126,10 +129,23 @@ impl Uart {
     }
 
     pub fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            while uart_read(LSR) & LSR_THR_EMPTY == 0 {}
-            uart_write(RBR_THR, b);
-        }
+        write_raw(bytes);
+    }
+
+    /// Waits until every byte written has left the transmitter (before the loader hands the
+    /// UART to the application it starts).
+    #[allow(dead_code)] // only the loader binary flushes
+    pub fn flush(&mut self) {
+        while uart_read(LSR) & LSR_TRANSMITTER_EMPTY == 0 {}
+    }
+}
+
+/// Writes bytes to the UART without a [`Uart`]: for the panic handler, which cannot reach the
+/// one `main` owns. Polls the transmitter like [`Uart::write`].
+pub fn write_raw(bytes: &[u8]) {
+    for &b in bytes {
+        while uart_read(LSR) & LSR_THR_EMPTY == 0 {}
+        uart_write(RBR_THR, b);
     }
 }
 
@@ -144,17 +160,5 @@ pub fn exit(code: u16) -> ! {
     // Not on QEMU (or the write did not stop it): park the hart.
     loop {
         core::hint::spin_loop();
-    }
-}
-
-/// Charges the solver's phases with `mcycle`/`minstret` (exact under QEMU `-icount shift=0`).
-pub struct CsrClock;
-
-impl PhaseClock for CsrClock {
-    fn now(&self) -> PhaseCounters {
-        PhaseCounters {
-            cycles: riscv::register::mcycle::read64(),
-            instructions: riscv::register::minstret::read64(),
-        }
     }
 }

@@ -1,42 +1,48 @@
 //! # deform-firmware
 //!
-//! The target side of deform on QEMU's riscv32 `virt` machine: it reads frames from the UART,
-//! hands each request to [`deform_target_core::session::Session`] and writes back exactly one
-//! framed response per frame (see [`deform_shared::protocol`]). The session and the CG solver
+//! The target side of deform on QEMU's riscv32 `virt` machine: it feeds the UART's bytes to the
+//! transport ([`deform_target_core::transport::TargetLink`]), which hands each request, in
+//! sequence order and exactly once, to [`deform_target_core::session::Session`] and writes back
+//! its reply (see [`deform_shared::transport`] and [`deform_shared::protocol`]). The session and the CG solver
 //! are hardware-free and tested on the host; this crate adds only the devices and the storage.
 //!
-//! - One hart (hart 0) runs everything; riscv-rt parks any other.
-//! - Storage ([`store`]): a matrix store of 512 Ki words and 4096 tiles, vectors for n ≤ 65536,
-//!   all static and zeroed at boot (`.bss`).
-//! - Timing: the solver's phases are charged with `mcycle`/`minstret`, exact under `-icount`.
+//! - Hart 0 runs the protocol; every hart (up to 8, QEMU `-smp N`) is an MVU and runs its share
+//!   of each CG phase ([`harts`]). `TargetInfo::harts` reports how many came up.
+//! - Storage ([`store`]): a matrix store of 512 Ki words and 4096 tiles, vectors for n ≤ 65536
+//!   in three directions, all static and zeroed at boot (`.bss`).
+//! - Timing: the solver's phases are charged with `mcycle`/`minstret`, exact under `-icount`;
+//!   per-hart counts come from one iteration whose phases run one hart at a time.
 //! - UART ([`hw::Uart`]): while waiting for input the hart sleeps in `wfi` (woken through the
 //!   PLIC; interrupts stay globally off). Its FIFOs go on only after the first request, so that
 //!   a request sent while the firmware still boots is not lost.
-//! - The byte stream can be anything: undecodable frames are answered with
-//!   `Error(Frame(..))` and sequence number [`UNKNOWN_SEQ`], overlong ones with
-//!   `Error(Frame(TooLong))`.
+//! - The byte stream can be anything: undecodable or overlong frames are NAKed, duplicates get
+//!   their cached reply, frames from beyond a gap are held (see the transport).
 //!
 //! ## Faults
 //!
-//! Nothing may write to the UART but framed responses, so a fault cannot print a message.
-//! Instead it stops QEMU through the SiFive test device with a distinctive exit status:
+//! Nothing may write to the UART but frames, so a fault cannot print a message. A panic sends
+//! one last [`Uplink::Panic`](deform_shared::transport::Uplink::Panic) frame with its message;
+//! then every fault stops QEMU through the SiFive test device with a distinctive exit status:
 //! [`EXIT_PANIC`] (101) for a Rust panic, [`EXIT_EXCEPTION`] (102) for a CPU exception and
 //! [`EXIT_INTERRUPT`] (103) for an unexpected interrupt. Normal operation never exits.
 #![no_std]
 #![no_main]
 #![deny(unsafe_op_in_unsafe_fn, clippy::undocumented_unsafe_blocks)]
 
+mod activity;
+mod build_id;
+mod harts;
 mod hw;
+mod logger;
 mod store;
 
-use deform_shared::frame::{self, Feed, FrameAccumulator, FrameError};
-use deform_shared::protocol::{
-    Envelope, ErrorCode, Request, Response, TargetInfo, MAX_FRAME_LEN, PROTOCOL_VERSION,
-    UNKNOWN_SEQ,
-};
+use deform_shared::protocol::{ErrorCode, Response, TargetInfo, PROTOCOL_VERSION};
 use deform_target_core::session::Session;
+use deform_target_core::transport::{self, LinkEvent, TargetLink, Tx};
 
-use hw::{CsrClock, Uart};
+use harts::Harts;
+use hw::Uart;
+use store::TakeOnce;
 
 /// QEMU exit status after a panic.
 pub const EXIT_PANIC: u16 = 101;
@@ -53,61 +59,87 @@ const _: () = assert!(
     "TargetInfo holds 16 bytes of version"
 );
 
-fn target_info() -> TargetInfo {
+fn target_info(harts: usize) -> TargetInfo {
     TargetInfo {
         protocol_version: PROTOCOL_VERSION,
         firmware_version: heapless::String::try_from(FIRMWARE_VERSION).unwrap_or_default(),
-        harts: 1,
+        harts: harts as u8,
         word_capacity: store::WORD_CAPACITY as u32,
         tile_capacity: store::TILE_CAPACITY as u32,
         max_n: store::MAX_N as u32,
+        build_id: build_id::build_id(),
     }
 }
 
 #[riscv_rt::entry]
-fn main() -> ! {
+fn main(hart: usize) -> ! {
+    if hart != 0 {
+        harts::worker(hart);
+    }
     let mut uart = Uart::init();
     let Some(buffers) = store::BUFFERS.take() else {
         hw::exit(EXIT_NO_STORAGE)
     };
-    let mut session = Session::new(buffers.storage(), target_info(), CsrClock);
-    let mut frames = FrameAccumulator::<MAX_FRAME_LEN>::new();
-    let mut out = [0u8; MAX_FRAME_LEN];
+    let count = harts::start_workers();
+    let mut session = Session::new(buffers.storage(), target_info(count), Harts { count });
+    let Some(link) = LINK.take() else {
+        hw::exit(EXIT_NO_STORAGE)
+    };
+    defmt::info!(
+        "deform firmware {=str} up: {=usize} words, {=usize} tiles, n <= {=usize}, {=usize} harts",
+        FIRMWARE_VERSION,
+        store::WORD_CAPACITY,
+        store::TILE_CAPACITY,
+        store::MAX_N,
+        count
+    );
+    let mut handle = |body| activity::logged(body, |body| session.handle(body));
     loop {
         let byte = uart.read();
-        let (seq, body) = match frames.feed(byte) {
-            Feed::Pending => continue,
-            Feed::Overflow => (
-                UNKNOWN_SEQ,
-                Response::Error(ErrorCode::Frame(FrameError::TooLong)),
-            ),
-            Feed::Frame(bytes) => match frame::decode::<Envelope<Request>>(bytes) {
-                Ok(Envelope { seq, body }) => (seq, session.handle(body)),
-                Err(e) => (UNKNOWN_SEQ, Response::Error(ErrorCode::Frame(e))),
-            },
-        };
-        send(&mut uart, &mut out, seq, body);
+        let event = link.feed(byte, &mut handle, &mut UartTx(&mut uart));
+        if let Some(LinkEvent::Corrupt(e)) = event {
+            activity::unreadable(&ErrorCode::Frame(e));
+        }
     }
 }
 
-/// Writes one framed response. Every response fits a frame (a shared test checks the largest);
-/// should one not, the peer gets `Error(Frame(BufferTooSmall))` with the same sequence number.
-fn send(uart: &mut Uart, out: &mut [u8], seq: u16, body: Response) {
-    // A request is complete and the host awaits its answer: the line is quiet.
-    uart.enable_fifos();
-    let len = frame::encode(&Envelope { seq, body }, out).or_else(|e| {
-        let body = Response::Error(ErrorCode::Frame(e));
-        frame::encode(&Envelope { seq, body }, out)
-    });
-    match len.ok().and_then(|len| out.get(..len)) {
-        Some(bytes) => uart.write(bytes),
-        // Unreachable; a lone delimiter at least keeps the peer's framing in step.
-        None => uart.write(&[frame::DELIMITER]),
+/// The transport's state (sequence numbers, held requests, cached replies: ~10 KiB), static
+/// rather than on the stack.
+static LINK: TakeOnce<TargetLink> = TakeOnce::new(TargetLink::new());
+
+/// The UART as the transport's output.
+struct UartTx<'a>(&'a mut Uart);
+
+impl Tx for UartTx<'_> {
+    fn write(&mut self, frame: &[u8]) {
+        // The target writes only after a complete frame arrived, and the host waits for the
+        // answer to its first frame (`Hello`) before it sends more: the line is quiet then.
+        self.0.enable_fifos();
+        self.0.write(frame);
+    }
+
+    /// The buffered log frames go out before each reply, when the host is reading (see
+    /// `logger`).
+    fn pending_notice(&mut self) -> Option<Response> {
+        logger::take_chunk().map(|(dropped, frames)| Response::Log { dropped, frames })
     }
 }
 
+/// Reports the panic over the link in a final [`Uplink::Panic`] frame (message and location,
+/// truncated), then stops QEMU with [`EXIT_PANIC`].
+///
+/// [`Uplink::Panic`]: deform_shared::transport::Uplink::Panic
 #[panic_handler]
-fn panic(_: &core::panic::PanicInfo) -> ! {
+fn panic(info: &core::panic::PanicInfo) -> ! {
+    use core::fmt::Write;
+    let mut text = heapless::String::<{ deform_shared::transport::PANIC_MESSAGE_LEN }>::new();
+    // A message longer than the buffer is cut off: `write!` stops at the first failed push.
+    let _ = write!(text, "{info}");
+    let mut frame = [0u8; 2 * deform_shared::transport::PANIC_MESSAGE_LEN];
+    let len = transport::panic_frame(&text, &mut frame);
+    // A delimiter first ends whatever frame was being written when the panic struck.
+    hw::write_raw(&[deform_shared::frame::DELIMITER]);
+    hw::write_raw(frame.get(..len).unwrap_or(&[]));
     hw::exit(EXIT_PANIC)
 }
 

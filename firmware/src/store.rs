@@ -4,25 +4,37 @@ use core::cell::UnsafeCell;
 use core::sync::atomic::{AtomicBool, Ordering};
 
 use deform_shared::matrix::TileHeader;
-use deform_target_core::session::{Storage, DIRECTION_PAD};
+use deform_shared::protocol::MAX_DIRECTIONS;
+use deform_target_core::kernel::{Lanes, Sums};
+use deform_target_core::session::{DirectionStorage, Storage};
 
 /// Instruction words the matrix store holds (2 MiB).
 pub const WORD_CAPACITY: usize = 512 * 1024;
-/// Tile headers the matrix store holds (64 KiB).
+/// Tile headers the matrix store holds (80 KiB).
 pub const TILE_CAPACITY: usize = 4096;
-/// Largest dimension: six vectors of 256 KiB (p 2 KiB more) and K·p of 512 KiB.
+/// Largest dimension. Per direction four vectors of 256 KiB (3 MiB for three directions), the
+/// interleaved search directions 1 MiB, K·p 1.5 MiB.
 pub const MAX_N: usize = 65536;
+/// Rows of private partial sums for MVUs whose row ranges overlap (1.5 MiB): the overlapping
+/// scheme (thesis 4.1.1) may use up to n of them beyond the rows themselves.
+pub const PARTIAL_ROWS: usize = 65536;
 
 /// Everything the session works in. All zero at boot, so it lands in `.bss`.
 pub struct Buffers {
     words: [u32; WORD_CAPACITY],
     tiles: [TileHeader; TILE_CAPACITY],
+    directions: [DirectionBuffers; MAX_DIRECTIONS],
+    p: [Lanes; MAX_N],
+    kp: [Sums; MAX_N],
+    partial: [Sums; PARTIAL_ROWS],
+}
+
+/// The vectors of one direction of a fused solve.
+pub struct DirectionBuffers {
     b: [i32; MAX_N],
     x: [i32; MAX_N],
     x0: [i32; MAX_N],
     r: [i32; MAX_N],
-    p: [i32; MAX_N + DIRECTION_PAD],
-    kp: [i64; MAX_N],
 }
 
 const NO_TILE: TileHeader = TileHeader {
@@ -30,31 +42,48 @@ const NO_TILE: TileHeader = TileHeader {
     col_base: 0,
     rows: 0,
     words: 0,
+    mvu: 0,
+    mirrored: false,
 };
+
+impl DirectionBuffers {
+    const ZERO: DirectionBuffers = DirectionBuffers {
+        b: [0; MAX_N],
+        x: [0; MAX_N],
+        x0: [0; MAX_N],
+        r: [0; MAX_N],
+    };
+
+    fn storage(&mut self) -> DirectionStorage<'_> {
+        DirectionStorage {
+            b: &mut self.b,
+            x: &mut self.x,
+            x0: &mut self.x0,
+            r: &mut self.r,
+        }
+    }
+}
 
 impl Buffers {
     const ZERO: Buffers = Buffers {
         words: [0; WORD_CAPACITY],
         tiles: [NO_TILE; TILE_CAPACITY],
-        b: [0; MAX_N],
-        x: [0; MAX_N],
-        x0: [0; MAX_N],
-        r: [0; MAX_N],
-        p: [0; MAX_N + DIRECTION_PAD],
-        kp: [0; MAX_N],
+        directions: [DirectionBuffers::ZERO; MAX_DIRECTIONS],
+        p: [[0; 4]; MAX_N],
+        kp: [[0; MAX_DIRECTIONS]; MAX_N],
+        partial: [[0; MAX_DIRECTIONS]; PARTIAL_ROWS],
     };
 
     /// Lends all buffers to a session.
     pub fn storage(&mut self) -> Storage<'_> {
+        let [d0, d1, d2] = &mut self.directions;
         Storage {
             words: &mut self.words,
             tiles: &mut self.tiles,
-            b: &mut self.b,
-            x: &mut self.x,
-            x0: &mut self.x0,
-            r: &mut self.r,
+            directions: [d0.storage(), d1.storage(), d2.storage()],
             p: &mut self.p,
             kp: &mut self.kp,
+            partial: &mut self.partial,
         }
     }
 }

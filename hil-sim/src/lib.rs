@@ -12,9 +12,14 @@
 //! - QEMU notices that the pty was opened only on its next poll, up to a second later; until then
 //!   the host's bytes wait in the pty, so the first answer may take that long.
 //!
+//! [`relay::FaultRelay`] puts a bad cable between the host and that pty: bit flips, lost,
+//! duplicated and inserted bytes, stalls and cuts, from a fixed seed.
+//!
 //! `-icount shift=0` makes the guest's cycle counters deterministic (one instruction per
 //! virtual nanosecond), which is what lets the firmware's `mcycle`/`minstret` reports be compared
 //! between runs.
+
+pub mod relay;
 
 use std::ffi::OsString;
 use std::io::{BufRead, BufReader, Read};
@@ -24,6 +29,9 @@ use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::{Duration, Instant};
+
+/// The most harts the firmware uses (its `_max_hart_id` is 7).
+pub const MAX_HARTS: u8 = 8;
 
 /// The QEMU binary that emulates the 32-bit RISC-V `virt` machine.
 pub const QEMU_BINARY: &str = "qemu-system-riscv32";
@@ -35,6 +43,13 @@ pub const FIRMWARE_BUILD_PATH: &str =
 
 /// Overrides [`firmware_elf`]'s default path when set.
 pub const FIRMWARE_ENV: &str = "DEFORM_FIRMWARE";
+
+/// Where the serial loader lands (the firmware package's second binary, built with it).
+pub const LOADER_BUILD_PATH: &str =
+    "firmware/target/riscv32imac-unknown-none-elf/release/deform-loader";
+
+/// Overrides [`loader_elf`]'s default path when set.
+pub const LOADER_ENV: &str = "DEFORM_LOADER";
 
 /// The exit code with which the firmware's panic handler stops QEMU (via the SiFive test device).
 pub const PANIC_EXIT_CODE: i32 = 101;
@@ -53,9 +68,22 @@ pub fn firmware_elf() -> PathBuf {
 
 /// The release build inside the firmware's workspace, which sits beside this crate.
 fn default_firmware_elf() -> PathBuf {
+    workspace_root().join(FIRMWARE_BUILD_PATH)
+}
+
+/// Where the serial loader ELF is: `$DEFORM_LOADER` if set, else its release build beside the
+/// firmware's (`cargo xtask firmware` builds both). Boot it like the firmware
+/// (`QemuConfig::new(loader_elf())`) and flash an application through its UART.
+pub fn loader_elf() -> PathBuf {
+    match std::env::var_os(LOADER_ENV) {
+        Some(path) if !path.is_empty() => PathBuf::from(path),
+        _ => workspace_root().join(LOADER_BUILD_PATH),
+    }
+}
+
+fn workspace_root() -> PathBuf {
     let manifest_dir = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let workspace_root = manifest_dir.parent().unwrap_or(manifest_dir);
-    workspace_root.join(FIRMWARE_BUILD_PATH)
+    manifest_dir.parent().unwrap_or(manifest_dir).to_path_buf()
 }
 
 /// Why QEMU could not be started or did not behave.
@@ -91,6 +119,8 @@ pub enum HilError {
     },
     #[error("waiting for QEMU failed: {0}")]
     Wait(#[source] std::io::Error),
+    #[error("talking to QEMU's monitor failed: {0}")]
+    Monitor(#[source] std::io::Error),
 }
 
 /// How to boot the firmware.
@@ -104,6 +134,9 @@ pub struct QemuConfig {
     pub qemu: OsString,
     /// How long QEMU may take to announce its pty.
     pub start_timeout: Duration,
+    /// A Unix socket for QEMU's monitor, so that a test can reset the board
+    /// ([`Qemu::system_reset`]); `None`: no monitor.
+    pub monitor: Option<PathBuf>,
 }
 
 impl QemuConfig {
@@ -114,11 +147,20 @@ impl QemuConfig {
             harts: 1,
             qemu: QEMU_BINARY.into(),
             start_timeout: Duration::from_secs(10),
+            monitor: None,
         }
     }
 
+    /// Puts QEMU's monitor on a Unix socket at `path` (see [`Qemu::system_reset`]).
+    pub fn monitor(mut self, path: impl Into<PathBuf>) -> Self {
+        self.monitor = Some(path.into());
+        self
+    }
+
+    /// Harts (`-smp`), clamped to 1..=[`MAX_HARTS`]: the firmware puts up to 8 to work as MVUs,
+    /// and a hart beyond them would spin in riscv-rt's `abort`, stealing QEMU's time.
     pub fn harts(mut self, harts: u8) -> Self {
-        self.harts = harts.max(1);
+        self.harts = harts.clamp(1, MAX_HARTS);
         self
     }
 
@@ -132,12 +174,21 @@ impl QemuConfig {
             "shift=0"
         };
         let mut args: Vec<OsString> = [
-            "-machine", "virt", "-bios", "none", "-display", "none", "-monitor", "none", "-serial",
-            "pty", "-m", "64M",
+            "-machine", "virt", "-bios", "none", "-display", "none", "-serial", "pty", "-m", "64M",
         ]
         .iter()
         .map(OsString::from)
         .collect();
+        args.push("-monitor".into());
+        args.push(match &self.monitor {
+            Some(path) => {
+                let mut spec = OsString::from("unix:");
+                spec.push(path);
+                spec.push(",server=on,wait=off");
+                spec
+            }
+            None => "none".into(),
+        });
         args.push("-smp".into());
         args.push(self.harts.to_string().into());
         args.push("-icount".into());
@@ -249,6 +300,44 @@ impl Qemu {
     /// QEMU's process id.
     pub fn pid(&self) -> u32 {
         self.child.id()
+    }
+
+    /// Resets the board through QEMU's monitor (which [`QemuConfig::monitor`] must have put on
+    /// a socket): the firmware reboots, losing everything it held, while its UART stays on the
+    /// same pty, as a board whose reset button was pressed.
+    pub fn system_reset(&self, monitor: &Path) -> Result<(), HilError> {
+        use std::io::Write;
+        let mut socket =
+            std::os::unix::net::UnixStream::connect(monitor).map_err(HilError::Monitor)?;
+        socket
+            .set_read_timeout(Some(Duration::from_secs(5)))
+            .map_err(HilError::Monitor)?;
+        socket
+            .write_all(b"system_reset\n")
+            .map_err(HilError::Monitor)?;
+        // Wait for the monitor to echo the command back, i.e. to have executed it.
+        let mut seen = Vec::new();
+        let mut buf = [0u8; 256];
+        while !String::from_utf8_lossy(&seen).contains("system_reset") {
+            let n = socket.read(&mut buf).map_err(HilError::Monitor)?;
+            if n == 0 {
+                break;
+            }
+            seen.extend_from_slice(&buf[..n]);
+        }
+        Ok(())
+    }
+
+    /// Kills QEMU now (a board losing power) and reaps it.
+    pub fn kill(&mut self) -> Result<(), HilError> {
+        if self.exit.is_none() {
+            let _ = self.child.kill();
+            self.exit = Some(self.child.wait().map_err(HilError::Wait)?);
+            for collector in self.collectors.drain(..) {
+                let _ = collector.join();
+            }
+        }
+        Ok(())
     }
 
     /// QEMU's exit code if it has exited ([`PANIC_EXIT_CODE`] after a firmware panic), `None`
@@ -372,6 +461,9 @@ mod tests {
         assert!(text(&one).contains("-smp 1 -icount shift=0 -kernel fw.elf"));
         assert!(text(&four).contains("-smp 4 -icount shift=0,sleep=off"));
         assert!(text(&one).contains("-bios none") && text(&one).contains("-serial pty"));
+        let many = QemuConfig::new("fw.elf").harts(200).args();
+        assert!(text(&many).contains("-smp 8 "));
+        assert!(text(&QemuConfig::new("fw.elf").harts(0).args()).contains("-smp 1 "));
     }
 
     #[test]

@@ -90,9 +90,32 @@ fn quick_bench_runs_every_part_and_writes_sane_files() {
             assert!(p.mvu_cycles_per_iteration > 0.0 && p.svu_cycles_per_iteration > 0.0);
             assert!((1.0..200.0).contains(&p.instructions_per_nonzero), "{p:?}");
             assert!(p.mflops > 0.0 && p.mflops < 100.0, "{p:?}");
-            assert!(p.words as usize >= p.nnz);
+            // Conjugate symmetry stores about half of A (plus empty-row words of the tiling).
+            assert!(
+                p.words as usize >= p.nnz / 2 && p.words as usize <= p.nnz,
+                "{p:?}"
+            );
+            assert_eq!(p.saturations, 0);
         }
     }
+    // Two MVUs shorten the critical path of every point.
+    for two in sweep.points.iter().filter(|p| p.mvus == 2) {
+        let one = sweep
+            .points
+            .iter()
+            .find(|p| p.model == two.model && p.n == two.n && p.mvus == 1)
+            .unwrap();
+        assert_eq!(two.mvus_used, 2);
+        assert!(
+            two.mvu_cycles_per_iteration < one.mvu_cycles_per_iteration,
+            "{two:?}"
+        );
+        assert!(
+            two.cycles_per_iteration < one.cycles_per_iteration,
+            "{two:?}"
+        );
+    }
+    assert!(sweep.points.iter().any(|p| p.mvus == 2));
     for a in sweep.points.iter().filter(|p| p.model == BenchModel::A) {
         let b = sweep
             .points

@@ -32,6 +32,11 @@ fn run_example(name: &str) {
         max_iter: scenario.solver.max_iter,
         max_solves: scenario.solver.max_solves.unwrap_or(8),
         solve_timeout: Duration::from_secs(120),
+        layout: Default::default(),
+        precondition: Default::default(),
+        fuse: true,
+        link: Default::default(),
+        logs: Default::default(),
     };
     let solved = solve_model(&model, &plan).expect("solve on QEMU");
     assert_alive(&mut qemu);

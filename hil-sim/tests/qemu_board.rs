@@ -89,12 +89,19 @@ fn line_noise_neither_crashes_nor_confuses_the_firmware() {
                                                    // Well-formed requests out of session order, and a response where a request belongs.
     link.send_raw(&encoded(Request::EndMatrix { crc32: 0 }, 8))
         .unwrap();
-    link.send_raw(&encoded(Request::ReadSolution { offset: 0 }, 9))
-        .unwrap();
+    link.send_raw(&encoded(
+        Request::ReadSolution {
+            direction: 0,
+            offset: 0,
+        },
+        9,
+    ))
+    .unwrap();
     let params = SolveParams {
         max_iterations: 10,
         tolerance: 0.5,
         start: Start::Previous,
+        directions: 1,
     };
     link.send_raw(&encoded(Request::Solve(params), 10)).unwrap();
     link.send_raw(&encoded(deform_shared::protocol::Response::Ack, 11))
@@ -164,7 +171,7 @@ fn solves_a_multi_tile_banded_system_with_a_warm_start() {
     assert!(err < 1e-5, "max relative error {err:e}");
 
     // The same right-hand side again from the previous solution: already converged.
-    target.upload_vector(VectorSlot::Rhs, &rhs).unwrap();
+    target.upload_vector(VectorSlot::RHS, &rhs).unwrap();
     let warm = target
         .solve(SolveParams {
             start: Start::Previous,
@@ -238,6 +245,7 @@ fn solve_params() -> SolveParams {
         max_iterations: 5000,
         tolerance: 1e-10,
         start: Start::Zero,
+        directions: 1,
     }
 }
 

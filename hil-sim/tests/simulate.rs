@@ -26,6 +26,7 @@ fn params(warm_start: bool) -> StepParams {
         tol: 1e-7,
         max_iterations: 2000,
         check_reference: true,
+        layout: Default::default(),
     }
 }
 
@@ -111,6 +112,7 @@ fn the_nonlinear_model_updates_values_only_and_matches_a_fresh_upload() {
         max_iterations: 2000,
         tolerance: 1e-7,
         start: Start::Zero,
+        directions: 1,
     };
     let (updated_report, updated_x) = target.solve_for(&b, solve).unwrap();
     target.upload_matrix(&encode(&k).unwrap()).unwrap();

@@ -29,6 +29,13 @@ enum Command {
     /// Measure cycles per CG iteration, MFLOPS, convergence, the real-time budget and the
     /// host baseline against the thesis's figures; JSON, CSV and SVG/PNG plots in --out.
     Bench(commands::bench::BenchArgs),
+    // Observe and Estimate take their help from their Args' doc comments (which document the
+    // observation file format).
+    Observe(commands::observe::ObserveArgs),
+    Estimate(commands::estimate::EstimateArgs),
+    /// Upload a firmware ELF through the target's serial loader (a board on --port, or QEMU
+    /// booted with the loader), verify it by CRC in target RAM, start it and confirm it answers.
+    Flash(commands::flash::FlashArgs),
 }
 
 fn main() -> ExitCode {
@@ -38,6 +45,9 @@ fn main() -> ExitCode {
         Command::Solve(args) => commands::solve::run(args),
         Command::Simulate(args) => commands::simulate::run(args),
         Command::Bench(args) => commands::bench::run(args).map(|_| ()),
+        Command::Observe(args) => commands::observe::run(args),
+        Command::Estimate(args) => commands::estimate::run(args),
+        Command::Flash(args) => commands::flash::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

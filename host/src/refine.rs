@@ -6,41 +6,108 @@
 //! side and adds the correction d to x. Each round gains the target's precision again, so a
 //! tolerance far below what fixed point reaches on its own takes only a few rounds; the matrix
 //! stays resident on the target throughout. `--tol` therefore always means the true residual.
+//!
+//! Up to three right-hand sides with the same matrix (the x, y and z directions, thesis eq. 38)
+//! are refined together: every round sends the residuals of the directions not yet converged
+//! and solves them in one fused target run, so each matrix word fetched serves all of them.
+//!
+//! With Jacobi preconditioning ([`crate::precondition`]) the target holds S = D^-1/2·A·D^-1/2:
+//! the residual goes in as s⊙r and the correction comes back as s⊙d, while the residual is
+//! still measured against A itself.
 
-use deform_shared::protocol::{PhaseCounters, SolveParams, Start};
+use deform_shared::protocol::{SolveParams, SolveReport, Start, MAX_DIRECTIONS};
 
 use crate::link::{LinkError, Port, Target};
 use crate::model::Csr;
+use crate::precondition::Scaled;
 use crate::reference::{norm, residual};
 
 /// The target never gets an inner tolerance tighter than this: below it the fixed-point
 /// iteration only burns cycles, and refinement does better.
 pub const FIXED_POINT_FLOOR: f64 = 1e-7;
 
+/// The target's inner tolerance is this fraction of `--tol`: its recursive fixed-point residual
+/// can sit a little below the true f64 one, and a solve that stops right at `--tol` would then
+/// miss it by a hair and cost a whole refinement step.
+pub const INNER_MARGIN: f64 = 0.5;
+
 /// How hard to try.
 #[derive(Debug, Clone, Copy)]
 pub struct RefineParams {
     /// Stop once ‖b − A·x‖₂ / ‖b‖₂ ≤ `tol` (f64, measured on the host).
     pub tol: f64,
-    /// At most this many target solves (the first one included).
+    /// At most this many target solves per direction (the first one included).
     pub max_solves: u32,
     /// CG iteration cap for each target solve.
     pub max_iterations: u32,
+    /// Solve the directions together in one fused target run (else one after the other).
+    pub fuse: bool,
 }
 
-/// What the refinement produced, with the target's work summed over every solve.
+/// What the refinement produced for one right-hand side.
 #[derive(Debug, Clone)]
-pub struct Refined {
+pub struct DirectionResult {
     pub x: Vec<f64>,
     /// True relative residual of `x`.
     pub relative_residual: f64,
-    /// Target solves (1 + refinement steps).
+    /// Target solves this direction took part in (1 + refinement steps; 0 for b = 0).
     pub solves: u32,
-    /// CG iterations over all solves.
+    /// CG iterations of this direction over all its solves.
     pub iterations: u32,
-    pub words_per_iteration: u32,
-    pub mvu: PhaseCounters,
-    pub svu: PhaseCounters,
+}
+
+/// Every direction's result and every target solve's report.
+#[derive(Debug, Clone)]
+pub struct Refined {
+    pub directions: Vec<DirectionResult>,
+    /// The target's report of each solve, in order (a fused solve is one report).
+    pub reports: Vec<SolveReport>,
+}
+
+impl Refined {
+    /// Matrix words the MVUs fetched over all solves.
+    pub fn words_fetched(&self) -> u64 {
+        self.reports
+            .iter()
+            .map(|r| r.words_per_iteration as u64 * r.iterations as u64)
+            .sum()
+    }
+
+    /// Words the same iterations would have fetched with every direction solved on its own.
+    pub fn words_fetched_unfused(&self) -> u64 {
+        self.reports
+            .iter()
+            .map(|r| {
+                r.words_per_iteration as u64
+                    * r.directions
+                        .iter()
+                        .map(|d| d.iterations as u64)
+                        .sum::<u64>()
+            })
+            .sum()
+    }
+
+    /// Critical-path cycles over all solves: each solve's measured T = T_MVU + T_SVU per
+    /// iteration (the slowest MVU plus the SVU, thesis eq. 55) times its iterations. The MVU and
+    /// SVU loops do not depend on the data, so one measured iteration stands for all of them.
+    pub fn critical_path_cycles(&self) -> u64 {
+        self.reports
+            .iter()
+            .map(|r| {
+                (r.per_iteration.mvu_critical + r.per_iteration.svu_critical) * r.iterations as u64
+            })
+            .sum()
+    }
+
+    /// Hart 0's `mcycle` over the MVU and SVU phases of all solves. Under QEMU `-icount` every
+    /// hart's counter follows one machine-wide instruction count, so with several harts this is
+    /// their sum, not the parallel time: see [`Refined::critical_path_cycles`] for that.
+    pub fn cycles(&self) -> u64 {
+        self.reports
+            .iter()
+            .map(|r| r.mvu.cycles + r.svu.cycles)
+            .sum()
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -56,61 +123,93 @@ pub enum RefineError {
         solves: u32,
         tol: f64,
     },
+    #[error(
+        "the target clamped {0} value(s) to their fixed-point range: its result cannot be \
+         trusted (a firmware fault, since the block-floating-point scaling should prevent it)"
+    )]
+    Saturated(u32),
+    #[error("{0} right-hand sides given; a target solve takes 1 to {MAX_DIRECTIONS}")]
+    Directions(usize),
 }
 
-fn add(total: &mut PhaseCounters, more: PhaseCounters) {
-    total.cycles += more.cycles;
-    total.instructions += more.instructions;
-}
-
-/// Solves A·x = b on `target` (which must hold A already) to a true relative residual of
-/// `params.tol`. A zero `b` gives x = 0 without a target solve.
+/// Solves A·x_d = b_d for every `rhs` on `target` (which must hold `scaled.matrix`, A or its
+/// Jacobi scaling, already) to a true relative residual of `params.tol` each. A zero b_d gives
+/// x_d = 0 without a target solve.
 pub fn solve_refined<P: Port>(
     target: &mut Target<P>,
     a: &Csr,
-    b: &[f64],
+    scaled: &Scaled,
+    rhs: &[&[f64]],
     params: RefineParams,
 ) -> Result<Refined, RefineError> {
-    let n = b.len();
-    let b_norm = norm(b);
-    let mut out = Refined {
-        x: vec![0.0; n],
-        relative_residual: 0.0,
-        solves: 0,
-        iterations: 0,
-        words_per_iteration: 0,
-        mvu: PhaseCounters::default(),
-        svu: PhaseCounters::default(),
-    };
-    if b_norm == 0.0 {
-        return Ok(out);
+    if rhs.is_empty() || rhs.len() > MAX_DIRECTIONS {
+        return Err(RefineError::Directions(rhs.len()));
     }
+    let mut out = Refined {
+        directions: Vec::with_capacity(rhs.len()),
+        reports: Vec::new(),
+    };
+    let mut residuals: Vec<Vec<f64>> = rhs.iter().map(|b| b.to_vec()).collect();
+    let norms: Vec<f64> = rhs.iter().map(|b| norm(b)).collect();
+    for (b, &b_norm) in rhs.iter().zip(&norms) {
+        out.directions.push(DirectionResult {
+            x: vec![0.0; b.len()],
+            relative_residual: if b_norm == 0.0 { 0.0 } else { 1.0 },
+            solves: 0,
+            iterations: 0,
+        });
+    }
+    let groups: Vec<Vec<usize>> = if params.fuse {
+        vec![(0..rhs.len()).collect()]
+    } else {
+        (0..rhs.len()).map(|d| vec![d]).collect()
+    };
     let solve = SolveParams {
         max_iterations: params.max_iterations,
-        tolerance: params.tol.max(FIXED_POINT_FLOOR),
+        tolerance: (params.tol * INNER_MARGIN).max(FIXED_POINT_FLOOR),
         start: Start::Zero,
+        directions: 1,
     };
-    let mut r = b.to_vec();
-    out.relative_residual = 1.0;
-    while out.relative_residual > params.tol {
-        if out.solves >= params.max_solves {
-            return Err(RefineError::NotConverged {
-                residual: out.relative_residual,
-                solves: out.solves,
-                tol: params.tol,
-            });
+    for group in groups {
+        loop {
+            let active: Vec<usize> = group
+                .iter()
+                .copied()
+                .filter(|&d| out.directions[d].relative_residual > params.tol)
+                .collect();
+            let Some(&first) = active.first() else { break };
+            if out.directions[first].solves >= params.max_solves {
+                let worst = active
+                    .iter()
+                    .map(|&d| out.directions[d].relative_residual)
+                    .fold(0.0, f64::max);
+                return Err(RefineError::NotConverged {
+                    residual: worst,
+                    solves: out.directions[first].solves,
+                    tol: params.tol,
+                });
+            }
+            let sent: Vec<Vec<f64>> = active
+                .iter()
+                .map(|&d| scaled.apply(&residuals[d]))
+                .collect();
+            let sent: Vec<&[f64]> = sent.iter().map(Vec::as_slice).collect();
+            let (report, corrections) = target.solve_fused(&sent, solve)?;
+            if report.saturations > 0 {
+                return Err(RefineError::Saturated(report.saturations));
+            }
+            for (i, &d) in active.iter().enumerate() {
+                let result = &mut out.directions[d];
+                result.solves += 1;
+                result.iterations += report.directions.get(i).map_or(0, |r| r.iterations);
+                for (x, c) in result.x.iter_mut().zip(scaled.apply(&corrections[i])) {
+                    *x += c;
+                }
+                residuals[d] = residual(a, rhs[d], &result.x);
+                result.relative_residual = norm(&residuals[d]) / norms[d];
+            }
+            out.reports.push(report);
         }
-        let (report, d) = target.solve_for(&r, solve)?;
-        out.solves += 1;
-        out.iterations += report.iterations;
-        out.words_per_iteration = report.words_per_iteration;
-        add(&mut out.mvu, report.mvu);
-        add(&mut out.svu, report.svu);
-        for (x, d) in out.x.iter_mut().zip(&d) {
-            *x += d;
-        }
-        r = residual(a, b, &out.x);
-        out.relative_residual = norm(&r) / b_norm;
     }
     Ok(out)
 }

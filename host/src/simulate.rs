@@ -28,9 +28,9 @@
 //! only the new values go to the target ([`Target::update_values`]); the bytes saved against a
 //! full upload are reported per step.
 
-use deform_shared::protocol::{PhaseCounters, SolveParams, Start, VectorSlot};
+use deform_shared::protocol::{SolveParams, SolveReport, Start, VectorSlot};
 
-use crate::encode::encode;
+use crate::encode::{encode_with, EncodeOptions};
 use crate::link::{LinkError, Port, Target, UpdateReport, UploadProgress};
 use crate::model::assembly::assemble_laplacian;
 use crate::model::boundary::eliminate_fixed_nodes;
@@ -77,6 +77,10 @@ pub struct StepParams {
     pub max_iterations: u32,
     /// Also solve each step with the f64 reference CG and report the deviation.
     pub check_reference: bool,
+    /// How K is laid out over the MVUs. The displacement-dependent model never uses conjugate
+    /// symmetry: its K is persymmetric only by accident, and a layout that switched between
+    /// half and whole from step to step would defeat the values-only updates.
+    pub layout: EncodeOptions,
 }
 
 /// What one step produced.
@@ -86,9 +90,9 @@ pub struct StepResult {
     pub t: f64,
     /// Target CG iterations, summed over the three directions.
     pub iterations: u32,
-    /// The target's MVU and SVU counters, summed over the three directions' solves.
-    pub mvu: PhaseCounters,
-    pub svu: PhaseCounters,
+    /// The target's report of each solve this step made (one per direction with a load), with
+    /// its cycle and instruction counters.
+    pub reports: Vec<SolveReport>,
     /// Largest true relative residual ‖b − K·u‖/‖b‖ over the directions.
     pub residual: f64,
     pub max_u: f64,
@@ -179,7 +183,8 @@ pub fn simulate_with<P: Port>(
     let mut previous: [Vec<f64>; 3] = [vec![0.0; n], vec![0.0; n], vec![0.0; n]];
     let mut results = Vec::new();
     if nonlinear.is_none() {
-        target.upload_matrix_with_progress(&encode(model.unit_matrix())?, &mut on_upload)?;
+        let encoding = encode_with(model.unit_matrix(), &params.layout)?;
+        target.upload_matrix_with_progress(&encoding.matrix, &mut on_upload)?;
     }
     for s in 1..=schedule.steps {
         let t = schedule.time(s);
@@ -209,7 +214,11 @@ pub fn simulate_with<P: Port>(
             ),
             Some(Nonlinear { alpha }) => {
                 let k = nonlinear_matrix(model, alpha, &previous)?;
-                let encoded = encode(&k)?;
+                let layout = EncodeOptions {
+                    use_symmetry: false,
+                    ..params.layout
+                };
+                let encoded = encode_with(&k, &layout)?.matrix;
                 let update = if target.pattern_matches(&encoded) {
                     Some(target.update_values(&encoded)?)
                 } else {
@@ -227,8 +236,7 @@ pub fn simulate_with<P: Port>(
             step: s,
             t,
             iterations: 0,
-            mvu: PhaseCounters::default(),
-            svu: PhaseCounters::default(),
+            reports: Vec::new(),
             residual: 0.0,
             max_u: 0.0,
             deviation: None,
@@ -242,7 +250,7 @@ pub fn simulate_with<P: Port>(
                 vec![0.0; n]
             } else {
                 let start = if params.warm_start && max_abs(&previous[p]) > 0.0 {
-                    target.upload_vector(VectorSlot::InitialGuess, &previous[p])?;
+                    target.upload_vector(VectorSlot::INITIAL_GUESS, &previous[p])?;
                     Start::Uploaded
                 } else {
                     Start::Zero
@@ -251,15 +259,12 @@ pub fn simulate_with<P: Port>(
                     max_iterations: params.max_iterations,
                     tolerance: params.tol.max(FIXED_POINT_FLOOR),
                     start,
+                    directions: 1,
                 };
                 let (report, x) = target.solve_for(b, solve)?;
                 result.iterations += report.iterations;
-                for (total, phase) in [(&mut result.mvu, report.mvu), (&mut result.svu, report.svu)]
-                {
-                    total.cycles += phase.cycles;
-                    total.instructions += phase.instructions;
-                }
                 result.residual = result.residual.max(reference::relative_residual(&k, b, &x));
+                result.reports.push(report);
                 if params.check_reference {
                     let want = reference::solve(&k, b, None, 1e-12, 10 * n.max(100))?;
                     let scale = max_abs(&want.x);

@@ -119,8 +119,20 @@ fn loads_only_on_fixed_nodes_warn_but_succeed() {
 }
 
 #[test]
-fn too_wide_a_band_is_reported() {
+fn a_band_wider_than_one_window_encodes_in_halves() {
+    // Model B on 16³: rows span 547 columns, more than a tile's 512.
     let out = deform(&["model", "--grid", "16,16,16", "--model", "b"]);
     assert!(out.status.success(), "{}", stderr(&out));
-    assert!(stdout(&out).contains("not supported yet"));
+    let text = stdout(&out);
+    assert!(text.contains("bandwidth      273"), "{text}");
+    assert!(
+        text.contains("16 tile(s), 97227 words (3 empty-row)"),
+        "{text}"
+    );
+    assert!(
+        text.contains(
+            "persymmetric   yes: conjugate symmetry stores half, 48612 words in 8 tile(s)"
+        ),
+        "{text}"
+    );
 }

@@ -8,12 +8,18 @@
 //! - [`qformat`]: fixed-point scaling of matrix values and block-floating-point vectors;
 //! - [`protocol`]: the request and response messages;
 //! - [`frame`]: how a message travels on the wire (postcard, CRC-32, COBS, `0x00` delimiter);
+//! - [`transport`]: sequence numbers, window, ACK/NAK and the target's uplink frames;
+//! - [`chunk`]: the fixed-width encoding of chunk payloads;
+//! - [`loader`]: the serial loader's protocol (flashing an application over the UART);
 //! - [`matrix`]: the tiled layout of a matrix as instruction words, and its validation.
 #![cfg_attr(not(any(feature = "std", test)), no_std)]
 #![forbid(unsafe_code)]
 
+pub mod chunk;
 pub mod frame;
+pub mod loader;
 pub mod matrix;
 pub mod protocol;
 pub mod qformat;
+pub mod transport;
 pub mod word;

@@ -13,13 +13,19 @@ use serde::{Deserialize, Serialize};
 
 use crate::word::{Word, COLUMN_WINDOW};
 
-/// Where one tile sits in the matrix and how many words it has.
+/// Where one tile sits in the matrix, how many words it has, and who runs it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct TileHeader {
     pub row_base: u32,
     pub col_base: u32,
     pub rows: u32,
     pub words: u32,
+    /// The MVU (hart) that executes this tile; must be below the target's `harts`.
+    pub mvu: u8,
+    /// Persymmetric half storage: every word (row i, column j, value v) also adds
+    /// v·p[n−1−j] to y[n−1−i] (thesis 2.5 vi, 4.1). Mirrored rows and columns are in range
+    /// whenever the tile's own are.
+    pub mirrored: bool,
 }
 
 /// A structural fault in a tile: the firmware refuses such a matrix before any solve.
@@ -49,6 +55,22 @@ pub enum MatrixError {
     ColumnOutOfRange { tile: u32, column: u32 },
     #[error("the tiles hold {found} words in all, the matrix header says {expected}")]
     TotalWordsMismatch { expected: u32, found: u32 },
+    #[error("row {row} (reached by tile {tile}) has more words than the MVU's exact 64-bit row sum allows")]
+    RowTooLong { tile: u32, row: u32 },
+    #[error("tile {tile} is assigned to MVU {mvu}, but the target has {harts} harts")]
+    MvuOutOfRange { tile: u32, mvu: u8, harts: u8 },
+}
+
+/// Checks a tile's MVU assignment against the harts the target has.
+pub fn validate_mvu(tile: u32, header: &TileHeader, harts: u8) -> Result<(), MatrixError> {
+    if header.mvu >= harts {
+        return Err(MatrixError::MvuOutOfRange {
+            tile,
+            mvu: header.mvu,
+            harts,
+        });
+    }
+    Ok(())
 }
 
 /// Checks one tile's words against its header and the dimension `n`.
@@ -131,6 +153,8 @@ mod tests {
             col_base: 0,
             rows,
             words: words.len() as u32,
+            mvu: 0,
+            mirrored: false,
         }
     }
 
@@ -202,6 +226,23 @@ mod tests {
         assert_eq!(
             validate_tile(0, &h, &good, 2),
             Err(MatrixError::RowsOutOfRange { tile: 0 })
+        );
+    }
+
+    #[test]
+    fn the_mvu_must_exist() {
+        let h = TileHeader {
+            mvu: 3,
+            ..TileHeader::default()
+        };
+        assert_eq!(validate_mvu(0, &h, 4), Ok(()));
+        assert_eq!(
+            validate_mvu(5, &h, 3),
+            Err(MatrixError::MvuOutOfRange {
+                tile: 5,
+                mvu: 3,
+                harts: 3
+            })
         );
     }
 

@@ -1,18 +1,31 @@
 //! The request/response messages between the host and the target.
 //!
 //! The host always speaks first and the target answers every request with exactly one
-//! response carrying the request's sequence number (see [`Envelope`]): a frame that cannot be
-//! decoded at all is answered with [`ErrorCode::Frame`] and the sequence number 0xFFFF.
+//! response, which travels in an [`Uplink::Reply`](crate::transport::Uplink) carrying the
+//! request's sequence number. Sequencing, the window, acknowledgements and retransmission are the
+//! transport's business ([`crate::transport`], `docs/PROTOCOL.md`): by the time a request reaches
+//! the session it arrived intact, in order and exactly once.
 //!
 //! Session order (the firmware enforces it and says which step is out of order):
 //!
 //! 1. `Hello` → `Hello(TargetInfo)`: versions and capacities; it also resets the session.
 //! 2. `BeginMatrix`, then for each tile a `Tile` followed by its `Words` chunks, then `EndMatrix`
 //!    with the CRC of all words → `Ack` once the whole matrix is validated.
-//! 3. `BeginVector(Rhs)` and its `VectorData` chunks (likewise an initial guess, if wanted).
-//! 4. `Solve` → `Solved(SolveReport)`, then `ReadSolution` chunk by chunk.
+//! 3. `BeginVector(Rhs { direction })` and its `VectorData` chunks for each direction to solve
+//!    (likewise an initial guess, if wanted).
+//! 4. `Solve` → `Solved(SolveReport)`, then `ReadSolution { direction, offset }` chunk by chunk.
 //!
 //! Steps 3–4 repeat for as many right-hand sides as wanted; the matrix stays resident.
+//!
+//! # Parallel MVUs, mirrored tiles, fused directions (protocol version 4)
+//!
+//! - Each tile names the MVU (hart) that runs it (`TileHeader::mvu`, below `TargetInfo::harts`);
+//!   the solve uses `max(mvu) + 1` MVUs. y = Σ over all tiles whatever the assignment: when the
+//!   MVUs' row ranges overlap (thesis 4.1.1) each accumulates into private partial sums that are
+//!   added afterwards, otherwise (4.1.2) each writes its rows of y directly.
+//! - A `mirrored` tile stores half of a persymmetric K (K_ij = K_{n−1−i, n−1−j}, thesis 2.5 vi):
+//!   each of its words (row i, column j, value v) also adds v·p[n−1−j] to y[n−1−i].
+//! - `SolveParams::directions` runs up to three CGs on the same K together (x, y, z).
 //!
 //! # Values-only update (protocol version 2)
 //!
@@ -41,32 +54,70 @@ use crate::frame::FrameError;
 use crate::matrix::{MatrixError, TileHeader};
 
 /// Bumped on any change to these types or to the framing.
-pub const PROTOCOL_VERSION: u16 = 3;
+///
+/// Version 4 (link): the reliable transport ([`crate::transport`]: window, ACK/NAK, `Uplink` frames),
+/// fixed-width chunk payloads ([`crate::chunk`]) and 128-element chunks.
+/// Version 5 (engine): tiles carry their MVU and a mirrored flag, fused directions, per-hart costs.
+pub const PROTOCOL_VERSION: u16 = 5;
 
-/// Words or mantissas per chunk message. 64 × 4 bytes keeps a frame well under
-/// [`MAX_FRAME_LEN`] while the per-frame overhead stays small.
-pub const CHUNK_LEN: usize = 64;
+/// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
+pub const MAX_DIRECTIONS: usize = 3;
 
-/// Largest encoded frame, delimiter included, that either side must accept.
-pub const MAX_FRAME_LEN: usize = 512;
+/// Most harts (MVUs) a target may report; `TileHeader::mvu` must be below the reported count.
+pub const MAX_HARTS: usize = 8;
 
-/// Sequence number used in answers to frames whose own sequence number could not be read.
+/// Words or mantissas per chunk message. Each element takes 4 bytes on the wire and a chunk
+/// frame adds about 17 bytes (sequence number, tag, offset, count, CRC, COBS, delimiter), so 128
+/// elements cost ≈ 4.13 bytes per element; 64 would cost ≈ 4.27. Larger chunks would save
+/// little more and lose more data to each corrupted frame on a noisy line.
+pub const CHUNK_LEN: usize = 128;
+
+/// Largest encoded frame, delimiter included, that either side must accept: the largest chunk
+/// message (≈ 540 bytes) with room for a few more header fields.
+pub const MAX_FRAME_LEN: usize = 576;
+
+/// Not used since protocol version 4, whose transport answers an unreadable frame with
+/// [`Uplink::Nak`](crate::transport::Uplink) instead; kept for code that still names it.
 pub const UNKNOWN_SEQ: u16 = 0xFFFF;
 
-/// Every frame carries one envelope: a sequence number and the message.
+/// Most log bytes one [`Response::Log`] carries: with its envelope it stays well inside
+/// [`MAX_FRAME_LEN`] even after the transport's own header.
+pub const LOG_CHUNK: usize = 256;
+
+/// Most bytes of build id [`TargetInfo::build_id`] holds: 20 for a SHA-1 GNU build id, 16 for
+/// md5/uuid, 8 for lld's default "fast" hash.
+pub const BUILD_ID_MAX: usize = 32;
+
+/// Every request travels in one envelope: its sequence number and the request (see
+/// [`crate::transport`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Envelope<T> {
     pub seq: u16,
     pub body: T,
 }
 
-/// Which vector a `BeginVector`/`VectorData` fills.
+/// Which vector a `BeginVector`/`VectorData` fills. `direction` (0..[`MAX_DIRECTIONS`]) picks
+/// which of the fused systems it belongs to; a single-direction solve uses direction 0.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum VectorSlot {
-    /// The right-hand side b.
-    Rhs,
-    /// A starting point x₀ for CG.
-    InitialGuess,
+    /// The right-hand side b of one direction.
+    Rhs { direction: u8 },
+    /// A starting point x₀ for one direction's CG.
+    InitialGuess { direction: u8 },
+}
+
+impl VectorSlot {
+    /// The right-hand side of direction 0, what a single-direction solve uses.
+    pub const RHS: VectorSlot = VectorSlot::Rhs { direction: 0 };
+    /// The initial guess of direction 0.
+    pub const INITIAL_GUESS: VectorSlot = VectorSlot::InitialGuess { direction: 0 };
+
+    /// The direction this slot belongs to.
+    pub fn direction(self) -> u8 {
+        match self {
+            VectorSlot::Rhs { direction } | VectorSlot::InitialGuess { direction } => direction,
+        }
+    }
 }
 
 /// Where CG starts.
@@ -87,6 +138,11 @@ pub struct SolveParams {
     /// Stop once ‖r‖₂ / ‖b‖₂ falls to this (the target's recursive residual).
     pub tolerance: f64,
     pub start: Start,
+    /// How many systems (1..=[`MAX_DIRECTIONS`]) run fused on the resident K: directions
+    /// `0..directions`, each with its own `Rhs` (and `InitialGuess` for [`Start::Uploaded`]).
+    /// Every matrix word fetched serves one multiply-accumulate per direction. Each direction
+    /// stops on its own tolerance; the loop runs until all have stopped.
+    pub directions: u8,
 }
 
 // Chunk variants are large by design (one frame's worth of data); no_std has no Box to shrink them.
@@ -105,6 +161,7 @@ pub enum Request {
     Tile(TileHeader),
     Words {
         offset: u32,
+        #[serde(with = "crate::chunk")]
         words: Vec<u32, CHUNK_LEN>,
     },
     EndMatrix {
@@ -118,10 +175,12 @@ pub enum Request {
     VectorData {
         slot: VectorSlot,
         offset: u32,
+        #[serde(with = "crate::chunk")]
         mantissas: Vec<i32, CHUNK_LEN>,
     },
     Solve(SolveParams),
     ReadSolution {
+        direction: u8,
         offset: u32,
     },
     /// Starts a values-only update of the resident matrix (see the module doc).
@@ -132,6 +191,7 @@ pub enum Request {
     /// New raw values for the resident words `offset..offset + values.len()`.
     UpdateValues {
         offset: u32,
+        #[serde(with = "crate::chunk")]
         values: Vec<i32, CHUNK_LEN>,
     },
     /// Ends a values-only update: the CRC of all words as they now are.
@@ -153,6 +213,10 @@ pub struct TargetInfo {
     pub tile_capacity: u32,
     /// Largest dimension n the vectors hold.
     pub max_n: u32,
+    /// The firmware ELF's GNU build id (`.note.gnu.build-id`, a hash of the whole linked ELF,
+    /// defmt's string table included): the host decodes the firmware's logs only with an ELF
+    /// whose build id is the same. Empty if the firmware has none.
+    pub build_id: Vec<u8, BUILD_ID_MAX>,
 }
 
 /// Cycle and retired-instruction counts of one phase (`mcycle`/`minstret` deltas).
@@ -162,18 +226,62 @@ pub struct PhaseCounters {
     pub instructions: u64,
 }
 
+/// How one direction of a (possibly fused) solve ended.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct SolveReport {
+pub struct DirectionReport {
+    /// CG iterations this direction took (it stops updating once converged).
     pub iterations: u32,
     pub converged: bool,
-    /// Final ‖r‖₂ / ‖b‖₂ of the recursive residual.
+    /// Final ‖r‖₂ / ‖b‖₂ of this direction's recursive residual.
     pub residual: f64,
-    /// Nonzeros the MVUs executed per iteration (instruction words, empty-row words included).
+}
+
+/// Retired instructions of one CG iteration, measured hart by hart.
+///
+/// Under QEMU `-icount` every hart's `minstret` reads one machine-wide instruction count, so the
+/// target measures these on an iteration whose parallel phases it runs one hart at a time (the
+/// others asleep in `wfi`): each hart's delta is then exactly its own work, barrier waits
+/// excluded. The MVU loop's count does not depend on the data, so one iteration stands for all.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct IterationCost {
+    /// Σ over the MVU phase's steps of the slowest hart's instructions (thesis T_MVU).
+    pub mvu_critical: u64,
+    /// Σ over the SVU's steps of the slowest hart's instructions, plus hart 0's scalar work
+    /// (thesis T_SVU).
+    pub svu_critical: u64,
+    /// All harts' MVU-phase instructions together.
+    pub mvu_total: u64,
+    /// All harts' SVU-phase instructions together.
+    pub svu_total: u64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SolveReport {
+    /// Iterations of the fused loop: the most any direction took.
+    pub iterations: u32,
+    /// Every direction converged.
+    pub converged: bool,
+    /// The largest final ‖r‖₂ / ‖b‖₂ over the directions.
+    pub residual: f64,
+    /// One entry per direction, in order.
+    pub directions: Vec<DirectionReport, MAX_DIRECTIONS>,
+    /// Nonzeros the MVUs executed per iteration (instruction words, empty-row words included);
+    /// each serves one multiply-accumulate per direction (two for a mirrored tile).
     pub words_per_iteration: u32,
-    /// Matrix–vector products (the MVU phase), over the whole solve.
+    /// MVUs (harts) the solve ran on: the largest tile `mvu` + 1.
+    pub mvus: u8,
+    /// Whether the MVUs' row ranges overlap (thesis 4.1.1: private partial sums, added
+    /// afterwards) or not (4.1.2: each MVU writes its rows of Kp directly).
+    pub overlapping: bool,
+    /// Hart 0's counters over the MVU phases of the whole solve (wall clock of the phase).
     pub mvu: PhaseCounters,
-    /// Scalar and vector steps (the SVU phase), over the whole solve.
+    /// Hart 0's counters over the SVU phases of the whole solve.
     pub svu: PhaseCounters,
+    /// Per-hart instruction counts of one iteration (zero if the solve needed no iteration).
+    pub per_iteration: IterationCost,
+    /// Values that had to be clamped to fit their fixed-point format. The block-floating-point
+    /// bounds make this impossible; anything but 0 means the result cannot be trusted.
+    pub saturations: u32,
 }
 
 /// Why CG stopped without an answer.
@@ -183,6 +291,8 @@ pub enum SolveFailure {
     NotPositiveDefinite { iteration: u32 },
     #[error("the solver's work vectors are shorter than the matrix needs (a firmware fault)")]
     WorkspaceTooSmall,
+    #[error("{0} directions requested; a solve runs 1 to 3")]
+    BadDirections(u8),
 }
 
 /// Every error the target can answer with.
@@ -218,6 +328,10 @@ pub enum ErrorCode {
     Solve(SolveFailure),
     #[error("matrix value {0} does not fit the 21-bit value field")]
     ValueOutOfRange(i32),
+    #[error("direction {direction} does not exist; the target runs directions 0..{max}")]
+    DirectionOutOfRange { direction: u8, max: u8 },
+    #[error("the MVUs' overlapping row ranges need {rows} rows of private partial sums, the target holds {capacity}")]
+    OverlapTooLarge { rows: u32, capacity: u32 },
 }
 
 /// The step a request arrived out of, for [`ErrorCode::OutOfOrder`].
@@ -260,9 +374,20 @@ pub enum Response {
     Error(ErrorCode),
     Solved(SolveReport),
     Solution {
+        direction: u8,
         offset: u32,
         exponent: i32,
+        #[serde(with = "crate::chunk")]
         mantissas: Vec<i32, CHUNK_LEN>,
+    },
+    /// Unsolicited: defmt log frames (rzcobs-encoded, each ending in `0x00`), sent by the target
+    /// just before an answer; the host decodes them against the firmware ELF. A chunk may end
+    /// inside a frame, the next `Log` continues it. `dropped` counts the log bytes the target
+    /// discarded since the previous `Log` because its log buffer was full (whole frames are
+    /// discarded, so what does arrive still decodes).
+    Log {
+        dropped: u32,
+        frames: Vec<u8, LOG_CHUNK>,
     },
 }
 
@@ -283,6 +408,7 @@ mod tests {
         };
         let mut buf = [0u8; MAX_FRAME_LEN];
         let n = frame::encode(&req, &mut buf).unwrap();
+        assert!(n + 16 <= MAX_FRAME_LEN, "{n}: leave room for new fields");
         let back: Envelope<Request> = frame::decode(&mut buf[..n - 1]).unwrap();
         assert_eq!(back, req);
 
@@ -299,15 +425,54 @@ mod tests {
         assert_eq!(back, req);
 
         let mantissas: Vec<i32, CHUNK_LEN> = (0..CHUNK_LEN as i32).map(|i| i32::MIN + i).collect();
-        let resp = Envelope {
-            seq: 7,
+        let resp = crate::transport::Uplink::Reply {
+            seq: u16::MAX,
             body: Response::Solution {
+                direction: 2,
                 offset: u32::MAX,
                 exponent: i32::MIN,
                 mantissas,
             },
         };
-        assert!(frame::encode(&resp, &mut buf).is_ok());
+        let n = frame::encode(&resp, &mut buf).unwrap();
+        assert!(n + 16 <= MAX_FRAME_LEN, "{n}: leave room for new fields");
+        let direction = DirectionReport {
+            iterations: u32::MAX,
+            converged: false,
+            residual: f64::MAX,
+        };
+        let report = SolveReport {
+            iterations: u32::MAX,
+            converged: false,
+            residual: f64::MAX,
+            directions: [direction; MAX_DIRECTIONS].into_iter().collect(),
+            words_per_iteration: u32::MAX,
+            mvus: u8::MAX,
+            overlapping: true,
+            mvu: PhaseCounters {
+                cycles: u64::MAX,
+                instructions: u64::MAX,
+            },
+            svu: PhaseCounters {
+                cycles: u64::MAX,
+                instructions: u64::MAX,
+            },
+            per_iteration: IterationCost {
+                mvu_critical: u64::MAX,
+                svu_critical: u64::MAX,
+                mvu_total: u64::MAX,
+                svu_total: u64::MAX,
+            },
+            saturations: u32::MAX,
+        };
+        let resp = crate::transport::Uplink::Reply {
+            seq: u16::MAX,
+            body: Response::Solved(report),
+        };
+        let n = frame::encode(&resp, &mut buf).unwrap();
+        assert!(n + 16 <= MAX_FRAME_LEN, "{n}: leave room for new fields");
+        let back: crate::transport::Uplink = frame::decode(&mut buf[..n - 1]).unwrap();
+        assert_eq!(back, resp);
         let info = TargetInfo {
             protocol_version: 1,
             firmware_version: heapless::String::try_from("0.1.0-abcdefghij").unwrap(),
@@ -315,14 +480,44 @@ mod tests {
             word_capacity: u32::MAX,
             tile_capacity: u32::MAX,
             max_n: u32::MAX,
+            build_id: (0..BUILD_ID_MAX as u8).map(|b| 0xF0 | b).collect(),
         };
         assert!(frame::encode(
-            &Envelope {
+            &crate::transport::Uplink::Reply {
                 seq: 1,
                 body: Response::Hello(info)
             },
             &mut buf
         )
         .is_ok());
+        let log = Envelope {
+            seq: UNKNOWN_SEQ,
+            body: Response::Log {
+                dropped: u32::MAX,
+                frames: (0..LOG_CHUNK).map(|_| 0xFF).collect(),
+            },
+        };
+        let n = frame::encode(&log, &mut buf).unwrap();
+        assert!(
+            n <= MAX_FRAME_LEN - 64,
+            "{n}: leave room for a transport header"
+        );
+    }
+
+    /// The goal: at most 4.2 bytes on the wire per matrix nonzero (4 is the floor).
+    #[test]
+    fn a_full_words_chunk_costs_under_4_2_bytes_per_word() {
+        let words: Vec<u32, CHUNK_LEN> = (0..CHUNK_LEN as u32).map(|i| 0xC000_0000 | i).collect();
+        let req = Envelope {
+            seq: 0xFFFF,
+            body: Request::Words {
+                offset: 0x0010_0000,
+                words,
+            },
+        };
+        let mut buf = [0u8; MAX_FRAME_LEN];
+        let n = frame::encode(&req, &mut buf).unwrap();
+        let per_word = n as f64 / CHUNK_LEN as f64;
+        assert!(per_word <= 4.15, "{n} bytes: {per_word} per word");
     }
 }

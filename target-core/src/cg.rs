@@ -1,32 +1,223 @@
-//! Conjugate gradients on the target (thesis 2.3, 4.2), in block floating point.
+//! Conjugate gradients on the target (thesis 2.3, 4.2), in block floating point, on several
+//! MVUs at once and for up to three right-hand sides together.
+//!
+//! # Work split (thesis 4.1, 4.2)
+//!
+//! Every iteration has two parallel phases and a little serial work on hart 0:
+//!
+//! - **MVU**: hart h executes the tiles whose header names `mvu = h` ([`crate::kernel`]).
+//!   [`plan`] decides at upload time whether the MVUs' row ranges (mirror rows of mirrored
+//!   tiles included) overlap. If not (thesis 4.1.2) each MVU adds its rows straight into Kp;
+//!   if they do (4.1.1) each MVU accumulates into its own slots of the partial-sum pool, and a
+//!   second parallel step adds the partial rows up. The same step finds max |Kp|.
+//! - **SVU**: hart 0 computes α for each direction; every hart updates x and r on its slice of
+//!   the vectors (with Σr² and the maxima for the block exponents), hart 0 combines them and
+//!   computes β; every hart updates p on its slice; hart 0 combines the maxima.
+//!
+//! Every number a hart contributes is an integer (exact products and sums, OR-ed maxima), so the
+//! result does not depend on the number of MVUs or on the partition: 1, 2, 4 or 8 MVUs give
+//! bit-identical solutions, and a fused solve equals the separate solves direction by direction.
 //!
 //! # Number formats
 //!
 //! - Matrix values are raw 21-bit integers q with value = q · 2^-F (`frac_bits` = F).
-//! - Every vector is a [`deform_shared::qformat`] block: `i32` mantissas with one shared exponent.
-//!   Mantissas are kept below 2^29 in magnitude (one more bit of headroom than the wire format).
-//! - Scalars (α, β, norms) are computed once per iteration in `f64` (soft float on rv32imac:
-//!   a few hundred instructions per iteration, nothing per element), then turned back into a
-//!   mantissa/exponent pair for the vector loops.
+//! - Every vector is a block: `i32` mantissas with one shared exponent, below 2^30 in
+//!   magnitude (uploaded vectors and SVU results alike), which keeps every MVU product below 2^50.
+//! - Scalars (α, β, norms) are `f64` on hart 0 (soft float, a few hundred instructions per
+//!   iteration, nothing per element).
 //!
-//! # Why this never overflows
+//! # The SVU's element operation, and why it cannot overflow
 //!
-//! The MVU accumulates Σ q·p exactly in `i64`: |q| < 2^20, |p| < 2^30 and at most 512 terms per
-//! tile row stay below 2^59. pᵀKp is accumulated exactly in `i128`. Each SVU update
-//! `y ← a·u + b·y` first bounds its result, |a|·max|u| + |b|·max|y|, from the tracked maxima, and
-//! picks the output exponent so that the bound is below 2^29: no element can exceed it, so there is
-//! nothing to saturate. Because the maxima are measured after every update, the exponent follows
-//! the vector down as the residual shrinks, and each vector keeps ~29 significant bits relative to
-//! its largest element. That is what lets the fixed-point iteration go on converging where a single
-//! static Q-format would stall.
+//! Every vector update is z = a·u + b·y, done per element as
+//! `z_i = round(A·(u_i << k_u) / 2^(32 + o_u)) + round(B·(y_i << k_y) / 2^(32 + o_y))`
+//! (`Term`): hart 0 folds the scalars and the exponents into two 32-bit multipliers A, B and
+//! loop-invariant shifts. That costs a `sll`, `mul`, `mulh`, a rounding carry and a `sra` per
+//! term instead of a 64-bit variable shift. The shifts k normalise u and y so that their largest
+//! element lies in [2^30, 2^31), and the shifts o keep |A|, |B| in [2^30, 2^31): the scalars
+//! keep 30 significant bits however small their term is next to the other. The output exponent
+//! is chosen from the tracked maxima so that |a·u + b·y| < 2^29 in output units; the two
+//! roundings add at most one unit, so |z| < 2^30: nothing can saturate. Because the maxima are
+//! measured in every pass (an OR of the magnitudes, which has the same highest bit as the
+//! maximum), the exponent follows the vector down as the residual shrinks, and each vector keeps
+//! ~28–29 significant bits relative to its largest element.
+//!
+//! K·p comes from the MVU as exact `i64` row sums; the r-update narrows each to 31 bits with a
+//! loop-invariant funnel shift chosen from max |Kp|. pᵀKp (exact `i128`) and Σr² (exact `u128`,
+//! summed in `u64` blocks of 8) are integers.
+//!
+//! Saturation is nonetheless detected: a multiplier that would not fit `i32`, a vector whose
+//! maximum breaks its bound, or a K·p beyond 2^62 is clamped and counted in
+//! [`SolveReport::saturations`], which the host reports as an error.
 
-use deform_shared::matrix::TileHeader;
-use deform_shared::protocol::{PhaseCounters, SolveFailure, SolveParams, SolveReport, Start};
-use deform_shared::qformat::{block_exponent, floor_log2, ldexp, to_mantissa};
-use deform_shared::word::{COLUMN_WINDOW, ER_BIT, VALUE_BITS};
+// Harts share the vectors through `SharedSlice`s and the MVU kernel walks raw pointers; every
+// `unsafe` block below states which part of the work split makes it sound.
+#![allow(unsafe_code)]
 
-/// Mantissas produced by the SVU stay below 2^OUTPUT_BITS.
-const OUTPUT_BITS: i32 = 29;
+use deform_shared::matrix::{MatrixError, TileHeader};
+use deform_shared::protocol::{
+    DirectionReport, IterationCost, PhaseCounters, SolveFailure, SolveParams, SolveReport, Start,
+    MAX_DIRECTIONS, MAX_HARTS,
+};
+use deform_shared::qformat::{floor_log2, ldexp};
+use deform_shared::word::ER_BIT;
+
+use crate::exec::{share, SharedSlice};
+pub use crate::exec::{Executor, NoClock, PhaseClock, Sequential};
+use crate::kernel::{run_tile_dyn, Lanes, Sums, TileRun};
+
+/// How often a direction's residual is recomputed as b − A·x after it converged on the
+/// recursive one. Fixed point cannot go below its own floor, so after this the recursive
+/// residual is accepted (the host's refinement takes over from there).
+const MAX_REPLACEMENTS: u32 = 2;
+
+/// Mantissas produced by the SVU stay below 2^OUTPUT_BITS (the MVU's exactness needs < 2^30).
+const OUTPUT_BITS: i32 = 30;
+/// The output exponent keeps the bound on |a·u + b·y| below 2^BOUND_BITS units, leaving room
+/// for the two rounding errors below 2^OUTPUT_BITS.
+const BOUND_BITS: i32 = 29;
+/// A row's total word count (over all tiles and mirrors) above which its i64 sum could
+/// overflow: 2^12 products below 2^50 stay below 2^62.
+pub const MAX_WORDS_PER_ROW: u32 = 1 << 12;
+
+/// A half-open range of rows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Rows {
+    pub lo: usize,
+    pub hi: usize,
+}
+
+impl Rows {
+    fn is_empty(self) -> bool {
+        self.hi <= self.lo
+    }
+
+    fn len(self) -> usize {
+        self.hi.saturating_sub(self.lo)
+    }
+
+    fn cover(self, lo: usize, hi: usize) -> Rows {
+        if self.is_empty() {
+            Rows { lo, hi }
+        } else {
+            Rows {
+                lo: self.lo.min(lo),
+                hi: self.hi.max(hi),
+            }
+        }
+    }
+
+    fn overlaps(self, other: Rows) -> bool {
+        !self.is_empty() && !other.is_empty() && self.lo < other.hi && other.lo < self.hi
+    }
+
+    fn intersect(self, other: Rows) -> Rows {
+        Rows {
+            lo: self.lo.max(other.lo),
+            hi: self.hi.min(other.hi),
+        }
+    }
+}
+
+/// How the MVUs share the matrix, worked out once per upload.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Plan {
+    /// MVUs in use: the largest tile `mvu` + 1.
+    pub mvus: usize,
+    /// True if two MVUs write some row (thesis 4.1.1): then each accumulates privately.
+    pub overlapping: bool,
+    /// Per MVU: the hull of its tiles' rows, and of their mirror rows.
+    pub rows: [[Rows; 2]; MAX_HARTS],
+    /// Per MVU and hull: the first slot of its private partial sums (overlapping only).
+    pub offsets: [[usize; 2]; MAX_HARTS],
+    /// Partial-sum slots used in all.
+    pub partial_len: usize,
+}
+
+/// Why [`plan`] refuses a matrix.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PlanError {
+    /// The overlapping MVUs need more private partial-sum rows than the pool holds.
+    Overlap { rows: u32, capacity: u32 },
+    /// A structural fault the tile validation cannot see (a row with too many words).
+    Matrix(MatrixError),
+}
+
+/// Works out the [`Plan`] for validated `tiles` of dimension `n`; `words` are the tiles' words
+/// back to back. `scratch` (n slots or more) is used to count words per row; `partial_capacity`
+/// is the size of the partial-sum pool.
+pub fn plan(
+    tiles: &[TileHeader],
+    words: &[u32],
+    n: usize,
+    scratch: &mut [Sums],
+    partial_capacity: usize,
+) -> Result<Plan, PlanError> {
+    let mut plan = Plan {
+        mvus: 1,
+        overlapping: false,
+        rows: [[Rows::default(); 2]; MAX_HARTS],
+        offsets: [[0; 2]; MAX_HARTS],
+        partial_len: 0,
+    };
+    // Words per row, mirrors included: every row sum must stay far from i64 overflow.
+    let counts = scratch.get_mut(..n).unwrap_or(&mut []);
+    counts.iter_mut().for_each(|c| c[0] = 0);
+    let mut start = 0usize;
+    for (i, t) in tiles.iter().enumerate() {
+        let h = usize::from(t.mvu).min(MAX_HARTS - 1);
+        plan.mvus = plan.mvus.max(h + 1);
+        let (lo, hi) = (t.row_base as usize, (t.row_base + t.rows) as usize);
+        plan.rows[h][0] = plan.rows[h][0].cover(lo, hi);
+        if t.mirrored {
+            plan.rows[h][1] = plan.rows[h][1].cover(n - hi, n - lo);
+        }
+        let end = start + t.words as usize;
+        let mut row = lo;
+        for &w in words.get(start..end).unwrap_or(&[]) {
+            for r in [Some(row), t.mirrored.then(|| n - 1 - row)]
+                .into_iter()
+                .flatten()
+            {
+                if let Some(c) = counts.get_mut(r) {
+                    c[0] += 1;
+                    if c[0] > i64::from(MAX_WORDS_PER_ROW) {
+                        return Err(PlanError::Matrix(MatrixError::RowTooLong {
+                            tile: i as u32,
+                            row: r as u32,
+                        }));
+                    }
+                }
+            }
+            row += usize::from(w >= ER_BIT);
+        }
+        start = end;
+    }
+    let hulls = |h: usize| plan.rows[h];
+    plan.overlapping = (0..plan.mvus).any(|h| {
+        (h + 1..plan.mvus).any(|g| {
+            hulls(h)
+                .iter()
+                .any(|a| hulls(g).iter().any(|b| a.overlaps(*b)))
+        })
+    });
+    if plan.overlapping {
+        let mut next = 0usize;
+        for h in 0..plan.mvus {
+            for k in 0..2 {
+                plan.offsets[h][k] = next;
+                next += plan.rows[h][k].len();
+            }
+        }
+        if next > partial_capacity {
+            return Err(PlanError::Overlap {
+                rows: u32::try_from(next).unwrap_or(u32::MAX),
+                capacity: u32::try_from(partial_capacity).unwrap_or(u32::MAX),
+            });
+        }
+        plan.partial_len = next;
+    }
+    Ok(plan)
+}
 
 /// A validated matrix as the MVUs see it.
 #[derive(Clone, Copy)]
@@ -36,223 +227,874 @@ pub struct Matrix<'a> {
     pub tiles: &'a [TileHeader],
     /// All tiles' words, back to back in tile order.
     pub words: &'a [u32],
+    pub plan: &'a Plan,
 }
 
-/// The working vectors CG needs besides b and x.
-///
-/// `p` must hold at least n + [`COLUMN_WINDOW`] elements: the MVU reads a tile's 512-column window
-/// of p as a fixed-size array, which is what lets the compiler drop the bounds check from the
-/// inner loop (a 9-bit column can never index past 512). The elements past n are never read for a
-/// validated matrix. `r` and `kp` need n elements.
-pub struct Scratch<'a> {
+/// One direction's system: b, x (x₀ on entry unless [`Start::Zero`], the solution on return)
+/// and its residual vector. Each needs n elements.
+pub struct System<'a> {
+    pub b: &'a [i32],
+    pub b_exponent: i32,
+    pub x: &'a mut [i32],
+    pub x_exponent: i32,
     pub r: &'a mut [i32],
-    pub p: &'a mut [i32],
-    pub kp: &'a mut [i64],
 }
 
-/// Length `p` must have for a matrix of dimension `n`.
-pub const fn direction_len(n: usize) -> usize {
-    n + COLUMN_WINDOW as usize
+/// The vectors all directions share: the interleaved search directions, K·p, and the pool of
+/// private partial sums for overlapping MVUs.
+pub struct Work<'a> {
+    /// n elements.
+    pub p: &'a mut [Lanes],
+    /// n elements.
+    pub kp: &'a mut [Sums],
+    /// At least `plan.partial_len` elements.
+    pub partial: &'a mut [Sums],
 }
 
-/// Reads the cycle and retired-instruction counters, so that the solver can charge each phase.
-pub trait PhaseClock {
-    fn now(&self) -> PhaseCounters;
-}
-
-/// A clock that always reads zero, for hosts and tests.
-pub struct NoClock;
-impl PhaseClock for NoClock {
-    fn now(&self) -> PhaseCounters {
-        PhaseCounters::default()
-    }
-}
-
-/// Adds the counters elapsed since `since` to `total`.
-fn charge(total: &mut PhaseCounters, since: PhaseCounters, clock: &impl PhaseClock) {
-    let now = clock.now();
-    total.cycles += now.cycles.wrapping_sub(since.cycles);
-    total.instructions += now.instructions.wrapping_sub(since.instructions);
-}
-
-/// A number as mantissa · 2^exponent.
+/// Block-floating-point vector state besides its mantissas: exponent and a bound on max |m|.
 #[derive(Debug, Clone, Copy, PartialEq)]
-struct Scalar {
-    m: i32,
-    e: i32,
-}
-
-impl Scalar {
-    const ONE: Scalar = Scalar { m: 1 << 29, e: -29 };
-
-    fn from_f64(v: f64, extra_exponent: i32) -> Scalar {
-        let e = block_exponent(v);
-        // block_exponent guarantees the mantissa fits, so the fallback is unreachable.
-        Scalar {
-            m: to_mantissa(v, e).unwrap_or(0),
-            e: e + extra_exponent,
-        }
-    }
-
-    fn neg(self) -> Scalar {
-        Scalar {
-            m: -self.m,
-            e: self.e,
-        }
-    }
-}
-
-/// Block-floating-point vector state besides its mantissas: exponent and current max |m|.
-#[derive(Debug, Clone, Copy)]
 struct Block {
     e: i32,
-    max: u32,
+    bound: u64,
 }
 
-fn max_abs(m: &[i32]) -> u32 {
-    m.iter().map(|v| v.unsigned_abs()).max().unwrap_or(0)
+/// A bound on max |z| from the OR of `magnitude_bits(z)` (= |z| − 1 for negative z): every
+/// |z| ≤ or + 1.
+fn bound_of(or: u32) -> u64 {
+    u64::from(or) + 1
 }
 
-/// `v · 2^-s`, rounded to nearest, for a loop-invariant `s` of either sign.
 #[inline(always)]
-fn shift_round(v: i64, s: i32) -> i64 {
-    if s > 0 {
-        if s >= 63 {
+fn magnitude_bits(z: i32) -> u32 {
+    (z ^ (z >> 31)) as u32
+}
+
+/// One term of an SVU update: mult·(u << shift) / 2^(32 + out), rounded to nearest.
+///
+/// `mult` is kept in [2^30, 2^31) in magnitude whenever the term matters, so the scalar it
+/// carries (α, β, or a power of two) keeps 30 significant bits however small the term is next
+/// to the other one; `out` shifts the product's high word down instead.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct Term {
+    mult: i32,
+    shift: u32,
+    out: u32,
+    /// 2^(31 + out): rounds the final shift to nearest.
+    round: i64,
+}
+
+impl Term {
+    #[inline(always)]
+    fn apply(self, u: i32) -> i32 {
+        let product = self.mult as i64 * (u << self.shift) as i64 + self.round;
+        ((product >> 32) as i32) >> self.out
+    }
+}
+
+/// z = a·u + b·y as two [`Term`]s, with z's exponent.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct Lin {
+    u: Term,
+    y: Term,
+    e: i32,
+}
+
+/// The left shift that brings a vector with max |m| ≤ `bound` into [2^30, 2^31).
+fn normalising_shift(bound: u64) -> u32 {
+    if bound == 0 {
+        0
+    } else {
+        (30 - floor_log2(bound as f64)).clamp(0, 31) as u32
+    }
+}
+
+impl Lin {
+    /// Plans z = a·u + b·y for blocks u and y (`u_shift`: u's elements are already normalised,
+    /// e.g. narrowed K·p, and must not be shifted again). Counts a multiplier that does not fit
+    /// in `saturations`.
+    fn new(a: f64, u: Block, u_normalised: bool, b: f64, y: Block, saturations: &mut u32) -> Lin {
+        let bound = a.abs() * ldexp(u.bound as f64, u.e) + b.abs() * ldexp(y.bound as f64, y.e);
+        if bound == 0.0 || !bound.is_finite() {
+            if !bound.is_finite() {
+                *saturations += 1;
+            }
+            return Lin::default();
+        }
+        let e = floor_log2(bound) + 1 - BOUND_BITS;
+        let ku = if u_normalised {
             0
         } else {
-            (v + (1i64 << (s - 1))) >> s
-        }
-    } else {
-        v << (-s).min(62)
-    }
-}
-
-/// What `y ← a·u + b·y` reads `u` from: another block vector, or the MVU's raw `i64` results
-/// pre-shifted to 32 bits.
-trait Source {
-    fn get(&self, i: usize) -> i32;
-}
-
-struct Mantissas<'a>(&'a [i32]);
-impl Source for Mantissas<'_> {
-    #[inline(always)]
-    fn get(&self, i: usize) -> i32 {
-        self.0[i]
-    }
-}
-
-struct Wide<'a> {
-    values: &'a [i64],
-    shift: u32,
-}
-impl Source for Wide<'_> {
-    #[inline(always)]
-    fn get(&self, i: usize) -> i32 {
-        (self.values[i] >> self.shift) as i32
-    }
-}
-
-/// Result of one SVU update: the new state of y and Σ y_i² of its mantissas (exact).
-struct Update {
-    block: Block,
-    sum_sq: u128,
-}
-
-/// The SVU's one vector operation, `y ← a·u + b·y`, element by element, returning y's new
-/// exponent, its max and its squared norm (all in the same pass).
-fn axpby(
-    y: &mut [i32],
-    y_block: Block,
-    b: Scalar,
-    a: Scalar,
-    u: &impl Source,
-    u_block: Block,
-) -> Update {
-    // Exponents of the two products a·u_i and b·y_i, and the bound on |a·u_i + b·y_i|.
-    let e1 = a.e + u_block.e;
-    let e2 = b.e + y_block.e;
-    let t1 = a.m.unsigned_abs() as u64 * u_block.max as u64;
-    let t2 = b.m.unsigned_abs() as u64 * y_block.max as u64;
-    if t1 == 0 && t2 == 0 {
-        y.fill(0);
-        return Update {
-            block: Block { e: 0, max: 0 },
-            sum_sq: 0,
+            normalising_shift(u.bound)
         };
-    }
-    let top = e1.max(e2);
-    let bound = ldexp(t1 as f64, e1 - top) + ldexp(t2 as f64, e2 - top);
-    let ez = top + floor_log2(bound) + 1 - OUTPUT_BITS;
-    let (s1, s2) = (ez - e1, ez - e2);
-    let (am, bm) = (a.m as i64, b.m as i64);
-    let mut max = 0u32;
-    let mut sum_sq = 0u128;
-    for (i, yi) in y.iter_mut().enumerate() {
-        let z = shift_round(am * u.get(i) as i64, s1) + shift_round(bm * *yi as i64, s2);
-        let z = z as i32;
-        *yi = z;
-        max = max.max(z.unsigned_abs());
-        sum_sq += (z as i64 * z as i64) as u64 as u128;
-    }
-    Update {
-        block: Block { e: ez, max },
-        sum_sq,
-    }
-}
-
-/// What one matrix–vector product yields besides Kp itself.
-struct MvuResult {
-    /// pᵀKp over the mantissas, exact; its exponent is 2·e_p − F.
-    p_kp: i128,
-    /// max |(Kp)_i| over the raw accumulators.
-    max: u64,
-}
-
-/// The MVU (thesis 4.2.1): executes every tile's instruction words against p, writing
-/// y = Kp (raw, exponent e_p − F) and accumulating pᵀKp as each row completes.
-fn mvu(a: &Matrix<'_>, p: &[i32], y: &mut [i64]) -> MvuResult {
-    y.fill(0);
-    let mut p_kp: i128 = 0;
-    let mut start = 0usize;
-    for tile in a.tiles {
-        let end = start + tile.words as usize;
-        let words = a.words.get(start..end).unwrap_or(&[]);
-        start = end;
-        let col_base = tile.col_base as usize;
-        let Some(window) = p
-            .get(col_base..col_base + COLUMN_WINDOW as usize)
-            .and_then(|w| <&[i32; COLUMN_WINDOW as usize]>::try_from(w).ok())
-        else {
-            continue;
-        };
-        let mut row = tile.row_base as usize;
-        let mut acc: i64 = 0;
-        for &w in words {
-            let column = ((w >> VALUE_BITS) as usize) & (COLUMN_WINDOW as usize - 1);
-            let value = ((w << (32 - VALUE_BITS)) as i32) >> (32 - VALUE_BITS);
-            acc += value as i64 * window[column] as i64;
-            if w & ER_BIT != 0 {
-                if let (Some(out), Some(&pi)) = (y.get_mut(row), p.get(row)) {
-                    *out += acc;
-                    // p_i · acc exactly: acc is split so that both products fit i64.
-                    let lo = (pi as i64) * (acc as u32 as i64);
-                    let hi = (pi as i64) * (acc >> 32);
-                    p_kp += ((hi as i128) << 32) + lo as i128;
+        let ky = normalising_shift(y.bound);
+        let term = |c: f64, block: Block, shift: u32, saturations: &mut u32| -> Term {
+            if block.bound == 0 || c == 0.0 {
+                return Term::default();
+            }
+            let m = ldexp(c, block.e - shift as i32 - e + 32);
+            let out = (30 - floor_log2(m)).clamp(0, 31) as u32;
+            let m = ldexp(m, out as i32);
+            let m = if m >= 0.0 { m + 0.5 } else { m - 0.5 };
+            let mult = if m.abs() >= 2147483648.0 {
+                // Up to half a unit over is the rounding of a multiplier just below 2^31;
+                // anything more breaks the bound.
+                if m.abs() >= 2147483649.0 {
+                    *saturations += 1;
                 }
-                acc = 0;
-                row += 1;
+                if m > 0.0 {
+                    i32::MAX
+                } else {
+                    i32::MIN + 1
+                }
+            } else {
+                m as i64 as i32
+            };
+            Term {
+                mult,
+                shift,
+                out,
+                round: 1i64 << (31 + out),
+            }
+        };
+        Lin {
+            u: term(a, u, ku, saturations),
+            y: term(b, y, ky, saturations),
+            e,
+        }
+    }
+}
+
+/// How the r-update reads K·p: narrowed from `i64` to 31 bits by a loop-invariant shift.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+enum Narrow {
+    /// max |Kp| < 2^31: `(kp as i32) << k`.
+    #[default]
+    Left,
+    /// `kp >> s` for s in 1..=31, as a funnel shift of the two halves.
+    Right(u32),
+}
+
+impl Narrow {
+    /// The narrowing for max |Kp| ≤ `max`, its left shift (for `Left`), and the resulting
+    /// block's exponent offset and bound. Counts max ≥ 2^62 (cannot happen) as a saturation.
+    fn new(max: u64, saturations: &mut u32) -> (Narrow, u32, i32, u64) {
+        if max >= 1 << 62 {
+            *saturations += 1;
+        }
+        let bits = 64 - max.leading_zeros();
+        if bits <= 31 {
+            let k = normalising_shift(max);
+            (Narrow::Left, k, -(k as i32), max << k)
+        } else {
+            let s = (bits - 31).min(31);
+            (Narrow::Right(s), 0, s as i32, (max >> s) + 1)
+        }
+    }
+}
+
+/// What each hart reports from a phase.
+#[derive(Debug, Clone, Copy, Default)]
+struct HartOut {
+    p_kp: [i128; MAX_DIRECTIONS],
+    /// Σ r² of the new residual.
+    sum_sq: [u128; MAX_DIRECTIONS],
+    /// OR of magnitudes: [0] of Kp's (as u64), [1] of x, [2] of r or p.
+    kp_or: [u64; MAX_DIRECTIONS],
+    x_or: [u32; MAX_DIRECTIONS],
+    v_or: [u32; MAX_DIRECTIONS],
+}
+
+/// Per-direction state of the fused loop.
+#[derive(Debug, Clone, Copy)]
+struct Direction {
+    active: bool,
+    iterations: u32,
+    bb: f64,
+    b_e: i32,
+    x: Block,
+    r: Block,
+    p: Block,
+    rr: u128,
+    residual_sq: f64,
+    /// b's block, to restart r from.
+    b: Block,
+    /// Residual replacements done so far.
+    replacements: u32,
+}
+
+impl Direction {
+    /// ‖r‖²/‖b‖² for a residual block with exponent e_r and Σm² = rr.
+    fn ratio(&self, rr: u128, e_r: i32) -> f64 {
+        ldexp(rr as f64 / self.bb, 2 * (e_r - self.b_e))
+    }
+}
+
+/// Σ z² over a slice, exact: squares below 2^60 summed in u64 blocks of 8.
+fn sum_squares(v: &[i32]) -> u128 {
+    v.chunks(8)
+        .map(|c| {
+            c.iter()
+                .map(|&z| (z as i64 * z as i64) as u64)
+                .fold(0u64, u64::wrapping_add) as u128
+        })
+        .sum()
+}
+
+/// The per-phase instruction counts of the measured iteration.
+#[derive(Default)]
+struct Costs {
+    measuring: bool,
+    cost: IterationCost,
+}
+
+impl Costs {
+    fn parallel(&mut self, counts: [u64; MAX_HARTS], harts: usize, mvu: bool) {
+        let counts = &counts[..harts.min(MAX_HARTS)];
+        let max = counts.iter().copied().max().unwrap_or(0);
+        let sum: u64 = counts.iter().sum();
+        if mvu {
+            self.cost.mvu_critical += max;
+            self.cost.mvu_total += sum;
+        } else {
+            self.cost.svu_critical += max;
+            self.cost.svu_total += sum;
+        }
+    }
+
+    fn serial(&mut self, instructions: u64) {
+        self.cost.svu_critical += instructions;
+        self.cost.svu_total += instructions;
+    }
+}
+
+/// The solver's context for one solve: the matrix, the shared vectors and the executor.
+struct Engine<'e, 'a, E: Executor> {
+    a: &'e Matrix<'a>,
+    exec: &'e E,
+    harts: usize,
+    directions: usize,
+    p: SharedSlice<'e, Lanes>,
+    kp: SharedSlice<'e, Sums>,
+    partial: SharedSlice<'e, Sums>,
+    out: SharedSlice<'e, HartOut>,
+}
+
+impl<E: Executor> Engine<'_, '_, E> {
+    fn run(&self, task: &(dyn Fn(usize) + Sync), costs: &mut Costs, mvu: bool) {
+        if costs.measuring {
+            let counts = self.exec.run_measured(self.harts, task);
+            costs.parallel(counts, self.harts, mvu);
+        } else {
+            self.exec.run(self.harts, task);
+        }
+    }
+
+    /// The results of every hart in use, read on hart 0 between phases.
+    fn outs(&self) -> &[HartOut] {
+        // SAFETY: called only between phases, when no task runs.
+        let all = unsafe { self.out.as_slice() };
+        &all[..self.harts.min(all.len())]
+    }
+
+    /// Kp = K·p for every direction, pᵀKp, and the OR of |Kp|.
+    fn mvu(&self, costs: &mut Costs) {
+        let a = self.a;
+        let plan = a.plan;
+        let n = a.n;
+        let directions = self.directions;
+        let task = |h: usize| {
+            let p = self.p.as_mut_ptr() as *const Lanes;
+            let mut p_kp = [0i128; MAX_DIRECTIONS];
+            // Zero this MVU's rows (direct) or private slots (overlapping).
+            for (k, rows) in plan.rows[h].iter().enumerate() {
+                let range = if plan.overlapping {
+                    plan.offsets[h][k]..plan.offsets[h][k] + rows.len()
+                } else {
+                    rows.lo..rows.hi
+                };
+                let target = if plan.overlapping {
+                    &self.partial
+                } else {
+                    &self.kp
+                };
+                // SAFETY: the plan gives every MVU rows (direct: non-overlapping hulls) or
+                // slots (overlapping: its own offsets) that no other MVU touches.
+                unsafe { target.slice_mut(range) }.fill([0; MAX_DIRECTIONS]);
+            }
+            let mut start = 0usize;
+            for t in a.tiles {
+                let first = start;
+                start += t.words as usize;
+                if usize::from(t.mvu) != h {
+                    continue;
+                }
+                let (row_base, col_base) = (t.row_base as usize, t.col_base as usize);
+                let mirror_row = n - 1 - row_base;
+                let (y, y_mirror) = if plan.overlapping {
+                    let base = self.partial.as_mut_ptr();
+                    let [own, mirror] = plan.rows[h];
+                    (
+                        base.wrapping_add(plan.offsets[h][0] + row_base - own.lo),
+                        base.wrapping_add(plan.offsets[h][1])
+                            .wrapping_add(mirror_row)
+                            .wrapping_sub(mirror.lo),
+                    )
+                } else {
+                    let base = self.kp.as_mut_ptr();
+                    (base.wrapping_add(row_base), base.wrapping_add(mirror_row))
+                };
+                let run = TileRun {
+                    words: a.words.as_ptr().wrapping_add(first),
+                    rows: t.rows,
+                    p_cols: p.wrapping_add(col_base),
+                    p_mirror_cols: p.wrapping_add(n - 1 - col_base),
+                    y,
+                    y_mirror,
+                    p_row: p.wrapping_add(row_base),
+                    p_mirror_row: p.wrapping_add(mirror_row),
+                };
+                // SAFETY: the session validated every tile against n (rows, columns, ER/EM
+                // structure) and sized p, kp and the pool for n and the plan; the tile's rows
+                // and mirror rows lie in this MVU's hulls, which map to slots only it writes;
+                // p is only read during this phase.
+                unsafe { run_tile_dyn(&run, directions, t.mirrored, &mut p_kp) };
+            }
+            // SAFETY: each hart writes only its own result slot.
+            if let Some(out) = unsafe { self.out.slice_mut(h..h + 1) }.first_mut() {
+                out.p_kp = p_kp;
+            }
+        };
+        self.run(&task, costs, true);
+
+        // Add the partial rows (overlapping) and find max |Kp|, each hart on its share of rows.
+        let task = |h: usize| {
+            let range = share(n, self.harts, h);
+            // SAFETY: the shares of the rows are disjoint; the pool is only read.
+            let kp = unsafe { self.kp.slice_mut(range.clone()) };
+            if plan.overlapping {
+                kp.fill([0; MAX_DIRECTIONS]);
+                // SAFETY: nothing writes the pool during this phase.
+                let pool = unsafe { self.partial.as_slice() };
+                let mine = Rows {
+                    lo: range.start,
+                    hi: range.end,
+                };
+                for g in 0..plan.mvus {
+                    for k in 0..2 {
+                        let hull = plan.rows[g][k];
+                        let both = hull.intersect(mine);
+                        if both.is_empty() {
+                            continue;
+                        }
+                        let from = plan.offsets[g][k] + both.lo - hull.lo;
+                        let src = pool.get(from..from + both.len()).unwrap_or(&[]);
+                        let dst = &mut kp[both.lo - mine.lo..both.hi - mine.lo];
+                        for (d, s) in dst.iter_mut().zip(src) {
+                            for j in 0..MAX_DIRECTIONS {
+                                d[j] += s[j];
+                            }
+                        }
+                    }
+                }
+            }
+            let mut or = [0u64; MAX_DIRECTIONS];
+            for row in kp.iter() {
+                for d in 0..directions {
+                    let v = row[d];
+                    or[d] |= (v ^ (v >> 63)) as u64;
+                }
+            }
+            // SAFETY: each hart writes only its own result slot.
+            if let Some(out) = unsafe { self.out.slice_mut(h..h + 1) }.first_mut() {
+                out.kp_or = or;
+            }
+        };
+        self.run(&task, costs, true);
+    }
+}
+
+/// The x- and r-updates of one direction on one slice: x ← x + α p, r ← r − α Kp.
+#[allow(clippy::too_many_arguments)]
+fn update_x_r(
+    x: &mut [i32],
+    r: &mut [i32],
+    p: &[Lanes],
+    kp: &[Sums],
+    d: usize,
+    x_lin: Option<Lin>,
+    r_lin: Lin,
+    narrow: (Narrow, u32),
+    out: &mut HartOut,
+) {
+    if let Some(lin) = x_lin {
+        let mut or = 0u32;
+        for (xi, pi) in x.iter_mut().zip(p) {
+            let z = lin.u.apply(pi[d]) + lin.y.apply(*xi);
+            *xi = z;
+            or |= magnitude_bits(z);
+        }
+        out.x_or[d] = or;
+    }
+    let mut or = 0u32;
+    let mut sum_sq = 0u128;
+    let (u, y) = (r_lin.u, r_lin.y);
+    match narrow {
+        (Narrow::Left, k) => {
+            for (rc, kc) in r.chunks_mut(8).zip(kp.chunks(8)) {
+                let mut block = 0u64;
+                for (ri, ki) in rc.iter_mut().zip(kc) {
+                    let z = u.apply((ki[d] as i32) << k) + y.apply(*ri);
+                    *ri = z;
+                    or |= magnitude_bits(z);
+                    block = block.wrapping_add((z as i64 * z as i64) as u64);
+                }
+                sum_sq += block as u128;
+            }
+        }
+        (Narrow::Right(s), _) => {
+            let back = 32 - s;
+            for (rc, kc) in r.chunks_mut(8).zip(kp.chunks(8)) {
+                let mut block = 0u64;
+                for (ri, ki) in rc.iter_mut().zip(kc) {
+                    let v = ki[d];
+                    let narrowed =
+                        ((v as u32).wrapping_shr(s) | ((v >> 32) as u32).wrapping_shl(back)) as i32;
+                    let z = u.apply(narrowed) + y.apply(*ri);
+                    *ri = z;
+                    or |= magnitude_bits(z);
+                    block = block.wrapping_add((z as i64 * z as i64) as u64);
+                }
+                sum_sq += block as u128;
             }
         }
     }
-    let max = y.iter().map(|v| v.unsigned_abs()).max().unwrap_or(0);
-    MvuResult { p_kp, max }
+    out.v_or[d] = or;
+    out.sum_sq[d] = sum_sq;
 }
 
-/// The shift that brings raw MVU results below 2^30, and their max after it.
-fn narrow(max: u64) -> (u32, u32) {
-    let bits = 64 - max.leading_zeros();
-    let shift = bits.saturating_sub(30);
-    (shift, (max >> shift) as u32)
+/// p ← r + β p for one direction on one slice.
+fn update_p(p: &mut [Lanes], r: &[i32], d: usize, lin: Lin, out: &mut HartOut) {
+    let mut or = 0u32;
+    for (pi, ri) in p.iter_mut().zip(r) {
+        let z = lin.u.apply(*ri) + lin.y.apply(pi[d]);
+        pi[d] = z;
+        or |= magnitude_bits(z);
+    }
+    out.v_or[d] = or;
+}
+
+/// The scalars hart 0 hands to pass A for one direction.
+#[derive(Debug, Clone, Copy)]
+struct PassA {
+    x: Option<Lin>,
+    r: Lin,
+    narrow: (Narrow, u32),
+}
+
+/// Solves A x = b for every system in `systems` (1..=3 of them, fused: each MVU pass serves all)
+/// on `exec`'s harts as planned by `a.plan`. Each system's `x`/`x_exponent` hold x₀ on entry
+/// when `params.start` is not [`Start::Zero`], and the solution on return. The report's
+/// residuals are the recursive ‖r‖/‖b‖.
+pub fn solve(
+    a: &Matrix<'_>,
+    systems: &mut [System<'_>],
+    work: Work<'_>,
+    params: &SolveParams,
+    exec: &impl Executor,
+) -> Result<SolveReport, SolveFailure> {
+    let n = a.n;
+    let f = a.frac_bits as i32;
+    let directions = systems.len();
+    if !(1..=MAX_DIRECTIONS).contains(&directions) {
+        return Err(SolveFailure::BadDirections(directions as u8));
+    }
+    let plan = a.plan;
+    let harts = plan.mvus.clamp(1, MAX_HARTS);
+    let short = systems
+        .iter()
+        .any(|s| s.b.len() < n || s.x.len() < n || s.r.len() < n);
+    if short
+        || work.p.len() < n
+        || work.kp.len() < n
+        || work.partial.len() < plan.partial_len
+        || plan.mvus > exec.harts()
+    {
+        return Err(SolveFailure::WorkspaceTooSmall);
+    }
+    let mut saturations = 0u32;
+    let mut report = SolveReport {
+        iterations: 0,
+        converged: false,
+        residual: 0.0,
+        directions: heapless::Vec::new(),
+        words_per_iteration: a.words.len() as u32,
+        mvus: harts as u8,
+        overlapping: plan.overlapping,
+        mvu: PhaseCounters::default(),
+        svu: PhaseCounters::default(),
+        per_iteration: IterationCost::default(),
+        saturations: 0,
+    };
+    let t = exec.now();
+    let zero = Block { e: 0, bound: 0 };
+    let mut state = [Direction {
+        active: false,
+        iterations: 0,
+        bb: 0.0,
+        b_e: 0,
+        x: zero,
+        r: zero,
+        p: zero,
+        rr: 0,
+        residual_sq: 0.0,
+        b: zero,
+        replacements: 0,
+    }; MAX_DIRECTIONS];
+    let tol_sq = params.tolerance * params.tolerance;
+    let Work { p, kp, partial } = work;
+    let (p, kp) = (&mut p[..n], &mut kp[..n]);
+    p.fill([0; 4]);
+    kp.fill([0; MAX_DIRECTIONS]);
+    let mut any_guess = false;
+    for (d, s) in systems.iter_mut().enumerate() {
+        let bb = sum_squares(&s.b[..n]);
+        let st = &mut state[d];
+        st.b_e = s.b_exponent;
+        st.bb = bb as f64;
+        if bb == 0 || params.start == Start::Zero {
+            s.x[..n].fill(0);
+            s.x_exponent = 0;
+        }
+        let or = |v: &[i32]| v.iter().fold(0, |o, &m| o | magnitude_bits(m));
+        st.x = Block {
+            e: s.x_exponent,
+            bound: bound_of(or(&s.x[..n])),
+        };
+        st.active = bb != 0;
+        s.r[..n].copy_from_slice(&s.b[..n]);
+        st.rr = bb;
+        st.r = Block {
+            e: s.b_exponent,
+            bound: bound_of(or(&s.b[..n])),
+        };
+        st.b = st.r;
+        st.x.bound = if s.x[..n].iter().any(|&v| v != 0) {
+            st.x.bound
+        } else {
+            0
+        };
+        if st.active && st.x.bound != 0 {
+            any_guess = true;
+            for (pi, &xi) in p.iter_mut().zip(s.x[..n].iter()) {
+                pi[d] = xi;
+            }
+        }
+    }
+    let mut outs = [HartOut::default(); MAX_HARTS];
+    let systems_b: heapless::Vec<&[i32], MAX_DIRECTIONS> = systems.iter().map(|s| s.b).collect();
+    let mut xs: heapless::Vec<SharedSlice<'_, i32>, MAX_DIRECTIONS> = heapless::Vec::new();
+    let mut rs: heapless::Vec<SharedSlice<'_, i32>, MAX_DIRECTIONS> = heapless::Vec::new();
+    let mut x_exponents = [0i32; MAX_DIRECTIONS];
+    for (d, s) in systems.iter_mut().enumerate() {
+        x_exponents[d] = s.x_exponent;
+        let _ = xs.push(SharedSlice::new(&mut s.x[..n]));
+        let _ = rs.push(SharedSlice::new(&mut s.r[..n]));
+    }
+    let engine = Engine {
+        a,
+        exec,
+        harts,
+        directions,
+        p: SharedSlice::new(p),
+        kp: SharedSlice::new(kp),
+        partial: SharedSlice::new(partial),
+        out: SharedSlice::new(&mut outs),
+    };
+    let mut costs = Costs::default();
+    charge(&mut report.svu, t, exec);
+
+    // Pass A: x ← x + α p (if planned) and r ← r − α Kp, each hart on its share.
+    let pass_a = |plans: &[Option<PassA>; MAX_DIRECTIONS], costs: &mut Costs| {
+        let task = |h: usize| {
+            let range = share(n, harts, h);
+            // SAFETY: each hart writes only its own share of x and r and its own result slot;
+            // p and kp are only read during this pass.
+            unsafe {
+                let out = &mut engine.out.slice_mut(h..h + 1)[0];
+                let (p, kp) = (engine.p.as_slice(), engine.kp.as_slice());
+                for (d, plan) in plans.iter().enumerate().take(directions) {
+                    if let Some(plan) = plan {
+                        let x = xs[d].slice_mut(range.clone());
+                        let r = rs[d].slice_mut(range.clone());
+                        let (p, kp) = (&p[range.clone()], &kp[range.clone()]);
+                        update_x_r(x, r, p, kp, d, plan.x, plan.r, plan.narrow, out);
+                    }
+                }
+            }
+        };
+        engine.run(&task, costs, false);
+    };
+    // Pass B: p ← r + β p, each hart on its share.
+    let pass_b = |plans: &[Option<Lin>; MAX_DIRECTIONS], costs: &mut Costs| {
+        let task = |h: usize| {
+            let range = share(n, harts, h);
+            // SAFETY: each hart writes only its own share of p and its own result slot; r is
+            // only read during this pass.
+            unsafe {
+                let out = &mut engine.out.slice_mut(h..h + 1)[0];
+                let p = engine.p.slice_mut(range.clone());
+                for (d, plan) in plans.iter().enumerate().take(directions) {
+                    if let Some(lin) = plan {
+                        let r = &rs[d].as_slice()[range.clone()];
+                        update_p(p, r, d, *lin, out);
+                    }
+                }
+            }
+        };
+        engine.run(&task, costs, false);
+    };
+    // The r-update's scalars for direction d: r ← r + c·Kp with Kp narrowed from its maxima.
+    let r_plan =
+        |d: usize, c: f64, st: &Direction, saturations: &mut u32| -> (Lin, (Narrow, u32)) {
+            let kp_max = engine.outs().iter().fold(0u64, |o, out| o | out.kp_or[d]);
+            let (narrow, k, e_offset, bound) = Narrow::new(bound_of_u64(kp_max), saturations);
+            let kp_block = Block {
+                e: st.p.e - f + e_offset,
+                bound,
+            };
+            let lin = Lin::new(c, kp_block, true, 1.0, st.r, saturations);
+            (lin, (narrow, k))
+        };
+    // Folds pass A's results of direction d into its state.
+    let take_r = |d: usize, lin: Lin, st: &mut Direction, saturations: &mut u32| {
+        let outs = engine.outs();
+        let rr: u128 = outs.iter().map(|o| o.sum_sq[d]).sum();
+        let or = outs.iter().fold(0u32, |o, out| o | out.v_or[d]);
+        check_bound(or, saturations);
+        st.rr = rr;
+        st.r = Block {
+            e: lin.e,
+            bound: bound_of(or),
+        };
+        st.residual_sq = st.ratio(rr, lin.e);
+    };
+
+    // r₀ = b − A x₀ where x₀ ≠ 0.
+    if any_guess {
+        let t = exec.now();
+        engine.mvu(&mut costs);
+        charge(&mut report.mvu, t, exec);
+        let t = exec.now();
+        let mut plans = [None; MAX_DIRECTIONS];
+        for d in 0..directions {
+            let st = &state[d];
+            if st.active && st.x.bound != 0 {
+                // K·x₀ was computed with x₀'s exponent in place of p's.
+                let st = Direction { p: st.x, ..*st };
+                let (r, narrow) = r_plan(d, -1.0, &st, &mut saturations);
+                plans[d] = Some(PassA { x: None, r, narrow });
+            }
+        }
+        pass_a(&plans, &mut costs);
+        for (d, plan) in plans.iter().enumerate() {
+            if let Some(plan) = plan {
+                take_r(d, plan.r, &mut state[d], &mut saturations);
+            }
+        }
+        charge(&mut report.svu, t, exec);
+    }
+    let t = exec.now();
+    // p₀ = r₀ for every direction that still has work.
+    for (d, st) in state.iter_mut().enumerate().take(directions) {
+        if st.active {
+            st.residual_sq = st.ratio(st.rr, st.r.e);
+            st.active = st.residual_sq > tol_sq;
+        }
+        // SAFETY: no task runs; hart 0 has the vectors to itself.
+        let (p, r) = unsafe { (engine.p.slice_mut(0..n), rs[d].as_slice()) };
+        for (pi, &ri) in p.iter_mut().zip(r) {
+            pi[d] = if st.active { ri } else { 0 };
+        }
+        st.p = st.r;
+    }
+    charge(&mut report.svu, t, exec);
+
+    while state.iter().any(|s| s.active) && report.iterations < params.max_iterations {
+        costs.measuring = report.iterations == 0;
+        report.iterations += 1;
+        let t = exec.now();
+        engine.mvu(&mut costs);
+        charge(&mut report.mvu, t, exec);
+
+        let t = exec.now();
+        let mut plans = [None; MAX_DIRECTIONS];
+        for d in 0..directions {
+            let st = &mut state[d];
+            if !st.active {
+                continue;
+            }
+            st.iterations += 1;
+            let p_kp: i128 = engine.outs().iter().map(|o| o.p_kp[d]).sum();
+            if p_kp <= 0 {
+                return Err(SolveFailure::NotPositiveDefinite {
+                    iteration: report.iterations,
+                });
+            }
+            // α = rᵀr / pᵀKp; exponents: 2e_r and 2e_p − F.
+            let alpha = ldexp(st.rr as f64 / p_kp as f64, 2 * st.r.e - 2 * st.p.e + f);
+            let x = Lin::new(alpha, st.p, false, 1.0, st.x, &mut saturations);
+            let (r, narrow) = r_plan(d, -alpha, st, &mut saturations);
+            plans[d] = Some(PassA {
+                x: Some(x),
+                r,
+                narrow,
+            });
+        }
+        let serial = exec.now();
+        if costs.measuring {
+            costs.serial(serial.instructions.wrapping_sub(t.instructions));
+        }
+        pass_a(&plans, &mut costs);
+        let serial = exec.now();
+        let mut p_plans = [None; MAX_DIRECTIONS];
+        let mut verify = [false; MAX_DIRECTIONS];
+        for (d, plan) in plans.iter().enumerate() {
+            let Some(plan) = plan else { continue };
+            let st = &mut state[d];
+            let x_or = engine.outs().iter().fold(0u32, |o, out| o | out.x_or[d]);
+            check_bound(x_or, &mut saturations);
+            st.x = Block {
+                e: plan.x.map_or(st.x.e, |l| l.e),
+                bound: bound_of(x_or),
+            };
+            x_exponents[d] = st.x.e;
+            let (rr_old, e_old) = (st.rr, st.r.e);
+            take_r(d, plan.r, st, &mut saturations);
+            if st.residual_sq <= tol_sq || st.iterations >= params.max_iterations {
+                st.active = false;
+                // Converged on the recursive residual: check it against b − A·x below.
+                verify[d] = st.residual_sq <= tol_sq && st.replacements < MAX_REPLACEMENTS;
+                continue;
+            }
+            // β = r_newᵀr_new / rᵀr
+            let beta = ldexp(st.rr as f64 / rr_old as f64, 2 * (st.r.e - e_old));
+            p_plans[d] = Some(Lin::new(1.0, st.r, false, beta, st.p, &mut saturations));
+        }
+        if costs.measuring {
+            costs.serial(exec.now().instructions.wrapping_sub(serial.instructions));
+        }
+        let mut verify_any = false;
+        pass_b(&p_plans, &mut costs);
+        let serial = exec.now();
+        for (d, lin) in p_plans.iter().enumerate() {
+            if let Some(lin) = lin {
+                let or = engine.outs().iter().fold(0u32, |o, out| o | out.v_or[d]);
+                check_bound(or, &mut saturations);
+                state[d].p = Block {
+                    e: lin.e,
+                    bound: bound_of(or),
+                };
+            }
+        }
+        if costs.measuring {
+            costs.serial(exec.now().instructions.wrapping_sub(serial.instructions));
+            report.per_iteration = costs.cost;
+            costs.measuring = false;
+        }
+        charge(&mut report.svu, t, exec);
+
+        // Residual replacement: a direction that converged on its recursive residual gets
+        // r = b − A·x recomputed (one extra MVU pass); if that is still above the tolerance —
+        // the recursive residual drifts from the true one by the rounding of the updates —
+        // CG restarts from it with p = r.
+        for (d, v) in verify.iter().enumerate() {
+            if !v {
+                continue;
+            }
+            verify_any = true;
+            state[d].replacements += 1;
+            // SAFETY: no task runs; hart 0 has the vectors to itself.
+            let (p, x, r) = unsafe {
+                (
+                    engine.p.slice_mut(0..n),
+                    xs[d].as_slice(),
+                    rs[d].slice_mut(0..n),
+                )
+            };
+            for (pi, &xi) in p.iter_mut().zip(x) {
+                pi[d] = xi;
+            }
+            r.copy_from_slice(&systems_b[d][..n]);
+            state[d].r = state[d].b;
+        }
+        if verify_any {
+            let t = exec.now();
+            engine.mvu(&mut costs);
+            charge(&mut report.mvu, t, exec);
+            let t = exec.now();
+            let mut plans = [None; MAX_DIRECTIONS];
+            for (d, v) in verify.iter().enumerate() {
+                if *v {
+                    let st = Direction {
+                        p: state[d].x,
+                        ..state[d]
+                    };
+                    let (r, narrow) = r_plan(d, -1.0, &st, &mut saturations);
+                    plans[d] = Some(PassA { x: None, r, narrow });
+                }
+            }
+            pass_a(&plans, &mut costs);
+            for (d, plan) in plans.iter().enumerate() {
+                let Some(plan) = plan else { continue };
+                let st = &mut state[d];
+                take_r(d, plan.r, st, &mut saturations);
+                if st.residual_sq > tol_sq && st.iterations < params.max_iterations {
+                    st.active = true;
+                    // SAFETY: no task runs; hart 0 has the vectors to itself.
+                    let (p, r) = unsafe { (engine.p.slice_mut(0..n), rs[d].as_slice()) };
+                    for (pi, &ri) in p.iter_mut().zip(r) {
+                        pi[d] = ri;
+                    }
+                    st.p = st.r;
+                }
+            }
+            charge(&mut report.svu, t, exec);
+        }
+    }
+
+    drop(xs);
+    drop(rs);
+    report.converged = true;
+    for (d, s) in systems.iter_mut().enumerate() {
+        let st = &state[d];
+        s.x_exponent = x_exponents[d];
+        let converged = st.residual_sq <= tol_sq;
+        let residual = sqrt(st.residual_sq);
+        report.converged &= converged;
+        report.residual = report.residual.max(residual);
+        let _ = report.directions.push(DirectionReport {
+            iterations: st.iterations,
+            converged,
+            residual,
+        });
+    }
+    report.saturations = saturations;
+    Ok(report)
+}
+
+/// Counts a vector whose maximum broke the 2^29 bound its exponent was chosen for.
+fn check_bound(or: u32, saturations: &mut u32) {
+    if or >= 1 << OUTPUT_BITS {
+        *saturations += 1;
+    }
+}
+
+fn bound_of_u64(or: u64) -> u64 {
+    if or == 0 {
+        0
+    } else {
+        or.saturating_add(1)
+    }
 }
 
 /// √x for x ≥ 0 without std: Newton's method from a power-of-two first guess.
@@ -267,587 +1109,12 @@ fn sqrt(x: f64) -> f64 {
     g
 }
 
-/// Solves A x = b. `b` and `x` are block-floating-point vectors (value = m · 2^exponent);
-/// `x`/`x_exponent` hold x₀ on entry when `params.start` is not [`Start::Zero`], and the
-/// solution on return. The report's `residual` is the recursive ‖r‖/‖b‖.
-#[allow(clippy::too_many_arguments)]
-pub fn solve(
-    a: &Matrix<'_>,
-    b: &[i32],
-    b_exponent: i32,
-    x: &mut [i32],
-    x_exponent: &mut i32,
-    scratch: Scratch<'_>,
-    params: &SolveParams,
-    clock: &impl PhaseClock,
-) -> Result<SolveReport, SolveFailure> {
-    let n = a.n;
-    let f = a.frac_bits as i32;
-    let (Some(b), Some(x), Some(r), Some(p), Some(kp)) = (
-        b.get(..n),
-        x.get_mut(..n),
-        scratch.r.get_mut(..n),
-        scratch.p.get_mut(..direction_len(n)),
-        scratch.kp.get_mut(..n),
-    ) else {
-        return Err(SolveFailure::WorkspaceTooSmall);
-    };
-    let mut report = SolveReport {
-        iterations: 0,
-        converged: false,
-        residual: 0.0,
-        words_per_iteration: a.words.len() as u32,
-        mvu: PhaseCounters::default(),
-        svu: PhaseCounters::default(),
-    };
-
-    let t = clock.now();
-    let b_block = Block {
-        e: b_exponent,
-        max: max_abs(b),
-    };
-    let bb: u128 = b
-        .iter()
-        .map(|&v| (v as i64 * v as i64) as u64 as u128)
-        .sum();
-    if bb == 0 {
-        x.fill(0);
-        *x_exponent = 0;
-        report.converged = true;
-        charge(&mut report.svu, t, clock);
-        return Ok(report);
-    }
-    if params.start == Start::Zero {
-        x.fill(0);
-        *x_exponent = 0;
-    }
-    let mut x_block = Block {
-        e: *x_exponent,
-        max: max_abs(x),
-    };
-    // Squared norm of b in f64 units relative to 2^(2·e_b); residual ratios use this.
-    let bb_f = bb as f64;
-    // ‖r‖² / ‖b‖² for a residual block with exponent e_r and Σm² = rr.
-    let ratio = |rr: u128, e_r: i32| ldexp(rr as f64 / bb_f, 2 * (e_r - b_exponent));
-    let tol_sq = params.tolerance * params.tolerance;
-
-    // r₀ = b − A x₀.
-    r.copy_from_slice(b);
-    let mut r_update = Update {
-        block: b_block,
-        sum_sq: bb,
-    };
-    charge(&mut report.svu, t, clock);
-    if x_block.max != 0 {
-        let t = clock.now();
-        let (head, _) = p.split_at_mut(n);
-        head.copy_from_slice(x);
-        let ax = mvu(a, p, kp);
-        charge(&mut report.mvu, t, clock);
-        let t = clock.now();
-        let (shift, max) = narrow(ax.max);
-        let u_block = Block {
-            e: x_block.e - f + shift as i32,
-            max,
-        };
-        r_update = axpby(
-            r,
-            b_block,
-            Scalar::ONE,
-            Scalar::ONE.neg(),
-            &Wide { values: kp, shift },
-            u_block,
-        );
-        charge(&mut report.svu, t, clock);
-    }
-    let t = clock.now();
-    let mut r_block = r_update.block;
-    let mut rr = r_update.sum_sq;
-    // p₀ = r₀.
-    p[..n].copy_from_slice(r);
-    let mut p_block = r_block;
-    let mut residual_sq = ratio(rr, r_block.e);
-    charge(&mut report.svu, t, clock);
-
-    while residual_sq > tol_sq && report.iterations < params.max_iterations {
-        let t = clock.now();
-        let mvu_out = mvu(a, p, kp);
-        charge(&mut report.mvu, t, clock);
-
-        let t = clock.now();
-        report.iterations += 1;
-        if mvu_out.p_kp <= 0 {
-            return Err(SolveFailure::NotPositiveDefinite {
-                iteration: report.iterations,
-            });
-        }
-        // α = rᵀr / pᵀKp; exponents: 2e_r and 2e_p − F.
-        let alpha = Scalar::from_f64(
-            rr as f64 / mvu_out.p_kp as f64,
-            2 * r_block.e - 2 * p_block.e + f,
-        );
-        let (head, _) = p.split_at_mut(n);
-        // x ← x + α p
-        x_block = axpby(x, x_block, Scalar::ONE, alpha, &Mantissas(head), p_block).block;
-        // r ← r − α Kp
-        let (shift, kp_max) = narrow(mvu_out.max);
-        let kp_block = Block {
-            e: p_block.e - f + shift as i32,
-            max: kp_max,
-        };
-        let update = axpby(
-            r,
-            r_block,
-            Scalar::ONE,
-            alpha.neg(),
-            &Wide { values: kp, shift },
-            kp_block,
-        );
-        // β = r_newᵀr_new / rᵀr
-        let beta = Scalar::from_f64(
-            update.sum_sq as f64 / rr as f64,
-            2 * update.block.e - 2 * r_block.e,
-        );
-        r_block = update.block;
-        rr = update.sum_sq;
-        residual_sq = ratio(rr, r_block.e);
-        // p ← r + β p
-        p_block = axpby(head, p_block, beta, Scalar::ONE, &Mantissas(r), r_block).block;
-        charge(&mut report.svu, t, clock);
-    }
-    *x_exponent = x_block.e;
-    report.converged = residual_sq <= tol_sq;
-    report.residual = sqrt(residual_sq);
-    Ok(report)
+/// Adds the counters elapsed since `since` to `total`.
+fn charge(total: &mut PhaseCounters, since: PhaseCounters, clock: &impl PhaseClock) {
+    let now = clock.now();
+    total.cycles += now.cycles.wrapping_sub(since.cycles);
+    total.instructions += now.instructions.wrapping_sub(since.instructions);
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use deform_shared::matrix::validate_tile;
-    use deform_shared::qformat::{from_mantissa, quantize};
-    use deform_shared::word::Word;
-    use proptest::prelude::*;
-
-    /// A sparse matrix as rows of (column, value) in f64, with the tiles and words encoding it.
-    struct Encoded {
-        n: usize,
-        frac_bits: u8,
-        tiles: Vec<TileHeader>,
-        words: Vec<u32>,
-        rows: Vec<Vec<(usize, f64)>>,
-    }
-
-    /// Row blocks of `block` rows, each with the window starting at its smallest column.
-    fn encode(rows: Vec<Vec<(usize, f64)>>, frac_bits: u8, block: usize) -> Encoded {
-        let n = rows.len();
-        let mut tiles = Vec::new();
-        let mut words = Vec::new();
-        for start in (0..n).step_by(block) {
-            let end = (start + block).min(n);
-            let col_base = rows[start..end]
-                .iter()
-                .flatten()
-                .map(|&(c, _)| c)
-                .min()
-                .unwrap_or(0);
-            let first = words.len();
-            for row in &rows[start..end] {
-                if row.is_empty() {
-                    words.push(Word::empty_row(false).bits());
-                }
-                for (k, &(c, v)) in row.iter().enumerate() {
-                    let raw = quantize(v, frac_bits).unwrap() as i64;
-                    words.push(
-                        Word::new((c - col_base) as u32, raw, k + 1 == row.len(), false)
-                            .unwrap()
-                            .bits(),
-                    );
-                }
-            }
-            *words.last_mut().unwrap() |= deform_shared::word::EM_BIT;
-            let header = TileHeader {
-                row_base: start as u32,
-                col_base: col_base as u32,
-                rows: (end - start) as u32,
-                words: (words.len() - first) as u32,
-            };
-            validate_tile(tiles.len() as u32, &header, &words[first..], n as u32).unwrap();
-            tiles.push(header);
-        }
-        Encoded {
-            n,
-            frac_bits,
-            tiles,
-            words,
-            rows,
-        }
-    }
-
-    fn laplacian_1d(n: usize) -> Vec<Vec<(usize, f64)>> {
-        (0..n)
-            .map(|i| {
-                let mut row = Vec::new();
-                if i > 0 {
-                    row.push((i - 1, -1.0));
-                }
-                row.push((i, 2.0));
-                if i + 1 < n {
-                    row.push((i + 1, -1.0));
-                }
-                row
-            })
-            .collect()
-    }
-
-    /// Model-A Laplacian of an m³ grid with the 8 corners eliminated symmetrically.
-    fn laplacian_3d(m: usize, k: f64) -> Vec<Vec<(usize, f64)>> {
-        let idx = |i: usize, j: usize, l: usize| i + m * (j + m * l);
-        let corner = |i: usize| i == 0 || i == m - 1;
-        let fixed = |v: usize| corner(v % m) && corner((v / m) % m) && corner(v / (m * m));
-        let mut rows = vec![Vec::new(); m * m * m];
-        for l in 0..m {
-            for j in 0..m {
-                for i in 0..m {
-                    let v = idx(i, j, l);
-                    let mut diag = 0.0;
-                    let mut row = Vec::new();
-                    let mut nb = |c: usize| {
-                        diag += k;
-                        if !fixed(v) && !fixed(c) {
-                            row.push((c, -k));
-                        }
-                    };
-                    if i > 0 {
-                        nb(idx(i - 1, j, l))
-                    }
-                    if i + 1 < m {
-                        nb(idx(i + 1, j, l))
-                    }
-                    if j > 0 {
-                        nb(idx(i, j - 1, l))
-                    }
-                    if j + 1 < m {
-                        nb(idx(i, j + 1, l))
-                    }
-                    if l > 0 {
-                        nb(idx(i, j, l - 1))
-                    }
-                    if l + 1 < m {
-                        nb(idx(i, j, l + 1))
-                    }
-                    row.push((v, diag));
-                    row.sort_by_key(|&(c, _)| c);
-                    rows[v] = row;
-                }
-            }
-        }
-        rows
-    }
-
-    fn matvec(rows: &[Vec<(usize, f64)>], x: &[f64]) -> Vec<f64> {
-        rows.iter()
-            .map(|row| row.iter().map(|&(c, v)| v * x[c]).sum())
-            .collect()
-    }
-
-    /// Plain f64 CG to a tight tolerance: the yardstick.
-    fn reference(rows: &[Vec<(usize, f64)>], b: &[f64]) -> Vec<f64> {
-        let n = b.len();
-        let mut x = vec![0.0; n];
-        let mut r = b.to_vec();
-        let mut p = r.clone();
-        let mut rr: f64 = r.iter().map(|v| v * v).sum();
-        let bb = rr;
-        for _ in 0..10 * n {
-            if rr <= 1e-28 * bb {
-                break;
-            }
-            let kp = matvec(rows, &p);
-            let alpha = rr / p.iter().zip(&kp).map(|(a, b)| a * b).sum::<f64>();
-            for i in 0..n {
-                x[i] += alpha * p[i];
-                r[i] -= alpha * kp[i];
-            }
-            let rr_new: f64 = r.iter().map(|v| v * v).sum();
-            for i in 0..n {
-                p[i] = r[i] + rr_new / rr * p[i];
-            }
-            rr = rr_new;
-        }
-        x
-    }
-
-    struct Run {
-        x: Vec<f64>,
-        report: SolveReport,
-    }
-
-    fn run(m: &Encoded, b: &[f64], x0: Option<&[f64]>, tol: f64) -> Result<Run, SolveFailure> {
-        let n = m.n;
-        let to_block = |v: &[f64]| {
-            let e = block_exponent(v.iter().fold(0.0f64, |a, b| a.max(b.abs())));
-            (
-                v.iter()
-                    .map(|&x| to_mantissa(x, e).unwrap())
-                    .collect::<Vec<_>>(),
-                e,
-            )
-        };
-        let (bm, be) = to_block(b);
-        let (mut xm, mut xe) = x0.map(to_block).unwrap_or((vec![0; n], 0));
-        let (mut r, mut p, mut kp) = (vec![0; n], vec![0; direction_len(n)], vec![0; n]);
-        let matrix = Matrix {
-            n,
-            frac_bits: m.frac_bits,
-            tiles: &m.tiles,
-            words: &m.words,
-        };
-        let start = if x0.is_some() {
-            Start::Uploaded
-        } else {
-            Start::Zero
-        };
-        let params = SolveParams {
-            max_iterations: 10 * n as u32,
-            tolerance: tol,
-            start,
-        };
-        let report = solve(
-            &matrix,
-            &bm,
-            be,
-            &mut xm,
-            &mut xe,
-            Scratch {
-                r: &mut r,
-                p: &mut p,
-                kp: &mut kp,
-            },
-            &params,
-            &NoClock,
-        )?;
-        Ok(Run {
-            x: xm.iter().map(|&v| from_mantissa(v, xe)).collect(),
-            report,
-        })
-    }
-
-    fn max_rel_err(x: &[f64], reference: &[f64]) -> f64 {
-        let scale = reference.iter().fold(0.0f64, |a, b| a.max(b.abs()));
-        x.iter()
-            .zip(reference)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max)
-            / scale
-    }
-
-    fn true_residual(rows: &[Vec<(usize, f64)>], x: &[f64], b: &[f64]) -> f64 {
-        let kx = matvec(rows, x);
-        let rr: f64 = kx.iter().zip(b).map(|(a, b)| (a - b) * (a - b)).sum();
-        (rr / b.iter().map(|v| v * v).sum::<f64>()).sqrt()
-    }
-
-    #[test]
-    fn solves_a_1d_laplacian_like_f64() {
-        let m = encode(laplacian_1d(60), 18, 64);
-        let b: Vec<f64> = (0..60).map(|i| ((i * 7919) % 13) as f64 - 6.0).collect();
-        let run = run(&m, &b, None, 1e-9).unwrap();
-        assert!(run.report.converged, "{:?}", run.report);
-        let err = max_rel_err(&run.x, &reference(&m.rows, &b));
-        assert!(err < 1e-7, "max relative error {err:e}");
-        assert!(true_residual(&m.rows, &run.x, &b) < 1e-7);
-    }
-
-    #[test]
-    fn solves_the_thesis_cube_across_tiles() {
-        // 10³ model A, k = 1, corner nodes fixed, 1 N at (0, 5, 5): thesis 2.6, x direction.
-        let rows = laplacian_3d(10, 1.0);
-        let m = encode(rows, 17, 250);
-        assert_eq!(m.tiles.len(), 4);
-        let mut b = vec![0.0; 1000];
-        b[5 * 10 + 5 * 100] = 1.0; // node (0, 5, 5)
-        let run = run(&m, &b, None, 1e-9).unwrap();
-        assert!(run.report.converged, "{:?}", run.report);
-        let reference = reference(&m.rows, &b);
-        let err = max_rel_err(&run.x, &reference);
-        assert!(
-            err < 1e-6,
-            "max relative error {err:e} after {} iterations",
-            run.report.iterations
-        );
-        assert_eq!(run.report.words_per_iteration as usize, m.words.len());
-    }
-
-    #[test]
-    fn warm_start_from_the_answer_needs_fewer_iterations() {
-        let m = encode(laplacian_3d(6, 1.0), 17, 216);
-        let mut b = vec![0.0; 216];
-        b[100] = 1.0;
-        b[7] = -0.5;
-        let cold = run(&m, &b, None, 1e-8).unwrap();
-        let warm = run(&m, &b, Some(&cold.x), 1e-8).unwrap();
-        assert!(
-            warm.report.iterations * 2 < cold.report.iterations,
-            "{} vs {}",
-            warm.report.iterations,
-            cold.report.iterations
-        );
-        assert!(max_rel_err(&warm.x, &reference(&m.rows, &b)) < 1e-6);
-    }
-
-    #[test]
-    fn scale_of_the_load_does_not_matter() {
-        let m = encode(laplacian_1d(30), 18, 30);
-        for scale in [1e-30, 1e-6, 1.0, 1e9, 1e30] {
-            let b: Vec<f64> = (0..30).map(|i| scale * (1.0 + (i % 5) as f64)).collect();
-            let run = run(&m, &b, None, 1e-9).unwrap();
-            let err = max_rel_err(&run.x, &reference(&m.rows, &b));
-            assert!(err < 1e-7, "scale {scale:e}: error {err:e}");
-        }
-    }
-
-    #[test]
-    fn fractional_values_use_their_q_format() {
-        // tridiag(-0.3, 0.75, -0.3): SPD with non-integer entries.
-        let rows: Vec<Vec<(usize, f64)>> = laplacian_1d(40)
-            .into_iter()
-            .map(|r| {
-                r.into_iter()
-                    .map(|(c, v)| (c, if v > 0.0 { 0.75 } else { -0.3 }))
-                    .collect()
-            })
-            .collect();
-        let m = encode(rows, 20, 40);
-        let b: Vec<f64> = (0..40).map(|i| (i as f64).sin()).collect();
-        let run = run(&m, &b, None, 1e-10).unwrap();
-        // The quantized matrix is what the target solves; compare against it.
-        let q = m
-            .rows
-            .iter()
-            .map(|r| {
-                r.iter()
-                    .map(|&(c, v)| (c, (v * 1048576.0f64).round() / 1048576.0))
-                    .collect()
-            })
-            .collect::<Vec<Vec<_>>>();
-        assert!(max_rel_err(&run.x, &reference(&q, &b)) < 1e-7);
-    }
-
-    #[test]
-    fn zero_load_gives_zero_displacement() {
-        let m = encode(laplacian_1d(10), 18, 10);
-        let run = run(&m, &[0.0; 10], Some(&[1.0; 10]), 1e-9).unwrap();
-        assert!(run.report.converged);
-        assert!(run.x.iter().all(|&v| v == 0.0));
-    }
-
-    #[test]
-    fn indefinite_matrix_is_reported() {
-        let rows: Vec<Vec<(usize, f64)>> = (0..8)
-            .map(|i| vec![(i, if i == 3 { -1.0 } else { 1.0 })])
-            .collect();
-        let m = encode(rows, 18, 8);
-        let mut b = vec![0.0; 8];
-        b[3] = 1.0;
-        assert!(matches!(
-            run(&m, &b, None, 1e-9),
-            Err(SolveFailure::NotPositiveDefinite { iteration: 1 })
-        ));
-    }
-
-    #[test]
-    fn short_workspace_is_an_error_not_a_panic() {
-        let m = encode(laplacian_1d(10), 18, 10);
-        let matrix = Matrix {
-            n: 10,
-            frac_bits: 18,
-            tiles: &m.tiles,
-            words: &m.words,
-        };
-        let (mut x, mut xe) = (vec![0; 10], 0);
-        let params = SolveParams {
-            max_iterations: 5,
-            tolerance: 1e-6,
-            start: Start::Zero,
-        };
-        let out = solve(
-            &matrix,
-            &[1; 10],
-            0,
-            &mut x,
-            &mut xe,
-            Scratch {
-                r: &mut [0; 10],
-                p: &mut [0; 10],
-                kp: &mut [0; 10],
-            },
-            &params,
-            &NoClock,
-        );
-        assert_eq!(out, Err(SolveFailure::WorkspaceTooSmall));
-    }
-
-    #[test]
-    fn iteration_cap_is_honoured() {
-        let m = encode(laplacian_1d(100), 18, 100);
-        let n = 100;
-        let matrix = Matrix {
-            n,
-            frac_bits: 18,
-            tiles: &m.tiles,
-            words: &m.words,
-        };
-        let (mut x, mut xe) = (vec![0; n], 0);
-        let params = SolveParams {
-            max_iterations: 3,
-            tolerance: 1e-12,
-            start: Start::Zero,
-        };
-        let report = solve(
-            &matrix,
-            &vec![1 << 20; n],
-            0,
-            &mut x,
-            &mut xe,
-            Scratch {
-                r: &mut vec![0; n],
-                p: &mut vec![0; direction_len(n)],
-                kp: &mut vec![0; n],
-            },
-            &params,
-            &NoClock,
-        )
-        .unwrap();
-        assert_eq!(report.iterations, 3);
-        assert!(!report.converged && report.residual > 1e-12);
-    }
-
-    proptest! {
-        #![proptest_config(ProptestConfig::with_cases(64))]
-        #[test]
-        fn random_spd_systems_match_f64(
-            n in 2usize..40,
-            diag in proptest::collection::vec(2.5f64..6.0, 40),
-            off in proptest::collection::vec(-1.0f64..1.0, 40),
-            b in proptest::collection::vec(-1.0e3f64..1.0e3, 40),
-        ) {
-            // Diagonally dominant symmetric tridiagonal: SPD.
-            let rows: Vec<Vec<(usize, f64)>> = (0..n).map(|i| {
-                let mut row = Vec::new();
-                if i > 0 { row.push((i - 1, off[i - 1])); }
-                row.push((i, diag[i]));
-                if i + 1 < n { row.push((i + 1, off[i])); }
-                row
-            }).collect();
-            let m = encode(rows, 17, 7);
-            let q: Vec<Vec<(usize, f64)>> = m.rows.iter().map(|r| r.iter().map(|&(c, v)| (c, quantize(v, 17).unwrap() as f64 / 131072.0)).collect()).collect();
-            let b = &b[..n];
-            prop_assume!(b.iter().any(|&v| v != 0.0));
-            let run = run(&m, b, None, 1e-10).unwrap();
-            prop_assert!(run.report.converged);
-            let tr = true_residual(&q, &run.x, b);
-            prop_assert!(tr < 1e-7, "true residual {tr:e}, report {:?}", run.report);
-        }
-    }
-}
+mod tests;

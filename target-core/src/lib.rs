@@ -6,8 +6,19 @@
 //!   (thesis 4.2.1) and yields Kp and pᵀKp in one pass; the SVU does α, x, r, β and p (4.2.2).
 //! - [`session`]: the protocol state machine. It owns no memory: the firmware lends it the
 //!   matrix store and the vectors, and it turns each request into exactly one response.
+//! - [`log_buffer`]: where the firmware's encoded defmt frames wait to be shipped; it never
+//!   blocks and drops whole frames, counted, when full.
+//! - [`transport`]: the target end of the reliable link: sequencing, selective repeat, NAKs,
+//!   duplicate suppression with cached replies, notices and the panic frame.
 #![cfg_attr(not(test), no_std)]
-#![forbid(unsafe_code)]
+// `unsafe` is allowed only where harts share vectors (`exec`) and in the MVU kernel (`kernel`),
+// each with its invariants written down.
+#![deny(unsafe_code)]
+#![deny(clippy::undocumented_unsafe_blocks)]
 
 pub mod cg;
+pub mod exec;
+pub mod kernel;
+pub mod log_buffer;
 pub mod session;
+pub mod transport;

@@ -2,8 +2,9 @@
 //! [`deform_shared::protocol`].
 //!
 //! A [`Session`] owns no memory. The firmware (or a test) lends it a [`Storage`]: the matrix store
-//! (`words`, `tiles`), the vectors `b` (right-hand side), `x` (solution), `x0` (uploaded initial
-//! guess) and CG's scratch `r`, `p`, `kp`, plus a [`TargetInfo`] and a [`PhaseClock`]. The session
+//! (`words`, `tiles`), per direction the vectors `b` (right-hand side), `x` (solution), `x0`
+//! (uploaded initial guess) and `r`, the shared `p`, `kp` and partial sums, plus a
+//! [`TargetInfo`] and an [`Executor`] (the harts, or a host stand-in). The session
 //! never panics and never indexes out of bounds, whatever the requests: every access goes through
 //! `get`/`get_mut` and checked arithmetic, and a proptest throws random request sequences at it.
 //!
@@ -54,29 +55,39 @@
 //!   uploaded and the solution read; vectors and the solution survive a completed update, so
 //!   `Start::Previous` warm-starts after it.
 
-use deform_shared::matrix::{validate_tile, words_crc, MatrixError, TileHeader};
+use deform_shared::matrix::{validate_mvu, validate_tile, words_crc, MatrixError, TileHeader};
 use deform_shared::protocol::{
-    ErrorCode, Request, Response, SessionStep, SolveParams, Start, TargetInfo, VectorSlot,
-    CHUNK_LEN, PROTOCOL_VERSION,
+    ErrorCode, Request, Response, SessionStep, SolveFailure, SolveParams, Start, TargetInfo,
+    VectorSlot, CHUNK_LEN, MAX_DIRECTIONS, MAX_HARTS, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{MANTISSA_LIMIT, MAX_FRAC_BITS};
 use deform_shared::word::{VALUE_BITS, VALUE_MAX, VALUE_MIN};
 
-use crate::cg::{self, Matrix, PhaseClock, Scratch};
-
-/// Extra elements the search direction `p` needs beyond n: the MVU reads a tile's whole
-/// 512-column window of p (see [`cg::Scratch`] and [`cg::direction_len`]).
-pub const DIRECTION_PAD: usize = cg::direction_len(0);
+use crate::cg::{self, Matrix, Plan, PlanError, System, Work};
+use crate::exec::Executor;
+use crate::kernel::{Lanes, Sums};
 
 /// The memory a [`Session`] works in, lent by its owner.
 ///
-/// The vectors may differ in length; the session's `max_n` is the largest n they all hold,
-/// `p` being [`DIRECTION_PAD`] longer than the others.
+/// The vectors may differ in length; the session's `max_n` is the largest n they all hold.
 pub struct Storage<'a> {
     /// The matrix's instruction words, all tiles back to back.
     pub words: &'a mut [u32],
     /// The matrix's tile headers.
     pub tiles: &'a mut [TileHeader],
+    /// One set of vectors per direction a fused solve can run.
+    pub directions: [DirectionStorage<'a>; MAX_DIRECTIONS],
+    /// The search directions of all directions, interleaved (see [`crate::kernel`]).
+    pub p: &'a mut [Lanes],
+    /// K·p of all directions, in double width.
+    pub kp: &'a mut [Sums],
+    /// Private partial sums of MVUs whose rows overlap (thesis 4.1.1); its length limits how
+    /// much they may overlap.
+    pub partial: &'a mut [Sums],
+}
+
+/// The vectors of one direction.
+pub struct DirectionStorage<'a> {
     /// Right-hand side mantissas.
     pub b: &'a mut [i32],
     /// Solution mantissas (CG iterates on them in place).
@@ -85,26 +96,26 @@ pub struct Storage<'a> {
     pub x0: &'a mut [i32],
     /// CG residual.
     pub r: &'a mut [i32],
-    /// CG search direction: n + [`DIRECTION_PAD`] elements.
-    pub p: &'a mut [i32],
-    /// CG's K·p, in double width.
-    pub kp: &'a mut [i64],
 }
 
 impl Storage<'_> {
-    /// The largest dimension all vectors can hold (`p` needs [`DIRECTION_PAD`] extra elements).
+    /// The largest dimension all vectors can hold.
     pub fn max_n(&self) -> usize {
-        [
-            self.b.len(),
-            self.x.len(),
-            self.x0.len(),
-            self.r.len(),
-            self.p.len().saturating_sub(DIRECTION_PAD),
-            self.kp.len(),
-        ]
-        .into_iter()
-        .min()
-        .unwrap_or(0)
+        self.directions
+            .iter()
+            .map(DirectionStorage::max_n)
+            .chain([self.p.len(), self.kp.len()])
+            .min()
+            .unwrap_or(0)
+    }
+}
+
+impl DirectionStorage<'_> {
+    fn max_n(&self) -> usize {
+        [self.b.len(), self.x.len(), self.x0.len(), self.r.len()]
+            .into_iter()
+            .min()
+            .unwrap_or(0)
     }
 }
 
@@ -167,17 +178,19 @@ impl VectorState {
 }
 
 /// The target's side of the protocol. See the module documentation for its policies.
-pub struct Session<'a, C: PhaseClock> {
+pub struct Session<'a, E: Executor> {
     store: Storage<'a>,
     info: TargetInfo,
-    clock: C,
+    exec: E,
     /// False after a `Hello` with another protocol version.
     compatible: bool,
     matrix: MatrixState,
-    rhs: VectorState,
-    guess: VectorState,
-    /// The exponent of the solution in `x`, if there is one.
-    solution: Option<i32>,
+    rhs: [VectorState; MAX_DIRECTIONS],
+    guess: [VectorState; MAX_DIRECTIONS],
+    /// Per direction, the exponent of the solution in its `x`, if there is one.
+    solution: [Option<i32>; MAX_DIRECTIONS],
+    /// How the MVUs share the resident matrix.
+    plan: Option<Plan>,
 }
 
 fn to_usize(v: u32) -> usize {
@@ -192,23 +205,25 @@ const fn out_of_order(step: SessionStep) -> ErrorCode {
     ErrorCode::OutOfOrder(step)
 }
 
-impl<'a, C: PhaseClock> Session<'a, C> {
+impl<'a, E: Executor> Session<'a, E> {
     /// A fresh session over `store`. `info`'s capacities are clamped to what `store` holds and
     /// its protocol version is set to ours; the rest (firmware version, harts) is passed through.
-    pub fn new(store: Storage<'a>, mut info: TargetInfo, clock: C) -> Self {
+    pub fn new(store: Storage<'a>, mut info: TargetInfo, exec: E) -> Self {
         info.protocol_version = PROTOCOL_VERSION;
         info.word_capacity = info.word_capacity.min(to_u32(store.words.len()));
         info.tile_capacity = info.tile_capacity.min(to_u32(store.tiles.len()));
         info.max_n = info.max_n.min(to_u32(store.max_n()));
+        info.harts = info.harts.clamp(1, exec.harts().min(MAX_HARTS) as u8);
         Self {
             store,
             info,
-            clock,
+            exec,
+            plan: None,
             compatible: true,
             matrix: MatrixState::Empty,
-            rhs: VectorState::Empty,
-            guess: VectorState::Empty,
-            solution: None,
+            rhs: [VectorState::Empty; MAX_DIRECTIONS],
+            guess: [VectorState::Empty; MAX_DIRECTIONS],
+            solution: [None; MAX_DIRECTIONS],
         }
     }
 
@@ -217,9 +232,9 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         &self.info
     }
 
-    /// The clock lent to the solver.
-    pub fn clock(&self) -> &C {
-        &self.clock
+    /// The executor lent to the solver.
+    pub fn executor(&self) -> &E {
+        &self.exec
     }
 
     /// True once a matrix is completely uploaded and validated.
@@ -271,7 +286,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
                 mantissas,
             } => self.vector_data(slot, offset, &mantissas),
             Request::Solve(params) => self.solve(&params),
-            Request::ReadSolution { offset } => self.read_solution(offset),
+            Request::ReadSolution { direction, offset } => self.read_solution(direction, offset),
             Request::BeginUpdate { words, frac_bits } => self.begin_update(words, frac_bits),
             Request::UpdateValues { offset, values } => self.update_values(offset, &values),
             Request::EndUpdate { crc32 } => self.end_update(crc32),
@@ -287,9 +302,9 @@ impl<'a, C: PhaseClock> Session<'a, C> {
     /// Forgets the matrix, the vectors that belong to it and the solution.
     fn drop_matrix(&mut self) {
         self.matrix = MatrixState::Empty;
-        self.rhs = VectorState::Empty;
-        self.guess = VectorState::Empty;
-        self.solution = None;
+        self.rhs = [VectorState::Empty; MAX_DIRECTIONS];
+        self.guess = [VectorState::Empty; MAX_DIRECTIONS];
+        self.solution = [None; MAX_DIRECTIONS];
     }
 
     fn begin_matrix(&mut self, shape: Shape) -> Result<Response, ErrorCode> {
@@ -343,6 +358,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
             return Err(ErrorCode::ChunkTooLong);
         }
         let tile = up.tiles_done;
+        validate_mvu(tile, &header, self.info.harts).map_err(ErrorCode::Matrix)?;
         if header.rows == 0 || header.words == 0 {
             return Err(ErrorCode::Matrix(MatrixError::EmptyTile { tile }));
         }
@@ -444,6 +460,32 @@ impl<'a, C: PhaseClock> Session<'a, C> {
             self.matrix = MatrixState::Empty;
             return Err(ErrorCode::MatrixCrc { computed });
         }
+        let n = to_usize(up.shape.n);
+        let planned = cg::plan(
+            self.store
+                .tiles
+                .get(..to_usize(up.shape.tiles))
+                .unwrap_or(&[]),
+            self.store
+                .words
+                .get(..to_usize(up.shape.words))
+                .unwrap_or(&[]),
+            n,
+            self.store.kp,
+            self.store.partial.len(),
+        );
+        self.plan = match planned {
+            Ok(plan) => Some(plan),
+            Err(e) => {
+                self.matrix = MatrixState::Empty;
+                return Err(match e {
+                    PlanError::Overlap { rows, capacity } => {
+                        ErrorCode::OverlapTooLarge { rows, capacity }
+                    }
+                    PlanError::Matrix(e) => ErrorCode::Matrix(e),
+                });
+            }
+        };
         self.matrix = MatrixState::Loaded(up.shape);
         Ok(Response::Ack)
     }
@@ -539,11 +581,16 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         Ok(Response::Ack)
     }
 
-    fn slot_state(&mut self, slot: VectorSlot) -> &mut VectorState {
-        match slot {
-            VectorSlot::Rhs => &mut self.rhs,
-            VectorSlot::InitialGuess => &mut self.guess,
-        }
+    /// The state of `slot`, or `DirectionOutOfRange`.
+    fn slot_state(&mut self, slot: VectorSlot) -> Result<&mut VectorState, ErrorCode> {
+        let d = direction_index(slot.direction())?;
+        let states = match slot {
+            VectorSlot::Rhs { .. } => &mut self.rhs,
+            VectorSlot::InitialGuess { .. } => &mut self.guess,
+        };
+        states
+            .get_mut(d)
+            .ok_or(direction_out_of_range(slot.direction()))
     }
 
     fn begin_vector(
@@ -552,7 +599,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         exponent: i32,
         len: u32,
     ) -> Result<Response, ErrorCode> {
-        *self.slot_state(slot) = VectorState::Empty;
+        *self.slot_state(slot)? = VectorState::Empty;
         let shape = self.resident()?;
         if len != shape.n {
             return Err(ErrorCode::LengthMismatch {
@@ -560,7 +607,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
                 got: len,
             });
         }
-        *self.slot_state(slot) = VectorState::Uploading {
+        *self.slot_state(slot)? = VectorState::Uploading {
             exponent,
             received: 0,
         };
@@ -573,7 +620,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         offset: u32,
         mantissas: &[i32],
     ) -> Result<Response, ErrorCode> {
-        let VectorState::Uploading { exponent, received } = *self.slot_state(slot) else {
+        let VectorState::Uploading { exponent, received } = *self.slot_state(slot)? else {
             return Err(out_of_order(SessionStep::NoVectorUpload));
         };
         // A vector upload only exists while its matrix is resident.
@@ -585,9 +632,15 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         {
             return Err(ErrorCode::MantissaOutOfRange);
         }
+        let d = direction_index(slot.direction())?;
+        let storage = self
+            .store
+            .directions
+            .get_mut(d)
+            .ok_or(direction_out_of_range(slot.direction()))?;
         let vector = match slot {
-            VectorSlot::Rhs => &mut *self.store.b,
-            VectorSlot::InitialGuess => &mut *self.store.x0,
+            VectorSlot::Rhs { .. } => &mut *storage.b,
+            VectorSlot::InitialGuess { .. } => &mut *storage.x0,
         };
         let dst = vector
             .get_mut(to_usize(offset)..to_usize(end))
@@ -595,7 +648,7 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         for (d, s) in dst.iter_mut().zip(mantissas) {
             *d = *s;
         }
-        *self.slot_state(slot) = if end == shape.n {
+        *self.slot_state(slot)? = if end == shape.n {
             VectorState::Complete { exponent }
         } else {
             VectorState::Uploading {
@@ -608,7 +661,12 @@ impl<'a, C: PhaseClock> Session<'a, C> {
 
     fn solve(&mut self, params: &SolveParams) -> Result<Response, ErrorCode> {
         let shape = self.loaded()?;
-        let b_exponent = self.rhs.exponent(SessionStep::NoRhs)?;
+        let directions = usize::from(params.directions);
+        if !(1..=MAX_DIRECTIONS).contains(&directions) {
+            return Err(ErrorCode::Solve(SolveFailure::BadDirections(
+                params.directions,
+            )));
+        }
         let n = to_usize(shape.n);
         // Every slice below is within the storage: n ≤ max_n and the matrix's counts ≤ its
         // capacities were checked when it was announced. Should that ever not hold, refuse.
@@ -616,76 +674,78 @@ impl<'a, C: PhaseClock> Session<'a, C> {
             requested: shape.n,
             capacity: self.info.max_n,
         };
+        // All checks first, so that a refused solve changes nothing.
+        let mut b_exponents = [0i32; MAX_DIRECTIONS];
+        let mut x_exponents = [0i32; MAX_DIRECTIONS];
+        for d in 0..directions {
+            b_exponents[d] = self.rhs[d].exponent(SessionStep::NoRhs)?;
+            x_exponents[d] = match params.start {
+                Start::Zero => 0,
+                Start::Previous => {
+                    self.solution[d].ok_or(out_of_order(SessionStep::NoPreviousSolution))?
+                }
+                Start::Uploaded => self.guess[d].exponent(SessionStep::NoInitialGuess)?,
+            };
+        }
+        let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
         let Storage {
             words,
             tiles,
-            b,
-            x,
-            x0,
-            r,
+            directions: vectors,
             p,
             kp,
+            partial,
         } = &mut self.store;
-        let (Some(b), Some(x), Some(x0), Some(r), Some(p), Some(kp)) = (
-            b.get(..n),
-            x.get_mut(..n),
-            x0.get(..n),
-            r.get_mut(..n),
-            p.get_mut(..cg::direction_len(n)),
-            kp.get_mut(..n),
-        ) else {
-            return Err(too_large);
-        };
         let (Some(tiles), Some(words)) = (
             tiles.get(..to_usize(shape.tiles)),
             words.get(..to_usize(shape.words)),
         ) else {
             return Err(too_large);
         };
-        let mut x_exponent = match params.start {
-            Start::Zero => {
-                x.fill(0);
-                0
+        let mut systems: heapless::Vec<System<'_>, MAX_DIRECTIONS> = heapless::Vec::new();
+        for (d, v) in vectors.iter_mut().enumerate().take(directions) {
+            let DirectionStorage { b, x, x0, r } = v;
+            let (Some(b), Some(x), Some(x0), Some(r)) =
+                (b.get(..n), x.get_mut(..n), x0.get(..n), r.get_mut(..n))
+            else {
+                return Err(too_large);
+            };
+            if params.start == Start::Uploaded {
+                x.copy_from_slice(x0);
             }
-            Start::Previous => self
-                .solution
-                .ok_or(out_of_order(SessionStep::NoPreviousSolution))?,
-            Start::Uploaded => {
-                let exponent = self.guess.exponent(SessionStep::NoInitialGuess)?;
-                for (d, s) in x.iter_mut().zip(x0) {
-                    *d = *s;
-                }
-                exponent
-            }
-        };
-        self.solution = None;
+            let _ = systems.push(System {
+                b,
+                b_exponent: b_exponents[d],
+                x,
+                x_exponent: x_exponents[d],
+                r,
+            });
+        }
+        self.solution = [None; MAX_DIRECTIONS];
         let matrix = Matrix {
             n,
             frac_bits: shape.frac_bits,
             tiles,
             words,
+            plan: &plan,
         };
-        let scratch = Scratch { r, p, kp };
-        match cg::solve(
-            &matrix,
-            b,
-            b_exponent,
-            x,
-            &mut x_exponent,
-            scratch,
-            params,
-            &self.clock,
-        ) {
-            Ok(report) => {
-                self.solution = Some(x_exponent);
-                Ok(Response::Solved(report))
-            }
-            Err(failure) => Err(ErrorCode::Solve(failure)),
+        let work = Work { p, kp, partial };
+        let report =
+            cg::solve(&matrix, &mut systems, work, params, &self.exec).map_err(ErrorCode::Solve)?;
+        for (solution, system) in self.solution.iter_mut().zip(&systems) {
+            *solution = Some(system.x_exponent);
         }
+        Ok(Response::Solved(report))
     }
 
-    fn read_solution(&mut self, offset: u32) -> Result<Response, ErrorCode> {
-        let exponent = self.solution.ok_or(out_of_order(SessionStep::NoSolution))?;
+    fn read_solution(&mut self, direction: u8, offset: u32) -> Result<Response, ErrorCode> {
+        let d = direction_index(direction)?;
+        let exponent = self
+            .solution
+            .get(d)
+            .copied()
+            .flatten()
+            .ok_or(out_of_order(SessionStep::NoSolution))?;
         let shape = self.resident()?;
         if offset >= shape.n {
             return Err(ErrorCode::ChunkTooLong);
@@ -693,15 +753,34 @@ impl<'a, C: PhaseClock> Session<'a, C> {
         let end = offset.saturating_add(to_u32(CHUNK_LEN)).min(shape.n);
         let values = self
             .store
-            .x
-            .get(to_usize(offset)..to_usize(end))
+            .directions
+            .get(d)
+            .and_then(|v| v.x.get(to_usize(offset)..to_usize(end)))
             .ok_or(ErrorCode::ChunkTooLong)?;
         let mantissas = heapless::Vec::from_slice(values).map_err(|_| ErrorCode::ChunkTooLong)?;
         Ok(Response::Solution {
+            direction,
             offset,
             exponent,
             mantissas,
         })
+    }
+}
+
+fn direction_out_of_range(direction: u8) -> ErrorCode {
+    ErrorCode::DirectionOutOfRange {
+        direction,
+        max: MAX_DIRECTIONS as u8,
+    }
+}
+
+/// `direction` as an index into the per-direction state, or `DirectionOutOfRange`.
+fn direction_index(direction: u8) -> Result<usize, ErrorCode> {
+    let d = usize::from(direction);
+    if d < MAX_DIRECTIONS {
+        Ok(d)
+    } else {
+        Err(direction_out_of_range(direction))
     }
 }
 

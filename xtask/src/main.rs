@@ -20,7 +20,9 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 // Where the firmware lands, which environment variable points the HIL tests and
 // `deform --target qemu` at it, and which QEMU runs it: one definition, in hil-sim.
-use deform_hil_sim::{FIRMWARE_BUILD_PATH, FIRMWARE_ENV, QEMU_BINARY};
+use deform_hil_sim::{
+    FIRMWARE_BUILD_PATH, FIRMWARE_ENV, LOADER_BUILD_PATH, LOADER_ENV, QEMU_BINARY,
+};
 
 const RISCV_TARGET: &str = "riscv32imac-unknown-none-elf";
 /// The Debian package that holds `qemu-system-riscv32`.
@@ -46,7 +48,7 @@ const USAGE: &str = "usage: cargo xtask <command>
 
 commands:
   setup              install the RISC-V target, clippy, rustfmt and QEMU if missing
-  firmware           build the firmware ELF (firmware/, release)
+  firmware           build the firmware ELF and the serial loader (firmware/, release)
   run [-- ARGS...]   setup + firmware, then `deform solve ARGS...` (default: --target qemu)
   test               setup + firmware, fmt and clippy everywhere, then cargo test --workspace";
 
@@ -265,6 +267,15 @@ fn build_firmware() -> Result<PathBuf> {
         );
     }
     eprintln!("    firmware: {}", elf.display());
+    let loader = root.join(LOADER_BUILD_PATH);
+    if !loader.is_file() {
+        bail!(
+            "the firmware built, but the serial loader {} is missing: it is the firmware \
+             package's binary deform-loader",
+            loader.display()
+        );
+    }
+    eprintln!("    loader:   {}", loader.display());
     Ok(elf)
 }
 
@@ -331,7 +342,10 @@ fn test() -> Result<()> {
     )?;
     step(
         "test (workspace, QEMU hardware-in-the-loop included)",
-        cargo().args(["test", "--workspace"]).env(FIRMWARE_ENV, elf),
+        cargo()
+            .args(["test", "--workspace"])
+            .env(FIRMWARE_ENV, elf)
+            .env(LOADER_ENV, workspace_root().join(LOADER_BUILD_PATH)),
     )
 }
 

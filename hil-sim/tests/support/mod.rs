@@ -24,6 +24,7 @@ pub fn timeouts() -> Timeouts {
         hello_retry: Duration::from_secs(2),
         request: Duration::from_secs(20),
         solve: Duration::from_secs(120),
+        ..Timeouts::default()
     }
 }
 
@@ -82,6 +83,8 @@ pub fn banded_spd(n: u32, half_bandwidth: u32) -> EncodedMatrix {
             col_base,
             rows,
             words: (words.len() - first) as u32,
+            mvu: 0,
+            mirrored: false,
         });
         row_base += rows;
     }

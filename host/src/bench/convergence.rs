@@ -152,6 +152,7 @@ pub fn target_series(
         max_iterations,
         tolerance: config.tol.max(FIXED_POINT_FLOOR),
         start: Start::Zero,
+        directions: 1,
     };
     let mut x = vec![0.0; n];
     let mut points = vec![(0, max_abs_diff(&x, &p.exact))];

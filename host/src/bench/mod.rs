@@ -32,24 +32,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::model::{Connection, Grid, ModelSpec};
 
-/// The clock at which the thesis measured its accelerator (sec. 5.2), used to turn our cycle
-/// counts into times and MFLOPS.
-pub const NOMINAL_CLOCK_HZ: f64 = 100e6;
-
-/// Fixed-point operations of one CG iteration by thesis eq. 56: 2mn + 6n + 2 with m the average
-/// nonzeros per row, i.e. 2·nnz + 6n + 2.
-pub fn flops_per_iteration(n: usize, nnz: usize) -> f64 {
-    2.0 * nnz as f64 + 6.0 * n as f64 + 2.0
-}
-
-/// Eq. 56: MFLOPS = flops per iteration / time per iteration, at [`NOMINAL_CLOCK_HZ`].
-pub fn mflops(n: usize, nnz: usize, cycles_per_iteration: f64) -> f64 {
-    if cycles_per_iteration <= 0.0 {
-        return 0.0;
-    }
-    let seconds = cycles_per_iteration / NOMINAL_CLOCK_HZ;
-    flops_per_iteration(n, nnz) / seconds / 1e6
-}
+/// The clock at which the thesis measured its accelerator (sec. 5.2), at which our cycle counts
+/// become times and MFLOPS (eq. 56 itself is [`crate::metrics::performance`]).
+pub use crate::metrics::NOMINAL_CLOCK_HZ;
 
 /// Cycles at [`NOMINAL_CLOCK_HZ`] as microseconds.
 pub fn micros(cycles: f64) -> f64 {
@@ -136,11 +121,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn eq56_counts_two_flops_per_nonzero_and_six_per_row() {
-        assert_eq!(flops_per_iteration(10, 30), 60.0 + 60.0 + 2.0);
-        // 122 flops in 122 cycles at 100 MHz is 100 MFLOPS.
-        assert!((mflops(10, 30, 122.0) - 100.0).abs() < 1e-9);
-        assert_eq!(mflops(10, 30, 0.0), 0.0);
+    fn micros_at_the_nominal_clock() {
         assert!((micros(100.0) - 1.0).abs() < 1e-12);
     }
 

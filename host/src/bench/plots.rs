@@ -81,6 +81,7 @@ struct Panel {
     /// Vertical markers (x, colour), one legend entry per label.
     vlines: Vec<(f64, RGBColor)>,
     vline_label: Option<String>,
+    legend: SeriesLabelPosition,
 }
 
 impl Panel {
@@ -96,6 +97,7 @@ impl Panel {
             hlines: Vec::new(),
             vlines: Vec::new(),
             vline_label: None,
+            legend: SeriesLabelPosition::UpperLeft,
         }
     }
 
@@ -317,7 +319,7 @@ where
         .label_font((FONT, 14))
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
-        .position(SeriesLabelPosition::UpperLeft)
+        .position(panel.legend.clone())
         .draw()
         .map_err(plot_error)?;
     Ok(())
@@ -477,16 +479,34 @@ fn realtime_figure(scenarios: &[RealtimeScenario]) -> Vec<Panel> {
         "cycles per step",
     );
     panel.log_x = false;
-    for (i, s) in scenarios.iter().enumerate() {
+    panel.legend = SeriesLabelPosition::LowerRight;
+    // One colour per grid and model, dashed with more than one MVU.
+    let mut grids: Vec<(BenchModel, usize)> = Vec::new();
+    for s in scenarios {
+        if !grids.contains(&(s.model, s.edge)) {
+            grids.push((s.model, s.edge));
+        }
+    }
+    for s in scenarios {
+        let i = grids
+            .iter()
+            .position(|g| *g == (s.model, s.edge))
+            .unwrap_or(0);
         panel.lines.push(Line {
-            label: format!("model {}, {}³ (n = {})", s.model.label(), s.edge, s.n),
+            label: format!(
+                "model {}, {}³ (n = {}), {}",
+                s.model.label(),
+                s.edge,
+                s.n,
+                mvu_label(s.mvus)
+            ),
             color: COLORS[i % COLORS.len()],
             points: s
                 .steps
                 .iter()
                 .map(|st| (st.step as f64, st.cycles as f64))
                 .collect(),
-            dashed: false,
+            dashed: s.mvus > 1,
         });
     }
     panel.hlines.push((

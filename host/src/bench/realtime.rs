@@ -4,8 +4,12 @@
 //!
 //! The scenario is the thesis cube's load ramped over `steps` steps (the `simulate` default:
 //! K resident, each direction warm-started from the previous step), for the grids the thesis
-//! quotes (about 500 nodes: 8³ = 512) and for 1000 nodes (10³). A step's cycles are the MVU and
-//! SVU counters of its three solves (one per direction), run one after the other.
+//! quotes (about 500 nodes: 8³ = 512) and for 1000 nodes (10³), on 1 and on several MVUs. A
+//! step's cycles are those of its three solves (one per direction), run one after the other:
+//! with one MVU the firmware's MVU and SVU counters of each solve, set-up included; with several,
+//! the critical path the target measures per iteration (T_MVU + T_SVU) times the iterations,
+//! plus one T_MVU for a warm start's initial residual b − A·x₀ (under `-icount` the harts share
+//! one instruction counter, so the phase counters would add the harts up instead).
 //!
 //! Two budgets are kept apart, because they have different cures:
 //! - **compute**: the CG cycles at 100 MHz, CPI 1;
@@ -22,9 +26,11 @@ use serde::{Deserialize, Serialize};
 
 use super::board::{BenchBoard, BenchBoardChoice, WireBytes};
 use super::{BenchModel, NOMINAL_CLOCK_HZ};
+use crate::encode::{EncodeOptions, Partition};
 use crate::link::BAUD_RATE;
 use crate::model::Model;
 use crate::simulate::{simulate, Schedule, StepParams};
+use deform_shared::protocol::SolveReport;
 
 /// Haptic feedback needs about 1 kHz, a visual display about 60 Hz.
 pub const HAPTIC_HZ: f64 = 1000.0;
@@ -35,6 +41,8 @@ pub const VISUAL_HZ: f64 = 60.0;
 pub struct RealtimeConfig {
     pub edges: Vec<usize>,
     pub models: Vec<BenchModel>,
+    /// MVU counts; each scenario runs on a QEMU with that many harts.
+    pub mvus: Vec<u8>,
     pub steps: u32,
     /// Target CG tolerance per solve (as `deform simulate --tol`).
     pub tol: f64,
@@ -58,6 +66,7 @@ pub struct StepBudget {
 pub struct RealtimeScenario {
     pub model: BenchModel,
     pub edge: usize,
+    pub mvus: u8,
     pub n: usize,
     pub nnz: usize,
     pub tol: f64,
@@ -84,15 +93,17 @@ pub fn run(
 ) -> anyhow::Result<Vec<RealtimeScenario>> {
     let timeouts = super::board::timeouts(config.solve_timeout);
     let mut out = Vec::new();
-    for &model in &config.models {
-        for &edge in &config.edges {
-            let mut board = BenchBoard::open(choice, 1, timeouts)?;
-            let scenario = run_one(&mut board, model, edge, config)?;
-            println!(
-                "budget {} {}³ (n = {}): worst step {} cycles → {:.0} steps/s at 100 MHz (1 kHz: {}, 60 Hz: {}); {} B on the wire per step → {:.1} steps/s at {} baud",
+    for &mvus in &config.mvus {
+        for &model in &config.models {
+            for &edge in &config.edges {
+                let mut board = BenchBoard::open(choice, mvus, timeouts)?;
+                let scenario = run_one(&mut board, model, edge, mvus, config)?;
+                println!(
+                "budget {} {}³ (n = {}), {} MVU(s): worst step {} cycles → {:.0} steps/s at 100 MHz (1 kHz: {}, 60 Hz: {}); {} B on the wire per step → {:.1} steps/s at {} baud",
                 model,
                 edge,
                 scenario.n,
+                mvus,
                 scenario.worst_step_cycles,
                 scenario.compute_rate_hz,
                 yes_no(scenario.meets_haptic),
@@ -101,7 +112,8 @@ pub fn run(
                 scenario.wire_rate_hz_at_baud,
                 scenario.baud
             );
-            out.push(scenario);
+                out.push(scenario);
+            }
         }
     }
     Ok(out)
@@ -113,6 +125,24 @@ fn yes_no(b: bool) -> &'static str {
     } else {
         "no"
     }
+}
+
+/// (MVU, SVU) critical-path cycles of a step's solves (see the module doc); `warm`: each solve
+/// started from an uploaded guess, so it computed b − A·x₀ first.
+fn step_cycles(reports: &[SolveReport], warm: bool) -> (u64, u64) {
+    let (mut mvu, mut svu) = (0, 0);
+    for r in reports {
+        if r.mvus <= 1 {
+            mvu += r.mvu.cycles;
+            svu += r.svu.cycles;
+        } else {
+            let cost = r.per_iteration;
+            let iterations = r.iterations as u64;
+            mvu += cost.mvu_critical * (iterations + warm as u64);
+            svu += cost.svu_critical * iterations;
+        }
+    }
+    (mvu, svu)
 }
 
 /// Steps per second that `per_step` units allow at `rate` units per second.
@@ -128,6 +158,7 @@ fn run_one(
     board: &mut BenchBoard,
     model: BenchModel,
     edge: usize,
+    mvus: u8,
     config: &RealtimeConfig,
 ) -> anyhow::Result<RealtimeScenario> {
     let built = Model::build(&model.cube(edge)?).context("building the model")?;
@@ -141,6 +172,11 @@ fn run_one(
         tol: config.tol,
         max_iterations: (10 * n).min(u32::MAX as usize) as u32,
         check_reference: false,
+        layout: EncodeOptions {
+            mvus,
+            partition: Partition::Rows,
+            use_symmetry: true,
+        },
     };
     let wire = board.wire.clone();
     let start = wire.read();
@@ -162,12 +198,13 @@ fn run_one(
         },
         |r| {
             let now = wire.read();
+            let (mvu_cycles, svu_cycles) = step_cycles(&r.reports, params.warm_start && r.step > 1);
             steps.push(StepBudget {
                 step: r.step,
                 iterations: r.iterations,
-                mvu_cycles: r.mvu.cycles,
-                svu_cycles: r.svu.cycles,
-                cycles: r.mvu.cycles + r.svu.cycles,
+                mvu_cycles,
+                svu_cycles,
+                cycles: mvu_cycles + svu_cycles,
                 wire_bytes: now.since(mark.get()).total(),
             });
             mark.set(now);
@@ -182,6 +219,7 @@ fn run_one(
     Ok(RealtimeScenario {
         model,
         edge,
+        mvus,
         n,
         nnz: built.unit_matrix().nnz(),
         tol: config.tol,

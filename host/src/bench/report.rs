@@ -52,15 +52,16 @@ pub fn write_files(report: &BenchReport, dir: &Path) -> anyhow::Result<Vec<PathB
     written.push(write(&dir.join("bench.json"), &json)?);
     if let Some(sweep) = &report.sweep {
         let mut csv = String::from(
-            "model,edge,n,nnz,words,tiles,mvus,iterations_measured,mvu_cycles_per_iteration,\
-             svu_cycles_per_iteration,cycles_per_iteration,mvu_instructions_per_iteration,\
-             svu_instructions_per_iteration,instructions_per_nonzero,microseconds_per_iteration,\
-             mflops,wire_bytes_matrix_upload,wire_bytes_per_solve\n",
+            "model,edge,n,nnz,words,tiles,mvus,mvus_used,partition,symmetry_used,\
+             mvu_cycles_per_iteration,svu_cycles_per_iteration,cycles_per_iteration,\
+             mvu_instructions_per_iteration,svu_instructions_per_iteration,\
+             instructions_per_nonzero,instructions_per_product,microseconds_per_iteration,mflops,\
+             saturations,wire_bytes_matrix_upload,wire_bytes_per_solve\n",
         );
         for p in &sweep.points {
             let _ = writeln!(
                 csv,
-                "{},{},{},{},{},{},{},{},{:.1},{:.1},{:.1},{:.1},{:.1},{:.3},{:.3},{:.3},{},{}",
+                "{},{},{},{},{},{},{},{},{},{},{:.0},{:.0},{:.0},{:.0},{:.0},{:.3},{:.3},{:.3},{:.3},{},{},{}",
                 p.model.label(),
                 p.edge,
                 p.n,
@@ -68,15 +69,19 @@ pub fn write_files(report: &BenchReport, dir: &Path) -> anyhow::Result<Vec<PathB
                 p.words,
                 p.tiles,
                 p.mvus,
-                p.iterations_measured,
+                p.mvus_used,
+                p.partition,
+                p.symmetry_used,
                 p.mvu_cycles_per_iteration,
                 p.svu_cycles_per_iteration,
                 p.cycles_per_iteration,
                 p.mvu_instructions_per_iteration,
                 p.svu_instructions_per_iteration,
                 p.instructions_per_nonzero,
+                p.instructions_per_product,
                 p.microseconds_per_iteration,
                 p.mflops,
+                p.saturations,
                 p.wire_bytes_matrix_upload,
                 p.wire_bytes_per_solve
             );

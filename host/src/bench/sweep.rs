@@ -3,25 +3,29 @@
 //!
 //! # How a point is measured
 //!
-//! Each point is an `edge`³ cube of the thesis 2.6 example in model A or B. Its A is uploaded
-//! once; then the x right-hand side is solved twice from zero, with the tolerance at 0 so that
-//! exactly `k1` and then `k2` iterations run. CG from zero is deterministic, so the two solves
-//! share their set-up (r₀ = b, p₀ = r₀, ‖b‖) and the difference of their counters divided by
-//! k2 − k1 is the exact cost of one iteration, set-up excluded. The MVU and SVU counters are the
-//! firmware's `mcycle`/`minstret` deltas around each phase, exact under `-icount shift=0`.
+//! Each point is an `edge`³ cube of the thesis 2.6 example in model A or B, laid out as
+//! `deform solve` lays it out by default (row blocks balanced over the MVUs, only half of K
+//! stored when it is persymmetric), uploaded once to a QEMU booted with one hart per MVU. The x
+//! right-hand side is then solved from zero with the tolerance at 0, so that exactly
+//! `iterations` iterations run. The target measures one iteration hart by hart (its parallel
+//! phases run one hart at a time, so that under `-icount` each hart's `minstret` delta is its
+//! own work): the slowest MVU's instructions are T_MVU, the SVU's critical path T_SVU, and
+//! T = T_MVU + T_SVU (thesis eq. 55) is the critical path at one instruction per cycle.
+//! [`crate::metrics::performance`] turns them into instructions per nonzero and eq. 56 MFLOPS.
 //!
-//! The second solve's traffic (right-hand side up, `Solve`/`Solved`, solution down) is the
-//! wire cost of one solve; CG's iterations themselves move no byte.
+//! The solve's traffic (right-hand side up, `Solve`/`Solved`, solution down) is the wire cost
+//! of one solve; CG's iterations themselves move no byte.
 
 use std::time::Duration;
 
 use anyhow::Context;
-use deform_shared::protocol::{SolveParams, SolveReport, Start};
+use deform_shared::protocol::{SolveParams, Start};
 use serde::{Deserialize, Serialize};
 
-use super::board::{BenchBoard, BenchBoardChoice, BenchTarget, WireBytes, WireCounter};
-use super::{mflops, micros, BenchModel};
-use crate::encode::encode;
+use super::board::{BenchBoard, BenchBoardChoice};
+use super::{micros, BenchModel};
+use crate::encode::{encode_with, EncodeOptions, Partition};
+use crate::metrics::performance;
 use crate::model::{Axis, Model};
 
 /// What to sweep.
@@ -32,9 +36,10 @@ pub struct SweepConfig {
     pub models: Vec<BenchModel>,
     /// MVU counts; QEMU is booted with one hart per MVU.
     pub mvus: Vec<u8>,
-    /// Iterations of the shorter and the longer solve (see the module doc).
-    pub short_iterations: u32,
-    pub long_iterations: u32,
+    /// How the rows are shared out over the MVUs.
+    pub partition: Partition,
+    /// CG iterations of the measured solve (see the module doc).
+    pub iterations: u32,
     pub solve_timeout: Duration,
 }
 
@@ -47,24 +52,34 @@ pub struct SweepPoint {
     pub n: usize,
     /// Nonzeros of A.
     pub nnz: usize,
-    /// Instruction words the MVUs execute per iteration (nonzeros plus empty-row words).
+    /// Instruction words the MVUs execute per iteration, all together (half of A's nonzeros
+    /// with conjugate symmetry, plus empty-row words of the tiling).
     pub words: u32,
     pub tiles: usize,
+    /// MVUs asked for, and MVUs the layout used.
     pub mvus: u8,
-    /// Iterations the per-iteration figures are averaged over (k2 − k1).
-    pub iterations_measured: u32,
-    /// Critical-path cycles of one iteration: MVU phase, SVU phase and their sum.
+    pub mvus_used: u8,
+    /// `rows` (thesis 4.1.2) or `overlap` (4.1.1).
+    pub partition: String,
+    /// Only half of A was stored (conjugate symmetry).
+    pub symmetry_used: bool,
+    /// Critical-path cycles of one iteration: T_MVU (slowest MVU), T_SVU and T = their sum.
     pub mvu_cycles_per_iteration: f64,
     pub svu_cycles_per_iteration: f64,
     pub cycles_per_iteration: f64,
+    /// All harts' instructions of one iteration, by phase.
     pub mvu_instructions_per_iteration: f64,
     pub svu_instructions_per_iteration: f64,
     /// MVU instructions per instruction word executed.
     pub instructions_per_nonzero: f64,
+    /// MVU instructions per multiply–accumulate (a mirrored word serves two).
+    pub instructions_per_product: f64,
     /// Time of one iteration at 100 MHz, CPI 1.
     pub microseconds_per_iteration: f64,
     /// Thesis eq. 56 at 100 MHz.
     pub mflops: f64,
+    /// Values clamped to their fixed-point range (must be 0).
+    pub saturations: u32,
     /// Uploading A, both directions (once per matrix, not per solve).
     pub wire_bytes_matrix_upload: u64,
     /// One solve: right-hand side up, Solve/Solved, solution down, both directions.
@@ -89,8 +104,8 @@ pub struct SweepResult {
 /// Runs the sweep, printing one line per point as it goes.
 pub fn run(config: &SweepConfig, choice: &BenchBoardChoice) -> anyhow::Result<SweepResult> {
     anyhow::ensure!(
-        config.long_iterations > config.short_iterations,
-        "the long solve must run more iterations than the short one"
+        config.iterations > 0,
+        "the sweep needs at least one iteration"
     );
     let mut result = SweepResult::default();
     let timeouts = super::board::timeouts(config.solve_timeout);
@@ -132,10 +147,11 @@ pub fn run(config: &SweepConfig, choice: &BenchBoardChoice) -> anyhow::Result<Sw
                     )));
                     continue;
                 }
+                let started = std::time::Instant::now();
                 match measure(&mut board, model, edge, mvus, config) {
                     Ok(Measured::Point(point)) => {
                         println!(
-                            "sweep  {} n = {:>6} MVUs {}: {:>10.0} cycles/iter (MVU {:.0} + SVU {:.0}), {:.2} instr/nonzero, {:>6.1} MFLOPS",
+                            "sweep  {} n = {:>6} MVUs {}: {:>10.0} cycles/iter (MVU {:.0} + SVU {:.0}), {:.2} instr/nonzero, {:>6.1} MFLOPS ({:.1?})",
                             model,
                             point.n,
                             mvus,
@@ -143,7 +159,8 @@ pub fn run(config: &SweepConfig, choice: &BenchBoardChoice) -> anyhow::Result<Sw
                             point.mvu_cycles_per_iteration,
                             point.svu_cycles_per_iteration,
                             point.instructions_per_nonzero,
-                            point.mflops
+                            point.mflops,
+                            started.elapsed()
                         );
                         result.points.push(point);
                     }
@@ -164,26 +181,6 @@ enum Measured {
     Skipped(String),
 }
 
-fn fixed_iterations(iterations: u32) -> SolveParams {
-    SolveParams {
-        max_iterations: iterations,
-        tolerance: 0.0,
-        start: Start::Zero,
-    }
-}
-
-/// One solve of exactly `iterations` iterations, with its wire traffic.
-fn timed_solve(
-    target: &mut BenchTarget,
-    wire: &WireCounter,
-    rhs: &[f64],
-    iterations: u32,
-) -> anyhow::Result<(SolveReport, WireBytes)> {
-    let before = wire.read();
-    let (report, _) = target.solve_for(rhs, fixed_iterations(iterations))?;
-    Ok((report, wire.read().since(before)))
-}
-
 fn measure(
     board: &mut BenchBoard,
     model: BenchModel,
@@ -194,55 +191,64 @@ fn measure(
     let spec = model.cube(edge)?;
     let built = Model::build(&spec).context("building the model")?;
     let a = built.unit_matrix();
-    let encoded = match encode(a) {
+    let options = EncodeOptions {
+        mvus,
+        partition: config.partition,
+        use_symmetry: true,
+    };
+    let encoding = match encode_with(a, &options) {
         Ok(e) => e,
         Err(e) => return Ok(Measured::Skipped(format!("cannot encode A: {e}"))),
     };
-    if let Err(e) = board.target.check_matrix_fits(&encoded) {
+    if let Err(e) = board.target.check_matrix_fits(&encoding.matrix) {
         return Ok(Measured::Skipped(e.to_string()));
     }
     let before = board.wire.read();
-    board.target.upload_matrix(&encoded)?;
+    board.target.upload_matrix(&encoding.matrix)?;
     let upload = board.wire.read().since(before);
     let rhs = built.scaled_rhs(Axis::X);
-    let (short, _) = timed_solve(
-        &mut board.target,
-        &board.wire,
+    let before = board.wire.read();
+    let (report, _) = board.target.solve_for(
         &rhs,
-        config.short_iterations,
+        SolveParams {
+            max_iterations: config.iterations,
+            // Tolerance 0: exactly `iterations` iterations.
+            tolerance: 0.0,
+            start: Start::Zero,
+            directions: 1,
+        },
     )?;
-    let (long, wire) = timed_solve(&mut board.target, &board.wire, &rhs, config.long_iterations)?;
-    let iterations = long.iterations.saturating_sub(short.iterations);
-    if iterations == 0 {
-        return Ok(Measured::Skipped(format!(
-            "CG converged within {} iterations, nothing left to measure",
-            short.iterations
-        )));
-    }
-    let per = |long: u64, short: u64| (long - short) as f64 / iterations as f64;
-    let mvu_cycles = per(long.mvu.cycles, short.mvu.cycles);
-    let svu_cycles = per(long.svu.cycles, short.svu.cycles);
-    let mvu_instructions = per(long.mvu.instructions, short.mvu.instructions);
-    let svu_instructions = per(long.svu.instructions, short.svu.instructions);
-    let cycles = mvu_cycles + svu_cycles;
+    let wire = board.wire.read().since(before);
     let (n, nnz) = (built.n(), a.nnz());
+    let Some(perf) = performance(&report, &encoding.summary, n, nnz) else {
+        return Ok(Measured::Skipped(format!(
+            "the solve ran {} iterations, nothing was measured",
+            report.iterations
+        )));
+    };
+    let cost = report.per_iteration;
+    let cycles = perf.critical_path_cycles as f64;
     Ok(Measured::Point(SweepPoint {
         model,
         edge,
         n,
         nnz,
-        words: long.words_per_iteration,
-        tiles: encoded.tiles.len(),
+        words: report.words_per_iteration,
+        tiles: encoding.summary.tiles,
         mvus,
-        iterations_measured: iterations,
-        mvu_cycles_per_iteration: mvu_cycles,
-        svu_cycles_per_iteration: svu_cycles,
+        mvus_used: report.mvus,
+        partition: encoding.summary.partition.to_string(),
+        symmetry_used: encoding.summary.symmetry_used,
+        mvu_cycles_per_iteration: perf.mvu_critical_cycles as f64,
+        svu_cycles_per_iteration: perf.svu_critical_cycles as f64,
         cycles_per_iteration: cycles,
-        mvu_instructions_per_iteration: mvu_instructions,
-        svu_instructions_per_iteration: svu_instructions,
-        instructions_per_nonzero: mvu_instructions / long.words_per_iteration.max(1) as f64,
+        mvu_instructions_per_iteration: cost.mvu_total as f64,
+        svu_instructions_per_iteration: cost.svu_total as f64,
+        instructions_per_nonzero: perf.mvu_instructions_per_word,
+        instructions_per_product: perf.mvu_instructions_per_product,
         microseconds_per_iteration: micros(cycles),
-        mflops: mflops(n, nnz, cycles),
+        mflops: perf.mflops,
+        saturations: perf.saturations,
         wire_bytes_matrix_upload: upload.total(),
         wire_bytes_per_solve: wire.total(),
     }))

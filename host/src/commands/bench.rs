@@ -15,6 +15,7 @@ use crate::bench::realtime::{self, RealtimeConfig};
 use crate::bench::report::{write_files, BenchReport};
 use crate::bench::sweep::{self, SweepConfig};
 use crate::bench::{plots, BenchModel};
+use crate::encode::Partition;
 
 /// The parts of the bench.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -81,6 +82,11 @@ pub struct BenchArgs {
     #[arg(long, conflicts_with_all = ["only", "host_baseline", "quick"])]
     pub replot: bool,
 
+    /// How the sweep shares the rows out over the MVUs: `rows` (thesis 4.1.2) or `overlap`
+    /// (4.1.1).
+    #[arg(long, value_enum, default_value_t = Partition::Rows)]
+    pub partition: Partition,
+
     /// Serial device of a real board running the firmware. Default: QEMU.
     #[arg(long, value_name = "PATH")]
     pub port: Option<String>,
@@ -138,15 +144,15 @@ impl BenchArgs {
             models: self.models(),
             mvus: if self.mvus.is_empty() {
                 if self.quick {
-                    vec![1]
+                    vec![1, 2]
                 } else {
                     vec![1, 2, 4, 8]
                 }
             } else {
                 self.mvus.clone()
             },
-            short_iterations: 2,
-            long_iterations: if self.quick { 5 } else { 12 },
+            partition: self.partition,
+            iterations: 3,
             solve_timeout: Duration::from_secs(self.timeout),
         }
     }
@@ -165,6 +171,7 @@ impl BenchArgs {
         RealtimeConfig {
             edges: if self.quick { vec![5] } else { vec![8, 10] },
             models: self.models(),
+            mvus: if self.quick { vec![1] } else { vec![1, 8] },
             steps: if self.quick { 3 } else { 10 },
             tol: self.realtime_tol,
             solve_timeout: Duration::from_secs(self.timeout),

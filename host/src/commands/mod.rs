@@ -3,6 +3,9 @@
 //! uses anyhow: the library modules return typed errors and the commands add context.
 
 pub mod bench;
+pub mod estimate;
+pub mod flash;
 pub mod model;
+pub mod observe;
 pub mod simulate;
 pub mod solve;

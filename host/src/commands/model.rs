@@ -10,7 +10,7 @@ use anyhow::Context;
 use clap::Args;
 
 use crate::cli_model::ModelFlags;
-use crate::encode::{encode, max_quantization_error, EncodedMatrix};
+use crate::encode::{encode_with, max_quantization_error, EncodeOptions, Encoding};
 use crate::model::matrix_market::write_matrix_market;
 use crate::model::{Axis, Csr, Model};
 
@@ -53,18 +53,28 @@ pub struct ModelReport {
 pub struct EncodingSummary {
     pub tiles: usize,
     pub words: usize,
+    /// Zero words that only end an empty tile row (the tiling's overhead).
+    pub empty_row_words: usize,
     pub frac_bits: u8,
     pub max_quantization_error: f64,
+    /// A is persymmetric (conjugate symmetry, thesis 2.5 vi).
+    pub persymmetric: bool,
+    /// Words and tiles when only the half is stored (if persymmetric).
+    pub half: Option<(usize, usize)>,
 }
 
 impl EncodingSummary {
-    fn of(matrix: &Csr, encoded: &EncodedMatrix) -> Self {
+    fn of(matrix: &Csr, full: &Encoding, half: Option<&Encoding>) -> Self {
+        let encoded = &full.matrix;
         Self {
             tiles: encoded.tiles.len(),
             words: encoded.words.len(),
+            empty_row_words: full.summary.empty_row_words,
             frac_bits: encoded.frac_bits,
             max_quantization_error: max_quantization_error(matrix, encoded.frac_bits)
                 .expect("the encoder already quantized these values"),
+            persymmetric: full.summary.persymmetric,
+            half: half.map(|h| (h.summary.words, h.summary.tiles)),
         }
     }
 }
@@ -75,9 +85,26 @@ impl ModelReport {
     pub fn of(model: &Model) -> Self {
         let k = model.stiffness_matrix(Axis::X);
         let spec = model.spec();
-        let encoding = encode(model.unit_matrix())
-            .map(|encoded| EncodingSummary::of(model.unit_matrix(), &encoded))
-            .map_err(|e| e.to_string());
+        let a = model.unit_matrix();
+        let full = encode_with(a, &EncodeOptions::default());
+        let half = full
+            .as_ref()
+            .ok()
+            .filter(|f| f.summary.persymmetric)
+            .map(|_| {
+                encode_with(
+                    a,
+                    &EncodeOptions {
+                        use_symmetry: true,
+                        ..EncodeOptions::default()
+                    },
+                )
+            });
+        let encoding = match (full, half) {
+            (Ok(full), None) => Ok(EncodingSummary::of(a, &full, None)),
+            (Ok(full), Some(Ok(half))) => Ok(EncodingSummary::of(a, &full, Some(&half))),
+            (Err(e), _) | (_, Some(Err(e))) => Err(e.to_string()),
+        };
         let force: Vec<f64> = Axis::ALL
             .iter()
             .map(|&axis| model.load(axis).iter().sum())
@@ -147,9 +174,16 @@ impl fmt::Display for ModelReport {
                 };
                 writeln!(
                     f,
-                    "encoding of A  {} tile(s), {} words, {} fractional bits, max quantization error {error}",
-                    e.tiles, e.words, e.frac_bits
-                )
+                    "encoding of A  {} tile(s), {} words ({} empty-row), {} fractional bits, max quantization error {error}",
+                    e.tiles, e.words, e.empty_row_words, e.frac_bits
+                )?;
+                match e.half {
+                    Some((words, tiles)) => writeln!(
+                        f,
+                        "persymmetric   yes: conjugate symmetry stores half, {words} words in {tiles} tile(s)"
+                    ),
+                    None => writeln!(f, "persymmetric   no (the whole matrix is stored)"),
+                }
             }
             Err(reason) => writeln!(f, "encoding of A  not possible: {reason}"),
         }
@@ -219,7 +253,8 @@ mod tests {
         assert_eq!(report.nnz, 1000 + 2 * 2700 - 8 * 6);
         assert!((report.sparsity_estimate - 0.993).abs() < 1e-12);
         let encoding = report.encoding.clone().unwrap();
-        assert_eq!(encoding.words, report.nnz);
+        assert_eq!(encoding.words, report.nnz + encoding.empty_row_words);
+        assert!(encoding.empty_row_words <= 2);
         assert_eq!(encoding.max_quantization_error, 0.0);
         let text = report.to_string();
         assert!(text.contains("symmetric      yes"), "{text}");
@@ -227,7 +262,7 @@ mod tests {
     }
 
     #[test]
-    fn report_says_why_a_wide_band_cannot_be_encoded() {
+    fn a_band_wider_than_a_window_encodes_and_halves() {
         let grid = crate::model::Grid::new(16, 16, 16).unwrap();
         let spec = ModelSpec {
             grid,
@@ -236,8 +271,12 @@ mod tests {
             ..ModelSpec::thesis_example()
         };
         let report = ModelReport::of(&Model::build(&spec).unwrap());
-        assert!(report.encoding.is_err());
-        assert!(report.to_string().contains("not possible"));
+        let encoding = report.encoding.clone().unwrap();
+        assert_eq!(report.bandwidth, 273);
+        assert!(encoding.words < report.nnz + report.n / 100);
+        let (half_words, _) = encoding.half.unwrap();
+        assert!(half_words * 2 <= report.nnz + report.n);
+        assert!(report.to_string().contains("persymmetric   yes"));
     }
 
     #[test]

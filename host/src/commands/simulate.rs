@@ -16,10 +16,11 @@ use anyhow::Context;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::board::{Board, BoardChoice};
+use crate::board::{self, Board, BoardChoice};
+use crate::cli_logs::LogFlags;
 use crate::cli_model::ModelFlags;
-use crate::commands::solve::resolve_model;
-use crate::link::Timeouts;
+use crate::commands::solve::{resolve_model, LayoutFlags};
+use crate::link::{LinkFlags, Timeouts};
 use crate::model::{Model, ModelError, ModelSpec};
 use crate::output::node_rows;
 use crate::output::vtk::{write_pvd, write_vtk, VtkKind};
@@ -72,9 +73,15 @@ pub struct SimulateArgs {
     #[arg(long, value_name = "ELF")]
     pub firmware: Option<PathBuf>,
 
+    #[command(flatten)]
+    pub logs: LogFlags,
+
     /// Seconds one target solve may take.
     #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout: u64,
+
+    #[command(flatten)]
+    pub link: LinkFlags,
 
     /// Write `step,t,iterations,residual,max_u` per step to this CSV file.
     #[arg(long, value_name = "FILE")]
@@ -87,9 +94,13 @@ pub struct SimulateArgs {
     /// Also solve every step with the f64 reference and print the deviation.
     #[arg(long)]
     pub check: bool,
+
+    #[command(flatten)]
+    pub layout: LayoutFlags,
 }
 
-fn parse_alpha(s: &str) -> Result<[f64; 3], String> {
+/// `A0,A1,A2` for `--alpha` (also `deform observe`'s).
+pub(crate) fn parse_alpha(s: &str) -> Result<[f64; 3], String> {
     let v: Vec<f64> = s
         .split(',')
         .map(|p| p.trim().parse::<f64>().map_err(|e| format!("{p:?}: {e}")))
@@ -187,15 +198,27 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         Some(port) => BoardChoice::Port(port.clone()),
         None => BoardChoice::Qemu {
             firmware: args.firmware.clone(),
+            harts: args.layout.qemu_harts(),
         },
     };
-    let timeouts = Timeouts {
+    let timeouts = args.link.apply(Timeouts {
         solve: Duration::from_secs(args.timeout),
         ..Timeouts::default()
-    };
-    let mut board = Board::open(&choice, timeouts)?;
+    });
+    let mut board = Board::open(&choice, timeouts, &args.logs.options())?;
+    let layout = args.layout.encode_options(board.target.info().harts)?;
     println!("target      {}", board.describe());
     println!("model       {}", model.spec().describe());
+    println!(
+        "layout      {} MVU(s), partition {}, conjugate symmetry {}",
+        layout.mvus,
+        layout.partition,
+        if layout.use_symmetry {
+            "when K is persymmetric"
+        } else {
+            "off"
+        }
+    );
     let schedule = resolved.schedule;
     let params = StepParams {
         warm_start: !args.cold,
@@ -204,9 +227,12 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
             .max_iter
             .unwrap_or((10 * n).min(u32::MAX as usize) as u32),
         check_reference: args.check,
+        layout,
     };
     let nonlinear = resolved.nonlinear;
     let steps_bar = bar(schedule.steps as u64, "steps");
+    // Firmware log lines print above the bar, not through it.
+    board::lock(board.logs()).set_progress(Some(steps_bar.clone()));
     let upload_bar = bar(0, "upload");
     let mut pvd = Vec::new();
     let mut total_iterations = 0u64;

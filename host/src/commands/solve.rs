@@ -1,8 +1,11 @@
 //! `deform solve`: build the model, solve K_d·u_d = f_d for the three directions on the chosen
 //! target, compare with the f64 reference, print a summary and write the displacements.
 //!
-//! The target receives A once (thesis eq. 38: K_d = k_d·A) and solves A·u_d = f_d / k_d for each
-//! direction against the resident matrix.
+//! The target receives A once (thesis eq. 38: K_d = k_d·A) and solves A·u_d = f_d / k_d for the
+//! three directions against the resident matrix, fused into one run by default (every matrix word
+//! fetched serves all three). The host chooses the layout first: conjugate symmetry when A is
+//! persymmetric, the partition over the target's MVUs, optional Jacobi scaling; and it refuses
+//! a matrix the target cannot hold before anything is uploaded or solved.
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -11,12 +14,15 @@ use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use serde::Serialize;
 
-use crate::board::{Board, BoardChoice};
+use crate::board::{Board, BoardChoice, DEFAULT_QEMU_HARTS};
+use crate::cli_logs::{LogFlags, LogOptions};
 use crate::cli_model::ModelFlags;
-use crate::encode::encode;
-use crate::link::Timeouts;
+use crate::encode::{encode_with, EncodeOptions, Encoding, EncodingSummary, Partition};
+use crate::link::{LinkFlags, Timeouts};
+use crate::metrics::{performance, Performance};
 use crate::model::{Axis, Model, ModelSpec};
 use crate::output::{node_rows, write_displacements, OutputFormat};
+use crate::precondition::{self, Preconditioner};
 use crate::reference::{self, max_abs, max_abs_diff};
 use crate::refine::{solve_refined, RefineParams};
 use crate::scenario::{Scenario, TargetName};
@@ -72,14 +78,84 @@ pub struct SolveArgs {
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub max_solves: Option<u32>,
 
+    /// Solve the x, y and z directions one after the other instead of fused into one target
+    /// run (for comparison: the fused run fetches each matrix word once for all three).
+    #[arg(long)]
+    pub no_fuse: bool,
+
     /// Seconds one target solve may take before the host gives up. [default: 300]
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout: Option<u64>,
+
+    #[command(flatten)]
+    pub link: LinkFlags,
+
+    /// Boot QEMU with the serial loader and flash the firmware through it (as `deform flash`
+    /// does) instead of booting the firmware directly. Only with --target qemu.
+    #[arg(long, conflicts_with = "port")]
+    pub via_loader: bool,
+
+    #[command(flatten)]
+    pub logs: LogFlags,
 
     /// Write the displacements: FILE.csv gets `i,j,k,ux,uy,uz` per node, FILE.json the same
     /// plus the solver statistics. Default: no file, summary only.
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
+
+    /// Precondition CG: `jacobi` sends D^-1/2·K·D^-1/2 (D = diag K) and scales the vectors on
+    /// the host, which cuts iterations for stiff inclusions in soft tissue; --tol still means
+    /// the residual of the original system.
+    #[arg(long, value_enum, default_value_t = Preconditioner::None)]
+    pub precondition: Preconditioner,
+
+    #[command(flatten)]
+    pub layout: LayoutFlags,
+}
+
+/// How the matrix is laid out over the target's MVUs: shared by `deform solve` and
+/// `deform simulate`.
+#[derive(Debug, Clone, Default, Args)]
+pub struct LayoutFlags {
+    /// MVUs (harts) to share the matrix–vector product between, 1 to the number of harts the
+    /// target reports. Default: every hart the target reports.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u8).range(1..))]
+    pub mvus: Option<u8>,
+
+    /// How the matrix is split over the MVUs: `rows` gives each MVU a block of whole rows
+    /// balanced by nonzero count, which it writes directly (thesis 4.1.2); `overlap` cuts the
+    /// nonzeros into exactly equal runs, whose boundary rows two MVUs share and add (4.1.1).
+    #[arg(long, value_enum, default_value_t = Partition::Rows)]
+    pub partition: Partition,
+
+    /// Store the whole matrix even when it is persymmetric (K_ij = K_{n−1−i,n−1−j}, e.g. a
+    /// uniform grid with a symmetric fixed set). By default only half is stored then
+    /// (conjugate symmetry, thesis 2.5 vi), which halves matrix memory and upload.
+    #[arg(long)]
+    pub no_symmetry: bool,
+}
+
+impl LayoutFlags {
+    /// Harts to boot QEMU with: as many as --mvus asks for, else the most a target may have.
+    pub fn qemu_harts(&self) -> u8 {
+        self.mvus.unwrap_or(DEFAULT_QEMU_HARTS)
+    }
+
+    /// The encoder options for a target with `harts` harts, or why the flags do not fit it.
+    pub fn encode_options(&self, harts: u8) -> anyhow::Result<EncodeOptions> {
+        let harts = harts.max(1);
+        let mvus = self.mvus.unwrap_or(harts);
+        if mvus > harts {
+            bail!(
+                "--mvus {mvus} asks for more MVUs than the target has: it reports {harts} hart(s)"
+            );
+        }
+        Ok(EncodeOptions {
+            mvus,
+            partition: self.partition,
+            use_symmetry: !self.no_symmetry,
+        })
+    }
 }
 
 /// The built-in solver defaults (what `--help` states).
@@ -116,14 +192,29 @@ pub struct DirectionStats {
     pub relative_residual: f64,
     /// max |u − u_ref| / max |u_ref| against the f64 reference (target runs only).
     pub deviation_from_reference: Option<f64>,
-    pub mvu_cycles: u64,
-    pub mvu_instructions: u64,
-    pub svu_cycles: u64,
-    pub svu_instructions: u64,
-    /// MVU instructions per executed instruction word (nonzero).
-    pub mvu_instructions_per_nonzero: Option<f64>,
-    /// (MVU + SVU) cycles per CG iteration.
-    pub cycles_per_iteration: Option<f64>,
+}
+
+/// How the target ran: layout, features and the measured cost (target runs only).
+#[derive(Debug, Clone, Serialize)]
+pub struct EngineStats {
+    /// The matrix layout: words, tiles, overhead, symmetry, partition, MVUs.
+    pub layout: EncodingSummary,
+    pub precondition: Preconditioner,
+    /// The directions were solved together in fused target runs.
+    pub fused: bool,
+    /// Target solves in all (a fused solve counts once).
+    pub target_solves: usize,
+    /// Per-iteration figures of the first target solve (all loaded directions).
+    pub performance: Option<Performance>,
+    /// Matrix words the MVUs fetched over all solves.
+    pub words_fetched: u64,
+    /// What the same iterations fetch with every direction solved on its own.
+    pub words_fetched_unfused: u64,
+    /// Critical-path cycles (slowest MVU + SVU per iteration, times the iterations) over all
+    /// solves.
+    pub critical_path_cycles: u64,
+    /// Hart 0's MVU + SVU `mcycle` over all solves (under QEMU -icount: all harts' sum).
+    pub cycles: u64,
 }
 
 /// Everything a solve reports (the JSON `stats` object).
@@ -140,6 +231,7 @@ pub struct SolveStats {
     pub frac_bits: Option<u8>,
     pub tolerance: f64,
     pub directions: Vec<DirectionStats>,
+    pub engine: Option<EngineStats>,
     pub max_displacement: f64,
     /// Largest deviation over all directions, relative to the largest reference |u|.
     pub max_deviation_from_reference: Option<f64>,
@@ -160,6 +252,13 @@ pub struct SolvePlan {
     pub max_iter: Option<u32>,
     pub max_solves: u32,
     pub solve_timeout: Duration,
+    /// How the target's logs are decoded and shown.
+    pub logs: LogOptions,
+    /// Link timeouts and retries (`--link-timeout`, `--retransmit-ms`, `--retries`).
+    pub link: LinkFlags,
+    pub layout: LayoutFlags,
+    pub precondition: Preconditioner,
+    pub fuse: bool,
 }
 
 /// Reads the scenario file at `path`, if any, and merges the model `flags` over it over the
@@ -193,8 +292,13 @@ impl SolveArgs {
             .unwrap_or(TargetKind::Qemu);
         let board = match (&self.port, target) {
             (Some(port), _) => Some(BoardChoice::Port(port.clone())),
+            (None, TargetKind::Qemu) if self.via_loader => Some(BoardChoice::QemuViaLoader {
+                firmware: self.firmware.clone(),
+                harts: self.layout.qemu_harts(),
+            }),
             (None, TargetKind::Qemu) => Some(BoardChoice::Qemu {
                 firmware: self.firmware.clone(),
+                harts: self.layout.qemu_harts(),
             }),
             (None, TargetKind::Host) => None,
         };
@@ -211,6 +315,11 @@ impl SolveArgs {
                     .or(file_solver.timeout)
                     .unwrap_or(DEFAULT_TIMEOUT_SECONDS),
             ),
+            layout: self.layout.clone(),
+            precondition: self.precondition,
+            fuse: !self.no_fuse,
+            logs: self.logs.options(),
+            link: self.link,
         };
         let out = self
             .out
@@ -237,17 +346,31 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
         .max_iter
         .unwrap_or((10 * n).min(u32::MAX as usize) as u32);
     let rhs: Vec<Vec<f64>> = Axis::ALL.iter().map(|&d| model.scaled_rhs(d)).collect();
-    // Encode first: a matrix the target cannot take (e.g. a band too wide for a tile) is refused
-    // before any solving is done.
-    let board_and_matrix = plan
-        .board
-        .as_ref()
-        .map(|choice| encode(a).map(|encoded| (choice, encoded)))
-        .transpose()
-        .context("encoding A as instruction words")?;
+
+    // The target first: its harts decide the layout, and a matrix it cannot hold is refused
+    // before any solving or uploading is done.
+    let mut target_run = match &plan.board {
+        None => None,
+        Some(choice) => {
+            let scaled = precondition::scale(a, plan.precondition).context("preconditioning A")?;
+            let timeouts = plan.link.apply(Timeouts {
+                solve: plan.solve_timeout,
+                ..Timeouts::default()
+            });
+            let board = Board::open(choice, timeouts, &plan.logs)?;
+            let options = plan.layout.encode_options(board.target.info().harts)?;
+            let encoding =
+                encode_with(&scaled.matrix, &options).context("encoding A as instruction words")?;
+            board
+                .target
+                .check_matrix_fits(&encoding.matrix)
+                .context("the encoded matrix does not fit the target; use a smaller grid")?;
+            Some((board, scaled, encoding))
+        }
+    };
 
     // The f64 reference, always: it is the answer for --target host and the yardstick otherwise.
-    let reference_tol = if board_and_matrix.is_some() {
+    let reference_tol = if target_run.is_some() {
         1e-12
     } else {
         plan.tol
@@ -277,12 +400,13 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
         frac_bits: None,
         tolerance: plan.tol,
         directions: Vec::new(),
+        engine: None,
         max_displacement: 0.0,
         max_deviation_from_reference: None,
     };
     let mut u: [Vec<f64>; 3] = Default::default();
 
-    match board_and_matrix {
+    match target_run.take() {
         None => {
             for (d, sol) in Axis::ALL.iter().zip(&reference) {
                 u[d.position()] = sol.x.clone();
@@ -293,43 +417,30 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
                     solves: 0,
                     relative_residual: sol.relative_residual,
                     deviation_from_reference: None,
-                    mvu_cycles: 0,
-                    mvu_instructions: 0,
-                    svu_cycles: 0,
-                    svu_instructions: 0,
-                    mvu_instructions_per_nonzero: None,
-                    cycles_per_iteration: None,
                 });
             }
         }
-        Some((choice, encoded)) => {
-            stats.words = Some(encoded.words.len());
-            stats.tiles = Some(encoded.tiles.len());
-            stats.frac_bits = Some(encoded.frac_bits);
-            let timeouts = Timeouts {
-                solve: plan.solve_timeout,
-                ..Timeouts::default()
-            };
-            let mut board = Board::open(choice, timeouts)?;
+        Some((mut board, scaled, Encoding { matrix, summary })) => {
+            stats.words = Some(matrix.words.len());
+            stats.tiles = Some(matrix.tiles.len());
+            stats.frac_bits = Some(matrix.frac_bits);
             stats.target = board.describe();
             board
                 .target
-                .upload_matrix(&encoded)
+                .upload_matrix(&matrix)
                 .context("uploading A to the target")?;
             let params = RefineParams {
                 tol: plan.tol,
                 max_solves: plan.max_solves,
                 max_iterations: max_iter,
+                fuse: plan.fuse,
             };
+            let refs: Vec<&[f64]> = rhs.iter().map(Vec::as_slice).collect();
+            let refined = solve_refined(&mut board.target, a, &scaled, &refs, params)
+                .context("solving on the target")?;
             let scale = reference.iter().map(|s| max_abs(&s.x)).fold(0.0, f64::max);
-            for (d, b) in Axis::ALL.iter().zip(&rhs) {
-                let got = solve_refined(&mut board.target, a, b, params).with_context(|| {
-                    format!("solving the {} direction on the target", axis_name(*d))
-                })?;
-                let reference_x = &reference[d.position()].x;
-                let deviation = max_abs_diff(&got.x, reference_x);
-                let per_iteration =
-                    |v: u64| (got.iterations > 0).then(|| v as f64 / got.iterations as f64);
+            for (d, got) in Axis::ALL.iter().zip(&refined.directions) {
+                let deviation = max_abs_diff(&got.x, &reference[d.position()].x);
                 stats.directions.push(DirectionStats {
                     axis: axis_name(*d),
                     k: model.direction_scale(*d),
@@ -341,25 +452,28 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
                     } else {
                         deviation
                     }),
-                    mvu_cycles: got.mvu.cycles,
-                    mvu_instructions: got.mvu.instructions,
-                    svu_cycles: got.svu.cycles,
-                    svu_instructions: got.svu.instructions,
-                    mvu_instructions_per_nonzero: (got.iterations > 0
-                        && got.words_per_iteration > 0)
-                        .then(|| {
-                            got.mvu.instructions as f64
-                                / (got.iterations as f64 * got.words_per_iteration as f64)
-                        }),
-                    cycles_per_iteration: per_iteration(got.mvu.cycles + got.svu.cycles),
                 });
-                u[d.position()] = got.x;
+                u[d.position()] = got.x.clone();
             }
             stats.max_deviation_from_reference = stats
                 .directions
                 .iter()
                 .filter_map(|d| d.deviation_from_reference)
                 .reduce(f64::max);
+            stats.engine = Some(EngineStats {
+                performance: refined
+                    .reports
+                    .first()
+                    .and_then(|r| performance(r, &summary, n, a.nnz())),
+                layout: summary,
+                precondition: plan.precondition,
+                fused: plan.fuse,
+                target_solves: refined.reports.len(),
+                words_fetched: refined.words_fetched(),
+                words_fetched_unfused: refined.words_fetched_unfused(),
+                critical_path_cycles: refined.critical_path_cycles(),
+                cycles: refined.cycles(),
+            });
         }
     }
     stats.max_displacement = u.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
@@ -401,6 +515,22 @@ fn print_summary(stats: &SolveStats) {
             20 - f as i32
         );
     }
+    if let Some(e) = &stats.engine {
+        let l = &e.layout;
+        println!(
+            "layout      {} MVU(s), partition {}, conjugate symmetry {}, {} empty-row words ({:.3} %), precondition {}",
+            l.mvus,
+            l.partition,
+            match (l.symmetry_used, l.persymmetric) {
+                (true, _) => "used (half stored)",
+                (false, true) => "available, not used",
+                (false, false) => "no (not persymmetric)",
+            },
+            l.empty_row_words,
+            100.0 * l.overhead(),
+            e.precondition
+        );
+    }
     for d in &stats.directions {
         print!(
             "u{}  (k = {}) iterations {:>5}, solves {}, residual {:.2e}",
@@ -410,10 +540,30 @@ fn print_summary(stats: &SolveStats) {
             print!(", deviation from f64 {dev:.2e}");
         }
         println!();
-        if let (Some(ipn), Some(cpi)) = (d.mvu_instructions_per_nonzero, d.cycles_per_iteration) {
+    }
+    if let Some(e) = &stats.engine {
+        println!(
+            "runs        {} target solve(s), {}; {} matrix words fetched ({} if solved one direction at a time); {} critical-path cycles in all",
+            e.target_solves,
+            if e.fused { "directions fused" } else { "one direction at a time" },
+            e.words_fetched,
+            e.words_fetched_unfused,
+            e.critical_path_cycles
+        );
+        if let Some(p) = &e.performance {
             println!(
-                "            MVU {} cycles / {} instr, SVU {} cycles / {} instr; {ipn:.2} MVU instr per nonzero, {cpi:.0} cycles per iteration",
-                d.mvu_cycles, d.mvu_instructions, d.svu_cycles, d.svu_instructions
+                "per iter.   {} MVU(s) × {} direction(s): {:.2} MVU instructions per word, {:.2} per multiply-accumulate; \
+                 critical path {} cycles (MVU {} + SVU {}); {:.1} MFLOPS at 100 MHz by eq. 56 (m = {:.2}, n = {})",
+                p.mvus,
+                p.directions,
+                p.mvu_instructions_per_word,
+                p.mvu_instructions_per_product,
+                p.critical_path_cycles,
+                p.mvu_critical_cycles,
+                p.svu_critical_cycles,
+                p.mflops,
+                p.m,
+                p.n
             );
         }
     }

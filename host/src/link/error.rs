@@ -16,11 +16,34 @@ pub enum LinkError {
     },
     #[error("serial I/O with the target failed: {0}")]
     Io(#[from] std::io::Error),
-    #[error("no answer to {request} within {after:?} (is the target running, and on this port?)")]
+    #[error(
+        "no answer to {request} within {after:.1?} ({retries} retransmissions; is the target \
+         running, on this port, and the line not too noisy? see --link-timeout and --retries)"
+    )]
     Timeout {
         request: &'static str,
         after: Duration,
+        retries: u32,
     },
+    #[error(
+        "the target reset mid-session (it answered as a freshly booted target that has not \
+         shaken hands): its matrix and vectors are gone"
+    )]
+    TargetReset,
+    #[error("the target firmware panicked: {message}")]
+    TargetPanicked { message: String },
+    #[error("the connection to the target is gone: {0} (QEMU exited, or the board was unplugged)")]
+    Disconnected(&'static str),
+    #[error(
+        "the target stopped reading: a write to it made no progress within the link's timeout"
+    )]
+    WriteStalled,
+    #[error(
+        "the target answers in a format this host does not understand ({frames} well-formed \
+         frames that do not decode): is it running firmware for another protocol version than \
+         {host}? Rebuild and flash it from this checkout (`cargo xtask firmware`)"
+    )]
+    Incompatible { frames: u64, host: u16 },
     #[error("the target refused {request}: {code}")]
     Target {
         request: &'static str,
@@ -51,6 +74,8 @@ pub enum LinkError {
         index: usize,
         value: f64,
     },
+    #[error("{0} right-hand sides given; a fused solve takes 1 to {max}", max = deform_shared::protocol::MAX_DIRECTIONS)]
+    Directions(usize),
     #[error("cannot frame {request}: {source}")]
     Encode {
         request: &'static str,

@@ -1,6 +1,6 @@
 //! In-process targets for the link's unit tests: a thread on the far end of a socket pair that
-//! decodes the host's frames and answers them, either with the firmware's real session logic
-//! (`deform-target-core`) or with a script that misbehaves on purpose.
+//! decodes the host's frames and answers them, either with the firmware's real transport and
+//! session logic (`deform-target-core`) or with a script that misbehaves on purpose.
 
 use std::io::{Read, Write};
 use std::os::unix::net::UnixStream;
@@ -11,22 +11,29 @@ use std::thread;
 use deform_shared::frame::{self, Feed, FrameAccumulator, FrameError};
 use deform_shared::matrix::TileHeader;
 use deform_shared::protocol::{
-    Envelope, Request, Response, TargetInfo, MAX_FRAME_LEN, PROTOCOL_VERSION, UNKNOWN_SEQ,
+    Envelope, Request, Response, TargetInfo, MAX_FRAME_LEN, PROTOCOL_VERSION,
 };
-use deform_target_core::cg::NoClock;
-use deform_target_core::session::{Session, Storage, DIRECTION_PAD};
+use deform_shared::transport::Uplink;
+use deform_target_core::exec::Sequential;
+use deform_target_core::session::{DirectionStorage, Session, Storage};
+use deform_target_core::transport::{TargetLink, Tx};
 
 /// What the fake target got from the host.
 #[derive(Debug)]
 pub enum Received {
     Request(Box<Envelope<Request>>),
-    Unreadable(FrameError),
+    Unreadable(#[allow(dead_code)] FrameError),
 }
 
-/// One answer frame, delimiter included.
+/// One reply frame, delimiter included.
 pub fn answer_frame(seq: u16, body: Response) -> Vec<u8> {
+    uplink_frame(&Uplink::Reply { seq, body })
+}
+
+/// Any target frame, delimiter included.
+pub fn uplink_frame(up: &Uplink) -> Vec<u8> {
     let mut buf = [0u8; MAX_FRAME_LEN];
-    let len = frame::encode(&Envelope { seq, body }, &mut buf).expect("answers fit a frame");
+    let len = frame::encode(up, &mut buf).expect("answers fit a frame");
     buf[..len].to_vec()
 }
 
@@ -39,6 +46,7 @@ pub fn info() -> TargetInfo {
         word_capacity: 4096,
         tile_capacity: 16,
         max_n: 1024,
+        build_id: [0xB1, 0x1D].as_slice().try_into().unwrap(),
     }
 }
 
@@ -69,33 +77,96 @@ pub fn serve(mut stream: UnixStream, mut answer: impl FnMut(Received) -> Vec<u8>
     });
 }
 
-/// A target running the firmware's own session logic with `info`'s capacities. Returns the
-/// number of requests it has received so far.
+/// A target running the firmware's own transport and session logic with `info`'s capacities.
+/// Returns the number of requests its session has handled so far.
 pub fn serve_session(stream: UnixStream, info: TargetInfo) -> Arc<AtomicUsize> {
-    let requests = Arc::new(AtomicUsize::new(0));
-    let counter = Arc::clone(&requests);
+    serve_session_through(stream, info, |bytes| bytes.to_vec())
+}
+
+/// Like [`serve_session`], with every frame the target writes passed through `line` on its way
+/// to the host (which may corrupt, drop or duplicate it), and every byte from the host through
+/// the same `line` before it reaches the target.
+pub fn serve_session_through(
+    stream: UnixStream,
+    info: TargetInfo,
+    line: impl FnMut(&[u8]) -> Vec<u8> + Send + 'static,
+) -> Arc<AtomicUsize> {
+    serve_resetting(stream, info, line, None)
+}
+
+/// A fresh session over freshly leaked storage (the session borrows it for the test's life).
+/// Its MVUs run one after another on this thread, as many as `info` reports.
+fn fresh_session(info: TargetInfo) -> Session<'static, Sequential> {
     let n = info.max_n as usize;
-    // The session borrows its storage, so the storage is leaked for the test's lifetime.
-    let storage = Storage {
-        words: vec![0; info.word_capacity as usize].leak(),
-        tiles: vec![TileHeader::default(); info.tile_capacity as usize].leak(),
+    let direction = || DirectionStorage {
         b: vec![0; n].leak(),
         x: vec![0; n].leak(),
         x0: vec![0; n].leak(),
         r: vec![0; n].leak(),
-        p: vec![0; n + DIRECTION_PAD].leak(),
-        kp: vec![0; n].leak(),
     };
-    let mut session = Session::new(storage, info, NoClock);
-    serve(stream, move |received| match received {
-        Received::Request(req) => {
-            counter.fetch_add(1, Ordering::SeqCst);
-            answer_frame(req.seq, session.handle(req.body))
+    let storage = Storage {
+        words: vec![0; info.word_capacity as usize].leak(),
+        tiles: vec![TileHeader::default(); info.tile_capacity as usize].leak(),
+        directions: [direction(), direction(), direction()],
+        p: vec![[0; 4]; n].leak(),
+        kp: vec![[0; 3]; n].leak(),
+        partial: vec![[0; 3]; 2 * n].leak(),
+    };
+    let harts = Sequential {
+        harts: usize::from(info.harts),
+    };
+    Session::new(storage, info, harts)
+}
+
+/// Like [`serve_session_through`]; after `reset_after` handled requests the target "reboots":
+/// a fresh transport (not synchronised) and a fresh, empty session.
+pub fn serve_resetting(
+    mut stream: UnixStream,
+    info: TargetInfo,
+    line: impl FnMut(&[u8]) -> Vec<u8> + Send + 'static,
+    reset_after: Option<usize>,
+) -> Arc<AtomicUsize> {
+    let requests = Arc::new(AtomicUsize::new(0));
+    let counter = Arc::clone(&requests);
+    thread::spawn(move || {
+        let mut session = fresh_session(info.clone());
+        let mut link = Box::new(TargetLink::new());
+        let mut line = line;
+        let mut reset_pending = reset_after;
+        let mut buf = [0u8; 1024];
+        loop {
+            let n = match stream.read(&mut buf) {
+                Ok(0) | Err(_) => return,
+                Ok(n) => n,
+            };
+            let received = line(&buf[..n]);
+            let mut out = Outbox(Vec::new());
+            for &byte in &received {
+                let mut handle = |request| {
+                    counter.fetch_add(1, Ordering::SeqCst);
+                    session.handle(request)
+                };
+                link.feed(byte, &mut handle, &mut out);
+                if reset_pending.is_some_and(|at| counter.load(Ordering::SeqCst) >= at) {
+                    reset_pending = None;
+                    session = fresh_session(info.clone());
+                    *link = TargetLink::new();
+                }
+            }
+            let sent = line(&out.0);
+            if stream.write_all(&sent).is_err() {
+                return;
+            }
         }
-        Received::Unreadable(e) => answer_frame(
-            UNKNOWN_SEQ,
-            Response::Error(deform_shared::protocol::ErrorCode::Frame(e)),
-        ),
     });
     requests
+}
+
+/// Collects the fake target's frames.
+struct Outbox(Vec<u8>);
+
+impl Tx for Outbox {
+    fn write(&mut self, frame: &[u8]) {
+        self.0.extend_from_slice(frame);
+    }
 }

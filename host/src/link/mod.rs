@@ -2,9 +2,10 @@
 //!
 //! Two layers:
 //!
-//! - [`Link`] moves one request and its response: it frames an [`Envelope`] with a sequence
-//!   number, then reads until the response with that number arrives, skipping line noise and
-//!   stale answers, within a deadline. It knows nothing about the session order.
+//! - [`Link`] is the reliable transport (`transport.rs`, `docs/PROTOCOL.md`): numbered request
+//!   frames with up to a window of them in flight, replies matched by number and delivered in
+//!   order, retransmission on NAK or timeout, a bounded wait for everything. It knows nothing
+//!   about the session order.
 //! - [`Target`] is the session: the `Hello` handshake and version check, then matrix and vector
 //!   uploads in chunks, `Solve` and `ReadSolution`, converting vectors to and from block floating
 //!   point on the way.
@@ -16,9 +17,10 @@
 //! [`Envelope`]: deform_shared::protocol::Envelope
 
 mod error;
+mod flags;
 mod port;
 mod target;
-mod wire;
+mod transport;
 
 #[cfg(test)]
 mod fake_target;
@@ -26,8 +28,11 @@ mod fake_target;
 mod test_systems;
 
 pub use error::{Capacity, LinkError};
+pub use flags::LinkFlags;
 pub use port::{open_serial, Port, BAUD_RATE};
 pub use target::{
     full_upload_bytes, update_bytes, Target, Timeouts, UpdateError, UpdateReport, UploadProgress,
 };
-pub use wire::{request_name, Link, LinkStats, DEFAULT_REQUEST_TIMEOUT};
+pub use transport::{
+    request_name, Link, LinkConfig, LinkStats, NoticeHandler, DEFAULT_REQUEST_TIMEOUT,
+};

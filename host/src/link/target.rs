@@ -1,16 +1,17 @@
 use std::time::{Duration, Instant};
 
 use deform_shared::frame;
-use deform_shared::matrix::{validate_tile, words_crc, MatrixError, TileHeader};
+use deform_shared::matrix::{validate_tile, words_crc, MatrixError};
 use deform_shared::protocol::{
-    Envelope, ErrorCode, Request, Response, SolveParams, SolveReport, TargetInfo, VectorSlot,
-    CHUNK_LEN, MAX_FRAME_LEN, PROTOCOL_VERSION,
+    Envelope, ErrorCode, Request, Response, SolveParams, SolveReport, Start, TargetInfo,
+    VectorSlot, CHUNK_LEN, MAX_DIRECTIONS, MAX_FRAME_LEN, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{block_exponent, from_mantissa, to_mantissa};
+use deform_shared::transport::WINDOW;
 use deform_shared::word::{Word, VALUE_BITS};
 use serialport::SerialPort;
 
-use super::wire::{Exchange, DEFAULT_REQUEST_TIMEOUT};
+use super::transport::{Exchange, LinkConfig, DEFAULT_REQUEST_TIMEOUT};
 use super::{open_serial, request_name, Capacity, Link, LinkError, LinkStats, Port};
 use crate::encode::EncodedMatrix;
 
@@ -23,10 +24,26 @@ pub struct Timeouts {
     /// the guest only once it notices the pty was opened (it polls once a second), and a board
     /// may still be booting: a resent `Hello` is harmless, since `Hello` just resets the session.
     pub hello_retry: Duration,
-    /// Every request but `Solve`.
+    /// How long every request but `Solve` may wait for its reply, retransmissions included.
     pub request: Duration,
     /// `Solve`: CG on the target may take far longer than a round trip.
     pub solve: Duration,
+    /// How long a frame waits for its reply before it is sent again (doubled per retry, up to
+    /// 8×); see [`LinkConfig`].
+    pub retransmit: Duration,
+    /// Retransmissions of one frame before its request fails.
+    pub retries: u32,
+}
+
+impl Timeouts {
+    /// The transport settings these imply.
+    pub fn link_config(&self) -> LinkConfig {
+        LinkConfig {
+            retransmit: self.retransmit,
+            retries: self.retries,
+            window: WINDOW,
+        }
+    }
 }
 
 impl Default for Timeouts {
@@ -36,6 +53,8 @@ impl Default for Timeouts {
             hello_retry: Duration::from_secs(2),
             request: DEFAULT_REQUEST_TIMEOUT,
             solve: Duration::from_secs(120),
+            retransmit: LinkConfig::default().retransmit,
+            retries: LinkConfig::default().retries,
         }
     }
 }
@@ -55,31 +74,15 @@ pub struct Target<P: Port = Box<dyn SerialPort>> {
     link: Link<P>,
     info: TargetInfo,
     timeouts: Timeouts,
-    /// The sparsity pattern of the matrix the target holds, as far as the host knows.
-    resident: Option<Pattern>,
-}
-
-/// A matrix without its values: what a values-only update must leave unchanged.
-#[derive(Debug, Clone, PartialEq, Eq)]
-struct Pattern {
-    n: u32,
-    tiles: Vec<TileHeader>,
-    /// Every word with its value field cleared (EM, ER and column).
-    structure: Vec<u32>,
+    /// The matrix the target holds, as far as the host knows: its pattern decides whether a
+    /// values-only update is possible, and it is uploaded again if the target resets.
+    resident: Option<EncodedMatrix>,
+    /// Times a reset target was given its matrix again (see [`Target::solve_for`]).
+    resumes: u32,
 }
 
 /// Bits 20..0 of a word, its value.
 const VALUE_FIELD: u32 = (1 << VALUE_BITS) - 1;
-
-impl Pattern {
-    fn of(matrix: &EncodedMatrix) -> Pattern {
-        Pattern {
-            n: matrix.n,
-            tiles: matrix.tiles.clone(),
-            structure: matrix.words.iter().map(|w| w & !VALUE_FIELD).collect(),
-        }
-    }
-}
 
 /// What a values-only update sent, against what a full upload of the same matrix would send.
 /// Both count request frames as they go on the wire (COBS, CRC and delimiter included, each
@@ -187,12 +190,14 @@ impl<P: Port> Target<P> {
     /// speaks our protocol version.
     pub fn handshake(link: Link<P>, timeouts: Timeouts) -> Result<Self, LinkError> {
         let mut link = link.with_timeout(timeouts.request);
+        link.set_config(timeouts.link_config());
         let info = hello(&mut link, &timeouts)?;
         Ok(Target {
             link,
             info,
             timeouts,
             resident: None,
+            resumes: 0,
         })
     }
 
@@ -209,6 +214,12 @@ impl<P: Port> Target<P> {
     pub fn set_timeouts(&mut self, timeouts: Timeouts) {
         self.timeouts = timeouts;
         self.link.set_timeout(timeouts.request);
+        self.link.set_config(timeouts.link_config());
+    }
+
+    /// How often a target that reset mid-session was given its matrix again.
+    pub fn resumes(&self) -> u32 {
+        self.resumes
     }
 
     pub fn stats(&self) -> LinkStats {
@@ -260,34 +271,17 @@ impl<P: Port> Target<P> {
         validate_matrix(matrix).map_err(LinkError::MalformedMatrix)?;
         let words_total = matrix.words.len();
         self.resident = None;
-        self.expect_ack(&Request::BeginMatrix {
-            n: matrix.n,
-            frac_bits: matrix.frac_bits,
-            tiles: matrix.tiles.len() as u32,
-            words: words_total as u32,
-        })?;
-        // Offsets count from the start of the whole word stream.
-        let mut offset = 0;
-        for header in &matrix.tiles {
-            self.expect_ack(&Request::Tile(*header))?;
-            let tile_words = &matrix.words[offset..offset + header.words as usize];
-            for chunk in tile_words.chunks(CHUNK_LEN) {
-                let words = chunk.iter().copied().collect();
-                self.expect_ack(&Request::Words {
-                    offset: offset as u32,
-                    words,
-                })?;
-                offset += chunk.len();
+        self.link.run(upload_requests(matrix), |request, reply| {
+            expect_ack_reply(request, reply)?;
+            if let Request::Words { offset, words } = request {
                 progress(UploadProgress {
-                    words_sent: offset,
+                    words_sent: *offset as usize + words.len(),
                     words_total,
                 });
             }
-        }
-        self.expect_ack(&Request::EndMatrix {
-            crc32: words_crc(&matrix.words),
+            Ok(())
         })?;
-        self.resident = Some(Pattern::of(matrix));
+        self.resident = Some(matrix.clone());
         Ok(())
     }
 
@@ -295,13 +289,13 @@ impl<P: Port> Target<P> {
     /// [`update_values`](Self::update_values) can replace its values.
     pub fn pattern_matches(&self, matrix: &EncodedMatrix) -> bool {
         self.resident.as_ref().is_some_and(|p| {
-            p.n == matrix.n && p.tiles == matrix.tiles && {
-                p.structure.len() == matrix.words.len()
-                    && p.structure
-                        .iter()
-                        .zip(&matrix.words)
-                        .all(|(s, w)| *s == w & !VALUE_FIELD)
-            }
+            p.n == matrix.n
+                && p.tiles == matrix.tiles
+                && p.words.len() == matrix.words.len()
+                && p.words
+                    .iter()
+                    .zip(&matrix.words)
+                    .all(|(r, w)| r & !VALUE_FIELD == w & !VALUE_FIELD)
         })
     }
 
@@ -316,13 +310,10 @@ impl<P: Port> Target<P> {
         if !self.pattern_matches(matrix) {
             return Err(UpdateError::PatternChanged);
         }
-        let pattern = self.resident.take();
-        let mut bytes_sent = 0;
-        for request in update_requests(matrix) {
-            bytes_sent += frame_bytes(&request);
-            self.expect_ack(&request)?;
-        }
-        self.resident = pattern;
+        self.resident = None;
+        let bytes_sent = update_bytes(matrix);
+        self.link.run(update_requests(matrix), expect_ack_reply)?;
+        self.resident = Some(matrix.clone());
         Ok(UpdateReport {
             bytes_sent,
             full_upload_bytes: full_upload_bytes(matrix),
@@ -359,21 +350,22 @@ impl<P: Port> Target<P> {
                 to_mantissa(value, exponent).ok_or(LinkError::NotFinite { slot, index, value })
             })
             .collect::<Result<Vec<i32>, _>>()?;
-        self.expect_ack(&Request::BeginVector {
+        let begin = Request::BeginVector {
             slot,
             exponent,
             len: values.len() as u32,
-        })?;
-        for (i, chunk) in mantissas.chunks(CHUNK_LEN).enumerate() {
-            let offset = (i * CHUNK_LEN) as u32;
-            let mantissas = chunk.iter().copied().collect();
-            self.expect_ack(&Request::VectorData {
-                slot,
-                offset,
-                mantissas,
-            })?;
-        }
-        Ok(())
+        };
+        let chunks =
+            mantissas
+                .chunks(CHUNK_LEN)
+                .enumerate()
+                .map(|(i, chunk)| Request::VectorData {
+                    slot,
+                    offset: (i * CHUNK_LEN) as u32,
+                    mantissas: chunk.iter().copied().collect(),
+                });
+        self.link
+            .run(std::iter::once(begin).chain(chunks), expect_ack_reply)
     }
 
     /// Runs CG on the target, waiting up to [`Timeouts::solve`].
@@ -385,56 +377,137 @@ impl<P: Port> Target<P> {
         }
     }
 
-    /// Reads the first `n` entries of the last solution.
+    /// Reads the first `n` entries of the last solution (direction 0).
     pub fn read_solution(&mut self, n: usize) -> Result<Vec<f64>, LinkError> {
+        self.read_direction_solution(0, n)
+    }
+
+    /// Reads the first `n` entries of the last solution of `direction`, chunk by chunk with the
+    /// window full. It is returned only once every chunk arrived, of the direction and at the
+    /// offset asked for, with the same exponent (each in a frame whose CRC passed).
+    pub fn read_direction_solution(
+        &mut self,
+        direction: u8,
+        n: usize,
+    ) -> Result<Vec<f64>, LinkError> {
         let mut solution = Vec::with_capacity(n);
-        while solution.len() < n {
-            let offset = solution.len() as u32;
-            let request = Request::ReadSolution { offset };
-            match self.link.request(&request)? {
+        let mut first_exponent = None;
+        let requests = (0..n)
+            .step_by(CHUNK_LEN)
+            .map(|offset| Request::ReadSolution {
+                direction,
+                offset: offset as u32,
+            });
+        self.link.run(requests, |request, reply| {
+            let Request::ReadSolution { offset, .. } = *request else {
+                return Err(unexpected(request, "Solution", &reply));
+            };
+            let wanted = (n - offset as usize).min(CHUNK_LEN);
+            match reply {
                 Response::Solution {
+                    direction: got_direction,
                     offset: got,
                     exponent,
                     mantissas,
-                } if got == offset && !mantissas.is_empty() => {
-                    let wanted = n - solution.len();
+                } if got == offset
+                    && got_direction == direction
+                    && mantissas.len() >= wanted
+                    && *first_exponent.get_or_insert(exponent) == exponent =>
+                {
                     solution.extend(
                         mantissas
                             .iter()
                             .take(wanted)
                             .map(|&m| from_mantissa(m, exponent)),
                     );
+                    Ok(())
                 }
-                other => {
-                    return Err(unexpected(
-                        &request,
-                        "a non-empty Solution at the requested offset",
-                        &other,
-                    ))
-                }
+                other => Err(unexpected(
+                    request,
+                    "a Solution chunk of the requested direction and offset, as long as asked, with the \
+                     exponent of the others",
+                    &other,
+                )),
             }
+        })?;
+        if solution.len() != n {
+            return Err(LinkError::Protocol {
+                request: "ReadSolution",
+                expected: "the whole solution",
+                got: format!("{} of {n} entries", solution.len()),
+            });
         }
         Ok(solution)
     }
 
     /// Uploads `rhs`, solves and reads the solution: one right-hand side against the resident
-    /// matrix.
+    /// matrix (direction 0; `params.directions` is taken as 1).
     pub fn solve_for(
         &mut self,
         rhs: &[f64],
         params: SolveParams,
     ) -> Result<(SolveReport, Vec<f64>), LinkError> {
-        self.upload_vector(VectorSlot::Rhs, rhs)?;
-        let report = self.solve(params)?;
-        let solution = self.read_solution(rhs.len())?;
-        Ok((report, solution))
+        let (report, mut solutions) = self.solve_fused(&[rhs], params)?;
+        Ok((report, solutions.pop().unwrap_or_default()))
     }
 
-    fn expect_ack(&mut self, request: &Request) -> Result<(), LinkError> {
-        match self.link.request(request)? {
-            Response::Ack => Ok(()),
-            other => Err(unexpected(request, "Ack", &other)),
+    /// Solves up to [`MAX_DIRECTIONS`] systems with the resident matrix in one fused CG run:
+    /// uploads `rhs[d]` as direction d's right-hand side, solves with
+    /// `params.directions = rhs.len()`, and reads every direction's solution. For
+    /// [`Start::Uploaded`], upload each direction's `InitialGuess { direction }` first.
+    ///
+    /// If the target resets meanwhile (it answers `NotSynced`), a cold solve (`Start::Zero`)
+    /// resumes: the host shakes hands again, uploads the matrix it holds a copy of, and
+    /// repeats the whole right-hand sides. A warm start cannot resume, since the state it
+    /// starts from died with the target; it fails with [`LinkError::TargetReset`].
+    pub fn solve_fused(
+        &mut self,
+        rhs: &[&[f64]],
+        params: SolveParams,
+    ) -> Result<(SolveReport, Vec<Vec<f64>>), LinkError> {
+        if rhs.is_empty() || rhs.len() > MAX_DIRECTIONS {
+            return Err(LinkError::Directions(rhs.len()));
         }
+        let params = SolveParams {
+            directions: rhs.len() as u8,
+            ..params
+        };
+        match self.solve_fused_once(rhs, params) {
+            Err(LinkError::TargetReset) if params.start == Start::Zero => {
+                let Some(matrix) = self.resident.take() else {
+                    return Err(LinkError::TargetReset);
+                };
+                self.reset()?;
+                self.upload_matrix(&matrix)?;
+                self.resumes += 1;
+                self.solve_fused_once(rhs, params)
+            }
+            other => other,
+        }
+    }
+
+    fn solve_fused_once(
+        &mut self,
+        rhs: &[&[f64]],
+        params: SolveParams,
+    ) -> Result<(SolveReport, Vec<Vec<f64>>), LinkError> {
+        for (d, b) in rhs.iter().enumerate() {
+            self.upload_vector(VectorSlot::Rhs { direction: d as u8 }, b)?;
+        }
+        let report = self.solve(params)?;
+        let solutions = rhs
+            .iter()
+            .enumerate()
+            .map(|(d, b)| self.read_direction_solution(d as u8, b.len()))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok((report, solutions))
+    }
+}
+
+fn expect_ack_reply(request: &Request, reply: Response) -> Result<(), LinkError> {
+    match reply {
+        Response::Ack => Ok(()),
+        other => Err(unexpected(request, "Ack", &other)),
     }
 }
 
@@ -469,10 +542,18 @@ fn hello<P: Port>(link: &mut Link<P>, timeouts: &Timeouts) -> Result<TargetInfo,
             }
             Err(LinkError::Timeout { .. }) if Instant::now() < deadline => continue,
             Err(LinkError::Timeout { request, .. }) => {
+                let undecodable = link.stats().undecodable;
+                if undecodable > 0 {
+                    return Err(LinkError::Incompatible {
+                        frames: undecodable,
+                        host: PROTOCOL_VERSION,
+                    });
+                }
                 return Err(LinkError::Timeout {
                     request,
                     after: timeouts.handshake,
-                })
+                    retries: link.stats().requests.saturating_sub(1) as u32,
+                });
             }
             Err(e) => return Err(e),
         }
@@ -524,11 +605,14 @@ mod tests {
     use std::os::unix::net::UnixStream;
     use std::sync::atomic::Ordering;
 
-    use deform_shared::frame::FrameError;
-    use deform_shared::protocol::{SessionStep, Start, UNKNOWN_SEQ};
+    use deform_shared::protocol::SessionStep;
+    use deform_shared::transport::Uplink;
 
     use super::*;
-    use crate::link::fake_target::{answer_frame, info, serve, serve_session, Received};
+    use crate::link::fake_target::{
+        answer_frame, info, serve, serve_resetting, serve_session, serve_session_through,
+        uplink_frame, Received,
+    };
     use crate::link::test_systems::{laplacian_1d, laplacian_1d_solve, max_relative_error};
 
     fn quick() -> Timeouts {
@@ -537,6 +621,8 @@ mod tests {
             hello_retry: Duration::from_millis(200),
             request: Duration::from_secs(5),
             solve: Duration::from_secs(30),
+            retransmit: Duration::from_millis(50),
+            retries: 16,
         }
     }
 
@@ -559,7 +645,35 @@ mod tests {
             max_iterations: 2000,
             tolerance: 1e-9,
             start: Start::Zero,
+            directions: 1,
         }
+    }
+
+    #[test]
+    fn a_fused_solve_returns_every_direction() {
+        let (mut target, _) = session_target(info());
+        let n = 150;
+        target.upload_matrix(&laplacian_1d(n)).unwrap();
+        let rhs: Vec<Vec<f64>> = (1..=3)
+            .map(|d| (0..n).map(|i| (i as f64 * 0.05 * d as f64).cos()).collect())
+            .collect();
+        let slices: Vec<&[f64]> = rhs.iter().map(Vec::as_slice).collect();
+        let (report, x) = target.solve_fused(&slices, params()).unwrap();
+        assert_eq!(report.directions.len(), 3);
+        assert!(report.converged, "{report:?}");
+        for (b, x) in rhs.iter().zip(&x) {
+            assert!(max_relative_error(x, &laplacian_1d_solve(b)) < 1e-5);
+        }
+        let (single, x1) = target.solve_for(&rhs[1], params()).unwrap();
+        assert_eq!(single.directions[0], report.directions[1]);
+        assert_eq!(x1, x[1]);
+        let err = target.solve_fused(&[], params()).unwrap_err();
+        assert!(matches!(err, LinkError::Directions(0)), "{err:?}");
+        let four = [slices[0]; 4];
+        assert!(matches!(
+            target.solve_fused(&four, params()),
+            Err(LinkError::Directions(4))
+        ));
     }
 
     #[test]
@@ -740,7 +854,7 @@ mod tests {
     fn the_targets_refusals_come_back_with_its_reason() {
         let (mut target, _) = session_target(info());
         let err = target
-            .upload_vector(VectorSlot::Rhs, &[1.0, 2.0])
+            .upload_vector(VectorSlot::RHS, &[1.0, 2.0])
             .unwrap_err();
         assert_eq!(
             err.target_code(),
@@ -759,7 +873,7 @@ mod tests {
         );
         assert!(err.to_string().contains("refused Solve"), "{err}");
         let err = target
-            .upload_vector(VectorSlot::Rhs, &[1.0, f64::NAN, 0.0, 0.0])
+            .upload_vector(VectorSlot::RHS, &[1.0, f64::NAN, 0.0, 0.0])
             .unwrap_err();
         assert!(
             matches!(err, LinkError::NotFinite { index: 1, .. }),
@@ -773,7 +887,7 @@ mod tests {
         target.upload_matrix(&laplacian_1d(4)).unwrap();
         target.reset().unwrap();
         let err = target
-            .upload_vector(VectorSlot::Rhs, &[1.0; 4])
+            .upload_vector(VectorSlot::RHS, &[1.0; 4])
             .unwrap_err();
         assert_eq!(
             err.target_code(),
@@ -817,14 +931,13 @@ mod tests {
         serve(target, move |received| match received {
             Received::Request(req) => {
                 hellos += 1;
-                // The first Hello is lost behind complaints about earlier noise.
+                // The first Hello is lost behind NAKs, a stale reply and a stale NotSynced.
                 let mut out = Vec::new();
-                for _ in 0..5 {
-                    out.extend(answer_frame(
-                        UNKNOWN_SEQ,
-                        Response::Error(ErrorCode::Frame(FrameError::Crc)),
-                    ));
+                for _ in 0..3 {
+                    out.extend(uplink_frame(&Uplink::Nak { expected: 1 }));
                 }
+                out.extend(answer_frame(req.seq.wrapping_sub(9), Response::Ack));
+                out.extend(uplink_frame(&Uplink::NotSynced { seq: 3 }));
                 if hellos > 1 {
                     out.extend(answer_frame(req.seq, Response::Hello(info())));
                 }
@@ -834,7 +947,8 @@ mod tests {
         });
         let target = Target::handshake(Link::new(host), quick()).unwrap();
         assert_eq!(target.stats().requests, 2);
-        assert_eq!(target.stats().stale_answers, 10);
+        assert_eq!(target.stats().naks, 6);
+        assert_eq!(target.stats().stale_answers, 4);
     }
 
     #[test]
@@ -886,6 +1000,7 @@ mod tests {
                 _ => answer_frame(
                     req.seq,
                     Response::Solution {
+                        direction: 0,
                         offset: 5,
                         exponent: 0,
                         mantissas: [1, 2].into_iter().collect(),
@@ -906,5 +1021,88 @@ mod tests {
             ),
             "{err:?}"
         );
+    }
+
+    /// A line that flips bits, drops, duplicates and inserts bytes, each at `rate / 4` per
+    /// byte, from a fixed seed.
+    fn noisy_line(seed: u64, rate: f64) -> impl FnMut(&[u8]) -> Vec<u8> + Send + 'static {
+        let mut state = seed;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        move |bytes| {
+            let mut out = Vec::with_capacity(bytes.len() + 8);
+            for &b in bytes {
+                let roll = (next() % 1_000_000) as f64 / 1e6;
+                let fault = (roll / (rate / 4.0)) as u32;
+                match fault {
+                    0 => out.push(b ^ (1 << (next() % 8))),
+                    1 => {}
+                    2 => out.extend([b, b]),
+                    3 => out.extend([next() as u8, b]),
+                    _ => out.push(b),
+                }
+            }
+            out
+        }
+    }
+
+    #[test]
+    fn a_noisy_line_gives_bit_identical_results_to_a_clean_one() {
+        let n = 600;
+        let matrix = laplacian_1d(n);
+        let rhs: Vec<f64> = (0..n).map(|i| 1.0 + (i as f64 * 0.1).sin()).collect();
+        let (mut clean, _) = session_target(info());
+        clean.upload_matrix(&matrix).unwrap();
+        let (clean_report, clean_x) = clean.solve_for(&rhs, params()).unwrap();
+
+        let (host, target) = UnixStream::pair().unwrap();
+        serve_session_through(target, info(), noisy_line(0xDEF0_2026, 1e-3));
+        let mut noisy = Target::handshake(Link::new(host), quick()).unwrap();
+        noisy.upload_matrix(&matrix).unwrap();
+        let (report, x) = noisy.solve_for(&rhs, params()).unwrap();
+        assert_eq!(report, clean_report);
+        assert_eq!(x, clean_x, "bit for bit");
+        let stats = noisy.stats();
+        assert!(
+            stats.retransmits > 0 && stats.corrupt_frames > 0,
+            "{stats:?}"
+        );
+    }
+
+    #[test]
+    fn a_target_that_resets_mid_session_is_given_its_matrix_again() {
+        let n = 300;
+        let matrix = laplacian_1d(n);
+        let rhs: Vec<f64> = (0..n).map(|i| (i % 7) as f64 - 3.0).collect();
+        let (mut clean, _) = session_target(info());
+        clean.upload_matrix(&matrix).unwrap();
+        let want = clean.solve_for(&rhs, params()).unwrap();
+
+        let (host, target) = UnixStream::pair().unwrap();
+        // Hello + BeginMatrix + 3 tiles + 9 word chunks + EndMatrix = 15 requests, then the
+        // target reboots as the right-hand side arrives.
+        serve_resetting(target, info(), |b| b.to_vec(), Some(16));
+        let mut target = Target::handshake(Link::new(host), quick()).unwrap();
+        target.upload_matrix(&matrix).unwrap();
+        let got = target.solve_for(&rhs, params()).unwrap();
+        assert_eq!(target.resumes(), 1);
+        assert_eq!(got, want);
+
+        // A warm start cannot resume: the state it starts from is gone.
+        let (host, target) = UnixStream::pair().unwrap();
+        serve_resetting(target, info(), |b| b.to_vec(), Some(16));
+        let mut target = Target::handshake(Link::new(host), quick()).unwrap();
+        target.upload_matrix(&matrix).unwrap();
+        let warm = SolveParams {
+            start: Start::Previous,
+            ..params()
+        };
+        let err = target.solve_for(&rhs, warm).unwrap_err();
+        assert!(matches!(err, LinkError::TargetReset), "{err:?}");
+        assert!(err.to_string().contains("reset mid-session"), "{err}");
     }
 }

@@ -40,6 +40,8 @@ pub fn laplacian_1d(n: u32) -> EncodedMatrix {
             col_base,
             rows,
             words: (words.len() - first) as u32,
+            mvu: 0,
+            mirrored: false,
         });
     }
     EncodedMatrix {

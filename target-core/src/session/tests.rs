@@ -2,7 +2,10 @@
 //! that throws random request sequences at a session with small buffers.
 
 use super::*;
-use crate::cg::NoClock;
+use crate::exec::Sequential;
+
+/// The host's stand-in for the firmware's harts.
+const HARTS: Sequential = Sequential { harts: 4 };
 use deform_shared::frame;
 use deform_shared::protocol::{Envelope, SolveFailure, SolveReport, MAX_FRAME_LEN};
 use deform_shared::qformat::{block_exponent, from_mantissa, quantize, to_mantissa};
@@ -16,12 +19,37 @@ use proptest::prelude::*;
 struct Bufs {
     words: Vec<u32>,
     tiles: Vec<TileHeader>,
+    directions: [DirectionBufs; MAX_DIRECTIONS],
+    p: Vec<Lanes>,
+    kp: Vec<Sums>,
+    partial: Vec<Sums>,
+}
+
+struct DirectionBufs {
     b: Vec<i32>,
     x: Vec<i32>,
     x0: Vec<i32>,
     r: Vec<i32>,
-    p: Vec<i32>,
-    kp: Vec<i64>,
+}
+
+impl DirectionBufs {
+    fn new(max_n: usize) -> Self {
+        DirectionBufs {
+            b: vec![0; max_n],
+            x: vec![0; max_n],
+            x0: vec![0; max_n],
+            r: vec![0; max_n],
+        }
+    }
+
+    fn storage(&mut self) -> DirectionStorage<'_> {
+        DirectionStorage {
+            b: &mut self.b,
+            x: &mut self.x,
+            x0: &mut self.x0,
+            r: &mut self.r,
+        }
+    }
 }
 
 impl Bufs {
@@ -29,27 +57,27 @@ impl Bufs {
         Bufs {
             words: vec![0; words],
             tiles: vec![TileHeader::default(); tiles],
-            b: vec![0; max_n],
-            x: vec![0; max_n],
-            x0: vec![0; max_n],
-            r: vec![0; max_n],
-            p: vec![0; max_n + DIRECTION_PAD],
-            kp: vec![0; max_n],
+            directions: std::array::from_fn(|_| DirectionBufs::new(max_n)),
+            p: vec![[0; 4]; max_n],
+            kp: vec![[0; MAX_DIRECTIONS]; max_n],
+            partial: vec![[0; MAX_DIRECTIONS]; 2 * max_n],
         }
     }
 
-    fn session(&mut self) -> Session<'_, NoClock> {
-        let storage = Storage {
+    fn storage(&mut self) -> Storage<'_> {
+        let [d0, d1, d2] = &mut self.directions;
+        Storage {
             words: &mut self.words,
             tiles: &mut self.tiles,
-            b: &mut self.b,
-            x: &mut self.x,
-            x0: &mut self.x0,
-            r: &mut self.r,
+            directions: [d0.storage(), d1.storage(), d2.storage()],
             p: &mut self.p,
             kp: &mut self.kp,
-        };
-        Session::new(storage, info(), NoClock)
+            partial: &mut self.partial,
+        }
+    }
+
+    fn session(&mut self) -> Session<'_, Sequential> {
+        Session::new(self.storage(), info(), HARTS)
     }
 }
 
@@ -61,6 +89,7 @@ fn info() -> TargetInfo {
         word_capacity: u32::MAX,
         tile_capacity: u32::MAX,
         max_n: u32::MAX,
+        build_id: heapless::Vec::new(),
     }
 }
 
@@ -107,6 +136,8 @@ fn encode(
             col_base: col_base as u32,
             rows: rows.len() as u32,
             words: (words.len() - start) as u32,
+            mvu: 0,
+            mirrored: false,
         });
     }
     Encoded {
@@ -258,20 +289,20 @@ fn to_block(v: &[f64]) -> (i32, Vec<i32>) {
     (e, v.iter().map(|&x| to_mantissa(x, e).unwrap()).collect())
 }
 
-fn all_ack(s: &mut Session<'_, NoClock>, reqs: Vec<Request>) {
+fn all_ack(s: &mut Session<'_, Sequential>, reqs: Vec<Request>) {
     for req in reqs {
         let what = format!("{req:?}");
         assert_eq!(s.handle(req), Response::Ack, "{what}");
     }
 }
 
-fn load(s: &mut Session<'_, NoClock>, e: &Encoded) {
+fn load(s: &mut Session<'_, Sequential>, e: &Encoded) {
     all_ack(s, matrix_requests(e, CHUNK_LEN));
 }
 
-fn load_rhs(s: &mut Session<'_, NoClock>, b: &[f64]) {
+fn load_rhs(s: &mut Session<'_, Sequential>, b: &[f64]) {
     let (e, m) = to_block(b);
-    all_ack(s, vector_requests(VectorSlot::Rhs, e, &m, CHUNK_LEN));
+    all_ack(s, vector_requests(VectorSlot::RHS, e, &m, CHUNK_LEN));
 }
 
 fn err(code: ErrorCode) -> Response {
@@ -287,6 +318,7 @@ fn solve_req(start: Start) -> Request {
         max_iterations: 1000,
         tolerance: 1e-9,
         start,
+        directions: 1,
     })
 }
 
@@ -298,17 +330,25 @@ fn solved(r: Response) -> SolveReport {
 }
 
 /// Reads the whole solution back, chunk by chunk.
-fn read_all(s: &mut Session<'_, NoClock>, n: usize) -> Vec<f64> {
+fn read_all(s: &mut Session<'_, Sequential>, n: usize) -> Vec<f64> {
+    read_direction(s, 0, n)
+}
+
+/// Reads one direction's solution back, chunk by chunk.
+fn read_direction(s: &mut Session<'_, Sequential>, direction: u8, n: usize) -> Vec<f64> {
     let mut out = Vec::new();
     while out.len() < n {
         match s.handle(Request::ReadSolution {
+            direction,
             offset: out.len() as u32,
         }) {
             Response::Solution {
+                direction: got,
                 offset,
                 exponent,
                 mantissas,
             } => {
+                assert_eq!(got, direction);
                 assert_eq!(offset as usize, out.len());
                 assert!(!mantissas.is_empty() && mantissas.len() <= CHUNK_LEN);
                 out.extend(mantissas.iter().map(|&m| from_mantissa(m, exponent)));
@@ -352,23 +392,15 @@ fn hello_reports_capacities_clamped_to_the_storage() {
 #[test]
 fn advertised_capacities_below_the_storage_are_kept_and_enforced() {
     let mut bufs = Bufs::new(100, 7, 20);
-    let storage = Storage {
-        words: &mut bufs.words,
-        tiles: &mut bufs.tiles,
-        b: &mut bufs.b,
-        x: &mut bufs.x,
-        x0: &mut bufs.x0,
-        r: &mut bufs.r,
-        p: &mut bufs.p[..15 + DIRECTION_PAD], // p limits max_n to 15
-        kp: &mut bufs.kp,
-    };
+    bufs.directions[1].r.truncate(15); // r of direction 1 limits max_n to 15
+    let storage = bufs.storage();
     let mut s = Session::new(
         storage,
         TargetInfo {
             word_capacity: 50,
             ..info()
         },
-        NoClock,
+        HARTS,
     );
     assert_eq!(
         (
@@ -432,7 +464,13 @@ fn a_version_mismatch_answers_hello_then_refuses_until_a_matching_hello() {
         target: PROTOCOL_VERSION,
     });
     assert_eq!(s.handle(begin(&e)), mismatch);
-    assert_eq!(s.handle(Request::ReadSolution { offset: 0 }), mismatch);
+    assert_eq!(
+        s.handle(Request::ReadSolution {
+            direction: 0,
+            offset: 0
+        }),
+        mismatch
+    );
     assert!(matches!(
         s.handle(Request::Hello {
             protocol_version: PROTOCOL_VERSION
@@ -453,7 +491,7 @@ fn hello_resets_a_loaded_matrix_and_an_upload() {
     });
     assert_eq!(
         s.handle(Request::BeginVector {
-            slot: VectorSlot::Rhs,
+            slot: VectorSlot::RHS,
             exponent: 0,
             len: 10
         }),
@@ -893,12 +931,12 @@ fn vectors_need_a_matrix_of_their_length() {
         len,
     };
     assert_eq!(
-        s.handle(bv(VectorSlot::Rhs, 10)),
+        s.handle(bv(VectorSlot::RHS, 10)),
         ooo(SessionStep::NoMatrix)
     );
     assert_eq!(
         s.handle(Request::VectorData {
-            slot: VectorSlot::Rhs,
+            slot: VectorSlot::RHS,
             offset: 0,
             mantissas: chunk(&[1])
         }),
@@ -907,26 +945,26 @@ fn vectors_need_a_matrix_of_their_length() {
     let e = laplacian(10, 10);
     s.handle(begin(&e));
     assert_eq!(
-        s.handle(bv(VectorSlot::Rhs, 10)),
+        s.handle(bv(VectorSlot::RHS, 10)),
         ooo(SessionStep::NoMatrix),
         "an upload is not a matrix"
     );
     load(&mut s, &e);
     assert_eq!(
-        s.handle(bv(VectorSlot::Rhs, 9)),
+        s.handle(bv(VectorSlot::RHS, 9)),
         err(ErrorCode::LengthMismatch {
             expected: 10,
             got: 9
         })
     );
     assert_eq!(
-        s.handle(bv(VectorSlot::InitialGuess, u32::MAX)),
+        s.handle(bv(VectorSlot::INITIAL_GUESS, u32::MAX)),
         err(ErrorCode::LengthMismatch {
             expected: 10,
             got: u32::MAX
         })
     );
-    assert_eq!(s.handle(bv(VectorSlot::InitialGuess, 10)), Response::Ack);
+    assert_eq!(s.handle(bv(VectorSlot::INITIAL_GUESS, 10)), Response::Ack);
 }
 
 #[test]
@@ -934,7 +972,7 @@ fn vector_chunks_are_checked() {
     let mut bufs = Bufs::new(100, 4, 16);
     let mut s = bufs.session();
     load(&mut s, &laplacian(10, 10));
-    let slot = VectorSlot::InitialGuess;
+    let slot = VectorSlot::INITIAL_GUESS;
     let vd = |offset, m: &[i32]| Request::VectorData {
         slot,
         offset,
@@ -949,7 +987,7 @@ fn vector_chunks_are_checked() {
     // The other slot has no upload.
     assert_eq!(
         s.handle(Request::VectorData {
-            slot: VectorSlot::Rhs,
+            slot: VectorSlot::RHS,
             offset: 0,
             mantissas: chunk(&[1])
         }),
@@ -1027,7 +1065,7 @@ fn a_new_matrix_invalidates_the_vectors() {
     let e = laplacian(10, 10);
     load(&mut s, &e);
     let (exp, m) = to_block(&[1.0; 10]);
-    let mut reqs = vector_requests(VectorSlot::Rhs, exp, &m, 4);
+    let mut reqs = vector_requests(VectorSlot::RHS, exp, &m, 4);
     let last = reqs.pop().unwrap();
     all_ack(&mut s, reqs);
     load(&mut s, &e);
@@ -1044,13 +1082,16 @@ fn solve_checks_its_inputs_before_touching_anything() {
     let mut s = bufs.session();
     assert_eq!(s.handle(solve_req(Start::Zero)), ooo(SessionStep::NoMatrix));
     assert_eq!(
-        s.handle(Request::ReadSolution { offset: 0 }),
+        s.handle(Request::ReadSolution {
+            direction: 0,
+            offset: 0
+        }),
         ooo(SessionStep::NoSolution)
     );
     load(&mut s, &laplacian(10, 10));
     assert_eq!(s.handle(solve_req(Start::Zero)), ooo(SessionStep::NoRhs));
     let (exp, m) = to_block(&[1.0; 10]);
-    let mut reqs = vector_requests(VectorSlot::Rhs, exp, &m, 4);
+    let mut reqs = vector_requests(VectorSlot::RHS, exp, &m, 4);
     let last = reqs.pop().unwrap();
     all_ack(&mut s, reqs);
     assert_eq!(
@@ -1067,7 +1108,10 @@ fn solve_checks_its_inputs_before_touching_anything() {
         ooo(SessionStep::NoInitialGuess)
     );
     assert_eq!(
-        s.handle(Request::ReadSolution { offset: 0 }),
+        s.handle(Request::ReadSolution {
+            direction: 0,
+            offset: 0
+        }),
         ooo(SessionStep::NoSolution)
     );
 }
@@ -1085,10 +1129,12 @@ fn solves_the_1d_laplacian_like_a_direct_solver() {
     all_ack(&mut s, matrix_requests(&e, 8));
     let b: Vec<f64> = (0..n).map(|i| 1.0 + 0.25 * i as f64).collect();
     let (b_exp, b_m) = to_block(&b);
-    all_ack(&mut s, vector_requests(VectorSlot::Rhs, b_exp, &b_m, 3));
+    all_ack(&mut s, vector_requests(VectorSlot::RHS, b_exp, &b_m, 3));
     let report = solved(s.handle(solve_req(Start::Zero)));
     assert!(report.converged, "{report:?}");
-    assert!(report.iterations <= 3 * n as u32, "{report:?}");
+    // CG needs n iterations in exact arithmetic; at 1e-9, close to the fixed-point floor,
+    // residual replacement may restart it once or twice.
+    assert!(report.iterations <= 4 * n as u32, "{report:?}");
     assert_eq!(report.words_per_iteration, e.words.len() as u32);
     let want = direct_solve(
         dense(&e),
@@ -1104,11 +1150,17 @@ fn solves_the_1d_laplacian_like_a_direct_solver() {
     );
     // Past the end.
     assert_eq!(
-        s.handle(Request::ReadSolution { offset: n as u32 }),
+        s.handle(Request::ReadSolution {
+            direction: 0,
+            offset: n as u32
+        }),
         err(ErrorCode::ChunkTooLong)
     );
     assert_eq!(
-        s.handle(Request::ReadSolution { offset: u32::MAX }),
+        s.handle(Request::ReadSolution {
+            direction: 0,
+            offset: u32::MAX
+        }),
         err(ErrorCode::ChunkTooLong)
     );
 
@@ -1119,6 +1171,7 @@ fn solves_the_1d_laplacian_like_a_direct_solver() {
             max_iterations: 1000,
             tolerance: 1e-6,
             start,
+            directions: 1,
         })
     };
     assert!(solved(s.handle(loose(Start::Zero))).iterations > 2);
@@ -1130,7 +1183,7 @@ fn solves_the_1d_laplacian_like_a_direct_solver() {
     let (x_exp, x_m) = to_block(&want);
     all_ack(
         &mut s,
-        vector_requests(VectorSlot::InitialGuess, x_exp, &x_m, 64),
+        vector_requests(VectorSlot::INITIAL_GUESS, x_exp, &x_m, 64),
     );
     let guessed = solved(s.handle(loose(Start::Uploaded)));
     assert!(guessed.converged && guessed.iterations <= 2, "{guessed:?}");
@@ -1140,7 +1193,10 @@ fn solves_the_1d_laplacian_like_a_direct_solver() {
     let b2: Vec<f64> = (0..n).map(|i| if i == 3 { -5.0 } else { 0.0 }).collect();
     load_rhs(&mut s, &b2);
     assert!(matches!(
-        s.handle(Request::ReadSolution { offset: 0 }),
+        s.handle(Request::ReadSolution {
+            direction: 0,
+            offset: 0
+        }),
         Response::Solution { .. }
     ));
     assert!(solved(s.handle(solve_req(Start::Previous))).converged);
@@ -1164,6 +1220,7 @@ fn solves_a_matrix_of_several_tiles_sent_in_many_chunks() {
         max_iterations: 5000,
         tolerance: 1e-10,
         start: Start::Zero,
+        directions: 1,
     }));
     let report = solved(r);
     assert!(report.converged, "{report:?}");
@@ -1233,7 +1290,10 @@ fn a_failed_solve_leaves_no_solution() {
         "{r:?}"
     );
     assert_eq!(
-        s.handle(Request::ReadSolution { offset: 0 }),
+        s.handle(Request::ReadSolution {
+            direction: 0,
+            offset: 0
+        }),
         ooo(SessionStep::NoSolution)
     );
     assert_eq!(
@@ -1251,7 +1311,10 @@ fn num(small: u32) -> impl Strategy<Value = u32> {
 }
 
 fn slot() -> impl Strategy<Value = VectorSlot> {
-    prop_oneof![Just(VectorSlot::Rhs), Just(VectorSlot::InitialGuess)]
+    prop_oneof![
+        (0u8..4).prop_map(|direction| VectorSlot::Rhs { direction }),
+        (0u8..4).prop_map(|direction| VectorSlot::InitialGuess { direction }),
+    ]
 }
 
 fn start() -> impl Strategy<Value = Start> {
@@ -1293,6 +1356,8 @@ fn raw_request() -> impl Strategy<Value = Request> {
                 col_base,
                 rows,
                 words,
+                mvu: (row_base % 3) as u8,
+                mirrored: col_base % 2 == 1,
             })
         }),
         (num(40), prop::collection::vec(any_word(), 0..=CHUNK_LEN)).prop_map(|(offset, w)| {
@@ -1321,10 +1386,12 @@ fn raw_request() -> impl Strategy<Value = Request> {
             |(max_iterations, tolerance, start)| Request::Solve(SolveParams {
                 max_iterations,
                 tolerance,
-                start
+                start,
+                directions: 1,
             })
         ),
-        num(12).prop_map(|offset| Request::ReadSolution { offset }),
+        (0u8..4, num(12))
+            .prop_map(|(direction, offset)| Request::ReadSolution { direction, offset }),
         (num(40), 0u8..24).prop_map(|(words, frac_bits)| Request::BeginUpdate { words, frac_bits }),
         (
             num(40),
@@ -1341,6 +1408,8 @@ fn raw_request() -> impl Strategy<Value = Request> {
 /// A step of a random session: one raw request, or a well-formed upload that random requests
 /// then interleave with and corrupt (it may stop early).
 #[derive(Debug, Clone)]
+// A step is short-lived test data; boxing the request would only obscure the strategies.
+#[allow(clippy::large_enum_variant)]
 enum Step {
     Raw(Request),
     Matrix {
@@ -1431,9 +1500,11 @@ fn step() -> impl Strategy<Value = Step> {
                 max_iterations,
                 tolerance,
                 start,
+                directions: 1,
             }))
         });
-    let read = (0u32..14).prop_map(|offset| Step::Raw(Request::ReadSolution { offset }));
+    let read = (0u8..4, 0u32..14)
+        .prop_map(|(direction, offset)| Step::Raw(Request::ReadSolution { direction, offset }));
     let update = (
         1usize..=12,
         3usize..=12,
@@ -1743,7 +1814,7 @@ fn an_update_keeps_em_er_and_columns_and_a_crc_mismatch_drops_the_matrix() {
     assert_eq!(s.handle(solve_req(Start::Zero)), ooo(SessionStep::NoMatrix));
     assert_eq!(
         s.handle(Request::BeginVector {
-            slot: VectorSlot::Rhs,
+            slot: VectorSlot::RHS,
             exponent: 0,
             len: 10
         }),
@@ -1751,4 +1822,165 @@ fn an_update_keeps_em_er_and_columns_and_a_crc_mismatch_drops_the_matrix() {
     );
     drop(s);
     assert_eq!(bufs.words[..words], e.words[..]);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Protocol version 4: directions, MVU assignment, mirrored tiles
+
+fn load_direction(s: &mut Session<'_, Sequential>, direction: u8, b: &[f64]) {
+    let (e, m) = to_block(b);
+    all_ack(
+        s,
+        vector_requests(VectorSlot::Rhs { direction }, e, &m, CHUNK_LEN),
+    );
+}
+
+fn fused_req(directions: u8) -> Request {
+    Request::Solve(SolveParams {
+        max_iterations: 1000,
+        tolerance: 1e-9,
+        start: Start::Zero,
+        directions,
+    })
+}
+
+#[test]
+fn a_fused_solve_equals_separate_solves_per_direction() {
+    let n = 40;
+    let e = laplacian(n, 16);
+    let rhs: Vec<Vec<f64>> = (0..3)
+        .map(|d| (0..n).map(|i| ((i * (d + 3)) % 7) as f64 - 3.0).collect())
+        .collect();
+    let mut bufs = Bufs::new(1000, 10, 64);
+    let mut s = bufs.session();
+    load(&mut s, &e);
+    let mut singles = Vec::new();
+    for b in &rhs {
+        load_rhs(&mut s, b);
+        let report = solved(s.handle(solve_req(Start::Zero)));
+        singles.push((report.directions[0], read_all(&mut s, n)));
+    }
+    for (d, b) in rhs.iter().enumerate() {
+        load_direction(&mut s, d as u8, b);
+    }
+    let report = solved(s.handle(fused_req(3)));
+    assert_eq!(report.directions.len(), 3);
+    for (d, (single, x)) in singles.iter().enumerate() {
+        assert_eq!(&report.directions[d], single);
+        assert_eq!(&read_direction(&mut s, d as u8, n), x, "direction {d}");
+    }
+    assert_eq!(
+        report.iterations,
+        singles.iter().map(|s| s.0.iterations).max().unwrap()
+    );
+    assert!(report.converged);
+    let want = direct_solve(dense(&e), rhs[2].clone());
+    let got = read_direction(&mut s, 2, n);
+    let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!(got
+        .iter()
+        .zip(&want)
+        .all(|(a, b)| (a - b).abs() < 1e-6 * scale));
+}
+
+#[test]
+fn directions_beyond_the_fused_count_are_refused() {
+    let e = laplacian(8, 8);
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    load(&mut s, &e);
+    let out_of_range = err(ErrorCode::DirectionOutOfRange {
+        direction: 3,
+        max: 3,
+    });
+    let slot = VectorSlot::Rhs { direction: 3 };
+    assert_eq!(
+        s.handle(Request::BeginVector {
+            slot,
+            exponent: 0,
+            len: 8
+        }),
+        out_of_range
+    );
+    assert_eq!(
+        s.handle(Request::ReadSolution {
+            direction: 3,
+            offset: 0
+        }),
+        out_of_range
+    );
+    load_direction(&mut s, 0, &[1.0; 8]);
+    for bad in [0, 4, 255] {
+        assert_eq!(
+            s.handle(fused_req(bad)),
+            err(ErrorCode::Solve(SolveFailure::BadDirections(bad)))
+        );
+    }
+    // Direction 1 has no right-hand side yet.
+    assert_eq!(s.handle(fused_req(2)), ooo(SessionStep::NoRhs));
+    load_direction(&mut s, 1, &[2.0; 8]);
+    let report = solved(s.handle(fused_req(2)));
+    assert_eq!(report.directions.len(), 2);
+    // Only solved directions have a solution.
+    assert_eq!(
+        s.handle(Request::ReadSolution {
+            direction: 2,
+            offset: 0
+        }),
+        ooo(SessionStep::NoSolution)
+    );
+    let x0 = read_direction(&mut s, 0, 8);
+    let x1 = read_direction(&mut s, 1, 8);
+    for (a, b) in x0.iter().zip(&x1) {
+        assert!((2.0 * a - b).abs() < 1e-6 * b.abs(), "{a} {b}");
+    }
+}
+
+#[test]
+fn a_tile_for_a_missing_hart_is_refused() {
+    let mut e = laplacian(8, 4);
+    e.tiles[1].mvu = 1;
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    let mut reqs = matrix_requests(&e, CHUNK_LEN).into_iter();
+    for req in reqs.by_ref().take(3) {
+        assert_eq!(s.handle(req), Response::Ack);
+    }
+    assert_eq!(
+        s.handle(reqs.next().unwrap()),
+        err(ErrorCode::Matrix(MatrixError::MvuOutOfRange {
+            tile: 1,
+            mvu: 1,
+            harts: 1
+        }))
+    );
+}
+
+#[test]
+fn a_mirrored_half_solves_like_the_whole_persymmetric_matrix() {
+    // tridiag(-1, 2, -1) of order 10 is persymmetric: rows 0..5 with mirrored = true stand for
+    // all ten rows.
+    let n = 10;
+    let whole = laplacian(n, 10);
+    let mut half = encode(n, 5, 18, laplacian_row(n));
+    half.tiles.truncate(1);
+    half.tiles[0].mirrored = true;
+    half.words.truncate(half.tiles[0].words as usize);
+    let b: Vec<f64> = (0..n).map(|i| 1.0 + i as f64).collect();
+    let mut bufs = Bufs::new(100, 4, 16);
+    let mut s = bufs.session();
+    load(&mut s, &whole);
+    load_rhs(&mut s, &b);
+    solved(s.handle(solve_req(Start::Zero)));
+    let want = read_all(&mut s, n);
+    load(&mut s, &half);
+    load_rhs(&mut s, &b);
+    let report = solved(s.handle(solve_req(Start::Zero)));
+    assert_eq!(report.words_per_iteration, half.words.len() as u32);
+    let got = read_all(&mut s, n);
+    let exact = direct_solve(dense(&whole), b);
+    for ((g, w), x) in got.iter().zip(&want).zip(&exact) {
+        assert!((g - x).abs() < 1e-6 * x.abs(), "{g} vs exact {x}");
+        assert!((w - x).abs() < 1e-6 * x.abs(), "{w} vs exact {x}");
+    }
 }

@@ -1,0 +1,288 @@
+//! The harts as MVUs: boot, the worker loop, and the executor that runs the solver's phases on
+//! all of them (see `deform_target_core::exec`).
+//!
+//! - Boot: riscv-rt calls `_mp_hook` on every hart. Hart 0 returns 1 and initialises RAM; the
+//!   others sleep in `wfi` until hart 0 sends them a software interrupt (CLINT MSIP) once RAM
+//!   is ready, then enter `main` with their hart id, which sends them to [`worker`].
+//! - Probe: each worker counts itself in [`HARTS_UP`]; hart 0 waits for them a bounded time, so
+//!   `TargetInfo::harts` is the number that really came up, whatever `-smp` says.
+//! - A phase: hart 0 publishes the task and a new generation number, wakes the harts it needs
+//!   by IPI, runs its own share, and waits until the `done` counter says every worker finished
+//!   (the last one wakes hart 0 by IPI). Every sleeper checks `mip.MSIP` before `wfi`, so an IPI
+//!   that arrives just before it sleeps is not lost (under `-icount` such a hart would never
+//!   wake again).
+//! - Measured phases run the shares one hart at a time while all others sleep in `wfi`. Under
+//!   QEMU `-icount` every hart's `minstret` reads one machine-wide count, so only then is each
+//!   hart's delta its own work.
+
+use core::cell::UnsafeCell;
+use core::sync::atomic::{fence, AtomicU32, AtomicUsize, Ordering};
+
+use deform_shared::protocol::{PhaseCounters, MAX_HARTS};
+use deform_target_core::exec::{Executor, PhaseClock, Task};
+
+/// Core-local interruptor of QEMU `virt`: one MSIP word per hart, and the machine timer.
+const CLINT_MSIP: usize = 0x0200_0000;
+const CLINT_MTIME: usize = 0x0200_BFF8;
+/// Hart 0's timer compare register.
+const CLINT_MTIMECMP0: usize = 0x0200_4000;
+/// `mtime` ticks at 10 MHz on QEMU `virt`.
+const MTIME_HZ: u64 = 10_000_000;
+/// How long hart 0 waits at boot for the other harts to report (virtual time).
+const PROBE_TICKS: u64 = MTIME_HZ / 200;
+
+// The boot hook (riscv-rt: assembly, hart id in a0, must not touch s0–s2). Harts other than 0
+// enable only the software-interrupt wake-up (interrupts stay globally off, no trap is taken),
+// sleep until MSIP is set, clear it and return 0: riscv-rt then skips RAM initialisation for
+// them and enters `main(hartid)`.
+core::arch::global_asm!(
+    r#"
+    .section .init.mp_hook, "ax"
+    .global _mp_hook
+_mp_hook:
+    beqz a0, 2f
+    li t0, 8
+    csrs mie, t0
+1:  csrr t1, mip
+    andi t1, t1, 8
+    bnez t1, 3f
+    wfi
+    j 1b
+3:  li t1, 0x02000000
+    slli t2, a0, 2
+    add t1, t1, t2
+    sw zero, 0(t1)
+    li a0, 0
+    ret
+2:  li a0, 1
+    ret
+"#
+);
+
+/// Workers that have reached their loop.
+pub static HARTS_UP: AtomicUsize = AtomicUsize::new(0);
+
+/// `ONLY` value meaning "every hart below `harts`".
+const ALL: usize = usize::MAX;
+
+/// What hart 0 publishes for a phase.
+struct Dispatch {
+    /// Bumped (Release) after the fields below are set; workers read them after seeing it.
+    generation: AtomicU32,
+    harts: AtomicUsize,
+    only: AtomicUsize,
+    done: AtomicUsize,
+    task: UnsafeCell<Option<Task<'static>>>,
+    counts: [AtomicU32; MAX_HARTS],
+}
+
+// SAFETY: `task` is written only by hart 0 while no worker runs a phase (before the generation
+// is bumped, after `done` says all have finished) and read by workers only in between.
+unsafe impl Sync for Dispatch {}
+
+static DISPATCH: Dispatch = Dispatch {
+    generation: AtomicU32::new(0),
+    harts: AtomicUsize::new(0),
+    only: AtomicUsize::new(ALL),
+    done: AtomicUsize::new(0),
+    task: UnsafeCell::new(None),
+    counts: [const { AtomicU32::new(0) }; MAX_HARTS],
+};
+
+fn msip(hart: usize) -> *mut u32 {
+    (CLINT_MSIP + 4 * hart) as *mut u32
+}
+
+/// Sends hart `hart` a software interrupt.
+fn ipi(hart: usize) {
+    // SAFETY: the CLINT's MSIP word of a hart below 8, always mapped on QEMU virt (a write to a
+    // hart that does not exist is ignored); no Rust-visible memory is touched.
+    unsafe { core::ptr::write_volatile(msip(hart), 1) }
+}
+
+/// Clears this hart's software interrupt.
+fn clear_ipi(hart: usize) {
+    // SAFETY: as in `ipi`.
+    unsafe { core::ptr::write_volatile(msip(hart), 0) }
+}
+
+fn mtime() -> u64 {
+    // SAFETY: the CLINT's mtime register, always mapped on QEMU virt; reading has no effect.
+    // Two 32-bit reads: the low word may wrap in between, which only shortens one wait.
+    unsafe {
+        let lo = core::ptr::read_volatile(CLINT_MTIME as *const u32);
+        let hi = core::ptr::read_volatile((CLINT_MTIME + 4) as *const u32);
+        (u64::from(hi) << 32) | u64::from(lo)
+    }
+}
+
+/// Sleeps until `ready()` holds; each wake-up clears this hart's IPI.
+fn sleep_until(hart: usize, ready: impl Fn() -> bool) {
+    while !ready() {
+        if !riscv::register::mip::read().msoft() {
+            riscv::asm::wfi();
+        }
+        clear_ipi(hart);
+    }
+}
+
+/// Sets hart 0's timer compare register (the low word last, with the high word parked at its
+/// maximum meanwhile, so no spurious match happens in between).
+fn set_timer0(at: u64) {
+    let (lo, hi) = (
+        CLINT_MTIMECMP0 as *mut u32,
+        (CLINT_MTIMECMP0 + 4) as *mut u32,
+    );
+    // SAFETY: hart 0's mtimecmp, always mapped on QEMU virt; no Rust-visible memory.
+    unsafe {
+        core::ptr::write_volatile(hi, u32::MAX);
+        core::ptr::write_volatile(lo, at as u32);
+        core::ptr::write_volatile(hi, (at >> 32) as u32);
+    }
+}
+
+/// Wakes the other harts once RAM is initialised and counts those that report within
+/// [`PROBE_TICKS`]. Call once, from hart 0. Returns the number of harts, hart 0 included.
+///
+/// Hart 0 sleeps while it waits (woken by each reporting worker's IPI, or by its timer at the
+/// deadline): under `-icount` a spinning hart is not preempted until its budget runs out, so
+/// the workers would never get to run.
+pub fn start_workers() -> usize {
+    // SAFETY: enables only the wake-up of `wfi` by this hart's software and timer interrupts;
+    // with `mstatus.MIE` clear no trap is taken.
+    unsafe {
+        riscv::register::mie::set_msoft();
+        riscv::register::mie::set_mtimer();
+    }
+    let deadline = mtime() + PROBE_TICKS;
+    set_timer0(deadline);
+    fence(Ordering::SeqCst);
+    for hart in 1..MAX_HARTS {
+        ipi(hart);
+    }
+    loop {
+        let up = HARTS_UP.load(Ordering::Acquire);
+        if up >= MAX_HARTS - 1 || mtime() >= deadline {
+            break;
+        }
+        let pending = riscv::register::mip::read();
+        if !pending.msoft() && !pending.mtimer() {
+            riscv::asm::wfi();
+        }
+        clear_ipi(0);
+    }
+    // The timer has fired or will fire once and then stay quiet; its wake-up is masked again.
+    // (Re-arming it far in the future instead would, under `-icount …,sleep=off`, make QEMU
+    // warp the virtual clock to that deadline as soon as every hart sleeps.)
+    // SAFETY: as above.
+    unsafe { riscv::register::mie::clear_mtimer() };
+    clear_ipi(0);
+    1 + HARTS_UP.load(Ordering::Acquire).min(MAX_HARTS - 1)
+}
+
+/// The loop of every hart but 0: run the phases it is woken for, forever.
+pub fn worker(hart: usize) -> ! {
+    let mut seen = DISPATCH.generation.load(Ordering::Acquire);
+    HARTS_UP.fetch_add(1, Ordering::AcqRel);
+    ipi(0);
+    loop {
+        sleep_until(hart, || DISPATCH.generation.load(Ordering::Acquire) != seen);
+        seen = DISPATCH.generation.load(Ordering::Acquire);
+        let harts = DISPATCH.harts.load(Ordering::Acquire);
+        let only = DISPATCH.only.load(Ordering::Acquire);
+        if hart >= harts || (only != ALL && only != hart) {
+            continue;
+        }
+        // SAFETY: hart 0 set `task` before bumping the generation we just saw, and leaves it
+        // alone until this hart has counted itself done.
+        let task = unsafe { *DISPATCH.task.get() };
+        if let Some(task) = task {
+            if only == hart {
+                let start = riscv::register::minstret::read64();
+                task(hart);
+                let spent = riscv::register::minstret::read64().wrapping_sub(start);
+                DISPATCH.counts[hart].store(spent as u32, Ordering::Relaxed);
+            } else {
+                task(hart);
+            }
+        }
+        let expected = if only == ALL { harts - 1 } else { 1 };
+        if DISPATCH.done.fetch_add(1, Ordering::AcqRel) + 1 == expected {
+            ipi(0);
+        }
+    }
+}
+
+/// The firmware's executor: hart 0 plus the workers that came up.
+pub struct Harts {
+    pub count: usize,
+}
+
+impl Harts {
+    /// Publishes `task` for `harts` harts (`only`: one of them) and wakes them.
+    fn publish(&self, task: Task<'_>, harts: usize, only: usize) {
+        // SAFETY: the lifetime is erased only for the duration of the phase: `run` and
+        // `run_measured` wait for every worker to finish before returning, and clear it.
+        let task: Task<'static> = unsafe { core::mem::transmute(task) };
+        // SAFETY: no worker runs a phase now (the previous one is complete).
+        unsafe { *DISPATCH.task.get() = Some(task) };
+        DISPATCH.harts.store(harts, Ordering::Relaxed);
+        DISPATCH.only.store(only, Ordering::Relaxed);
+        DISPATCH.done.store(0, Ordering::Relaxed);
+        clear_ipi(0);
+        DISPATCH.generation.fetch_add(1, Ordering::AcqRel);
+        if only == ALL {
+            for hart in 1..harts {
+                ipi(hart);
+            }
+        } else {
+            ipi(only);
+        }
+    }
+
+    fn finish(&self, expected: usize) {
+        sleep_until(0, || DISPATCH.done.load(Ordering::Acquire) >= expected);
+        // SAFETY: every worker of the phase has finished with the task.
+        unsafe { *DISPATCH.task.get() = None };
+    }
+}
+
+impl PhaseClock for Harts {
+    fn now(&self) -> PhaseCounters {
+        PhaseCounters {
+            cycles: riscv::register::mcycle::read64(),
+            instructions: riscv::register::minstret::read64(),
+        }
+    }
+}
+
+impl Executor for Harts {
+    fn harts(&self) -> usize {
+        self.count
+    }
+
+    fn run(&self, harts: usize, task: Task<'_>) {
+        let harts = harts.clamp(1, self.count);
+        if harts > 1 {
+            self.publish(task, harts, ALL);
+        }
+        task(0);
+        if harts > 1 {
+            self.finish(harts - 1);
+        }
+    }
+
+    fn run_measured(&self, harts: usize, task: Task<'_>) -> [u64; MAX_HARTS] {
+        let harts = harts.clamp(1, self.count);
+        let mut counts = [0u64; MAX_HARTS];
+        let start = riscv::register::minstret::read64();
+        task(0);
+        counts[0] = riscv::register::minstret::read64().wrapping_sub(start);
+        for (hart, count) in counts.iter_mut().enumerate().take(harts).skip(1) {
+            self.publish(task, harts, hart);
+            self.finish(1);
+            *count = u64::from(DISPATCH.counts[hart].load(Ordering::Relaxed));
+        }
+        counts
+    }
+}

@@ -1,0 +1,365 @@
+//! `deform estimate`: the inverse models of thesis ch. 3 on an observation file (see
+//! [`crate::inverse`]). Homogeneous k̃ always (both estimators), the parametric α's with
+//! `--parametric`, one k̃ per spring with `--springs` (and its per-node map with `--map`).
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{bail, Context};
+use clap::{Args, ValueEnum};
+use serde::Serialize;
+
+use crate::board::{Board, BoardChoice, DEFAULT_QEMU_HARTS};
+use crate::cli_logs::LogFlags;
+use crate::cli_model::ModelFlags;
+use crate::commands::solve::{
+    resolve_model, TargetKind, DEFAULT_MAX_SOLVES, DEFAULT_TIMEOUT_SECONDS,
+};
+use crate::inverse::homogeneous::{self, HomogeneousEstimate};
+use crate::inverse::parametric::{self, ParametricEstimate};
+use crate::inverse::regularise::Regularisation;
+use crate::inverse::spring_field::{self, SpringFieldEstimate};
+use crate::inverse::{Network, Observations, SpdSolver};
+use crate::link::{LinkFlags, Timeouts};
+use crate::model::Model;
+use crate::output::vtk::{write_vtk, VtkKind};
+use crate::output::{node_rows_with_stiffness, OutputFormat};
+
+/// The homogeneous estimator reported as `k`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Estimator {
+    /// Fit the predicted displacements A⁻¹f/k̃ to the observed ones (forward solves on the
+    /// target); unbiased with noisy displacements.
+    OutputError,
+    /// The thesis's eq. 44, Σ fᵀA·l̃ / Σ ‖A·l̃‖²; biased towards 0 by noise on displacements.
+    EquationError,
+}
+
+/// Estimate the tissue's elasticity from observed displacements and loads (thesis ch. 3).
+///
+/// OBSERVATIONS.csv has the header `set,i,j,k,ux,uy,uz,fx,fy,fz`, one row per node per set
+/// (what `deform observe` writes; see README). The model flags give the grid, the spring
+/// network and the fixed and prescribed nodes the observations were taken with; loads come from
+/// the file and the elasticity is what is estimated, so --k, --load and --pressure are not used.
+#[derive(Debug, Clone, Args)]
+pub struct EstimateArgs {
+    /// The observation file.
+    #[arg(value_name = "OBSERVATIONS.csv")]
+    pub observations: PathBuf,
+
+    /// A scenario file whose grid, model and boundary conditions to use (flags override it).
+    #[arg(long, value_name = "SCENARIO.toml")]
+    pub scenario: Option<PathBuf>,
+
+    #[command(flatten)]
+    pub model: ModelFlags,
+
+    /// The homogeneous estimate reported as `k`. Both are always computed and printed.
+    #[arg(long, value_enum, default_value_t = Estimator::OutputError)]
+    pub estimator: Estimator,
+
+    /// Also estimate α0, α1, α2 of k̃ = α0 + α1·ΣΔl + α2·ΣΔl² (thesis 3.2.2).
+    #[arg(long)]
+    pub parametric: bool,
+
+    /// Also estimate one k̃ per spring (thesis 3.3): a sparse SPD normal system solved on the
+    /// target. Needs several load cases (sets with different loads); see README.
+    #[arg(long)]
+    pub springs: bool,
+
+    /// Regularise the per-spring estimate: `tikhonov:W` (towards the homogeneous value) or
+    /// `smooth:W` (neighbouring springs alike), W relative to the data's weight, e.g.
+    /// smooth:1e-4. Repeatable. Needed when the estimate is refused as singular (too few load
+    /// cases) and with noisy displacements. Default: none.
+    #[arg(long, value_name = "KIND:W")]
+    pub regularise: Vec<Regularisation>,
+
+    /// Write the per-node stiffness map (mean of each node's spring estimates, point data
+    /// `stiffness`; `displacement` is the first set's) as VTK for ParaView. Implies --springs.
+    #[arg(long, value_name = "FILE.vtu|FILE.vts")]
+    pub map: Option<PathBuf>,
+
+    /// Where the SPD solves run: `qemu` boots the firmware under QEMU, `host` uses the f64
+    /// reference CG. Ignored when --port names a real board.
+    #[arg(long, value_enum, default_value_t = TargetKind::Qemu)]
+    pub target: TargetKind,
+
+    /// Serial device of a real board running the deform firmware.
+    #[arg(long, value_name = "PATH")]
+    pub port: Option<String>,
+
+    /// Firmware ELF for --target qemu. Default: $DEFORM_FIRMWARE, else the release build.
+    #[arg(long, value_name = "ELF")]
+    pub firmware: Option<PathBuf>,
+
+    /// True relative residual each SPD solve must reach (target solves are refined on the host).
+    #[arg(long, default_value_t = 1e-10)]
+    pub tol: f64,
+
+    /// Target solves allowed per right-hand side (the first plus refinement steps).
+    #[arg(long, default_value_t = DEFAULT_MAX_SOLVES, value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_solves: u32,
+
+    /// Seconds one target solve may take.
+    #[arg(long, default_value_t = DEFAULT_TIMEOUT_SECONDS, value_parser = clap::value_parser!(u64).range(1..))]
+    pub timeout: u64,
+
+    #[command(flatten)]
+    pub link: LinkFlags,
+
+    #[command(flatten)]
+    pub logs: LogFlags,
+
+    /// Print every estimate as one JSON document (the homogeneous one under `k`) instead of
+    /// the summary.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Everything `deform estimate` reports (the `--json` document).
+#[derive(Debug, Serialize)]
+pub struct EstimateReport {
+    /// The chosen homogeneous estimate (N/m) and its standard error.
+    pub k: f64,
+    pub k_standard_error: f64,
+    pub estimator: &'static str,
+    pub observations: ObservationSummary,
+    pub target: String,
+    pub homogeneous: Homogeneous,
+    pub parametric: Option<ParametricEstimate>,
+    pub spring_field: Option<SpringFieldEstimate>,
+}
+
+#[derive(Debug, Serialize)]
+pub struct Homogeneous {
+    pub output_error: HomogeneousEstimate,
+    pub equation_error: HomogeneousEstimate,
+}
+
+#[derive(Debug, Serialize)]
+pub struct ObservationSummary {
+    pub file: String,
+    pub sets: usize,
+    pub nodes: usize,
+    pub free_nodes: usize,
+}
+
+/// Runs the estimators on `obs` as `args` ask, solving on `solver`.
+pub fn estimate_all<P: crate::link::Port>(
+    args: &EstimateArgs,
+    model: &Model,
+    obs: &Observations,
+    solver: &mut SpdSolver<'_, P>,
+) -> anyhow::Result<(
+    Homogeneous,
+    Option<ParametricEstimate>,
+    Option<SpringFieldEstimate>,
+)> {
+    let net = Network::of(model);
+    let equation_error = homogeneous::equation_error(&net, obs)?;
+    let output_error = homogeneous::output_error(&net, model, obs, solver)
+        .context("output-error estimate (forward solves)")?;
+    let parametric = args
+        .parametric
+        .then(|| parametric::estimate(&net, obs))
+        .transpose()?;
+    let springs = (args.springs || args.map.is_some())
+        .then(|| {
+            spring_field::estimate(&net, obs, &args.regularise, solver).with_context(|| {
+                format!(
+                    "per-spring estimate{}",
+                    if solver.is_target() {
+                        " on the target (if the normal matrix's band is too wide for the tiler, use --target host or a smaller grid)"
+                    } else {
+                        ""
+                    }
+                )
+            })
+        })
+        .transpose()?;
+    Ok((
+        Homogeneous {
+            output_error,
+            equation_error,
+        },
+        parametric,
+        springs,
+    ))
+}
+
+fn print_homogeneous(e: &HomogeneousEstimate, chosen: bool) {
+    let directions: Vec<String> = ["x", "y", "z"]
+        .iter()
+        .zip(e.k_by_direction)
+        .filter_map(|(axis, k)| k.map(|k| format!("{axis} {k:.6}")))
+        .collect();
+    println!(
+        "{:<15} k = {:.6} ± {:.2e} N/m{}, relative residual {:.3e} ({} equations; by direction: {})",
+        e.method,
+        e.k,
+        e.standard_error,
+        if chosen { " [k]" } else { "" },
+        e.relative_residual,
+        e.equations,
+        directions.join(", ")
+    );
+    if let Some(s) = e.solves {
+        println!(
+            "                {} forward system(s), {} target solve(s), {} CG iterations",
+            s.systems, s.target_solves, s.iterations
+        );
+    }
+}
+
+pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
+    if let Some(map) = &args.map {
+        if !matches!(
+            OutputFormat::of(map)?,
+            OutputFormat::Vtu | OutputFormat::Vts
+        ) {
+            bail!(
+                "--map {}: the map is written as VTK, use a .vtu or .vts file name",
+                map.display()
+            );
+        }
+    }
+    if !(args.tol.is_finite() && args.tol > 0.0 && args.tol < 1.0) {
+        bail!("--tol {} must be a number in (0, 1)", args.tol);
+    }
+    let (_, spec) = resolve_model(args.scenario.as_deref(), &args.model)?;
+    let model = Model::build(&spec).context("building the model")?;
+    let obs = Observations::read(&args.observations, model.grid())?;
+
+    let choice = match (&args.port, args.target) {
+        (Some(port), _) => Some(BoardChoice::Port(port.clone())),
+        (None, TargetKind::Qemu) => Some(BoardChoice::Qemu {
+            firmware: args.firmware.clone(),
+            harts: DEFAULT_QEMU_HARTS,
+        }),
+        (None, TargetKind::Host) => None,
+    };
+    let (target_name, (homogeneous, parametric, spring_field)) = match choice {
+        None => {
+            let mut host: SpdSolver<'_, Box<dyn serialport::SerialPort>> =
+                SpdSolver::Host { tol: args.tol };
+            (
+                "host (f64 reference CG)".to_string(),
+                estimate_all(args, &model, &obs, &mut host)?,
+            )
+        }
+        Some(choice) => {
+            let timeouts = args.link.apply(Timeouts {
+                solve: Duration::from_secs(args.timeout),
+                ..Timeouts::default()
+            });
+            let mut board = Board::open(&choice, timeouts, &args.logs.options())?;
+            let name = board.describe();
+            let mut solver = SpdSolver::Target {
+                target: &mut board.target,
+                tol: args.tol,
+                max_solves: args.max_solves,
+            };
+            (name, estimate_all(args, &model, &obs, &mut solver)?)
+        }
+    };
+    let chosen = match args.estimator {
+        Estimator::OutputError => &homogeneous.output_error,
+        Estimator::EquationError => &homogeneous.equation_error,
+    };
+    let report = EstimateReport {
+        k: chosen.k,
+        k_standard_error: chosen.standard_error,
+        estimator: chosen.method,
+        observations: ObservationSummary {
+            file: args.observations.display().to_string(),
+            sets: obs.sets.len(),
+            nodes: model.n(),
+            free_nodes: Network::of(&model).free_nodes().count(),
+        },
+        target: target_name,
+        parametric,
+        spring_field,
+        homogeneous,
+    };
+    if let (Some(map), Some(field)) = (&args.map, &report.spring_field) {
+        let kind = match OutputFormat::of(map)? {
+            OutputFormat::Vts => VtkKind::Structured,
+            _ => VtkKind::Unstructured,
+        };
+        let rows = node_rows_with_stiffness(&model, &obs.sets[0].u, &field.node_stiffness);
+        write_vtk(map, &rows, kind)?;
+    }
+    if args.json {
+        // Written rather than println!'d: a closed pipe is an error, not a panic.
+        let mut out = std::io::stdout().lock();
+        serde_json::to_writer_pretty(&mut out, &report)?;
+        writeln!(out)?;
+        return Ok(());
+    }
+    println!("target          {}", report.target);
+    println!(
+        "model           {} grid, {}, {} fixed and {} prescribed node(s)",
+        spec.grid,
+        spec.connection,
+        model.fixed_count(),
+        model.prescribed_count()
+    );
+    println!(
+        "observations    {}: {} set(s) × {} nodes ({} free)",
+        report.observations.file,
+        report.observations.sets,
+        report.observations.nodes,
+        report.observations.free_nodes
+    );
+    print_homogeneous(
+        &report.homogeneous.output_error,
+        args.estimator == Estimator::OutputError,
+    );
+    print_homogeneous(
+        &report.homogeneous.equation_error,
+        args.estimator == Estimator::EquationError,
+    );
+    if let Some(p) = &report.parametric {
+        println!(
+            "parametric      α0 = {:.6}, α1 = {:.6}, α2 = {:.6}, relative residual {:.3e}",
+            p.alpha[0], p.alpha[1], p.alpha[2], p.relative_residual
+        );
+    }
+    if let Some(f) = &report.spring_field {
+        println!(
+            "springs         {} unknowns from {} equations ({} field(s)); H: {} nonzeros, half-band {}; {}",
+            f.unknowns,
+            f.equations,
+            f.fields,
+            f.normal_nnz,
+            f.normal_bandwidth,
+            if f.regularisation.is_empty() {
+                "no regularisation".to_string()
+            } else {
+                format!("regularised {}", f.regularisation.join(", "))
+            }
+        );
+        println!(
+            "                k̃ in [{:.4}, {:.4}], relative residual {:.3e}; {} target solve(s), {} CG iterations",
+            f.min_k, f.max_k, f.relative_residual, f.solves.target_solves, f.solves.iterations
+        );
+        let r = &f.stiff_region;
+        if r.max - r.median <= 0.01 * r.median.abs() {
+            println!(
+                "stiffest region none: the map is uniform (max {:.4} within 1% of the median {:.4})",
+                r.max, r.median
+            );
+        } else {
+            let c = r.centre;
+            println!(
+                "stiffest region {} node(s) with k ≥ {:.3} (median {:.3}, max {:.3}), centred at ({:.2}, {:.2}, {:.2})",
+                r.nodes, r.threshold, r.median, r.max, c[0], c[1], c[2]
+            );
+        }
+    }
+    if let Some(map) = &args.map {
+        println!("wrote           {}", map.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,154 @@
+//! `deform flash`: upload a firmware ELF through the serial loader, have the loader verify the
+//! whole image, start it, and confirm that the started firmware is the one sent.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::{Args, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::board::{self, Board, LoaderChoice};
+use crate::cli_logs::LogFlags;
+use crate::flash::{hex, FlashImage, LoaderTimeouts, IMAGE_ATTEMPTS};
+use crate::link::Timeouts;
+
+/// Where the loader runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum FlashTarget {
+    /// Boot QEMU (riscv32 `virt`) with the serial loader and flash it. QEMU stops when the
+    /// command ends: this checks an image end to end; `deform solve --via-loader` flashes and
+    /// then solves in one run.
+    Qemu,
+}
+
+/// Upload a firmware ELF to a target's RAM through its serial loader and start it.
+#[derive(Debug, Clone, Args)]
+pub struct FlashArgs {
+    /// The firmware ELF (riscv32). Its loadable segments become one image, zero-filled between
+    /// segments; .bss is not sent (the firmware zeroes it).
+    #[arg(value_name = "FIRMWARE.elf")]
+    pub firmware: PathBuf,
+
+    /// Serial device of a board whose loader waits for an image (e.g. /dev/ttyUSB0).
+    #[arg(long, value_name = "PATH", conflicts_with = "target")]
+    pub port: Option<String>,
+
+    /// Where the loader runs when there is no --port. [default: qemu]
+    #[arg(long, value_enum)]
+    pub target: Option<FlashTarget>,
+
+    /// Seconds one loader request waits for its answer before it is sent again.
+    #[arg(long, value_name = "SECONDS", default_value_t = 2.0, value_parser = parse_seconds)]
+    pub request_timeout: f64,
+
+    /// Resends of one request (after a timeout or a corrupted frame) before flashing fails.
+    #[arg(long, value_name = "N", default_value_t = 8)]
+    pub retries: u32,
+
+    #[command(flatten)]
+    pub logs: LogFlags,
+}
+
+fn parse_seconds(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(t) if t.is_finite() && t > 0.0 && t <= 3600.0 => Ok(t),
+        Ok(_) => Err("must be a number of seconds in (0, 3600]".into()),
+        Err(e) => Err(format!("not a number: {e}")),
+    }
+}
+
+/// A byte progress bar on stderr when it is a terminal, else hidden.
+fn progress_bar(len: u64) -> ProgressBar {
+    if !std::io::stderr().is_terminal() {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(len);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{msg:>8} [{bar:40}] {bytes}/{total_bytes} {bytes_per_sec} {elapsed}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    bar.set_message("flash");
+    bar
+}
+
+pub fn run(args: &FlashArgs) -> anyhow::Result<()> {
+    let image = FlashImage::from_file(&args.firmware)
+        .with_context(|| format!("reading {}", args.firmware.display()))?;
+    println!(
+        "image       {} bytes at {:#010x}, entry {:#010x}, CRC-32 {:#010x}, build id {}",
+        image.bytes.len(),
+        image.load_address,
+        image.entry,
+        image.crc32(),
+        image.build_id.as_deref().map_or("none".into(), hex)
+    );
+    let choice = match &args.port {
+        Some(port) => LoaderChoice::Port(port.clone()),
+        None => LoaderChoice::Qemu {
+            harts: board::DEFAULT_QEMU_HARTS,
+        },
+    };
+    let loader_timeouts = LoaderTimeouts {
+        request: Duration::from_secs_f64(args.request_timeout),
+        retries: args.retries,
+        ..LoaderTimeouts::default()
+    };
+    let bar = progress_bar(image.bytes.len() as u64);
+    let mut last_attempt = 1;
+    let (board, report) = Board::flash(
+        &choice,
+        &args.firmware,
+        Timeouts::default(),
+        loader_timeouts,
+        &args.logs.options(),
+        |p| {
+            if p.attempt != last_attempt {
+                last_attempt = p.attempt;
+                eprintln!(
+                    "the image failed its verification; uploading it again \
+                     (attempt {} of {IMAGE_ATTEMPTS})",
+                    p.attempt
+                );
+                bar.reset();
+            }
+            bar.set_position(p.bytes_sent as u64);
+            if p.bytes_sent == p.bytes_total {
+                // Gone before the started firmware's first log lines print.
+                bar.finish_and_clear();
+            }
+        },
+    )?;
+    println!("target      {}", board.describe());
+    println!(
+        "flashed     {} bytes in {} chunks, {:.0} ms ({:.1} KiB/s; {} bytes on the wire), \
+         {} upload(s), {} resent frame(s); CRC verified in target RAM",
+        report.image_bytes,
+        report.chunks,
+        report.upload_time.as_secs_f64() * 1e3,
+        report.throughput() / 1024.0,
+        report.wire_bytes,
+        report.attempts,
+        report.resends
+    );
+    let info = board.target.info();
+    println!(
+        "running     deform firmware {} (protocol {}, {} hart(s), build id {})",
+        info.firmware_version,
+        info.protocol_version,
+        info.harts,
+        hex(&info.build_id)
+    );
+    let logs = board::lock(board.logs()).stats();
+    if logs.bytes > 0 {
+        println!(
+            "logs        {} bytes, {} lines decoded",
+            logs.bytes, logs.frames
+        );
+    }
+    Ok(())
+}

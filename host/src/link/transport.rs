@@ -1,0 +1,698 @@
+//! The host's end of the reliable transport ([`deform_shared::transport`], `docs/PROTOCOL.md`):
+//! numbered request frames, up to [`WINDOW`] of them in flight, replies matched by number and
+//! delivered in order, retransmission on NAK or timeout (with exponential back-off), and
+//! bounded waiting everywhere.
+//!
+//! The host owns every timer. A request's frame is sent again when the target NAKs it, or when
+//! no reply came within the retransmit timeout: the smoothed time the target takes per request
+//! plus four times its variation (RFC 6298; at least 20 ms, at most
+//! [`LinkConfig::retransmit`]), doubled after each retry of the same frame up to 8×
+//! [`LinkConfig::retransmit`]. A request
+//! fails with [`LinkError::Timeout`] after [`LinkConfig::retries`] retransmissions or once it has
+//! waited [`Link::timeout`] in all, whichever comes first; a long-running request (`Solve`) that
+//! the target acknowledged may wait its own, longer, deadline. Nothing here can block longer
+//! than those bounds: every read and write on the port is bounded by the time left.
+
+use std::collections::VecDeque;
+use std::io::ErrorKind;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use deform_shared::frame::{self, Feed, FrameAccumulator, DELIMITER};
+use deform_shared::protocol::{Envelope, ErrorCode, Request, Response, MAX_FRAME_LEN};
+use deform_shared::transport::{Uplink, WINDOW};
+use serialport::SerialPort;
+
+use super::{open_serial, LinkError, Port};
+
+/// How long a request may wait for its reply, retransmissions included, unless told otherwise.
+pub const DEFAULT_REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// The least retransmit timeout, however fast the target answers.
+const MIN_RETRANSMIT: Duration = Duration::from_millis(20);
+
+/// Bytes asked of the port per read.
+const READ_CHUNK: usize = 1024;
+
+/// Retransmission settings.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LinkConfig {
+    /// The longest a frame waits for its reply (or an ACK) before it is sent again, and the
+    /// wait until the link has measured how fast the target answers (it then waits that time
+    /// plus four times its variation, at least 20 ms, at most this); doubled after every retransmission of the same
+    /// frame, up to 8× this.
+    pub retransmit: Duration,
+    /// Retransmissions of one frame before the request fails.
+    pub retries: u32,
+    /// Requests in flight (1 ..= [`WINDOW`]).
+    pub window: u16,
+}
+
+impl Default for LinkConfig {
+    /// 250 ms is ~25 round trips of a full frame through a QEMU pty and far more than a
+    /// 115200-baud line needs for one; 16 retries make a request's failure on a line with a
+    /// byte-error rate of 1e-3 (40 % of full frames lost) a one-in-a-million event.
+    fn default() -> Self {
+        LinkConfig {
+            retransmit: Duration::from_millis(250),
+            retries: 16,
+            window: WINDOW,
+        }
+    }
+}
+
+/// Which answers an exchange takes as its own.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Exchange {
+    /// A sequenced request: see [`Link::run`].
+    Request,
+    /// A `Hello`: sent once, and only its own `Hello` reply (or a version complaint) is taken.
+    /// Everything else on the line (noise, a previous session's replies, NAKs) is skipped.
+    Handshake,
+}
+
+/// Counters of what a [`Link`] saw, for diagnostics, reports and tests.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct LinkStats {
+    /// Requests sent (each counted once, however often its frame went out).
+    pub requests: u64,
+    /// Frames sent again (after a NAK or a timeout).
+    pub retransmits: u64,
+    /// Of those, sent because of a timeout.
+    pub timeouts: u64,
+    /// NAKs received.
+    pub naks: u64,
+    /// Frames from the target that did not decode (line noise, truncated or overlong frames).
+    pub corrupt_frames: u64,
+    /// Of those, frames whose CRC was right but whose contents did not decode: a target that
+    /// speaks another protocol version.
+    pub undecodable: u64,
+    /// Well-formed replies that were not awaited (duplicates, a previous session's).
+    pub stale_answers: u64,
+    /// Bytes written to the port, retransmissions included.
+    pub bytes_sent: u64,
+    /// Of those, bytes of retransmitted frames.
+    pub bytes_resent: u64,
+    /// Bytes read from the port.
+    pub bytes_received: u64,
+    /// Notices (firmware logs) received, and how many the numbering says were lost.
+    pub notices: u64,
+    pub notices_lost: u64,
+}
+
+/// A request in flight.
+struct InFlight {
+    seq: u16,
+    request: Request,
+    frame: Vec<u8>,
+    first_sent: Instant,
+    last_sent: Instant,
+    /// When the retransmit timer started: the last send, or the moment the request became the
+    /// oldest without a reply, whichever is later.
+    timer: Instant,
+    retries: u32,
+    /// When the target acknowledged a long-running request.
+    accepted: Option<Instant>,
+    reply: Option<Response>,
+}
+
+/// Something the target says besides replies, handed to the notice handler.
+pub type NoticeHandler = Box<dyn FnMut(u16, Response) + Send>;
+
+/// The transport to a target, over any [`Port`].
+pub struct Link<P: Port = Box<dyn SerialPort>> {
+    port: P,
+    frames: FrameAccumulator<MAX_FRAME_LEN>,
+    /// Bytes read from the port but not yet fed to `frames`.
+    inbox: Vec<u8>,
+    inbox_read: usize,
+    next_seq: u16,
+    flushed: bool,
+    timeout: Duration,
+    config: LinkConfig,
+    stats: LinkStats,
+    last_notice: Option<u16>,
+    notice_handler: Option<NoticeHandler>,
+    /// Smoothed service time: from the moment a request became the oldest without a reply to
+    /// its reply, for requests answered at the first send.
+    srtt: Option<Duration>,
+    /// Its smoothed variation.
+    rttvar: Duration,
+}
+
+impl Link<Box<dyn SerialPort>> {
+    /// Opens a serial port (or a QEMU pty); see [`open_serial`].
+    pub fn open(path: &str) -> Result<Self, LinkError> {
+        Ok(Link::new(open_serial(path)?))
+    }
+}
+
+impl<P: Port> Link<P> {
+    /// A link over `port` with [`DEFAULT_REQUEST_TIMEOUT`] and the default [`LinkConfig`].
+    pub fn new(port: P) -> Self {
+        Link {
+            port,
+            frames: FrameAccumulator::new(),
+            inbox: Vec::with_capacity(READ_CHUNK),
+            inbox_read: 0,
+            next_seq: initial_seq(),
+            flushed: false,
+            timeout: DEFAULT_REQUEST_TIMEOUT,
+            config: LinkConfig::default(),
+            stats: LinkStats::default(),
+            last_notice: None,
+            notice_handler: None,
+            srtt: None,
+            rttvar: Duration::ZERO,
+        }
+    }
+
+    /// Sets how long a request may wait for its reply, retransmissions included.
+    pub fn with_timeout(mut self, timeout: Duration) -> Self {
+        self.timeout = timeout;
+        self
+    }
+
+    pub fn set_timeout(&mut self, timeout: Duration) {
+        self.timeout = timeout;
+    }
+
+    pub fn timeout(&self) -> Duration {
+        self.timeout
+    }
+
+    pub fn config(&self) -> LinkConfig {
+        self.config
+    }
+
+    pub fn set_config(&mut self, config: LinkConfig) {
+        self.config = LinkConfig {
+            window: config.window.clamp(1, WINDOW),
+            ..config
+        };
+    }
+
+    pub fn stats(&self) -> LinkStats {
+        self.stats
+    }
+
+    /// Where unsolicited messages (firmware logs in `Response::Log`) go, with their notice
+    /// number. Without a handler they are counted and dropped.
+    pub fn set_notice_handler(&mut self, handler: NoticeHandler) {
+        self.notice_handler = Some(handler);
+    }
+
+    /// Sends `request` and waits for its reply. An `Error` reply becomes [`LinkError::Target`].
+    pub fn request(&mut self, request: &Request) -> Result<Response, LinkError> {
+        self.request_within(request, self.timeout)
+    }
+
+    /// Like [`request`](Self::request); a long-running request (`Solve`) that the target
+    /// acknowledged may take up to `timeout` (other requests are bounded by the link's own
+    /// timeout, since their frames may need resending).
+    pub fn request_within(
+        &mut self,
+        request: &Request,
+        timeout: Duration,
+    ) -> Result<Response, LinkError> {
+        let mut answer = None;
+        self.run_within(std::iter::once(request.clone()), timeout, |_, response| {
+            answer = Some(response);
+            Ok(())
+        })?;
+        answer.ok_or(LinkError::Timeout {
+            request: request_name(request),
+            after: timeout,
+            retries: 0,
+        })
+    }
+
+    /// Sends `requests` with up to [`LinkConfig::window`] in flight and hands every reply, in
+    /// request order, to `on_reply`. Stops at the first `Error` reply (as
+    /// [`LinkError::Target`]) or the first error `on_reply` returns, but only after the replies
+    /// to the requests already in flight have arrived, so that the target and the host agree on
+    /// the sequence numbers afterwards.
+    pub fn run(
+        &mut self,
+        requests: impl Iterator<Item = Request>,
+        on_reply: impl FnMut(&Request, Response) -> Result<(), LinkError>,
+    ) -> Result<(), LinkError> {
+        self.run_within(requests, self.timeout, on_reply)
+    }
+
+    fn run_within(
+        &mut self,
+        mut requests: impl Iterator<Item = Request>,
+        long_timeout: Duration,
+        mut on_reply: impl FnMut(&Request, Response) -> Result<(), LinkError>,
+    ) -> Result<(), LinkError> {
+        let mut window: VecDeque<InFlight> = VecDeque::new();
+        let mut failure: Option<LinkError> = None;
+        let mut exhausted = false;
+        loop {
+            // Fill the window, unless a failure stops new requests.
+            while !exhausted && failure.is_none() && window.len() < usize::from(self.config.window)
+            {
+                let Some(request) = requests.next() else {
+                    exhausted = true;
+                    break;
+                };
+                let seq = self.take_seq();
+                let frame = self.encode(seq, &request)?;
+                self.write(&frame)?;
+                self.stats.requests += 1;
+                let now = Instant::now();
+                window.push_back(InFlight {
+                    seq,
+                    request,
+                    frame,
+                    first_sent: now,
+                    last_sent: now,
+                    timer: now,
+                    retries: 0,
+                    accepted: None,
+                    reply: None,
+                });
+            }
+            // Deliver the replies that are in order.
+            while window.front().is_some_and(|f| f.reply.is_some()) {
+                let Some(done) = window.pop_front() else {
+                    break;
+                };
+                let Some(reply) = done.reply else { break };
+                if failure.is_some() {
+                    continue;
+                }
+                let name = request_name(&done.request);
+                let result = match reply {
+                    Response::Error(code) => Err(LinkError::Target {
+                        request: name,
+                        code,
+                    }),
+                    reply => on_reply(&done.request, reply),
+                };
+                if let Err(e) = result {
+                    failure = Some(e);
+                }
+            }
+            if window.is_empty() {
+                match failure {
+                    Some(e) => return Err(e),
+                    None if exhausted => return Ok(()),
+                    None => continue,
+                }
+            }
+            // Wait for the next frame until the retransmission or a deadline is due.
+            let now = Instant::now();
+            let mut wake = now + self.timeout;
+            for entry in &window {
+                if entry.reply.is_some() {
+                    continue;
+                }
+                let deadline = self.deadline(entry, long_timeout);
+                if now >= deadline {
+                    return Err(LinkError::Timeout {
+                        request: request_name(&entry.request),
+                        after: deadline - entry.first_sent,
+                        retries: entry.retries,
+                    });
+                }
+                wake = wake.min(deadline);
+            }
+            // Only the oldest request without a reply runs a retransmit timer: the target
+            // handles requests in order, so the later ones are held behind it (or were lost,
+            // which the target NAKs once it gets past the gap).
+            let oldest = window.iter().position(|e| e.reply.is_none());
+            if let Some(i) = oldest {
+                wake = wake.min(window[i].timer + self.backoff(&window[i]));
+            }
+            match self.receive(wake)? {
+                None => {}
+                Some(up) => self.on_frame(up, &mut window)?,
+            }
+            // Retransmit the oldest if its timer ran out.
+            let now = Instant::now();
+            if let Some(i) = window.iter().position(|e| e.reply.is_none()) {
+                if now >= window[i].timer + self.backoff(&window[i]) {
+                    let entry = &window[i];
+                    if entry.accepted.is_none() && entry.retries >= self.config.retries {
+                        return Err(LinkError::Timeout {
+                            request: request_name(&entry.request),
+                            after: now - entry.first_sent,
+                            retries: entry.retries,
+                        });
+                    }
+                    self.stats.timeouts += 1;
+                    self.retransmit(&mut window[i])?;
+                }
+            }
+        }
+    }
+
+    /// When a request without reply fails.
+    fn deadline(&self, entry: &InFlight, long_timeout: Duration) -> Instant {
+        match entry.accepted {
+            Some(at) => at + long_timeout,
+            None => entry.first_sent + self.timeout,
+        }
+    }
+
+    /// The retransmit timeout for an entry's next retransmission.
+    fn backoff(&self, entry: &InFlight) -> Duration {
+        // Doubling from the adaptive base up to 8× the configured timeout: a target that is
+        // merely slow (a long CRC check, a loaded host) is not given up on after a few quick
+        // resends; the request's overall timeout still bounds the wait.
+        let rto =
+            (self.base_rto() * (1u32 << entry.retries.min(10))).min(self.config.retransmit * 8);
+        if entry.accepted.is_some() {
+            // The target is working on it; resend only to recover a lost reply.
+            rto.max(Duration::from_secs(1))
+        } else {
+            rto
+        }
+    }
+
+    fn retransmit(&mut self, entry: &mut InFlight) -> Result<(), LinkError> {
+        self.write(&entry.frame)?;
+        self.stats.bytes_resent += entry.frame.len() as u64;
+        entry.last_sent = Instant::now();
+        entry.timer = entry.last_sent;
+        if entry.accepted.is_none() {
+            entry.retries += 1;
+        }
+        self.stats.retransmits += 1;
+        Ok(())
+    }
+
+    fn on_frame(&mut self, up: Uplink, window: &mut VecDeque<InFlight>) -> Result<(), LinkError> {
+        match up {
+            Uplink::Reply { seq, body } => {
+                match window.iter_mut().position(|e| e.seq == seq) {
+                    Some(i) if window[i].reply.is_none() => {
+                        let was_oldest = window.iter().position(|e| e.reply.is_none()) == Some(i);
+                        window[i].reply = Some(body);
+                        let now = Instant::now();
+                        if was_oldest && window[i].retries == 0 && window[i].accepted.is_none() {
+                            // How long the target took for it once it was the oldest: its frame's
+                            // time on the line and its handling, without the queue before it.
+                            let sample = now - window[i].timer;
+                            self.measure(sample);
+                        }
+                        // The next request without a reply starts its timer now.
+                        if was_oldest {
+                            if let Some(next) = window.iter_mut().find(|e| e.reply.is_none()) {
+                                next.timer = next.timer.max(now);
+                            }
+                        }
+                        // A reply acknowledges every request before it: those still without a
+                        // reply were handled but their replies lost; resend them now (the target
+                        // answers from its reply cache).
+                        let guard = self.nak_guard();
+                        for entry in window.iter_mut().take(i) {
+                            if entry.reply.is_none() && now >= entry.last_sent + guard {
+                                self.retransmit(entry)?;
+                            }
+                        }
+                    }
+                    _ => self.stats.stale_answers += 1,
+                }
+            }
+            Uplink::Ack { seq } => {
+                if let Some(entry) = window.iter_mut().find(|e| e.seq == seq) {
+                    entry.accepted.get_or_insert_with(Instant::now);
+                }
+            }
+            Uplink::Nak { expected } => {
+                self.stats.naks += 1;
+                let guard = self.nak_guard();
+                if let Some(entry) = window.iter_mut().find(|e| e.seq == expected) {
+                    // Several NAKs may name the same frame (each corrupt frame that follows
+                    // the loss draws one); resend it at once, then at most once per round trip.
+                    let resent_lately = entry.retries > 0 && entry.last_sent.elapsed() < guard;
+                    if entry.reply.is_none() && !resent_lately {
+                        if entry.retries >= self.config.retries {
+                            return Err(LinkError::Timeout {
+                                request: request_name(&entry.request),
+                                after: entry.first_sent.elapsed(),
+                                retries: entry.retries,
+                            });
+                        }
+                        self.retransmit(entry)?;
+                    }
+                }
+            }
+            Uplink::NotSynced { seq } => {
+                if window.iter().any(|e| e.seq == seq) {
+                    return Err(LinkError::TargetReset);
+                }
+                self.stats.stale_answers += 1;
+            }
+            Uplink::Notice { seq, body } => self.on_notice(seq, body),
+            Uplink::Panic { message } => {
+                return Err(LinkError::TargetPanicked {
+                    message: message.to_string(),
+                })
+            }
+        }
+        Ok(())
+    }
+
+    /// Folds one service-time sample into `srtt` and `rttvar` (RFC 6298's estimator).
+    fn measure(&mut self, sample: Duration) {
+        match self.srtt {
+            Some(srtt) => {
+                let deviation = srtt.abs_diff(sample);
+                self.rttvar = (self.rttvar * 3 + deviation) / 4;
+                self.srtt = Some((srtt * 7 + sample) / 8);
+            }
+            None => {
+                self.srtt = Some(sample);
+                self.rttvar = sample / 2;
+            }
+        }
+    }
+
+    /// The retransmit timeout before back-off: the smoothed service time plus four times its
+    /// variation (RFC 6298), at least [`MIN_RETRANSMIT`], at most the configured
+    /// [`LinkConfig::retransmit`] (which is also the timeout until the first sample).
+    fn base_rto(&self) -> Duration {
+        let ceiling = self.config.retransmit;
+        match self.srtt {
+            Some(srtt) => (srtt + self.rttvar * 4).clamp(MIN_RETRANSMIT.min(ceiling), ceiling),
+            None => ceiling,
+        }
+    }
+
+    /// The least time between two sends of a frame prompted by NAKs or later replies: half the
+    /// smoothed service time (at most a quarter of the retransmit timeout). The target sends
+    /// about one NAK per damaged frame, and a NAK that arrives after a resend is as likely to be about the resent copy (which
+    /// then waits behind the rest of the window) as about an older one: resending too often
+    /// costs a frame's time on the line, not resending costs a retransmit timeout.
+    fn nak_guard(&self) -> Duration {
+        let rto = self.base_rto();
+        (self.srtt.unwrap_or(rto) / 2).min(rto / 4)
+    }
+
+    fn on_notice(&mut self, seq: u16, body: Response) {
+        self.stats.notices += 1;
+        if let Some(last) = self.last_notice {
+            let gap = seq.wrapping_sub(last).wrapping_sub(1);
+            if gap < u16::MAX / 2 {
+                self.stats.notices_lost += u64::from(gap);
+            }
+        }
+        self.last_notice = Some(seq);
+        if let Some(handler) = self.notice_handler.as_mut() {
+            handler(seq, body);
+        }
+    }
+
+    /// Writes bytes as they are, outside any frame: for tests that put noise on the line.
+    pub fn send_raw(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
+        self.write(bytes)
+    }
+
+    pub fn port_mut(&mut self) -> &mut P {
+        &mut self.port
+    }
+
+    /// One `Hello` (or another request) sent once, waiting up to `timeout` for its own reply
+    /// and skipping everything else: the handshake, which retries with fresh numbers itself.
+    pub(crate) fn exchange(
+        &mut self,
+        request: &Request,
+        timeout: Duration,
+        kind: Exchange,
+    ) -> Result<Response, LinkError> {
+        if kind == Exchange::Request {
+            return self.request_within(request, timeout);
+        }
+        let name = request_name(request);
+        let seq = self.take_seq();
+        let frame = self.encode(seq, request)?;
+        self.write(&frame)?;
+        self.stats.requests += 1;
+        let deadline = Instant::now() + timeout;
+        loop {
+            match self.receive(deadline)? {
+                None if Instant::now() >= deadline => {
+                    return Err(LinkError::Timeout {
+                        request: name,
+                        after: timeout,
+                        retries: 0,
+                    })
+                }
+                None => {}
+                Some(Uplink::Reply { seq: got, body })
+                    if got == seq && is_handshake_answer(&body) =>
+                {
+                    return match body {
+                        Response::Error(code) => Err(LinkError::Target {
+                            request: name,
+                            code,
+                        }),
+                        body => Ok(body),
+                    }
+                }
+                Some(Uplink::Notice { seq, body }) => self.on_notice(seq, body),
+                Some(Uplink::Panic { message }) => {
+                    return Err(LinkError::TargetPanicked {
+                        message: message.to_string(),
+                    })
+                }
+                Some(Uplink::Nak { .. }) => self.stats.naks += 1,
+                Some(_) => self.stats.stale_answers += 1,
+            }
+        }
+    }
+
+    fn encode(&self, seq: u16, request: &Request) -> Result<Vec<u8>, LinkError> {
+        let mut out = vec![0u8; MAX_FRAME_LEN + 1];
+        // The very first frame of a link is preceded by a lone delimiter, which ends whatever
+        // partial frame the target may hold (noise from before the port was opened).
+        let start = usize::from(!self.flushed);
+        out[0] = DELIMITER;
+        let len = frame::encode(&Envelope { seq, body: request }, &mut out[start..]).map_err(
+            |source| LinkError::Encode {
+                request: request_name(request),
+                source,
+            },
+        )?;
+        out.truncate(start + len);
+        Ok(out)
+    }
+
+    fn write(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
+        // A target that is slow to drain its input may hold up the write, but not forever.
+        self.port.set_timeout(self.timeout)?;
+        self.port.write_all(bytes).map_err(io_error)?;
+        self.port.flush().map_err(io_error)?;
+        self.flushed = true;
+        self.stats.bytes_sent += bytes.len() as u64;
+        Ok(())
+    }
+
+    fn take_seq(&mut self) -> u16 {
+        let seq = self.next_seq;
+        self.next_seq = seq.wrapping_add(1);
+        seq
+    }
+
+    /// The next well-formed frame, or `Nothing` once `deadline` passes (or the port's read
+    /// returned nothing). Corrupt frames are counted and skipped.
+    fn receive(&mut self, deadline: Instant) -> Result<Option<Uplink>, LinkError> {
+        loop {
+            while let Some(&byte) = self.inbox.get(self.inbox_read) {
+                self.inbox_read += 1;
+                match self.frames.feed(byte) {
+                    Feed::Pending => {}
+                    Feed::Overflow => self.stats.corrupt_frames += 1,
+                    Feed::Frame(body) => match frame::decode::<Uplink>(body) {
+                        Ok(up) => return Ok(Some(up)),
+                        Err(e) => {
+                            self.stats.corrupt_frames += 1;
+                            if e == deform_shared::frame::FrameError::Message {
+                                self.stats.undecodable += 1;
+                            }
+                        }
+                    },
+                }
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Ok(None);
+            }
+            self.port.set_timeout(left)?;
+            let mut buf = [0u8; READ_CHUNK];
+            match self.port.read(&mut buf) {
+                Ok(0) => return Err(LinkError::Disconnected("the port reached end of file")),
+                Ok(n) => {
+                    self.stats.bytes_received += n as u64;
+                    self.inbox.clear();
+                    self.inbox.extend_from_slice(&buf[..n]);
+                    self.inbox_read = 0;
+                }
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        ErrorKind::TimedOut | ErrorKind::WouldBlock | ErrorKind::Interrupted
+                    ) => {}
+                Err(e) => return Err(io_error(e)),
+            }
+        }
+    }
+}
+
+/// An I/O error, recognising a line that went away (QEMU exited, a board was unplugged).
+fn io_error(e: std::io::Error) -> LinkError {
+    // EIO is what a pty reports once its other end is closed.
+    if matches!(
+        e.kind(),
+        ErrorKind::BrokenPipe | ErrorKind::UnexpectedEof | ErrorKind::ConnectionReset
+    ) || e.raw_os_error() == Some(5)
+    {
+        return LinkError::Disconnected("the serial line closed");
+    }
+    if matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock) {
+        return LinkError::WriteStalled;
+    }
+    LinkError::Io(e)
+}
+
+fn is_handshake_answer(body: &Response) -> bool {
+    matches!(
+        body,
+        Response::Hello(_) | Response::Error(ErrorCode::VersionMismatch { .. })
+    )
+}
+
+/// A starting sequence number that differs between runs, so that replies still in flight from
+/// a previous host process cannot match this one's first requests.
+fn initial_seq() -> u16 {
+    let nanos = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.subsec_nanos())
+        .unwrap_or(0);
+    let mixed = nanos ^ std::process::id().rotate_left(16);
+    (mixed ^ (mixed >> 16)) as u16
+}
+
+/// The request's variant name, for messages.
+pub fn request_name(request: &Request) -> &'static str {
+    match request {
+        Request::Hello { .. } => "Hello",
+        Request::BeginMatrix { .. } => "BeginMatrix",
+        Request::Tile(_) => "Tile",
+        Request::Words { .. } => "Words",
+        Request::EndMatrix { .. } => "EndMatrix",
+        Request::BeginVector { .. } => "BeginVector",
+        Request::VectorData { .. } => "VectorData",
+        Request::Solve(_) => "Solve",
+        Request::ReadSolution { .. } => "ReadSolution",
+        Request::BeginUpdate { .. } => "BeginUpdate",
+        Request::UpdateValues { .. } => "UpdateValues",
+        Request::EndUpdate { .. } => "EndUpdate",
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,658 @@
+//! The CG engine against f64 references: single and fused directions, 1 to 8 MVUs in both
+//! partition schemes, mirrored tiles, and the error paths.
+
+use super::*;
+use deform_shared::matrix::validate_tile;
+use deform_shared::qformat::{block_exponent, from_mantissa, quantize, to_mantissa};
+use deform_shared::word::Word;
+use proptest::prelude::*;
+
+/// A sparse matrix as rows of (column, value) in f64, with the tiles and words encoding it.
+struct Encoded {
+    n: usize,
+    frac_bits: u8,
+    tiles: Vec<TileHeader>,
+    words: Vec<u32>,
+    rows: Vec<Vec<(usize, f64)>>,
+}
+
+/// Row blocks of `block` rows, each with the window starting at its smallest column.
+fn encode(rows: Vec<Vec<(usize, f64)>>, frac_bits: u8, block: usize) -> Encoded {
+    let n = rows.len();
+    encode_rows(rows, n, frac_bits, block)
+}
+
+/// Like [`encode`] for the first `rows.len()` rows of an n×n matrix.
+fn encode_rows(rows: Vec<Vec<(usize, f64)>>, n: usize, frac_bits: u8, block: usize) -> Encoded {
+    let mut tiles = Vec::new();
+    let mut words = Vec::new();
+    for start in (0..rows.len()).step_by(block) {
+        let end = (start + block).min(rows.len());
+        let col_base = rows[start..end]
+            .iter()
+            .flatten()
+            .map(|&(c, _)| c)
+            .min()
+            .unwrap_or(0);
+        let first = words.len();
+        for row in &rows[start..end] {
+            if row.is_empty() {
+                words.push(Word::empty_row(false).bits());
+            }
+            for (k, &(c, v)) in row.iter().enumerate() {
+                let raw = quantize(v, frac_bits).unwrap() as i64;
+                words.push(
+                    Word::new((c - col_base) as u32, raw, k + 1 == row.len(), false)
+                        .unwrap()
+                        .bits(),
+                );
+            }
+        }
+        *words.last_mut().unwrap() |= deform_shared::word::EM_BIT;
+        let header = TileHeader {
+            row_base: start as u32,
+            col_base: col_base as u32,
+            rows: (end - start) as u32,
+            words: (words.len() - first) as u32,
+            mvu: 0,
+            mirrored: false,
+        };
+        validate_tile(tiles.len() as u32, &header, &words[first..], n as u32).unwrap();
+        tiles.push(header);
+    }
+    Encoded {
+        n,
+        frac_bits,
+        tiles,
+        words,
+        rows,
+    }
+}
+
+fn laplacian_1d(n: usize) -> Vec<Vec<(usize, f64)>> {
+    (0..n)
+        .map(|i| {
+            let mut row = Vec::new();
+            if i > 0 {
+                row.push((i - 1, -1.0));
+            }
+            row.push((i, 2.0));
+            if i + 1 < n {
+                row.push((i + 1, -1.0));
+            }
+            row
+        })
+        .collect()
+}
+
+/// Model-A Laplacian of an m³ grid with the 8 corners eliminated symmetrically.
+fn laplacian_3d(m: usize, k: f64) -> Vec<Vec<(usize, f64)>> {
+    let idx = |i: usize, j: usize, l: usize| i + m * (j + m * l);
+    let corner = |i: usize| i == 0 || i == m - 1;
+    let fixed = |v: usize| corner(v % m) && corner((v / m) % m) && corner(v / (m * m));
+    let mut rows = vec![Vec::new(); m * m * m];
+    for l in 0..m {
+        for j in 0..m {
+            for i in 0..m {
+                let v = idx(i, j, l);
+                let mut diag = 0.0;
+                let mut row = Vec::new();
+                let mut nb = |c: usize| {
+                    diag += k;
+                    if !fixed(v) && !fixed(c) {
+                        row.push((c, -k));
+                    }
+                };
+                if i > 0 {
+                    nb(idx(i - 1, j, l))
+                }
+                if i + 1 < m {
+                    nb(idx(i + 1, j, l))
+                }
+                if j > 0 {
+                    nb(idx(i, j - 1, l))
+                }
+                if j + 1 < m {
+                    nb(idx(i, j + 1, l))
+                }
+                if l > 0 {
+                    nb(idx(i, j, l - 1))
+                }
+                if l + 1 < m {
+                    nb(idx(i, j, l + 1))
+                }
+                row.push((v, diag));
+                row.sort_by_key(|&(c, _)| c);
+                rows[v] = row;
+            }
+        }
+    }
+    rows
+}
+
+fn matvec(rows: &[Vec<(usize, f64)>], x: &[f64]) -> Vec<f64> {
+    rows.iter()
+        .map(|row| row.iter().map(|&(c, v)| v * x[c]).sum())
+        .collect()
+}
+
+/// Plain f64 CG to a tight tolerance: the yardstick.
+fn reference(rows: &[Vec<(usize, f64)>], b: &[f64]) -> Vec<f64> {
+    let n = b.len();
+    let mut x = vec![0.0; n];
+    let mut r = b.to_vec();
+    let mut p = r.clone();
+    let mut rr: f64 = r.iter().map(|v| v * v).sum();
+    let bb = rr;
+    for _ in 0..10 * n {
+        if rr <= 1e-28 * bb {
+            break;
+        }
+        let kp = matvec(rows, &p);
+        let alpha = rr / p.iter().zip(&kp).map(|(a, b)| a * b).sum::<f64>();
+        for i in 0..n {
+            x[i] += alpha * p[i];
+            r[i] -= alpha * kp[i];
+        }
+        let rr_new: f64 = r.iter().map(|v| v * v).sum();
+        for i in 0..n {
+            p[i] = r[i] + rr_new / rr * p[i];
+        }
+        rr = rr_new;
+    }
+    x
+}
+
+/// One solve's outcome: per direction the solution in f64, and the report.
+struct Run {
+    x: Vec<Vec<f64>>,
+    report: SolveReport,
+}
+
+fn to_block(v: &[f64]) -> (Vec<i32>, i32) {
+    let e = block_exponent(v.iter().fold(0.0f64, |a, b| a.max(b.abs())));
+    (v.iter().map(|&x| to_mantissa(x, e).unwrap()).collect(), e)
+}
+
+/// Solves `m` for every right-hand side in `bs` at once (fused), starting from `x0` if given,
+/// with the tiles' MVU assignment as encoded, on a sequential executor of `harts` harts.
+fn run_fused(
+    m: &Encoded,
+    bs: &[&[f64]],
+    x0: Option<&[&[f64]]>,
+    tol: f64,
+    harts: usize,
+) -> Result<Run, SolveFailure> {
+    let n = m.n;
+    let mut kp = vec![[0i64; MAX_DIRECTIONS]; n];
+    let mut partial = vec![[0i64; MAX_DIRECTIONS]; 4 * n];
+    let plan = plan(&m.tiles, &m.words, n, &mut kp, partial.len()).unwrap();
+    // Per direction: b's mantissas and exponent, x's, and r.
+    type Vectors = (Vec<i32>, i32, Vec<i32>, i32, Vec<i32>);
+    let mut vectors: Vec<Vectors> = bs
+        .iter()
+        .enumerate()
+        .map(|(d, b)| {
+            let (bm, be) = to_block(b);
+            let (xm, xe) = x0.map(|x| to_block(x[d])).unwrap_or((vec![0; n], 0));
+            (bm, be, xm, xe, vec![0; n])
+        })
+        .collect();
+    let mut systems: Vec<System<'_>> = vectors
+        .iter_mut()
+        .map(|(b, be, x, xe, r)| System {
+            b,
+            b_exponent: *be,
+            x,
+            x_exponent: *xe,
+            r,
+        })
+        .collect();
+    let mut p = vec![[0i32; 4]; n];
+    let matrix = Matrix {
+        n,
+        frac_bits: m.frac_bits,
+        tiles: &m.tiles,
+        words: &m.words,
+        plan: &plan,
+    };
+    let params = SolveParams {
+        max_iterations: 10 * n as u32,
+        tolerance: tol,
+        start: if x0.is_some() {
+            Start::Uploaded
+        } else {
+            Start::Zero
+        },
+        directions: bs.len() as u8,
+    };
+    let work = Work {
+        p: &mut p,
+        kp: &mut kp,
+        partial: &mut partial,
+    };
+    let report = solve(&matrix, &mut systems, work, &params, &Sequential { harts })?;
+    Ok(Run {
+        x: systems
+            .iter()
+            .map(|s| {
+                s.x.iter()
+                    .map(|&v| from_mantissa(v, s.x_exponent))
+                    .collect()
+            })
+            .collect(),
+        report,
+    })
+}
+
+/// One right-hand side on one MVU.
+fn run(m: &Encoded, b: &[f64], x0: Option<&[f64]>, tol: f64) -> Result<Run1, SolveFailure> {
+    let x0 = x0.map(|x| [x]);
+    let out = run_fused(m, &[b], x0.as_ref().map(|x| &x[..]), tol, 1)?;
+    Ok(Run1 {
+        x: out.x.into_iter().next().unwrap(),
+        report: out.report,
+    })
+}
+
+struct Run1 {
+    x: Vec<f64>,
+    report: SolveReport,
+}
+
+fn max_rel_err(x: &[f64], reference: &[f64]) -> f64 {
+    let scale = reference.iter().fold(0.0f64, |a, b| a.max(b.abs()));
+    x.iter()
+        .zip(reference)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max)
+        / scale
+}
+
+fn true_residual(rows: &[Vec<(usize, f64)>], x: &[f64], b: &[f64]) -> f64 {
+    let kx = matvec(rows, x);
+    let rr: f64 = kx.iter().zip(b).map(|(a, b)| (a - b) * (a - b)).sum();
+    (rr / b.iter().map(|v| v * v).sum::<f64>()).sqrt()
+}
+
+#[test]
+fn solves_a_1d_laplacian_like_f64() {
+    let m = encode(laplacian_1d(60), 18, 64);
+    let b: Vec<f64> = (0..60).map(|i| ((i * 7919) % 13) as f64 - 6.0).collect();
+    let run = run(&m, &b, None, 1e-9).unwrap();
+    assert!(run.report.converged, "{:?}", run.report);
+    let err = max_rel_err(&run.x, &reference(&m.rows, &b));
+    assert!(err < 1e-7, "max relative error {err:e}");
+    assert!(true_residual(&m.rows, &run.x, &b) < 1e-7);
+}
+
+#[test]
+fn solves_the_thesis_cube_across_tiles() {
+    // 10³ model A, k = 1, corner nodes fixed, 1 N at (0, 5, 5): thesis 2.6, x direction.
+    let rows = laplacian_3d(10, 1.0);
+    let m = encode(rows, 17, 250);
+    assert_eq!(m.tiles.len(), 4);
+    let mut b = vec![0.0; 1000];
+    b[5 * 10 + 5 * 100] = 1.0; // node (0, 5, 5)
+    let run = run(&m, &b, None, 1e-9).unwrap();
+    assert!(run.report.converged, "{:?}", run.report);
+    let reference = reference(&m.rows, &b);
+    let err = max_rel_err(&run.x, &reference);
+    assert!(
+        err < 1e-6,
+        "max relative error {err:e} after {} iterations",
+        run.report.iterations
+    );
+    assert_eq!(run.report.words_per_iteration as usize, m.words.len());
+}
+
+#[test]
+fn warm_start_from_the_answer_needs_fewer_iterations() {
+    let m = encode(laplacian_3d(6, 1.0), 17, 216);
+    let mut b = vec![0.0; 216];
+    b[100] = 1.0;
+    b[7] = -0.5;
+    let cold = run(&m, &b, None, 1e-8).unwrap();
+    let warm = run(&m, &b, Some(&cold.x), 1e-8).unwrap();
+    assert!(
+        warm.report.iterations * 2 < cold.report.iterations,
+        "{} vs {}",
+        warm.report.iterations,
+        cold.report.iterations
+    );
+    assert!(max_rel_err(&warm.x, &reference(&m.rows, &b)) < 1e-6);
+}
+
+#[test]
+fn scale_of_the_load_does_not_matter() {
+    let m = encode(laplacian_1d(30), 18, 30);
+    for scale in [1e-30, 1e-6, 1.0, 1e9, 1e30] {
+        let b: Vec<f64> = (0..30).map(|i| scale * (1.0 + (i % 5) as f64)).collect();
+        let run = run(&m, &b, None, 1e-9).unwrap();
+        let err = max_rel_err(&run.x, &reference(&m.rows, &b));
+        assert!(err < 1e-7, "scale {scale:e}: error {err:e}");
+    }
+}
+
+#[test]
+fn fractional_values_use_their_q_format() {
+    // tridiag(-0.3, 0.75, -0.3): SPD with non-integer entries.
+    let rows: Vec<Vec<(usize, f64)>> = laplacian_1d(40)
+        .into_iter()
+        .map(|r| {
+            r.into_iter()
+                .map(|(c, v)| (c, if v > 0.0 { 0.75 } else { -0.3 }))
+                .collect()
+        })
+        .collect();
+    let m = encode(rows, 20, 40);
+    let b: Vec<f64> = (0..40).map(|i| (i as f64).sin()).collect();
+    let run = run(&m, &b, None, 1e-10).unwrap();
+    // The quantized matrix is what the target solves; compare against it.
+    let q = m
+        .rows
+        .iter()
+        .map(|r| {
+            r.iter()
+                .map(|&(c, v)| (c, (v * 1048576.0f64).round() / 1048576.0))
+                .collect()
+        })
+        .collect::<Vec<Vec<_>>>();
+    assert!(max_rel_err(&run.x, &reference(&q, &b)) < 1e-7);
+}
+
+#[test]
+fn zero_load_gives_zero_displacement() {
+    let m = encode(laplacian_1d(10), 18, 10);
+    let run = run(&m, &[0.0; 10], Some(&[1.0; 10]), 1e-9).unwrap();
+    assert!(run.report.converged);
+    assert!(run.x.iter().all(|&v| v == 0.0));
+}
+
+#[test]
+fn indefinite_matrix_is_reported() {
+    let rows: Vec<Vec<(usize, f64)>> = (0..8)
+        .map(|i| vec![(i, if i == 3 { -1.0 } else { 1.0 })])
+        .collect();
+    let m = encode(rows, 18, 8);
+    let mut b = vec![0.0; 8];
+    b[3] = 1.0;
+    assert!(matches!(
+        run(&m, &b, None, 1e-9),
+        Err(SolveFailure::NotPositiveDefinite { iteration: 1 })
+    ));
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+    #[test]
+    fn random_spd_systems_match_f64(
+        n in 2usize..40,
+        diag in proptest::collection::vec(2.5f64..6.0, 40),
+        off in proptest::collection::vec(-1.0f64..1.0, 40),
+        b in proptest::collection::vec(-1.0e3f64..1.0e3, 40),
+    ) {
+        // Diagonally dominant symmetric tridiagonal: SPD.
+        let rows: Vec<Vec<(usize, f64)>> = (0..n).map(|i| {
+            let mut row = Vec::new();
+            if i > 0 { row.push((i - 1, off[i - 1])); }
+            row.push((i, diag[i]));
+            if i + 1 < n { row.push((i + 1, off[i])); }
+            row
+        }).collect();
+        let m = encode(rows, 17, 7);
+        let q: Vec<Vec<(usize, f64)>> = m.rows.iter().map(|r| r.iter().map(|&(c, v)| (c, quantize(v, 17).unwrap() as f64 / 131072.0)).collect()).collect();
+        let b = &b[..n];
+        prop_assume!(b.iter().any(|&v| v != 0.0));
+        let run = run(&m, b, None, 1e-10).unwrap();
+        prop_assert!(run.report.converged);
+        let tr = true_residual(&q, &run.x, b);
+        prop_assert!(tr < 1e-7, "true residual {tr:e}, report {:?}", run.report);
+    }
+}
+
+#[test]
+fn short_workspace_is_an_error_not_a_panic() {
+    let m = encode(laplacian_1d(10), 18, 10);
+    let mut kp = vec![[0i64; MAX_DIRECTIONS]; 10];
+    let plan = plan(&m.tiles, &m.words, 10, &mut kp, 0).unwrap();
+    let matrix = Matrix {
+        n: 10,
+        frac_bits: 18,
+        tiles: &m.tiles,
+        words: &m.words,
+        plan: &plan,
+    };
+    let (b, mut x, mut r) = (vec![1; 10], vec![0; 10], vec![0; 5]);
+    let mut systems = [System {
+        b: &b,
+        b_exponent: 0,
+        x: &mut x,
+        x_exponent: 0,
+        r: &mut r,
+    }];
+    let params = SolveParams {
+        max_iterations: 5,
+        tolerance: 1e-6,
+        start: Start::Zero,
+        directions: 1,
+    };
+    let work = Work {
+        p: &mut [[0; 4]; 10],
+        kp: &mut kp,
+        partial: &mut [],
+    };
+    let out = solve(
+        &matrix,
+        &mut systems,
+        work,
+        &params,
+        &Sequential { harts: 1 },
+    );
+    assert_eq!(out, Err(SolveFailure::WorkspaceTooSmall));
+}
+
+#[test]
+fn iteration_cap_is_honoured() {
+    let m = encode(laplacian_1d(100), 18, 100);
+    let b = vec![1.0; 100];
+    let mut kp = vec![[0i64; MAX_DIRECTIONS]; 100];
+    let plan = plan(&m.tiles, &m.words, 100, &mut kp, 0).unwrap();
+    let matrix = Matrix {
+        n: 100,
+        frac_bits: 18,
+        tiles: &m.tiles,
+        words: &m.words,
+        plan: &plan,
+    };
+    let (bm, be) = to_block(&b);
+    let (mut x, mut r) = (vec![0; 100], vec![0; 100]);
+    let mut systems = [System {
+        b: &bm,
+        b_exponent: be,
+        x: &mut x,
+        x_exponent: 0,
+        r: &mut r,
+    }];
+    let params = SolveParams {
+        max_iterations: 3,
+        tolerance: 1e-12,
+        start: Start::Zero,
+        directions: 1,
+    };
+    let work = Work {
+        p: &mut vec![[0; 4]; 100],
+        kp: &mut kp,
+        partial: &mut [],
+    };
+    let report = solve(
+        &matrix,
+        &mut systems,
+        work,
+        &params,
+        &Sequential { harts: 1 },
+    )
+    .unwrap();
+    assert_eq!(report.iterations, 3);
+    assert_eq!(report.directions[0].iterations, 3);
+    assert!(!report.converged && report.residual > 1e-12);
+}
+
+/// Assigns the tiles to `mvus` MVUs: in contiguous runs (rows do not overlap, thesis 4.1.2) or
+/// round robin (they do, 4.1.1).
+fn assign(m: &Encoded, mvus: usize, round_robin: bool) -> Encoded {
+    let count = m.tiles.len();
+    let mut out = Encoded {
+        n: m.n,
+        frac_bits: m.frac_bits,
+        tiles: m.tiles.clone(),
+        words: m.words.clone(),
+        rows: m.rows.clone(),
+    };
+    for (i, t) in out.tiles.iter_mut().enumerate() {
+        t.mvu = if round_robin {
+            i % mvus
+        } else {
+            i * mvus / count
+        } as u8;
+    }
+    out
+}
+
+fn cube_rhs(n: usize, d: usize) -> Vec<f64> {
+    (0..n)
+        .map(|i| (((i * (7 + 3 * d)) % 11) as f64 - 5.0) * 0.25)
+        .collect()
+}
+
+#[test]
+fn any_number_of_mvus_and_either_partition_give_the_same_bits() {
+    let rows = laplacian_3d(8, 1.0);
+    let m = encode(rows, 17, 40);
+    assert!(m.tiles.len() >= 8);
+    let b = cube_rhs(m.n, 0);
+    let one = run_fused(&m, &[&b], None, 1e-9, 1).unwrap();
+    assert!(one.report.converged);
+    assert!(!one.report.overlapping);
+    assert!(max_rel_err(&one.x[0], &reference(&m.rows, &b)) < 1e-6);
+    for mvus in [2, 4, 8] {
+        for round_robin in [false, true] {
+            let split = assign(&m, mvus, round_robin);
+            let out = run_fused(&split, &[&b], None, 1e-9, mvus).unwrap();
+            assert_eq!(out.report.mvus as usize, mvus);
+            assert_eq!(out.report.overlapping, round_robin, "{mvus} MVUs");
+            assert_eq!(out.x, one.x, "{mvus} MVUs, round robin {round_robin}");
+            assert_eq!(out.report.directions, one.report.directions);
+        }
+    }
+}
+
+#[test]
+fn a_plan_needs_room_for_overlapping_partial_sums() {
+    let m = assign(&encode(laplacian_1d(100), 18, 10), 2, true);
+    let mut kp = vec![[0i64; MAX_DIRECTIONS]; 100];
+    let err = plan(&m.tiles, &m.words, 100, &mut kp, 50).unwrap_err();
+    assert_eq!(
+        err,
+        PlanError::Overlap {
+            rows: 180,
+            capacity: 50
+        }
+    );
+    let ok = plan(&m.tiles, &m.words, 100, &mut kp, 180).unwrap();
+    assert!(ok.overlapping && ok.partial_len == 180 && ok.mvus == 2);
+}
+
+#[test]
+fn a_row_with_too_many_words_is_refused() {
+    // One row of 4097 words (column 0 repeated): its exact i64 sum could overflow.
+    let mut words = vec![Word::new(0, 1, false, false).unwrap().bits(); 4096];
+    words.push(Word::new(0, 1, true, true).unwrap().bits());
+    let tiles = [TileHeader {
+        row_base: 0,
+        col_base: 0,
+        rows: 1,
+        words: words.len() as u32,
+        mvu: 0,
+        mirrored: false,
+    }];
+    let mut kp = vec![[0i64; MAX_DIRECTIONS]; 1];
+    assert_eq!(
+        plan(&tiles, &words, 1, &mut kp, 0),
+        Err(PlanError::Matrix(MatrixError::RowTooLong {
+            tile: 0,
+            row: 0
+        }))
+    );
+}
+
+#[test]
+fn fused_directions_equal_separate_solves() {
+    let m = assign(&encode(laplacian_3d(6, 1.0), 17, 50), 3, false);
+    let bs: Vec<Vec<f64>> = (0..3).map(|d| cube_rhs(m.n, d)).collect();
+    for count in [2, 3] {
+        let refs: Vec<&[f64]> = bs.iter().take(count).map(Vec::as_slice).collect();
+        let fused = run_fused(&m, &refs, None, 1e-9, 3).unwrap();
+        assert_eq!(fused.report.directions.len(), count);
+        for (d, b) in refs.iter().enumerate() {
+            let single = run_fused(&m, &[b], None, 1e-9, 3).unwrap();
+            assert_eq!(fused.x[d], single.x[0], "direction {d} of {count}");
+            assert_eq!(fused.report.directions[d], single.report.directions[0]);
+        }
+        let most = fused.report.directions.iter().map(|d| d.iterations).max();
+        assert_eq!(Some(fused.report.iterations), most);
+    }
+}
+
+#[test]
+fn fused_warm_starts_and_zero_loads_mix() {
+    let m = encode(laplacian_3d(5, 1.0), 17, 60);
+    let b0 = cube_rhs(m.n, 0);
+    let zero = vec![0.0; m.n];
+    let cold = run_fused(&m, &[&b0, &zero], None, 1e-9, 1).unwrap();
+    assert!(cold.x[1].iter().all(|&v| v == 0.0));
+    assert_eq!(cold.report.directions[1].iterations, 0);
+    let guess = [cold.x[0].as_slice(), zero.as_slice()];
+    // From the answer, a looser tolerance is met at once.
+    let warm = run_fused(&m, &[&b0, &zero], Some(&guess), 1e-7, 1).unwrap();
+    let (w, c) = (
+        warm.report.directions[0].iterations,
+        cold.report.directions[0].iterations,
+    );
+    assert!(w * 2 < c, "warm {w}, cold {c}");
+    assert!(max_rel_err(&warm.x[0], &reference(&m.rows, &b0)) < 1e-6);
+}
+
+/// The rows `0..n/2` of a persymmetric matrix as mirrored tiles: they stand for all n rows.
+fn mirrored_half(m: &Encoded, block: usize) -> Encoded {
+    let half: Vec<Vec<(usize, f64)>> = m.rows[..m.n / 2].to_vec();
+    let mut e = encode_rows(half, m.n, m.frac_bits, block);
+    for t in &mut e.tiles {
+        t.mirrored = true;
+    }
+    e.rows = m.rows.clone();
+    e
+}
+
+#[test]
+fn mirrored_tiles_solve_like_the_whole_persymmetric_matrix() {
+    // The 6³ cube with its corners fixed is persymmetric: node i ↔ n − 1 − i.
+    let whole = encode(laplacian_3d(6, 1.0), 17, 40);
+    let half = mirrored_half(&whole, 40);
+    assert!(half.words.len() * 2 < whole.words.len() + 2 * half.tiles.len());
+    let b = cube_rhs(whole.n, 1);
+    let full = run_fused(&whole, &[&b], None, 1e-9, 1).unwrap();
+    let mirrored = run_fused(&half, &[&b], None, 1e-9, 1).unwrap();
+    assert_eq!(mirrored.x, full.x);
+    assert!(max_rel_err(&mirrored.x[0], &reference(&whole.rows, &b)) < 1e-6);
+    for mvus in [2, 4] {
+        for round_robin in [false, true] {
+            let split = assign(&half, mvus, round_robin);
+            let bs = [b.as_slice(), b.as_slice(), b.as_slice()];
+            let out = run_fused(&split, &bs, None, 1e-9, mvus).unwrap();
+            for x in &out.x {
+                assert_eq!(x, &full.x[0], "{mvus} MVUs, round robin {round_robin}");
+            }
+        }
+    }
+}
