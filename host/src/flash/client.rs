@@ -7,14 +7,14 @@
 
 use std::time::{Duration, Instant};
 
-use deform_shared::frame::{self, Feed, FrameAccumulator, FrameError, DELIMITER};
+use deform_shared::frame::{self, FrameError, DELIMITER};
 use deform_shared::loader::{
     decode_frame, LoaderEnvelope, LoaderError, LoaderInfo, LoaderRequest, LoaderResponse,
     LOADER_FRAME_LEN, LOADER_PROTOCOL_VERSION,
 };
 use deform_shared::protocol::{Envelope, Request, PROTOCOL_VERSION, UNKNOWN_SEQ};
 
-use crate::link::Port;
+use crate::link::{FrameEvent, FrameReader, Port};
 
 /// Deadlines and retries of a loader session.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -93,9 +93,7 @@ pub struct LoaderStats {
 /// A loader on a [`Port`].
 pub struct LoaderLink<P: Port> {
     port: P,
-    frames: FrameAccumulator<{ 2 * LOADER_FRAME_LEN }>,
-    inbox: Vec<u8>,
-    inbox_read: usize,
+    reader: FrameReader<{ 2 * LOADER_FRAME_LEN }>,
     next_seq: u16,
     flushed: bool,
     timeouts: LoaderTimeouts,
@@ -114,9 +112,7 @@ impl<P: Port> LoaderLink<P> {
     pub fn new(port: P, timeouts: LoaderTimeouts) -> Self {
         LoaderLink {
             port,
-            frames: FrameAccumulator::new(),
-            inbox: Vec::new(),
-            inbox_read: 0,
+            reader: FrameReader::default(),
             next_seq: 1,
             flushed: false,
             timeouts,
@@ -294,48 +290,24 @@ impl<P: Port> LoaderLink<P> {
 
     /// The next frame, or `None` once `deadline` passes.
     fn receive(&mut self, deadline: Instant) -> Result<Option<Received>, LoaderLinkError> {
-        loop {
-            while let Some(&byte) = self.inbox.get(self.inbox_read) {
-                self.inbox_read += 1;
-                match self.frames.feed(byte) {
-                    Feed::Pending => {}
-                    Feed::Overflow => return Ok(Some(Received::Corrupt)),
-                    Feed::Frame(body) => {
-                        return Ok(Some(match decode_frame::<LoaderResponse>(body) {
-                            Ok(answer) => Received::Answer(answer),
-                            Err(FrameError::Message) => Received::Foreign,
-                            Err(_) => Received::Corrupt,
-                        }))
-                    }
-                }
-            }
-            let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() {
-                return Ok(None);
-            }
-            self.port.set_timeout(left)?;
-            let mut buf = [0u8; 512];
-            match self.port.read(&mut buf) {
-                Ok(0) => {
-                    return Err(LoaderLinkError::Io(std::io::Error::new(
-                        std::io::ErrorKind::UnexpectedEof,
-                        "the target closed the connection",
-                    )))
-                }
-                Ok(n) => {
-                    self.inbox.clear();
-                    self.inbox.extend_from_slice(&buf[..n]);
-                    self.inbox_read = 0;
-                }
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        std::io::ErrorKind::TimedOut
-                            | std::io::ErrorKind::WouldBlock
-                            | std::io::ErrorKind::Interrupted
-                    ) => {}
-                Err(e) => return Err(e.into()),
-            }
+        let event = self.reader.next(
+            &mut self.port,
+            deadline,
+            |_| {},
+            |body| match decode_frame::<LoaderResponse>(body) {
+                Ok(answer) => Received::Answer(answer),
+                Err(FrameError::Message) => Received::Foreign,
+                Err(_) => Received::Corrupt,
+            },
+        )?;
+        match event {
+            FrameEvent::Frame(received) => Ok(Some(received)),
+            FrameEvent::Overflow => Ok(Some(Received::Corrupt)),
+            FrameEvent::EndOfFile => Err(LoaderLinkError::Io(std::io::Error::new(
+                std::io::ErrorKind::UnexpectedEof,
+                "the target closed the connection",
+            ))),
+            FrameEvent::TimedOut => Ok(None),
         }
     }
 }

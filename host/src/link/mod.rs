@@ -18,6 +18,7 @@
 
 mod error;
 mod flags;
+mod frame_reader;
 mod port;
 mod target;
 mod transport;
@@ -29,6 +30,7 @@ mod test_systems;
 
 pub use error::{Capacity, LinkError};
 pub use flags::LinkFlags;
+pub use frame_reader::{FrameEvent, FrameReader};
 pub use port::{open_serial, Port, BAUD_RATE};
 pub use target::{
     full_upload_bytes, update_bytes, Target, Timeouts, UpdateError, UpdateReport, UploadProgress,

@@ -17,21 +17,18 @@ use std::collections::VecDeque;
 use std::io::ErrorKind;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use deform_shared::frame::{self, Feed, FrameAccumulator, DELIMITER};
+use deform_shared::frame::{self, DELIMITER};
 use deform_shared::protocol::{Envelope, ErrorCode, Request, Response, MAX_FRAME_LEN};
 use deform_shared::transport::{Uplink, WINDOW};
 use serialport::SerialPort;
 
-use super::{open_serial, LinkError, Port};
+use super::{open_serial, FrameEvent, FrameReader, LinkError, Port};
 
 /// How long a request may wait for its reply, retransmissions included, unless told otherwise.
 pub const DEFAULT_REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// The least retransmit timeout, however fast the target answers.
 const MIN_RETRANSMIT: Duration = Duration::from_millis(20);
-
-/// Bytes asked of the port per read.
-const READ_CHUNK: usize = 1024;
 
 /// Retransmission settings.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -121,10 +118,8 @@ pub type NoticeHandler = Box<dyn FnMut(u16, Response) + Send>;
 /// The transport to a target, over any [`Port`].
 pub struct Link<P: Port = Box<dyn SerialPort>> {
     port: P,
-    frames: FrameAccumulator<MAX_FRAME_LEN>,
-    /// Bytes read from the port but not yet fed to `frames`.
-    inbox: Vec<u8>,
-    inbox_read: usize,
+    /// Frames from the port, at most one frame long.
+    reader: FrameReader<MAX_FRAME_LEN>,
     next_seq: u16,
     flushed: bool,
     timeout: Duration,
@@ -151,9 +146,7 @@ impl<P: Port> Link<P> {
     pub fn new(port: P) -> Self {
         Link {
             port,
-            frames: FrameAccumulator::new(),
-            inbox: Vec::with_capacity(READ_CHUNK),
-            inbox_read: 0,
+            reader: FrameReader::default(),
             next_seq: initial_seq(),
             flushed: false,
             timeout: DEFAULT_REQUEST_TIMEOUT,
@@ -601,42 +594,29 @@ impl<P: Port> Link<P> {
     /// returned nothing). Corrupt frames are counted and skipped.
     fn receive(&mut self, deadline: Instant) -> Result<Option<Uplink>, LinkError> {
         loop {
-            while let Some(&byte) = self.inbox.get(self.inbox_read) {
-                self.inbox_read += 1;
-                match self.frames.feed(byte) {
-                    Feed::Pending => {}
-                    Feed::Overflow => self.stats.corrupt_frames += 1,
-                    Feed::Frame(body) => match frame::decode::<Uplink>(body) {
-                        Ok(up) => return Ok(Some(up)),
-                        Err(e) => {
-                            self.stats.corrupt_frames += 1;
-                            if e == deform_shared::frame::FrameError::Message {
-                                self.stats.undecodable += 1;
-                            }
-                        }
-                    },
+            let stats = &mut self.stats;
+            let event = self
+                .reader
+                .next(
+                    &mut self.port,
+                    deadline,
+                    |n| stats.bytes_received += n as u64,
+                    |body| frame::decode::<Uplink>(body),
+                )
+                .map_err(io_error)?;
+            match event {
+                FrameEvent::Frame(Ok(up)) => return Ok(Some(up)),
+                FrameEvent::Frame(Err(e)) => {
+                    self.stats.corrupt_frames += 1;
+                    if e == deform_shared::frame::FrameError::Message {
+                        self.stats.undecodable += 1;
+                    }
                 }
-            }
-            let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() {
-                return Ok(None);
-            }
-            self.port.set_timeout(left)?;
-            let mut buf = [0u8; READ_CHUNK];
-            match self.port.read(&mut buf) {
-                Ok(0) => return Err(LinkError::Disconnected("the port reached end of file")),
-                Ok(n) => {
-                    self.stats.bytes_received += n as u64;
-                    self.inbox.clear();
-                    self.inbox.extend_from_slice(&buf[..n]);
-                    self.inbox_read = 0;
+                FrameEvent::Overflow => self.stats.corrupt_frames += 1,
+                FrameEvent::EndOfFile => {
+                    return Err(LinkError::Disconnected("the port reached end of file"))
                 }
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        ErrorKind::TimedOut | ErrorKind::WouldBlock | ErrorKind::Interrupted
-                    ) => {}
-                Err(e) => return Err(io_error(e)),
+                FrameEvent::TimedOut => return Ok(None),
             }
         }
     }

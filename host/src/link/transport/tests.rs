@@ -2,6 +2,7 @@ use std::io::{Read, Write};
 use std::os::unix::net::UnixStream;
 use std::thread;
 
+use deform_shared::frame::{Feed, FrameAccumulator};
 use deform_shared::protocol::{SessionStep, PROTOCOL_VERSION};
 
 use super::*;
