@@ -17,7 +17,7 @@
 //!
 //! Steps 3–4 repeat for as many right-hand sides as wanted; the matrix stays resident.
 //!
-//! # Parallel MVUs, mirrored tiles, fused directions (protocol version 4)
+//! # Parallel MVUs, mirrored tiles, fused directions (protocol version 5)
 //!
 //! - Each tile names the MVU (hart) that runs it (`TileHeader::mvu`, below `TargetInfo::harts`);
 //!   the solve uses `max(mvu) + 1` MVUs. y = Σ over all tiles whatever the assignment: when the
@@ -75,10 +75,6 @@ pub const CHUNK_LEN: usize = 128;
 /// Largest encoded frame, delimiter included, that either side must accept: the largest chunk
 /// message (≈ 540 bytes) with room for a few more header fields.
 pub const MAX_FRAME_LEN: usize = 576;
-
-/// Not used since protocol version 4, whose transport answers an unreadable frame with
-/// [`Uplink::Nak`](crate::transport::Uplink) instead; kept for code that still names it.
-pub const UNKNOWN_SEQ: u16 = 0xFFFF;
 
 /// Most log bytes one [`Response::Log`] carries: with its envelope it stays well inside
 /// [`MAX_FRAME_LEN`] even after the transport's own header.
@@ -491,7 +487,7 @@ mod tests {
         )
         .is_ok());
         let log = Envelope {
-            seq: UNKNOWN_SEQ,
+            seq: u16::MAX,
             body: Response::Log {
                 dropped: u32::MAX,
                 frames: (0..LOG_CHUNK).map(|_| 0xFF).collect(),

@@ -12,13 +12,14 @@ use std::time::Duration;
 
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
+use deform_shared::word::VALUE_BITS;
 use serde::Serialize;
 
 use crate::board::{Board, BoardChoice, DEFAULT_QEMU_HARTS};
 use crate::cli_logs::{LogFlags, LogOptions};
 use crate::cli_model::ModelFlags;
 use crate::encode::{encode_with, EncodeOptions, Encoding, EncodingSummary, Partition};
-use crate::link::{LinkFlags, Timeouts};
+use crate::link::{LinkFlags, Timeouts, DEFAULT_SOLVE_TIMEOUT};
 use crate::metrics::{performance, Performance};
 use crate::model::{Axis, Model, ModelSpec};
 use crate::output::{node_rows, write_displacements, OutputFormat};
@@ -161,7 +162,7 @@ impl LayoutFlags {
 /// The built-in solver defaults (what `--help` states).
 pub const DEFAULT_TOL: f64 = 1e-8;
 pub const DEFAULT_MAX_SOLVES: u32 = 8;
-pub const DEFAULT_TIMEOUT_SECONDS: u64 = 300;
+pub const DEFAULT_TIMEOUT_SECONDS: u64 = DEFAULT_SOLVE_TIMEOUT.as_secs();
 
 /// A solve's inputs once flags, scenario file and defaults are merged.
 pub struct ResolvedSolve {
@@ -510,9 +511,11 @@ fn print_summary(stats: &SolveStats) {
         stats.n, stats.nnz, stats.fixed_nodes
     );
     if let (Some(w), Some(t), Some(f)) = (stats.words, stats.tiles, stats.frac_bits) {
+        // A value field of VALUE_BITS two's-complement bits with f fractional bits is
+        // Q(VALUE_BITS − 1 − f).f: one bit is the sign.
         println!(
             "encoding    {w} words in {t} tiles, Q{}.{f} values",
-            20 - f as i32
+            VALUE_BITS as i32 - 1 - f as i32
         );
     }
     if let Some(e) = &stats.engine {
