@@ -113,47 +113,106 @@ fn encode_groups(
         .collect()
 }
 
-/// Runs `schedule.steps` steps of `schedule.dt` from rest on `target`.
-#[allow(clippy::too_many_arguments)]
-pub fn simulate_dynamic<P: Port>(
-    target: &mut Target<P>,
-    model: &Model,
-    step_model: Option<StepModel>,
-    schedule: Schedule,
-    spec: &DynamicsSpec,
+/// A dynamic model on a target: the step matrices of the current h, which of them the target
+/// holds, and the state (plus the f64 reference's, if checked). `deform simulate --dynamic`
+/// drives it over a schedule; an interactive loop can call [`DynamicRunner::step`] with the
+/// loads it has and change h with [`DynamicRunner::set_time_step`] (a values-only update).
+pub struct DynamicRunner {
+    system: DynamicSystem,
+    matrices: StepMatrices,
+    encoded: Vec<(EncodedMatrix, Scaled)>,
+    /// The group of `encoded` the target holds (`None`: nothing uploaded yet).
+    resident: Option<usize>,
     params: DynamicParams,
-    mut on_upload: impl FnMut(UploadProgress),
-    mut on_step: impl FnMut(&DynamicStep),
-) -> Result<Vec<DynamicStep>, DynamicRunError> {
-    let system = DynamicSystem::new(model, spec)?;
-    let m = StepMatrices::new(&system, schedule.dt, spec.scheme)?;
-    let encoded = encode_groups(&system, &m, &params.layout)?;
-    let mut resident: Option<usize> = None;
-    let mut state = State::rest(system.n());
-    let mut reference = state.clone();
-    let mut loads0 = model_at(model, step_model, 0.0)?;
-    let mut out = Vec::new();
-    for s in 1..=schedule.steps {
-        let t = schedule.time(s);
-        let loads1 = model_at(model, step_model, t)?;
-        let forcing = loads0.to(&loads1);
+    pub state: State,
+    /// The f64 stepper's state, run alongside when `params.check_reference`.
+    pub reference: State,
+}
+
+impl DynamicRunner {
+    /// Assembles M, C, K and S for step `h`, checks S against the fixed point and encodes it.
+    /// Nothing is sent until the first step.
+    pub fn new(
+        model: &Model,
+        spec: &DynamicsSpec,
+        h: f64,
+        params: DynamicParams,
+    ) -> Result<Self, DynamicRunError> {
+        let system = DynamicSystem::new(model, spec)?;
+        let matrices = StepMatrices::new(&system, h, spec.scheme)?;
+        let encoded = encode_groups(&system, &matrices, &params.layout)?;
+        let state = State::rest(system.n());
+        Ok(Self {
+            reference: state.clone(),
+            state,
+            system,
+            matrices,
+            encoded,
+            resident: None,
+            params,
+        })
+    }
+
+    pub fn system(&self) -> &DynamicSystem {
+        &self.system
+    }
+
+    /// A new step length: S's values change, its pattern does not, so the next step sends
+    /// the values only (`BeginUpdate`/`UpdateValues`/`EndUpdate`).
+    pub fn set_time_step(&mut self, h: f64) -> Result<(), DynamicRunError> {
+        let matrices = StepMatrices::new(&self.system, h, self.matrices.scheme)?;
+        self.encoded = encode_groups(&self.system, &matrices, &self.params.layout)?;
+        self.matrices = matrices;
+        if self.resident.is_some() {
+            // Whatever the target holds is stale; any group's pattern is the same.
+            self.resident = Some(usize::MAX);
+        }
+        Ok(())
+    }
+
+    /// Makes the target hold group `gi`'s S: a full upload the first time, values after.
+    fn make_resident<P: Port>(
+        &mut self,
+        target: &mut Target<P>,
+        gi: usize,
+        on_upload: &mut impl FnMut(UploadProgress),
+    ) -> Result<Option<UpdateReport>, DynamicRunError> {
+        let update = match self.resident {
+            Some(r) if r == gi => None,
+            Some(_) => Some(target.update_values(&self.encoded[gi].0)?),
+            None => {
+                target.upload_matrix_with_progress(&self.encoded[gi].0, on_upload)?;
+                None
+            }
+        };
+        self.resident = Some(gi);
+        Ok(update)
+    }
+
+    /// One step from the loads `loads0` at t to `loads1` at t + h.
+    pub fn step<P: Port>(
+        &mut self,
+        target: &mut Target<P>,
+        step: u32,
+        loads0: &Loads,
+        loads1: &Loads,
+        mut on_upload: impl FnMut(UploadProgress),
+    ) -> Result<DynamicStep, DynamicRunError> {
+        let forcing = loads0.to(loads1);
         let before = target.stats();
         let mut v1: [Vec<f64>; 3] = Default::default();
         let mut reports: Vec<SolveReport> = Vec::new();
         let (mut iterations, mut residual) = (0u32, 0.0f64);
         let mut update: Option<UpdateReport> = None;
-        for (gi, group) in m.groups.iter().enumerate() {
-            match resident {
-                Some(r) if r == gi => {}
-                Some(_) => update = Some(target.update_values(&encoded[gi].0)?),
-                None => target.upload_matrix_with_progress(&encoded[gi].0, &mut on_upload)?,
-            }
-            resident = Some(gi);
-            let scaled = &encoded[gi].1;
+        for gi in 0..self.matrices.groups.len() {
+            update = self.make_resident(target, gi, &mut on_upload)?.or(update);
+            let (m, system, state) = (&self.matrices, &self.system, &self.state);
+            let group = &m.groups[gi];
+            let scaled = &self.encoded[gi].1;
             let s_matrix = &scaled.matrix;
             let b: Vec<Vec<f64>> = group
                 .iter()
-                .map(|&d| rhs(&system, &m, &state, &forcing, d))
+                .map(|&d| rhs(system, m, state, &forcing, d))
                 .collect();
             // The prediction v₁ ≈ v₀: solve for the correction from the residual.
             let r: Vec<Vec<f64>> = group
@@ -165,7 +224,7 @@ pub fn simulate_dynamic<P: Port>(
                 .iter()
                 .zip(&r)
                 .filter(|(_, r)| norm(r) > 0.0)
-                .map(|(b, r)| params.tol * norm(b) / norm(r))
+                .map(|(b, r)| self.params.tol * norm(b) / norm(r))
                 .fold(f64::INFINITY, f64::min);
             let refs: Vec<&[f64]> = r.iter().map(Vec::as_slice).collect();
             let refined = solve_refined(
@@ -175,8 +234,8 @@ pub fn simulate_dynamic<P: Port>(
                 &refs,
                 RefineParams {
                     tol: tol.min(0.5),
-                    max_solves: params.max_solves,
-                    max_iterations: params.max_iterations,
+                    max_solves: self.params.max_solves,
+                    max_iterations: self.params.max_iterations,
                     fuse: true,
                 },
             )?;
@@ -191,36 +250,63 @@ pub fn simulate_dynamic<P: Port>(
             }
             reports.extend(refined.reports);
         }
-        state = advance(&system, &m, &state, v1, &forcing);
-        let deviation = if params.check_reference {
-            reference = host_step(&system, &m, &reference, &forcing)?;
-            let scale = reference.u.iter().map(|u| max_abs(u)).fold(0.0, f64::max);
+        let (m, system) = (&self.matrices, &self.system);
+        self.state = advance(system, m, &self.state, v1, &forcing);
+        let deviation = if self.params.check_reference {
+            self.reference = host_step(system, m, &self.reference, &forcing)?;
+            let scale = self
+                .reference
+                .u
+                .iter()
+                .map(|u| max_abs(u))
+                .fold(0.0, f64::max);
             let diff = Axis::ALL
                 .iter()
-                .map(|d| max_abs_diff(&state.u[d.position()], &reference.u[d.position()]))
+                .map(|d| max_abs_diff(&self.state.u[d.position()], &self.reference.u[d.position()]))
                 .fold(0.0, f64::max);
             Some(if scale > 0.0 { diff / scale } else { diff })
         } else {
             None
         };
         let after = target.stats();
-        let step = DynamicStep {
-            energy: system.energy(&state.u, &state.v),
+        Ok(DynamicStep {
+            energy: system.energy(&self.state.u, &self.state.v),
             bytes_sent: after.bytes_sent - before.bytes_sent,
             bytes_received: after.bytes_received - before.bytes_received,
             cycles: critical_path_cycles(&reports),
             result: StepResult {
-                step: s,
-                t,
+                step,
+                t: self.state.t,
                 iterations,
                 reports,
                 residual,
-                max_u: state.u.iter().map(|u| max_abs(u)).fold(0.0, f64::max),
+                max_u: self.state.u.iter().map(|u| max_abs(u)).fold(0.0, f64::max),
                 deviation,
                 update,
-                u: state.u.clone(),
+                u: self.state.u.clone(),
             },
-        };
+        })
+    }
+}
+
+/// Runs `schedule.steps` steps of `schedule.dt` from rest on `target`.
+#[allow(clippy::too_many_arguments)]
+pub fn simulate_dynamic<P: Port>(
+    target: &mut Target<P>,
+    model: &Model,
+    step_model: Option<StepModel>,
+    schedule: Schedule,
+    spec: &DynamicsSpec,
+    params: DynamicParams,
+    mut on_upload: impl FnMut(UploadProgress),
+    mut on_step: impl FnMut(&DynamicStep),
+) -> Result<Vec<DynamicStep>, DynamicRunError> {
+    let mut runner = DynamicRunner::new(model, spec, schedule.dt, params)?;
+    let mut loads0 = model_at(model, step_model, 0.0)?;
+    let mut out = Vec::new();
+    for s in 1..=schedule.steps {
+        let loads1 = model_at(model, step_model, schedule.time(s))?;
+        let step = runner.step(target, s, &loads0, &loads1, &mut on_upload)?;
         on_step(&step);
         out.push(step);
         loads0 = loads1;
