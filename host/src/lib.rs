@@ -11,6 +11,7 @@ pub mod board;
 pub mod cli_logs;
 pub mod cli_model;
 pub mod commands;
+pub mod dynamics;
 pub mod encode;
 pub mod firmware_logs;
 pub mod flash;

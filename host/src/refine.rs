@@ -91,12 +91,7 @@ impl Refined {
     /// iteration (the slowest MVU plus the SVU, thesis eq. 55) times its iterations. The MVU and
     /// SVU loops do not depend on the data, so one measured iteration stands for all of them.
     pub fn critical_path_cycles(&self) -> u64 {
-        self.reports
-            .iter()
-            .map(|r| {
-                (r.per_iteration.mvu_critical + r.per_iteration.svu_critical) * r.iterations as u64
-            })
-            .sum()
+        critical_path_cycles(&self.reports)
     }
 
     /// Hart 0's `mcycle` over the MVU and SVU phases of all solves. Under QEMU `-icount` every
@@ -108,6 +103,17 @@ impl Refined {
             .map(|r| r.mvu.cycles + r.svu.cycles)
             .sum()
     }
+}
+
+/// Critical-path cycles of `reports`: each solve's measured T_MVU + T_SVU per iteration (the
+/// slowest MVU plus the SVU, thesis eq. 55) times its iterations.
+pub fn critical_path_cycles(reports: &[SolveReport]) -> u64 {
+    reports
+        .iter()
+        .map(|r| {
+            (r.per_iteration.mvu_critical + r.per_iteration.svu_critical) * r.iterations as u64
+        })
+        .sum()
 }
 
 #[derive(Debug, thiserror::Error)]

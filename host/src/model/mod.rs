@@ -389,15 +389,26 @@ impl Model {
         if self.node_stiffness.is_some() {
             return self.unit_matrix.clone();
         }
-        let free = Self::free_matrix(&self.spec, &Uniform(self.direction_scale(axis)))
-            .expect("the elasticity is finite and positive");
-        let constrained: Vec<bool> = self
-            .fixed
+        eliminate_fixed_nodes(&self.free_stiffness_matrix(axis), &self.constrained_mask())
+    }
+
+    /// K_d before any node is fixed (the whole spring network's Laplacian): what the
+    /// dynamic stepper needs to apply K to displacements that include prescribed nodes.
+    pub fn free_stiffness_matrix(&self, axis: Axis) -> Csr {
+        match &self.node_stiffness {
+            None => Self::free_matrix(&self.spec, &Uniform(self.direction_scale(axis))),
+            Some(values) => Self::free_matrix(&self.spec, &MeanOfEndNodes(values.clone())),
+        }
+        .expect("the elasticity was checked when the model was built")
+    }
+
+    /// Whether each node is fixed or prescribed: the nodes eliminated from the system.
+    pub fn constrained_mask(&self) -> Vec<bool> {
+        self.fixed
             .iter()
             .zip(&self.prescribed)
             .map(|(&f, p)| f || p.is_some())
-            .collect();
-        eliminate_fixed_nodes(&free, &constrained)
+            .collect()
     }
 
     /// f_d, the external load vector for direction `axis` (point loads plus pressures, zero at

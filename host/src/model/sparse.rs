@@ -73,6 +73,25 @@ impl Csr {
         })
     }
 
+    /// diag(d) + Σ c·A over `terms`, all of order d.len(): the union of the patterns, entries
+    /// at equal positions summed (the dynamic system S = M + c₁·B + c₂·K of [`crate::dynamics`]).
+    pub fn combine(diagonal: &[f64], terms: &[(f64, &Csr)]) -> Csr {
+        let n = diagonal.len();
+        assert!(terms.iter().all(|(_, a)| a.n == n), "terms of order {n}");
+        let nnz = terms.iter().map(|(_, a)| a.nnz()).max().unwrap_or(0) + n;
+        let mut builder = CsrBuilder::new(n, nnz);
+        for (r, &d) in diagonal.iter().enumerate() {
+            let off = terms.iter().flat_map(|&(c, a)| {
+                let (cols, vals) = a.row(r);
+                cols.iter().zip(vals).map(move |(&j, &v)| (j, c * v))
+            });
+            builder
+                .push_row(std::iter::once((r, d)).chain(off))
+                .expect("columns come from matrices of order n");
+        }
+        builder.finish().expect("one row per diagonal entry")
+    }
+
     /// The order n (rows = columns).
     pub fn n(&self) -> usize {
         self.n

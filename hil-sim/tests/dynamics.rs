@@ -1,0 +1,125 @@
+//! Dynamic steps (issue 14) on the firmware in QEMU: S resident, right-hand sides from the
+//! host, refinement; every step's displacements equal the host's f64 dynamic stepper to 1e-8
+//! of max |u|, for both schemes, anisotropic tissue (one S per direction, swapped by
+//! values-only updates) and a keyframed prescribed displacement.
+
+mod support;
+
+use deform_host::dynamics::target::{simulate_dynamic, DynamicParams, DynamicStep};
+use deform_host::dynamics::{DynamicsSpec, Scheme};
+use deform_host::model::{Connection, Elasticity, Grid, Model, ModelError, ModelSpec};
+use deform_host::simulate::{Schedule, StepModel};
+
+use support::*;
+
+fn params() -> DynamicParams {
+    DynamicParams {
+        tol: 1e-11,
+        max_solves: 12,
+        max_iterations: 2000,
+        check_reference: true,
+        layout: Default::default(),
+    }
+}
+
+fn check(steps: &[DynamicStep], what: &str) {
+    for s in steps {
+        let r = &s.result;
+        let dev = r.deviation.expect("checked against the f64 stepper");
+        println!(
+            "{what} step {}: {} iterations, {} cycles, {} B sent, deviation {dev:.2e}, energy {:.4e}",
+            r.step, r.iterations, s.cycles, s.bytes_sent, s.energy
+        );
+        assert!(dev <= 1e-8, "{what} step {}: deviation {dev:e}", r.step);
+        assert!(r.max_u > 0.0);
+    }
+}
+
+#[test]
+fn dynamic_steps_on_the_target_equal_the_f64_stepper() {
+    let mut qemu = boot();
+    let mut target = connect(&qemu);
+    let mut spec = ModelSpec::thesis_example();
+    spec.grid = Grid::new(5, 5, 5).unwrap();
+    spec.connection = Connection::AxialShear;
+    spec.loads = vec![ModelSpec::default_load(spec.grid)];
+    let schedule = Schedule { steps: 6, dt: 0.05 };
+    // Anisotropic k (the thesis's 1, 2, 0.5): three S, swapped in by values-only updates.
+    let model = Model::build(&spec).unwrap();
+    for scheme in [Scheme::BackwardEuler, Scheme::Trapezoidal] {
+        let dynamics = DynamicsSpec {
+            scheme,
+            rayleigh: Some([0.1, 0.01]),
+            ..DynamicsSpec::uniform(0.5, [0.2, 0.4, 0.1])
+        };
+        let steps = simulate_dynamic(
+            &mut target,
+            &model,
+            None,
+            schedule,
+            &dynamics,
+            params(),
+            |_| {},
+            |_| {},
+        )
+        .expect("dynamic series on QEMU");
+        check(&steps, &format!("anisotropic {scheme}"));
+        assert!(steps.iter().skip(1).all(|s| s.result.update.is_some()));
+    }
+    // Isotropic: one S, the three directions fused, no update after the upload.
+    spec.elasticity = Elasticity::isotropic(1.0).unwrap();
+    spec.loads[0].force = [1.0, -0.5, 0.25];
+    let model = Model::build(&spec).unwrap();
+    let steps = simulate_dynamic(
+        &mut target,
+        &model,
+        None,
+        schedule,
+        &DynamicsSpec::uniform(1.0, [0.3; 3]),
+        params(),
+        |_| {},
+        |_| {},
+    )
+    .expect("dynamic series on QEMU");
+    check(&steps, "isotropic");
+    assert!(steps.iter().all(|s| s.result.update.is_none()));
+    assert!(steps
+        .iter()
+        .all(|s| s.result.reports.iter().all(|r| r.directions.len() == 3)));
+    assert_alive(&mut qemu);
+}
+
+#[test]
+fn a_keyframed_needle_moves_the_tissue_on_the_target_as_in_f64() {
+    let mut qemu = boot();
+    let mut target = connect(&qemu);
+    let grid = Grid::new(5, 5, 5).unwrap();
+    let at = |t: f64| -> Result<Model, ModelError> {
+        let depth = -(t / 0.2).min(1.0);
+        Model::build(&ModelSpec {
+            grid,
+            fixed_sets: vec!["z-".parse().unwrap()],
+            elasticity: Elasticity::isotropic(1.0).unwrap(),
+            prescribed: vec![format!("2,2,4:0,0,{depth}").parse().unwrap()],
+            loads: Vec::new(),
+            ..ModelSpec::thesis_example()
+        })
+    };
+    let model = at(0.0).unwrap();
+    let step_model: StepModel = &at;
+    let steps = simulate_dynamic(
+        &mut target,
+        &model,
+        Some(step_model),
+        Schedule { steps: 8, dt: 0.05 },
+        &DynamicsSpec::uniform(0.2, [0.5; 3]),
+        params(),
+        |_| {},
+        |_| {},
+    )
+    .expect("dynamic series on QEMU");
+    check(&steps, "needle");
+    let tip = grid.index("2,2,4".parse().unwrap()).unwrap();
+    assert_eq!(steps[1].result.u[2][tip], -0.5);
+    assert_alive(&mut qemu);
+}
