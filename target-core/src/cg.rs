@@ -247,14 +247,15 @@ pub struct Work<'a> {
 struct Direction {
     active: bool,
     iterations: u32,
-    /// Σ b² (mantissa units, exact).
-    bb: f64,
+    /// 1 / Σb² (b's mantissa units), so that ‖r‖²/‖b‖² costs a multiplication.
+    inv_bb: f64,
     b_e: i32,
     x: Block,
     r: Block,
     p: Block,
-    /// Σr² of the current residual's mantissas, exact.
+    /// Σr² of the current residual's mantissas, exact, and as `f64` (converted once).
     rr: u128,
+    rr_f: f64,
     residual_sq: f64,
     /// b's block, to restart r from.
     b: Block,
@@ -266,20 +267,21 @@ impl Direction {
     const IDLE: Direction = Direction {
         active: false,
         iterations: 0,
-        bb: 0.0,
+        inv_bb: 0.0,
         b_e: 0,
         x: Block::ZERO,
         r: Block::ZERO,
         p: Block::ZERO,
         rr: 0,
+        rr_f: 0.0,
         residual_sq: 0.0,
         b: Block::ZERO,
         replacements: 0,
     };
 
     /// ‖r‖²/‖b‖² for a residual block with exponent e_r and Σm² = rr.
-    fn ratio(&self, rr: u128, e_r: i32) -> f64 {
-        ldexp(rr as f64 / self.bb, 2 * (e_r - self.b_e))
+    fn ratio(&self, rr: f64, e_r: i32) -> f64 {
+        scale2(rr * self.inv_bb, 2 * (e_r - self.b_e))
     }
 }
 
@@ -428,6 +430,7 @@ impl<E: Executor> Engine<'_, '_, E> {
         let range = share(n, self.harts, h);
         // SAFETY: the shares of the rows are disjoint; the pool is only read.
         let kp = unsafe { self.kp.slice_mut(range.clone()) };
+        let dirs = self.directions;
         if plan.overlapping {
             kp.fill([0; MAX_DIRECTIONS]);
             // SAFETY: nothing writes the pool during this phase.
@@ -447,7 +450,7 @@ impl<E: Executor> Engine<'_, '_, E> {
                     let src = pool.get(from..from + both.len()).unwrap_or(&[]);
                     let dst = &mut kp[both.lo - mine.lo..both.hi - mine.lo];
                     for (d, s) in dst.iter_mut().zip(src) {
-                        for j in 0..MAX_DIRECTIONS {
+                        for j in 0..dirs {
                             d[j] += s[j];
                         }
                     }
@@ -588,11 +591,12 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         check_bound(bound, &mut self.sat);
         let st = &mut self.state[d];
         st.rr = rr;
+        st.rr_f = rr as f64;
         st.r = Block {
             e: plan.lin.e,
             bound,
         };
-        st.residual_sq = st.ratio(rr, plan.lin.e);
+        st.residual_sq = st.ratio(st.rr_f, plan.lin.e);
     }
 
     /// r = b − K·v for the directions in `which`, whose v (x) is in their lane of p: one MVU
@@ -624,7 +628,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         for d in 0..self.directions() {
             let st = &mut self.state[d];
             if st.active {
-                st.residual_sq = st.ratio(st.rr, st.r.e);
+                st.residual_sq = st.ratio(st.rr_f, st.r.e);
                 st.active = st.residual_sq > self.tol_sq;
             }
             st.p = st.r;
@@ -655,10 +659,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             }
             let st = &self.state[d];
             // α = rᵀr / pᵀKp; exponents: 2e_r and 2e_p − F.
-            alphas[d] = ldexp(
-                st.rr as f64 / p_kp as f64,
-                2 * st.r.e - 2 * st.p.e + self.f(),
-            );
+            alphas[d] = scale2(st.rr_f / p_kp as f64, 2 * st.r.e - 2 * st.p.e + self.f());
             r_plans[d] = Some(self.r_plan(d, -alphas[d], st.p));
         }
         self.engine.pass_r(&r_plans, &mut self.clock);
@@ -666,7 +667,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         let mut verify = [false; MAX_DIRECTIONS];
         for (d, plan) in r_plans.iter().enumerate() {
             let Some(plan) = plan else { continue };
-            let (rr_old, e_old) = (self.state[d].rr, self.state[d].r.e);
+            let (rr_old, e_old) = (self.state[d].rr_f, self.state[d].r.e);
             self.take_r(d, *plan);
             let st = &mut self.state[d];
             let x = Lin::new(alphas[d], st.p, false, 1.0, st.x, &mut self.sat);
@@ -678,7 +679,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
                 continue;
             }
             // β = r_newᵀr_new / rᵀr
-            let beta = ldexp(st.rr as f64 / rr_old as f64, 2 * (st.r.e - e_old));
+            let beta = scale2(st.rr_f / rr_old, 2 * (st.r.e - e_old));
             let p = Lin::new(1.0, st.r, false, beta, st.p, &mut self.sat);
             xp_plans[d] = PassXP::new(Some(x), Some(p));
         }
@@ -860,7 +861,7 @@ fn initial_state(s: &mut System<'_>, n: usize, params: &SolveParams) -> Directio
     };
     Direction {
         active: bb != 0,
-        bb: bb as f64,
+        inv_bb: if bb == 0 { 0.0 } else { 1.0 / bb as f64 },
         b_e: s.b_exponent,
         x: Block {
             e: s.x_exponent,
@@ -872,6 +873,7 @@ fn initial_state(s: &mut System<'_>, n: usize, params: &SolveParams) -> Directio
         },
         r,
         rr: bb,
+        rr_f: bb as f64,
         b: r,
         ..Direction::IDLE
     }
@@ -908,6 +910,18 @@ fn finish<E: Executor>(solver: Solver<'_, '_, '_, E>) -> (SolveReport, [i32; MAX
         });
     }
     (report, solver.x_exponents)
+}
+
+/// x·2^k: the exponent field adjusted directly where the result stays a normal number (a few
+/// integer instructions instead of a soft-float multiplication), else [`ldexp`].
+fn scale2(x: f64, k: i32) -> f64 {
+    let bits = x.to_bits();
+    let biased = ((bits >> 52) & 0x7FF) as i32;
+    if biased != 0 && biased != 0x7FF && (1..0x7FF).contains(&(biased + k)) {
+        f64::from_bits(bits.wrapping_add(((k as i64) << 52) as u64))
+    } else {
+        ldexp(x, k)
+    }
 }
 
 /// √x for x ≥ 0 without std: Newton's method from a power-of-two first guess.

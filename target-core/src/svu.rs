@@ -46,7 +46,6 @@
 //! any count as an error.
 
 use deform_shared::protocol::MAX_DIRECTIONS;
-use deform_shared::qformat::{floor_log2, ldexp};
 
 use crate::kernel::{Lanes, Sums};
 
@@ -144,23 +143,66 @@ pub fn normalising_shift(bound: u64) -> u32 {
     if bound == 0 {
         0
     } else {
-        (30 - floor_log2(bound as f64)).clamp(0, 31) as u32
+        (30 - (63 - bound.leading_zeros() as i32)).clamp(0, 31) as u32
     }
+}
+
+/// A finite `f64` as sign, 53-bit mantissa and exponent (value = ±m·2^e); 0 and subnormals
+/// (which no CG scalar comes near) give m = 0.
+fn decompose(c: f64) -> (bool, u64, i32) {
+    let bits = c.to_bits();
+    let biased = ((bits >> 52) & 0x7FF) as i32;
+    if biased == 0 || biased == 0x7FF {
+        return (false, 0, 0);
+    }
+    (c < 0.0, (bits & ((1 << 52) - 1)) | (1 << 52), biased - 1075)
+}
+
+/// An upper bound on |c|·bound·2^e as (mantissa, exponent): c's mantissa cut to 32 bits and
+/// rounded up, times the bound (below 2^32), is exact in `u64`.
+fn magnitude_bound(c: (bool, u64, i32), block: Block) -> (u64, i32) {
+    let (_, m, e) = c;
+    if m == 0 || block.bound == 0 {
+        return (0, 0);
+    }
+    let top = (m >> 21) + 1;
+    (top * block.bound.min(u64::from(u32::MAX)), e + 21 + block.e)
 }
 
 impl Lin {
     /// Plans z = a·u + b·y for blocks u and y. `u_normalised`: u's elements are already
     /// shifted into range (the narrowed K·p) and get no shift of their own. Counts a multiplier
     /// that does not fit in `saturations`.
+    ///
+    /// Integer arithmetic throughout (hart 0 has no FPU, and soft-float operations cost about
+    /// a hundred instructions each): the bound |a|·‖u‖ + |b|·‖y‖ is formed from the scalars'
+    /// mantissas rounded up, so it is an upper bound, and z's exponent is the smallest that
+    /// keeps it below 2^[`BOUND_BITS`] units.
     pub fn new(a: f64, u: Block, u_normalised: bool, b: f64, y: Block, sat: &mut u32) -> Lin {
-        let bound = a.abs() * ldexp(u.bound as f64, u.e) + b.abs() * ldexp(y.bound as f64, y.e);
-        if bound == 0.0 || !bound.is_finite() {
-            if !bound.is_finite() {
-                *sat += 1;
-            }
+        let (a, b) = (decompose(a), decompose(b));
+        let (mu, eu) = magnitude_bound(a, u);
+        let (my, ey) = magnitude_bound(b, y);
+        // Align the two terms to the larger exponent, rounding the smaller one up.
+        let (hi, e_hi, lo, e_lo) = if (my == 0) || (mu != 0 && eu >= ey) {
+            (mu, eu, my, ey)
+        } else {
+            (my, ey, mu, eu)
+        };
+        if hi == 0 {
             return Lin::default();
         }
-        let e = floor_log2(bound) + 1 - BOUND_BITS;
+        let gap = (e_hi - e_lo) as u32;
+        let lo = if lo == 0 {
+            0
+        } else if gap >= 64 {
+            1
+        } else {
+            (lo >> gap) + 1
+        };
+        let sum = u128::from(hi) + u128::from(lo);
+        let bits = 128 - sum.leading_zeros() as i32;
+        // floor(log2(bound)) = bits − 1 + e_hi; e = that + 1 − BOUND_BITS.
+        let e = bits + e_hi - BOUND_BITS;
         let ku = if u_normalised {
             0
         } else {
@@ -175,28 +217,35 @@ impl Lin {
 }
 
 /// The [`Term`] for c·block into output exponent `e`, the block's elements shifted left by
-/// `shift`: mult = c·2^(e_block − shift − e + 32), rounded to nearest.
-fn term(c: f64, block: Block, shift: u32, e: i32, sat: &mut u32) -> Term {
-    if block.bound == 0 || c == 0.0 {
+/// `shift`: mult = c·2^(e_block − shift − e + 32), rounded to nearest (ties away from 0).
+fn term(c: (bool, u64, i32), block: Block, shift: u32, e: i32, sat: &mut u32) -> Term {
+    let (neg, m, ec) = c;
+    if block.bound == 0 || m == 0 {
         return Term::default();
     }
-    let m = ldexp(c, block.e - shift as i32 - e + 32);
-    let m = if m >= 0.0 { m + 0.5 } else { m - 0.5 };
-    let mult = if m.abs() >= 2147483648.0 {
-        // Up to half a unit over is the rounding of a multiplier just below 2^31; anything
-        // more breaks the bound.
-        if m.abs() >= 2147483649.0 {
-            *sat += 1;
-        }
-        if m > 0.0 {
-            i32::MAX
+    let sh = ec + block.e - shift as i32 - e + 32;
+    let magnitude = if sh >= 0 {
+        if sh >= 11 {
+            u64::MAX
         } else {
-            i32::MIN + 1
+            m << sh
         }
+    } else if sh <= -64 {
+        0
     } else {
-        m as i64 as i32
+        let down = (-sh) as u32;
+        (m >> down) + ((m >> (down - 1)) & 1)
     };
-    Term { mult, shift }
+    // Up to half a unit over 2^31 − 1 is the rounding of a multiplier just below 2^31;
+    // anything more breaks the bound.
+    if magnitude > 1 << 31 {
+        *sat += 1;
+    }
+    let magnitude = magnitude.min(i32::MAX as u64) as i32;
+    Term {
+        mult: if neg { -magnitude } else { magnitude },
+        shift,
+    }
 }
 
 /// How pass R reads K·p: narrowed from `i64` to 31 bits by a loop-invariant shift.
