@@ -508,17 +508,70 @@ impl<E: Executor> Engine<'_, '_, E> {
         self.run(&task, clock, false);
     }
 
-    /// Copies direction d's `from` (x or r) into its lane of p, or zeroes the lane (`None`), on
-    /// hart 0 between phases.
-    fn set_p(&self, d: usize, from: Option<&SharedSlice<'_, i32>>) {
-        // SAFETY: no task runs; hart 0 has the vectors to itself.
-        let p = unsafe { self.p.slice_mut(0..self.a.n) };
-        match from {
-            // SAFETY: as above.
-            Some(v) => (p.iter_mut().zip(unsafe { v.as_slice() })).for_each(|(pi, &v)| pi[d] = v),
-            None => p.iter_mut().for_each(|pi| pi[d] = 0),
-        }
+    /// What each direction's lane of p becomes, on every hart's share in parallel.
+    fn set_lanes(&self, lanes: [Lane; MAX_DIRECTIONS], clock: &mut Clock) {
+        let n = self.a.n;
+        let task = |h: usize| {
+            let range = share(n, self.harts, h);
+            // SAFETY: each hart writes only its own share of p; x and r are only read.
+            unsafe {
+                let p = self.p.slice_mut(range.clone());
+                for (d, lane) in lanes.iter().enumerate().take(self.directions) {
+                    let from = match lane {
+                        Lane::Keep => continue,
+                        Lane::Zero => {
+                            p.iter_mut().for_each(|pi| pi[d] = 0);
+                            continue;
+                        }
+                        Lane::X => &self.xs[d].as_slice()[range.clone()],
+                        Lane::R => &self.rs[d].as_slice()[range.clone()],
+                    };
+                    p.iter_mut().zip(from).for_each(|(pi, &v)| pi[d] = v);
+                }
+            }
+        };
+        self.run(&task, clock, false);
     }
+
+    /// The set-up on every hart's share: r = b, Σb², the ORs of b and x, p's lanes = x (or x
+    /// and its lane cleared, `zero_x`), Kp cleared.
+    fn setup(&self, b: &[&[i32]; MAX_DIRECTIONS], zero_x: bool, clock: &mut Clock) {
+        let n = self.a.n;
+        let task = |h: usize| {
+            let range = share(n, self.harts, h);
+            // SAFETY: each hart writes only its own share of r, x, p and Kp and its own result
+            // slot; b is only read.
+            unsafe {
+                let out = &mut self.out.slice_mut(h..h + 1)[0];
+                let p = self.p.slice_mut(range.clone());
+                p.fill([0; 4]);
+                self.kp.slice_mut(range.clone()).fill([0; MAX_DIRECTIONS]);
+                for d in 0..self.directions {
+                    let (b, r) = (&b[d][range.clone()], self.rs[d].slice_mut(range.clone()));
+                    r.copy_from_slice(b);
+                    out.rr[d] = sum_squares(b);
+                    out.b_or[d] = b.iter().fold(0, |o, &m| o | magnitude_bits(m));
+                    let x = self.xs[d].slice_mut(range.clone());
+                    if zero_x {
+                        x.fill(0);
+                    }
+                    out.x_or[d] = x.iter().fold(0, |o, &m| o | magnitude_bits(m));
+                    out.x_any[d] = x.iter().fold(0, |o, &m| o | m as u32);
+                    p.iter_mut().zip(x.iter()).for_each(|(pi, &v)| pi[d] = v);
+                }
+            }
+        };
+        self.run(&task, clock, false);
+    }
+}
+
+/// What a direction's lane of p becomes ([`Engine::set_lanes`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Lane {
+    Keep,
+    Zero,
+    X,
+    R,
 }
 
 /// Hart 0's bookkeeping of where its time went.
@@ -625,16 +678,17 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             self.residual_of(guessed);
         }
         let t = self.engine.exec.now();
-        for d in 0..self.directions() {
-            let st = &mut self.state[d];
+        let mut lanes = [Lane::Keep; MAX_DIRECTIONS];
+        let directions = self.directions();
+        for (st, lane) in self.state.iter_mut().zip(&mut lanes).take(directions) {
             if st.active {
                 st.residual_sq = st.ratio(st.rr_f, st.r.e);
                 st.active = st.residual_sq > self.tol_sq;
             }
             st.p = st.r;
-            let from = st.active.then(|| &self.engine.rs[d]);
-            self.engine.set_p(d, from);
+            *lane = if st.active { Lane::R } else { Lane::Zero };
         }
+        self.engine.set_lanes(lanes, &mut self.clock);
         charge(&mut self.clock.svu, t, self.engine.exec);
     }
 
@@ -721,24 +775,30 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             return;
         }
         let t = self.engine.exec.now();
+        let mut lanes = [Lane::Keep; MAX_DIRECTIONS];
         for d in (0..self.directions()).filter(|&d| verify[d]) {
             self.state[d].replacements += 1;
-            self.engine.set_p(d, Some(&self.engine.xs[d]));
+            lanes[d] = Lane::X;
             // SAFETY: no task runs; hart 0 has the vectors to itself.
             unsafe { self.engine.rs[d].slice_mut(0..self.engine.a.n) }
                 .copy_from_slice(&self.systems_b[d][..self.engine.a.n]);
             self.state[d].r = self.state[d].b;
         }
+        self.engine.set_lanes(lanes, &mut self.clock);
         charge(&mut self.clock.svu, t, self.engine.exec);
         self.residual_of(verify);
         let t = self.engine.exec.now();
+        let mut lanes = [Lane::Keep; MAX_DIRECTIONS];
         for d in (0..self.directions()).filter(|&d| verify[d]) {
             let st = &mut self.state[d];
             if st.residual_sq > self.tol_sq && st.iterations < self.params.max_iterations {
                 st.active = true;
                 st.p = st.r;
-                self.engine.set_p(d, Some(&self.engine.rs[d]));
+                lanes[d] = Lane::R;
             }
+        }
+        if lanes.iter().any(|&l| l != Lane::Keep) {
+            self.engine.set_lanes(lanes, &mut self.clock);
         }
         charge(&mut self.clock.svu, t, self.engine.exec);
     }
@@ -776,24 +836,15 @@ pub fn solve(
     let t0 = exec.now();
     let Work { p, kp, partial } = work;
     let (p, kp) = (&mut p[..n], &mut kp[..n]);
-    p.fill([0; 4]);
-    kp.fill([0; MAX_DIRECTIONS]);
-    let mut state = [Direction::IDLE; MAX_DIRECTIONS];
-    for (d, s) in systems.iter_mut().enumerate() {
-        state[d] = initial_state(s, n, params);
-        if state[d].active && state[d].x.bound != 0 {
-            for (pi, &xi) in p.iter_mut().zip(s.x[..n].iter()) {
-                pi[d] = xi;
-            }
-        }
-    }
     let mut outs = [HartOut::default(); MAX_HARTS];
     let mut systems_b: [&[i32]; MAX_DIRECTIONS] = [&[]; MAX_DIRECTIONS];
+    let mut b_exponents = [0i32; MAX_DIRECTIONS];
     let mut x_exponents = [0i32; MAX_DIRECTIONS];
     let mut xs = heapless::Vec::new();
     let mut rs = heapless::Vec::new();
     for (d, s) in systems.iter_mut().enumerate() {
         systems_b[d] = s.b;
+        b_exponents[d] = s.b_exponent;
         x_exponents[d] = s.x_exponent;
         let _ = xs.push(SharedSlice::new(&mut s.x[..n]));
         let _ = rs.push(SharedSlice::new(&mut s.r[..n]));
@@ -810,6 +861,15 @@ pub fn solve(
         xs,
         rs,
     };
+    let mut clock = Clock {
+        last: t0,
+        ..Clock::default()
+    };
+    engine.setup(&systems_b, params.start == Start::Zero, &mut clock);
+    let mut state = [Direction::IDLE; MAX_DIRECTIONS];
+    for d in 0..directions {
+        state[d] = initial_state(&engine, d, b_exponents[d], &mut x_exponents[d]);
+    }
     let mut solver = Solver {
         engine: &engine,
         params,
@@ -819,10 +879,7 @@ pub fn solve(
         iterations: 0,
         tol_sq: params.tolerance * params.tolerance,
         sat: 0,
-        clock: Clock {
-            last: t0,
-            ..Clock::default()
-        },
+        clock,
     };
     charge(&mut solver.clock.svu, t0, exec);
     solver.start();
@@ -844,32 +901,42 @@ pub fn solve(
     Ok(report)
 }
 
-/// A direction's state before the first iteration; clears x where there is no usable guess and
-/// copies b into r.
-fn initial_state(s: &mut System<'_>, n: usize, params: &SolveParams) -> Direction {
-    let bb = sum_squares(&s.b[..n]);
-    if bb == 0 || params.start == Start::Zero {
-        s.x[..n].fill(0);
-        s.x_exponent = 0;
+/// Direction d's state before the first iteration, from the set-up's results. A direction
+/// with b = 0 gets x = 0 (on hart 0: it does nothing else).
+fn initial_state<E: Executor>(
+    engine: &Engine<'_, '_, E>,
+    d: usize,
+    b_exponent: i32,
+    x_exponent: &mut i32,
+) -> Direction {
+    let outs = engine.outs();
+    let bb: u128 = outs.iter().map(|o| o.rr[d]).sum();
+    let b_or = outs.iter().fold(0, |o, out| o | out.b_or[d]);
+    let mut x_or = outs.iter().fold(0, |o, out| o | out.x_or[d]);
+    let mut x_any = outs.iter().fold(0, |o, out| o | out.x_any[d]);
+    if bb == 0 && x_any != 0 {
+        // SAFETY: no task runs; hart 0 has the vectors to itself.
+        unsafe { engine.xs[d].slice_mut(0..engine.a.n) }.fill(0);
+        // SAFETY: as above.
+        unsafe { engine.p.slice_mut(0..engine.a.n) }
+            .iter_mut()
+            .for_each(|pi| pi[d] = 0);
+        (x_or, x_any) = (0, 0);
     }
-    let or = |v: &[i32]| v.iter().fold(0, |o, &m| o | magnitude_bits(m));
-    let x_or = or(&s.x[..n]);
-    s.r[..n].copy_from_slice(&s.b[..n]);
+    if x_any == 0 {
+        *x_exponent = 0;
+    }
     let r = Block {
-        e: s.b_exponent,
-        bound: bound_of(or(&s.b[..n])),
+        e: b_exponent,
+        bound: bound_of(b_or),
     };
     Direction {
         active: bb != 0,
         inv_bb: if bb == 0 { 0.0 } else { 1.0 / bb as f64 },
-        b_e: s.b_exponent,
+        b_e: b_exponent,
         x: Block {
-            e: s.x_exponent,
-            bound: if s.x[..n].iter().any(|&v| v != 0) {
-                bound_of(x_or)
-            } else {
-                0
-            },
+            e: *x_exponent,
+            bound: if x_any != 0 { bound_of(x_or) } else { 0 },
         },
         r,
         rr: bb,

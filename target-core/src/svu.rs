@@ -332,6 +332,9 @@ pub struct HartOut {
     pub x_or: [u32; MAX_DIRECTIONS],
     /// OR of the magnitudes of the new p (pass XP).
     pub p_or: [u32; MAX_DIRECTIONS],
+    /// Set-up: Σb² (in `rr`), the OR of |b| and the OR of x's raw bits (nonzero if any x is).
+    pub b_or: [u32; MAX_DIRECTIONS],
+    pub x_any: [u32; MAX_DIRECTIONS],
 }
 
 /// Pass R on one slice of direction `d`: r ← lin.u(narrow(Kp)) + lin.y(r); returns
