@@ -644,7 +644,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         check_bound(bound, &mut self.sat);
         let st = &mut self.state[d];
         st.rr = rr;
-        st.rr_f = rr as f64;
+        st.rr_f = u128_to_f64(rr);
         st.r = Block {
             e: plan.lin.e,
             bound,
@@ -713,7 +713,8 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             }
             let st = &self.state[d];
             // α = rᵀr / pᵀKp; exponents: 2e_r and 2e_p − F.
-            alphas[d] = scale2(st.rr_f / p_kp as f64, 2 * st.r.e - 2 * st.p.e + self.f());
+            let p_kp = u128_to_f64(p_kp as u128);
+            alphas[d] = scale2(st.rr_f / p_kp, 2 * st.r.e - 2 * st.p.e + self.f());
             r_plans[d] = Some(self.r_plan(d, -alphas[d], st.p));
         }
         self.engine.pass_r(&r_plans, &mut self.clock);
@@ -989,6 +990,17 @@ fn scale2(x: f64, k: i32) -> f64 {
     } else {
         ldexp(x, k)
     }
+}
+
+/// v as `f64`, its top 64 bits rounded (compiler-rt's 128-bit conversion costs several times
+/// more on rv32, and nothing here needs the last bit).
+fn u128_to_f64(v: u128) -> f64 {
+    let hi = (v >> 64) as u64;
+    if hi == 0 {
+        return v as u64 as f64;
+    }
+    let lz = hi.leading_zeros();
+    scale2(((v << lz) >> 64) as u64 as f64, 64 - lz as i32)
 }
 
 /// √x for x ≥ 0 without std: Newton's method from a power-of-two first guess.

@@ -158,15 +158,17 @@ fn decompose(c: f64) -> (bool, u64, i32) {
     (c < 0.0, (bits & ((1 << 52) - 1)) | (1 << 52), biased - 1075)
 }
 
-/// An upper bound on |c|·bound·2^e as (mantissa, exponent): c's mantissa cut to 32 bits and
-/// rounded up, times the bound (below 2^32), is exact in `u64`.
+/// An upper bound on |c|·bound·2^e as (mantissa, exponent): c's mantissa cut to 31 bits and
+/// rounded up, times the bound (below 2^32), is exact in `u64` and below 2^63, so two such
+/// terms add up in `u64` too.
 fn magnitude_bound(c: (bool, u64, i32), block: Block) -> (u64, i32) {
     let (_, m, e) = c;
     if m == 0 || block.bound == 0 {
         return (0, 0);
     }
-    let top = (m >> 21) + 1;
-    (top * block.bound.min(u64::from(u32::MAX)), e + 21 + block.e)
+    let top = ((m >> 22) + 1) as u32;
+    let bound = block.bound.min(u64::from(u32::MAX)) as u32;
+    (u64::from(top) * u64::from(bound), e + 22 + block.e)
 }
 
 impl Lin {
@@ -199,8 +201,8 @@ impl Lin {
         } else {
             (lo >> gap) + 1
         };
-        let sum = u128::from(hi) + u128::from(lo);
-        let bits = 128 - sum.leading_zeros() as i32;
+        let sum = hi + lo;
+        let bits = 64 - sum.leading_zeros() as i32;
         // floor(log2(bound)) = bits − 1 + e_hi; e = that + 1 − BOUND_BITS.
         let e = bits + e_hi - BOUND_BITS;
         let ku = if u_normalised {
