@@ -99,6 +99,13 @@ fn report() -> SolveReport {
             svu_total: 800,
         },
         saturations: 1,
+        whole_solve: IterationCost {
+            mvu_critical: 41_000,
+            svu_critical: 8_100,
+            mvu_total: 160_000,
+            svu_total: 32_000,
+        },
+        first_iteration_scalar: 3_012,
     }
 }
 

@@ -205,14 +205,15 @@ pub struct EngineStats {
     pub fused: bool,
     /// Target solves in all (a fused solve counts once).
     pub target_solves: usize,
-    /// Per-iteration figures of the first target solve (all loaded directions).
+    /// The first target solve's first iteration (all loaded directions): the MVU/SVU
+    /// breakdown of one iteration.
     pub performance: Option<Performance>,
     /// Matrix words the MVUs fetched over all solves.
     pub words_fetched: u64,
     /// What the same iterations fetch with every direction solved on its own.
     pub words_fetched_unfused: u64,
-    /// Critical-path cycles (slowest MVU + SVU per iteration, times the iterations) over all
-    /// solves.
+    /// Critical-path cycles over all solves, measured on the target phase by phase (slowest
+    /// hart per parallel phase + hart 0's serial work), not extrapolated from one iteration.
     pub critical_path_cycles: u64,
     /// Hart 0's MVU + SVU `mcycle` over all solves (under QEMU -icount: all harts' sum).
     pub cycles: u64,
@@ -546,7 +547,7 @@ fn print_summary(stats: &SolveStats) {
     }
     if let Some(e) = &stats.engine {
         println!(
-            "runs        {} target solve(s), {}; {} matrix words fetched ({} if solved one direction at a time); {} critical-path cycles in all",
+            "runs        {} target solve(s), {}; {} matrix words fetched ({} if solved one direction at a time); {} critical-path cycles in all (measured)",
             e.target_solves,
             if e.fused { "directions fused" } else { "one direction at a time" },
             e.words_fetched,
@@ -555,7 +556,7 @@ fn print_summary(stats: &SolveStats) {
         );
         if let Some(p) = &e.performance {
             println!(
-                "per iter.   {} MVU(s) × {} direction(s): {:.2} MVU instructions per word, {:.2} per multiply-accumulate; \
+                "1st iter.   {} MVU(s) × {} direction(s): {:.2} MVU instructions per word, {:.2} per multiply-accumulate; \
                  critical path {} cycles (MVU {} + SVU {}); {:.1} MFLOPS at 100 MHz by eq. 56 (m = {:.2}, n = {})",
                 p.mvus,
                 p.directions,

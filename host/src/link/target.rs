@@ -8,7 +8,7 @@ use deform_shared::protocol::{
 };
 use deform_shared::qformat::{block_exponent, from_mantissa, to_mantissa};
 use deform_shared::transport::WINDOW;
-use deform_shared::word::{Word, VALUE_BITS};
+use deform_shared::word::{Word, VALUE_MASK};
 use serialport::SerialPort;
 
 use super::transport::{Exchange, LinkConfig, DEFAULT_REQUEST_TIMEOUT};
@@ -85,9 +85,6 @@ pub struct Target<P: Port = Box<dyn SerialPort>> {
     /// Times a reset target was given its matrix again (see [`Target::solve_for`]).
     resumes: u32,
 }
-
-/// Bits 20..0 of a word, its value.
-const VALUE_FIELD: u32 = (1 << VALUE_BITS) - 1;
 
 /// What a values-only update sent, against what a full upload of the same matrix would send.
 /// Both count request frames as they go on the wire (COBS, CRC and delimiter included, each
@@ -306,7 +303,7 @@ impl<P: Port> Target<P> {
                 && p.words
                     .iter()
                     .zip(&matrix.words)
-                    .all(|(r, w)| r & !VALUE_FIELD == w & !VALUE_FIELD)
+                    .all(|(r, w)| r & !VALUE_MASK == w & !VALUE_MASK)
         })
     }
 
