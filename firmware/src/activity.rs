@@ -57,6 +57,7 @@ fn log_request(request: &Request) {
                 Start::Zero => "zero",
                 Start::Previous => "previous",
                 Start::Uploaded => "uploaded",
+                Start::Predicted => "predicted",
             }
         ),
         Request::BeginUpdate { words, frac_bits } => {

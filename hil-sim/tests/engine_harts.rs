@@ -28,6 +28,7 @@ fn params(directions: u8) -> SolveParams {
         tolerance: 1e-9,
         start: Start::Zero,
         directions,
+        cycle_budget: 0,
     }
 }
 

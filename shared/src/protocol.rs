@@ -58,7 +58,8 @@ use crate::matrix::{MatrixError, TileHeader};
 /// Version 4 (link): the reliable transport ([`crate::transport`]: window, ACK/NAK, `Uplink` frames),
 /// fixed-width chunk payloads ([`crate::chunk`]) and 128-element chunks.
 /// Version 5 (engine): tiles carry their MVU and a mirrored flag, fused directions, per-hart costs.
-pub const PROTOCOL_VERSION: u16 = 5;
+/// Version 6 (live): predicted warm starts, cycle budgets, the sparse frame messages.
+pub const PROTOCOL_VERSION: u16 = 6;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -129,6 +130,12 @@ pub enum Start {
     Previous,
     /// x₀ = the uploaded `InitialGuess` vector.
     Uploaded,
+    /// x₀ predicted on the target from the solutions it keeps (protocol version 6): the linear
+    /// extrapolation 2u(t−1) − u(t−2) once two consecutive solves of the direction are known
+    /// (the previous one `Predicted`), u(t−1) after one solve, 0 before any. No vector crosses
+    /// the link. The target keeps u(t−1) in the `InitialGuess` slot, so a `Predicted` solve
+    /// consumes an uploaded guess, and uploading a guess restarts the prediction.
+    Predicted,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -143,6 +150,11 @@ pub struct SolveParams {
     /// Every matrix word fetched serves one multiply-accumulate per direction. Each direction
     /// stops on its own tolerance; the loop runs until all have stopped.
     pub directions: u8,
+    /// Cycle budget of the step (protocol version 6), 0 for none: the loop starts no new CG
+    /// iteration once hart 0's cycles since the solve began reach it. A step thus stops at the
+    /// tolerance, at `max_iterations` (the iteration budget) or at this budget, whichever comes
+    /// first; the report's residuals say how far it got.
+    pub cycle_budget: u64,
 }
 
 // Chunk variants are large by design (one frame's worth of data); no_std has no Box to shrink them.

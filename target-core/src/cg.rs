@@ -919,7 +919,17 @@ pub fn solve(
     }
     charge(&mut report.svu, t, exec);
 
-    while state.iter().any(|s| s.active) && report.iterations < params.max_iterations {
+    // The cycle budget (`SolveParams::cycle_budget`, 0 for none): no new iteration starts once
+    // hart 0's cycles since the solve began reach it, so a budgeted step ends within one
+    // iteration of its budget with the residual it reached.
+    let within_budget = |report: &SolveReport| {
+        params.cycle_budget == 0
+            || report.mvu.cycles.saturating_add(report.svu.cycles) < params.cycle_budget
+    };
+    while state.iter().any(|s| s.active)
+        && report.iterations < params.max_iterations
+        && within_budget(&report)
+    {
         costs.measuring = report.iterations == 0;
         report.iterations += 1;
         let t = exec.now();

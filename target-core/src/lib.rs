@@ -20,5 +20,6 @@ pub mod cg;
 pub mod exec;
 pub mod kernel;
 pub mod log_buffer;
+pub mod predict;
 pub mod session;
 pub mod transport;

@@ -66,6 +66,7 @@ use deform_shared::word::{VALUE_BITS, VALUE_MAX, VALUE_MIN};
 use crate::cg::{self, Matrix, Plan, PlanError, System, Work};
 use crate::exec::Executor;
 use crate::kernel::{Lanes, Sums};
+use crate::predict;
 
 /// The memory a [`Session`] works in, lent by its owner.
 ///
@@ -189,6 +190,10 @@ pub struct Session<'a, E: Executor> {
     guess: [VectorState; MAX_DIRECTIONS],
     /// Per direction, the exponent of the solution in its `x`, if there is one.
     solution: [Option<i32>; MAX_DIRECTIONS],
+    /// Per direction, the exponent of the solution before the last, kept in its `x0` for
+    /// [`Start::Predicted`]: set by a predicted solve that had a previous solution, cleared by
+    /// any other solve, a new initial guess or a new matrix.
+    kept: [Option<i32>; MAX_DIRECTIONS],
     /// How the MVUs share the resident matrix.
     plan: Option<Plan>,
 }
@@ -224,6 +229,7 @@ impl<'a, E: Executor> Session<'a, E> {
             rhs: [VectorState::Empty; MAX_DIRECTIONS],
             guess: [VectorState::Empty; MAX_DIRECTIONS],
             solution: [None; MAX_DIRECTIONS],
+            kept: [None; MAX_DIRECTIONS],
         }
     }
 
@@ -305,6 +311,7 @@ impl<'a, E: Executor> Session<'a, E> {
         self.rhs = [VectorState::Empty; MAX_DIRECTIONS];
         self.guess = [VectorState::Empty; MAX_DIRECTIONS];
         self.solution = [None; MAX_DIRECTIONS];
+        self.kept = [None; MAX_DIRECTIONS];
     }
 
     fn begin_matrix(&mut self, shape: Shape) -> Result<Response, ErrorCode> {
@@ -600,6 +607,10 @@ impl<'a, E: Executor> Session<'a, E> {
         len: u32,
     ) -> Result<Response, ErrorCode> {
         *self.slot_state(slot)? = VectorState::Empty;
+        if let VectorSlot::InitialGuess { direction } = slot {
+            // x0 now holds neither the guess nor the kept solution.
+            self.kept[usize::from(direction)] = None;
+        }
         let shape = self.resident()?;
         if len != shape.n {
             return Err(ErrorCode::LengthMismatch {
@@ -685,6 +696,8 @@ impl<'a, E: Executor> Session<'a, E> {
                     self.solution[d].ok_or(out_of_order(SessionStep::NoPreviousSolution))?
                 }
                 Start::Uploaded => self.guess[d].exponent(SessionStep::NoInitialGuess)?,
+                // Never refused: with fewer solutions kept the prediction is of lower order.
+                Start::Predicted => self.solution[d].unwrap_or(0),
             };
         }
         let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
@@ -706,12 +719,29 @@ impl<'a, E: Executor> Session<'a, E> {
         for (d, v) in vectors.iter_mut().enumerate().take(directions) {
             let DirectionStorage { b, x, x0, r } = v;
             let (Some(b), Some(x), Some(x0), Some(r)) =
-                (b.get(..n), x.get_mut(..n), x0.get(..n), r.get_mut(..n))
+                (b.get(..n), x.get_mut(..n), x0.get_mut(..n), r.get_mut(..n))
             else {
                 return Err(too_large);
             };
-            if params.start == Start::Uploaded {
-                x.copy_from_slice(x0);
+            let kept = &mut self.kept[d];
+            match (params.start, self.solution[d], *kept) {
+                (Start::Uploaded, ..) => x.copy_from_slice(x0),
+                (Start::Predicted, None, _) => x.fill(0),
+                (Start::Predicted, Some(e1), None) => {
+                    x0.copy_from_slice(x);
+                    *kept = Some(e1);
+                }
+                (Start::Predicted, Some(e1), Some(e2)) => {
+                    x_exponents[d] = predict::extrapolate(x, e1, x0, e2);
+                    *kept = Some(e1);
+                }
+                _ => {}
+            }
+            if params.start == Start::Predicted {
+                // x0 now holds u(t−1), no longer an uploaded guess.
+                self.guess[d] = VectorState::Empty;
+            } else {
+                *kept = None;
             }
             let _ = systems.push(System {
                 b,
@@ -730,8 +760,10 @@ impl<'a, E: Executor> Session<'a, E> {
             plan: &plan,
         };
         let work = Work { p, kp, partial };
-        let report =
-            cg::solve(&matrix, &mut systems, work, params, &self.exec).map_err(ErrorCode::Solve)?;
+        let report = cg::solve(&matrix, &mut systems, work, params, &self.exec).map_err(|e| {
+            self.kept = [None; MAX_DIRECTIONS];
+            ErrorCode::Solve(e)
+        })?;
         for (solution, system) in self.solution.iter_mut().zip(&systems) {
             *solution = Some(system.x_exponent);
         }

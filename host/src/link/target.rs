@@ -646,6 +646,7 @@ mod tests {
             tolerance: 1e-9,
             start: Start::Zero,
             directions: 1,
+            cycle_budget: 0,
         }
     }
 
