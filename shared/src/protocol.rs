@@ -210,6 +210,29 @@ pub enum Request {
     EndUpdate {
         crc32: u32,
     },
+    /// Live loop (protocol version 6, see [`crate::live`]): one tool node's row of the
+    /// unconstrained K, sent once per tool node before [`Request::LiveStart`].
+    LiveTool(crate::live::ToolRow),
+    /// Live loop: the tool set is complete; the target computes the local force model (the
+    /// Schur complement's column sums, one CG solve per three tool nodes), keeps `params` for
+    /// every frame and forgets its right-hand sides (upload the static loads next).
+    LiveStart(crate::live::LiveParams),
+    /// Live loop: a full frame. The tool nodes' prescribed displacements, in the order of their
+    /// `LiveTool`s; the target builds the right-hand sides, solves fused, predicted and within
+    /// the budget, and answers [`Response::LiveFrame`].
+    LiveFrame {
+        tool: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
+    },
+    /// Live loop: a force query between full frames, answered from the local linear model.
+    LiveForce {
+        tool: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
+    },
+    /// Live loop: a chunk of the quantised displacement field of the last frame: every
+    /// `stride`-th node from `offset` on.
+    ReadField {
+        offset: u32,
+        stride: u16,
+    },
 }
 
 /// What the target is and what it can hold.
@@ -344,6 +367,8 @@ pub enum ErrorCode {
     DirectionOutOfRange { direction: u8, max: u8 },
     #[error("the MVUs' overlapping row ranges need {rows} rows of private partial sums, the target holds {capacity}")]
     OverlapTooLarge { rows: u32, capacity: u32 },
+    #[error("live loop: {0}")]
+    Live(crate::live::LiveError),
 }
 
 /// The step a request arrived out of, for [`ErrorCode::OutOfOrder`].
@@ -401,6 +426,14 @@ pub enum Response {
         dropped: u32,
         frames: Vec<u8, LOG_CHUNK>,
     },
+    /// Live loop: the tool set is ready; what building the local force model cost.
+    LiveReady(crate::live::ModelReport),
+    /// Live loop: the answer to a full frame.
+    LiveFrame(crate::live::FrameReport),
+    /// Live loop: the answer to a force query.
+    LiveForce(crate::live::ForceReport),
+    /// Live loop: a chunk of the quantised field (see [`crate::live::FieldChunk`]).
+    Field(crate::live::FieldChunk),
 }
 
 #[cfg(test)]

@@ -19,6 +19,7 @@
 pub mod cg;
 pub mod exec;
 pub mod kernel;
+pub mod live;
 pub mod log_buffer;
 pub mod predict;
 pub mod session;

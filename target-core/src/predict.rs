@@ -23,7 +23,7 @@ fn magnitude_bits(v: &[i32]) -> i32 {
 
 /// v·2^−s rounded to nearest, for any shift (a shift ≥ 63 leaves 0; negative shifts multiply,
 /// and the callers keep those below the headroom they checked).
-fn scale(v: i64, s: i32) -> i64 {
+pub(crate) fn scale(v: i64, s: i32) -> i64 {
     match s {
         ..=-1 => v << (-s).min(62),
         0 => v,

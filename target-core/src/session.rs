@@ -66,6 +66,7 @@ use deform_shared::word::{VALUE_BITS, VALUE_MAX, VALUE_MIN};
 use crate::cg::{self, Matrix, Plan, PlanError, System, Work};
 use crate::exec::Executor;
 use crate::kernel::{Lanes, Sums};
+use crate::live::Live;
 use crate::predict;
 
 /// The memory a [`Session`] works in, lent by its owner.
@@ -194,6 +195,8 @@ pub struct Session<'a, E: Executor> {
     /// [`Start::Predicted`]: set by a predicted solve that had a previous solution, cleared by
     /// any other solve, a new initial guess or a new matrix.
     kept: [Option<i32>; MAX_DIRECTIONS],
+    /// The live loop's tool set and local force model ([`crate::live`]).
+    live: Live,
     /// How the MVUs share the resident matrix.
     plan: Option<Plan>,
 }
@@ -230,6 +233,7 @@ impl<'a, E: Executor> Session<'a, E> {
             guess: [VectorState::Empty; MAX_DIRECTIONS],
             solution: [None; MAX_DIRECTIONS],
             kept: [None; MAX_DIRECTIONS],
+            live: Live::default(),
         }
     }
 
@@ -296,6 +300,11 @@ impl<'a, E: Executor> Session<'a, E> {
             Request::BeginUpdate { words, frac_bits } => self.begin_update(words, frac_bits),
             Request::UpdateValues { offset, values } => self.update_values(offset, &values),
             Request::EndUpdate { crc32 } => self.end_update(crc32),
+            Request::LiveTool(row) => self.live_tool(row),
+            Request::LiveStart(params) => self.live_start(params),
+            Request::LiveFrame { tool } => self.live_frame(&tool),
+            Request::LiveForce { tool } => self.live_force(&tool),
+            Request::ReadField { offset, stride } => self.read_field(offset, stride),
         }
     }
 
@@ -312,6 +321,7 @@ impl<'a, E: Executor> Session<'a, E> {
         self.guess = [VectorState::Empty; MAX_DIRECTIONS];
         self.solution = [None; MAX_DIRECTIONS];
         self.kept = [None; MAX_DIRECTIONS];
+        self.live.clear();
     }
 
     fn begin_matrix(&mut self, shape: Shape) -> Result<Response, ErrorCode> {
@@ -607,9 +617,10 @@ impl<'a, E: Executor> Session<'a, E> {
         len: u32,
     ) -> Result<Response, ErrorCode> {
         *self.slot_state(slot)? = VectorState::Empty;
-        if let VectorSlot::InitialGuess { direction } = slot {
+        match slot {
             // x0 now holds neither the guess nor the kept solution.
-            self.kept[usize::from(direction)] = None;
+            VectorSlot::InitialGuess { direction } => self.kept[usize::from(direction)] = None,
+            VectorSlot::Rhs { direction } => self.live.rhs_replaced(usize::from(direction)),
         }
         let shape = self.resident()?;
         if len != shape.n {
@@ -760,6 +771,9 @@ impl<'a, E: Executor> Session<'a, E> {
             plan: &plan,
         };
         let work = Work { p, kp, partial };
+        if let Ok(started) = self.live.started_mut() {
+            started.field_exponent = None;
+        }
         let report = cg::solve(&matrix, &mut systems, work, params, &self.exec).map_err(|e| {
             self.kept = [None; MAX_DIRECTIONS];
             ErrorCode::Solve(e)
@@ -832,6 +846,8 @@ fn chunk_end(expected: u32, offset: u32, len: usize, limit: u32) -> Result<u32, 
         .filter(|&end| end <= limit)
         .ok_or(ErrorCode::ChunkTooLong)
 }
+
+mod live_glue;
 
 #[cfg(test)]
 mod tests;

@@ -1992,4 +1992,5 @@ fn a_mirrored_half_solves_like_the_whole_persymmetric_matrix() {
     }
 }
 
+mod live;
 mod predicted;
