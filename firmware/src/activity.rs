@@ -57,6 +57,7 @@ fn log_request(request: &Request) {
                 Start::Zero => "zero",
                 Start::Previous => "previous",
                 Start::Uploaded => "uploaded",
+                Start::Predicted => "predicted",
             }
         ),
         Request::BeginUpdate { words, frac_bits } => {
@@ -65,7 +66,18 @@ fn log_request(request: &Request) {
         Request::EndUpdate { crc32 } => {
             defmt::trace!("EndUpdate, host CRC {=u32:#010x}", crc32)
         }
-        Request::Tile(_)
+        Request::LiveStart(params) => defmt::debug!(
+            "live session: tolerance {=f32}, at most {=u32} iterations, cycle budget {=u64}",
+            params.tolerance,
+            params.max_iterations,
+            params.cycle_budget
+        ),
+        // Frames are the hot path: a log line would ride down the line with every answer.
+        Request::LiveTool(_)
+        | Request::LiveFrame { .. }
+        | Request::LiveForce { .. }
+        | Request::ReadField { .. }
+        | Request::Tile(_)
         | Request::Words { .. }
         | Request::VectorData { .. }
         | Request::ReadSolution { .. }
@@ -91,7 +103,18 @@ fn log_response(response: &Response, was_end_matrix: bool) {
             report.svu.cycles
         ),
         Response::Error(code) => defmt::warn!("refused: {}", defmt::Debug2Format(code)),
-        Response::Ack | Response::Solution { .. } | Response::Log { .. } => {}
+        Response::LiveReady(model) => defmt::info!(
+            "live session ready: local force model from {=u8} solve(s), {=u32} iterations, {=u64} cycles",
+            model.solves,
+            model.iterations,
+            model.cycles
+        ),
+        Response::Ack
+        | Response::Solution { .. }
+        | Response::Log { .. }
+        | Response::LiveFrame(_)
+        | Response::LiveForce(_)
+        | Response::Field(_) => {}
     }
 }
 

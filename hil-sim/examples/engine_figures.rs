@@ -132,6 +132,7 @@ fn main() -> anyhow::Result<()> {
             tolerance: 1e-12,
             start: Start::Zero,
             directions,
+            cycle_budget: 0,
         };
         let (single, _) = target.solve_for(&rhs[0], params(1))?;
         let refs: Vec<&[f64]> = rhs.iter().map(Vec::as_slice).collect();

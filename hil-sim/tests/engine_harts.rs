@@ -30,6 +30,7 @@ fn params(directions: u8) -> SolveParams {
         tolerance: 1e-9,
         start: Start::Zero,
         directions,
+        cycle_budget: 0,
     }
 }
 

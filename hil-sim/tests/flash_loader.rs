@@ -49,6 +49,7 @@ fn params() -> SolveParams {
         tolerance: 1e-10,
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     }
 }
 

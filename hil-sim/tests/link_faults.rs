@@ -33,6 +33,7 @@ fn params(start: Start) -> SolveParams {
         tolerance: 1e-9,
         start,
         directions: 1,
+        cycle_budget: 0,
     }
 }
 

@@ -26,6 +26,7 @@ fn a_board_reset_mid_session_is_noticed_and_the_matrix_sent_again() {
         tolerance: 1e-10,
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     };
     let before = target.solve_for(&rhs, params).unwrap();
 

@@ -29,6 +29,7 @@ fn out_of_order_and_malformed_requests_get_typed_errors_and_no_panic() {
         tolerance: 1e-6,
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     });
     assert_eq!(
         refused(&mut target, solve.clone()),
@@ -147,6 +148,7 @@ fn out_of_order_and_malformed_requests_get_typed_errors_and_no_panic() {
                 tolerance: 1e-9,
                 start: Start::Zero,
                 directions: 1,
+                cycle_budget: 0,
             },
         )
         .unwrap();

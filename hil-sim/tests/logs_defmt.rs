@@ -82,6 +82,7 @@ fn a_solve_logs_decoded_lines_with_level_and_location_and_info_hides_debug() {
         tolerance: 1e-10,
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     };
     let (report, _x) = target.solve_for(&rhs, params).unwrap();
     let stats = all.lock().unwrap().stats();

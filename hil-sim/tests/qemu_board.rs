@@ -102,6 +102,7 @@ fn line_noise_neither_crashes_nor_confuses_the_firmware() {
         tolerance: 0.5,
         start: Start::Previous,
         directions: 1,
+        cycle_budget: 0,
     };
     link.send_raw(&encoded(Request::Solve(params), 10)).unwrap();
     link.send_raw(&encoded(deform_shared::protocol::Response::Ack, 11))
@@ -246,6 +247,7 @@ fn solve_params() -> SolveParams {
         tolerance: 1e-10,
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     }
 }
 

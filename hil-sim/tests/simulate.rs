@@ -23,6 +23,8 @@ fn model() -> Model {
 fn params(warm_start: bool) -> StepParams {
     StepParams {
         warm_start,
+        predict: false,
+        fuse: false,
         tol: 1e-7,
         max_iterations: 2000,
         check_reference: true,
@@ -113,6 +115,7 @@ fn the_nonlinear_model_updates_values_only_and_matches_a_fresh_upload() {
         tolerance: 1e-7,
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     };
     let (updated_report, updated_x) = target.solve_for(&b, solve).unwrap();
     target.upload_matrix(&encode(&k).unwrap()).unwrap();

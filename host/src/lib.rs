@@ -17,6 +17,7 @@ pub mod firmware_logs;
 pub mod flash;
 pub mod inverse;
 pub mod link;
+pub mod live;
 pub mod metrics;
 pub mod model;
 pub mod output;

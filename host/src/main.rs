@@ -36,6 +36,11 @@ enum Command {
     /// Upload a firmware ELF through the target's serial loader (a board on --port, or QEMU
     /// booted with the loader), verify it by CRC in target RAM, start it and confirm it answers.
     Flash(commands::flash::FlashArgs),
+    /// The real-time loop: a tool (the scenario's prescribed nodes along their keyframes)
+    /// pushes the tissue frame by frame; K stays resident, each frame sends only the tool's
+    /// displacements and gets the reaction force back, force queries between frames come
+    /// from a local linear model, the field comes quantised at a lower rate (--headless).
+    Live(commands::live::LiveArgs),
 }
 
 fn main() -> ExitCode {
@@ -48,6 +53,7 @@ fn main() -> ExitCode {
         Command::Observe(args) => commands::observe::run(args),
         Command::Estimate(args) => commands::estimate::run(args),
         Command::Flash(args) => commands::flash::run(args),
+        Command::Live(args) => commands::live::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -174,6 +174,7 @@ pub fn solve_refined<P: Port>(
         tolerance: (params.tol * INNER_MARGIN).max(FIXED_POINT_FLOOR),
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     };
     for group in groups {
         loop {

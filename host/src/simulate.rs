@@ -14,11 +14,16 @@
 //! # Displacement-independent model (the default)
 //!
 //! K (A, thesis eq. 38) is constant: it is uploaded once, and each step solves A·u_d = b_d(t)
-//! for d = x, y, z. With [`Start::Uploaded`] each solve warm-starts from the previous step's
-//! *full* solution of the same direction, uploaded as the `InitialGuess` (the target's own
-//! previous solution is the previous *direction's*, so `Start::Previous` would be wrong here).
-//! No refinement: one target solve per direction and step, to the target tolerance
+//! for d = x, y, z. No refinement: the target's solution is the step's, to the target tolerance
 //! `max(tol, 1e-7)`; the reported residual is the true f64 residual.
+//!
+//! - **Fused and predicted** (the default, [`StepParams::fuse`] and [`StepParams::predict`]):
+//!   one target solve per step runs x, y and z together (direction d is axis d), and with
+//!   [`Start::Predicted`] the target starts each direction from 2u(t−1) − u(t−2) of the
+//!   solutions it keeps, so only the right-hand sides go down and the solutions up.
+//! - **Plain warm start** (`predict = false`, or unfused): each solve starts from the previous
+//!   step's solution of the same direction, uploaded as the `InitialGuess` (unfused, the
+//!   target's own previous solution is the previous *direction's*).
 //!
 //! # Displacement-dependent model ([`Nonlinear`], thesis 3.2.2)
 //!
@@ -72,6 +77,11 @@ pub struct Nonlinear {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StepParams {
     pub warm_start: bool,
+    /// Start from the target's prediction 2u(t−1) − u(t−2) ([`Start::Predicted`]) instead of
+    /// the uploaded previous solution. Only with `fuse` and `warm_start`.
+    pub predict: bool,
+    /// Solve the three directions in one fused target run per step.
+    pub fuse: bool,
     /// Target CG tolerance (relative recursive residual), floored at 1e-7.
     pub tol: f64,
     pub max_iterations: u32,
@@ -88,7 +98,8 @@ pub struct StepParams {
 pub struct StepResult {
     pub step: u32,
     pub t: f64,
-    /// Target CG iterations, summed over the three directions.
+    /// Target CG iterations, summed over the three directions (fused too: the fused loop's own
+    /// count is each report's `iterations`).
     pub iterations: u32,
     /// The target's report of each solve this step made (one per direction with a load), with
     /// its cycle and instruction counters.
@@ -244,36 +255,22 @@ pub fn simulate_with<P: Port>(
             u: Default::default(),
         };
         let mut deviation: Option<f64> = None;
-        for (d, b) in Axis::ALL.iter().zip(&rhs) {
-            let p = d.position();
-            let x = if max_abs(b) == 0.0 {
-                vec![0.0; n]
-            } else {
-                let start = if params.warm_start && max_abs(&previous[p]) > 0.0 {
-                    target.upload_vector(VectorSlot::INITIAL_GUESS, &previous[p])?;
-                    Start::Uploaded
-                } else {
-                    Start::Zero
-                };
-                let solve = SolveParams {
-                    max_iterations: params.max_iterations,
-                    tolerance: params.tol.max(FIXED_POINT_FLOOR),
-                    start,
-                    directions: 1,
-                };
-                let (report, x) = target.solve_for(b, solve)?;
-                result.iterations += report.iterations;
+        let solutions = if params.fuse {
+            solve_fused_step(target, &rhs, &previous, s, params, &mut result)?
+        } else {
+            solve_step_separately(target, &rhs, &previous, params, &mut result)?
+        };
+        for ((d, b), x) in Axis::ALL.iter().zip(&rhs).zip(solutions) {
+            if max_abs(b) > 0.0 {
                 result.residual = result.residual.max(reference::relative_residual(&k, b, &x));
-                result.reports.push(report);
                 if params.check_reference {
                     let want = reference::solve(&k, b, None, 1e-12, 10 * n.max(100))?;
                     let scale = max_abs(&want.x);
                     let dev = max_abs_diff(&x, &want.x) / if scale > 0.0 { scale } else { 1.0 };
                     deviation = Some(deviation.map_or(dev, |m| m.max(dev)));
                 }
-                x
-            };
-            result.u[p] = x;
+            }
+            result.u[d.position()] = x;
         }
         result.deviation = deviation;
         result.max_u = result.u.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
@@ -282,4 +279,76 @@ pub fn simulate_with<P: Port>(
         results.push(result);
     }
     Ok(results)
+}
+
+/// One target run for all three directions of a step (a zero right-hand side gives 0 on the
+/// target too), warm-started as `params` says: predicted on the target, or from `previous`.
+fn solve_fused_step<P: Port>(
+    target: &mut Target<P>,
+    rhs: &[Vec<f64>],
+    previous: &[Vec<f64>; 3],
+    step: u32,
+    params: StepParams,
+    result: &mut StepResult,
+) -> Result<Vec<Vec<f64>>, SimulateError> {
+    let warm = params.warm_start && step > 1;
+    let start = if !warm {
+        Start::Zero
+    } else if params.predict {
+        Start::Predicted
+    } else {
+        for (d, u) in previous.iter().enumerate() {
+            let slot = VectorSlot::InitialGuess { direction: d as u8 };
+            target.upload_vector(slot, u)?;
+        }
+        Start::Uploaded
+    };
+    let solve = SolveParams {
+        max_iterations: params.max_iterations,
+        tolerance: params.tol.max(FIXED_POINT_FLOOR),
+        start,
+        directions: rhs.len() as u8,
+        cycle_budget: 0,
+    };
+    let rhs: Vec<&[f64]> = rhs.iter().map(Vec::as_slice).collect();
+    let (report, x) = target.solve_fused(&rhs, solve)?;
+    result.iterations += report.directions.iter().map(|d| d.iterations).sum::<u32>();
+    result.reports.push(report);
+    Ok(x)
+}
+
+/// One target solve per loaded direction (direction 0 each), warm-started from the previous
+/// step's uploaded solution.
+fn solve_step_separately<P: Port>(
+    target: &mut Target<P>,
+    rhs: &[Vec<f64>],
+    previous: &[Vec<f64>; 3],
+    params: StepParams,
+    result: &mut StepResult,
+) -> Result<Vec<Vec<f64>>, SimulateError> {
+    let mut out = Vec::new();
+    for (b, prev) in rhs.iter().zip(previous) {
+        if max_abs(b) == 0.0 {
+            out.push(vec![0.0; b.len()]);
+            continue;
+        }
+        let start = if params.warm_start && max_abs(prev) > 0.0 {
+            target.upload_vector(VectorSlot::INITIAL_GUESS, prev)?;
+            Start::Uploaded
+        } else {
+            Start::Zero
+        };
+        let solve = SolveParams {
+            max_iterations: params.max_iterations,
+            tolerance: params.tol.max(FIXED_POINT_FLOOR),
+            start,
+            directions: 1,
+            cycle_budget: 0,
+        };
+        let (report, x) = target.solve_for(b, solve)?;
+        result.iterations += report.iterations;
+        result.reports.push(report);
+        out.push(x);
+    }
+    Ok(out)
 }

@@ -17,6 +17,7 @@
 
 pub mod chunk;
 pub mod frame;
+pub mod live;
 pub mod loader;
 pub mod matrix;
 pub mod protocol;

@@ -58,7 +58,9 @@ use crate::matrix::{MatrixError, TileHeader};
 /// Version 4 (link): the reliable transport ([`crate::transport`]: window, ACK/NAK, `Uplink` frames),
 /// fixed-width chunk payloads ([`crate::chunk`]) and 128-element chunks.
 /// Version 5 (engine): tiles carry their MVU and a mirrored flag, fused directions, per-hart costs.
-pub const PROTOCOL_VERSION: u16 = 6;
+/// Version 6 (engine): the whole solve's measured critical path (`SolveReport::whole_solve`).
+/// Version 7 (live): predicted warm starts, cycle budgets, the sparse frame messages.
+pub const PROTOCOL_VERSION: u16 = 7;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -125,6 +127,12 @@ pub enum Start {
     Previous,
     /// x₀ = the uploaded `InitialGuess` vector.
     Uploaded,
+    /// x₀ predicted on the target from the solutions it keeps (protocol version 7): the linear
+    /// extrapolation 2u(t−1) − u(t−2) once two consecutive solves of the direction are known
+    /// (the previous one `Predicted`), u(t−1) after one solve, 0 before any. No vector crosses
+    /// the link. The target keeps u(t−1) in the `InitialGuess` slot, so a `Predicted` solve
+    /// consumes an uploaded guess, and uploading a guess restarts the prediction.
+    Predicted,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -139,6 +147,12 @@ pub struct SolveParams {
     /// Every matrix word fetched serves one multiply-accumulate per direction. Each direction
     /// stops on its own tolerance; the loop runs until all have stopped.
     pub directions: u8,
+    /// Cycle budget of the step (protocol version 7), 0 for none: the loop starts no new CG
+    /// iteration once the solve's measured critical path (as in `SolveReport::whole_solve`)
+    /// reaches it. A step thus stops at the
+    /// tolerance, at `max_iterations` (the iteration budget) or at this budget, whichever comes
+    /// first; the report's residuals say how far it got.
+    pub cycle_budget: u64,
 }
 
 // Chunk variants are large by design (one frame's worth of data); no_std has no Box to shrink them.
@@ -193,6 +207,29 @@ pub enum Request {
     /// Ends a values-only update: the CRC of all words as they now are.
     EndUpdate {
         crc32: u32,
+    },
+    /// Live loop (protocol version 7, see [`crate::live`]): one tool node's row of the
+    /// unconstrained K, sent once per tool node before [`Request::LiveStart`].
+    LiveTool(crate::live::ToolRow),
+    /// Live loop: the tool set is complete; the target computes the local force model (the
+    /// Schur complement's column sums, one CG solve per three tool nodes), keeps `params` for
+    /// every frame and forgets its right-hand sides (upload the static loads next).
+    LiveStart(crate::live::LiveParams),
+    /// Live loop: a full frame. The tool nodes' prescribed displacements, in the order of their
+    /// `LiveTool`s; the target builds the right-hand sides, solves fused, predicted and within
+    /// the budget, and answers [`Response::LiveFrame`].
+    LiveFrame {
+        tool: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
+    },
+    /// Live loop: a force query between full frames, answered from the local linear model.
+    LiveForce {
+        tool: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
+    },
+    /// Live loop: a chunk of the quantised displacement field of the last frame: every
+    /// `stride`-th node from `offset` on.
+    ReadField {
+        offset: u32,
+        stride: u16,
     },
 }
 
@@ -339,6 +376,8 @@ pub enum ErrorCode {
     DirectionOutOfRange { direction: u8, max: u8 },
     #[error("the MVUs' overlapping row ranges need {rows} rows of private partial sums, the target holds {capacity}")]
     OverlapTooLarge { rows: u32, capacity: u32 },
+    #[error("live loop: {0}")]
+    Live(crate::live::LiveError),
 }
 
 /// The step a request arrived out of, for [`ErrorCode::OutOfOrder`].
@@ -396,6 +435,14 @@ pub enum Response {
         dropped: u32,
         frames: Vec<u8, LOG_CHUNK>,
     },
+    /// Live loop: the tool set is ready; what building the local force model cost.
+    LiveReady(crate::live::ModelReport),
+    /// Live loop: the answer to a full frame.
+    LiveFrame(crate::live::FrameReport),
+    /// Live loop: the answer to a force query.
+    LiveForce(crate::live::ForceReport),
+    /// Live loop: a chunk of the quantised field (see [`crate::live::FieldChunk`]).
+    Field(crate::live::FieldChunk),
 }
 
 #[cfg(test)]

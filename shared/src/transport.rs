@@ -69,9 +69,10 @@ pub enum Uplink {
 }
 
 /// Requests whose handling may take far longer than a round trip: the target sends
-/// [`Uplink::Ack`] before it starts on them.
+/// [`Uplink::Ack`] before it starts on them. A live frame is not one: it is budgeted to a few
+/// milliseconds, and an `Ack` would add its bytes to every frame.
 pub fn long_running(request: &Request) -> bool {
-    matches!(request, Request::Solve(_))
+    matches!(request, Request::Solve(_) | Request::LiveStart(_))
 }
 
 /// How far `seq` is ahead of `base` in the 16-bit sequence space (`0` = it is `base`); numbers

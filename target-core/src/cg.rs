@@ -608,6 +608,16 @@ struct Solver<'s, 'e, 'a, E: Executor> {
 }
 
 impl<E: Executor> Solver<'_, '_, '_, E> {
+    /// The cycle budget (`SolveParams::cycle_budget`, 0 for none): no new iteration starts
+    /// once the critical path measured since the solve began (every parallel phase's slowest
+    /// hart plus hart 0's serial work, as in `SolveReport::whole_solve`) reaches it, so a
+    /// budgeted step ends within one iteration of its budget with the residual it reached.
+    fn within_budget(&self) -> bool {
+        let whole = &self.clock.costs.whole;
+        self.params.cycle_budget == 0
+            || whole.mvu_critical.saturating_add(whole.svu_critical) < self.params.cycle_budget
+    }
+
     fn f(&self) -> i32 {
         self.engine.a.frac_bits as i32
     }
@@ -884,7 +894,10 @@ pub fn solve(
     };
     charge(&mut solver.clock.svu, t0, exec);
     solver.start();
-    while solver.state.iter().any(|s| s.active) && solver.iterations < params.max_iterations {
+    while solver.state.iter().any(|s| s.active)
+        && solver.iterations < params.max_iterations
+        && solver.within_budget()
+    {
         if solver.iterations == 0 {
             // The set-up's serial work goes to the whole solve, not to the first iteration.
             solver.clock.flush_serial(exec);

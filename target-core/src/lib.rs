@@ -22,7 +22,9 @@
 pub mod cg;
 pub mod exec;
 pub mod kernel;
+pub mod live;
 pub mod log_buffer;
+pub mod predict;
 pub mod session;
 pub mod svu;
 pub mod transport;

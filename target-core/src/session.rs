@@ -66,6 +66,8 @@ use deform_shared::word::{VALUE_MASK, VALUE_MAX, VALUE_MIN};
 use crate::cg::{self, Matrix, Plan, PlanError, System, Work};
 use crate::exec::Executor;
 use crate::kernel::{Lanes, Sums};
+use crate::live::Live;
+use crate::predict;
 
 /// The memory a [`Session`] works in, lent by its owner.
 ///
@@ -186,6 +188,12 @@ pub struct Session<'a, E: Executor> {
     guess: [VectorState; MAX_DIRECTIONS],
     /// Per direction, the exponent of the solution in its `x`, if there is one.
     solution: [Option<i32>; MAX_DIRECTIONS],
+    /// Per direction, the exponent of the solution before the last, kept in its `x0` for
+    /// [`Start::Predicted`]: set by a predicted solve that had a previous solution, cleared by
+    /// any other solve, a new initial guess or a new matrix.
+    kept: [Option<i32>; MAX_DIRECTIONS],
+    /// The live loop's tool set and local force model ([`crate::live`]).
+    live: Live,
     /// How the MVUs share the resident matrix.
     plan: Option<Plan>,
 }
@@ -221,6 +229,8 @@ impl<'a, E: Executor> Session<'a, E> {
             rhs: [VectorState::Empty; MAX_DIRECTIONS],
             guess: [VectorState::Empty; MAX_DIRECTIONS],
             solution: [None; MAX_DIRECTIONS],
+            kept: [None; MAX_DIRECTIONS],
+            live: Live::default(),
         }
     }
 
@@ -287,6 +297,11 @@ impl<'a, E: Executor> Session<'a, E> {
             Request::BeginUpdate { words, frac_bits } => self.begin_update(words, frac_bits),
             Request::UpdateValues { offset, values } => self.update_values(offset, &values),
             Request::EndUpdate { crc32 } => self.end_update(crc32),
+            Request::LiveTool(row) => self.live_tool(row),
+            Request::LiveStart(params) => self.live_start(params),
+            Request::LiveFrame { tool } => self.live_frame(&tool),
+            Request::LiveForce { tool } => self.live_force(&tool),
+            Request::ReadField { offset, stride } => self.read_field(offset, stride),
         }
     }
 
@@ -302,6 +317,8 @@ impl<'a, E: Executor> Session<'a, E> {
         self.rhs = [VectorState::Empty; MAX_DIRECTIONS];
         self.guess = [VectorState::Empty; MAX_DIRECTIONS];
         self.solution = [None; MAX_DIRECTIONS];
+        self.kept = [None; MAX_DIRECTIONS];
+        self.live.clear();
     }
 
     fn begin_matrix(&mut self, shape: Shape) -> Result<Response, ErrorCode> {
@@ -597,6 +614,11 @@ impl<'a, E: Executor> Session<'a, E> {
         len: u32,
     ) -> Result<Response, ErrorCode> {
         *self.slot_state(slot)? = VectorState::Empty;
+        match slot {
+            // x0 now holds neither the guess nor the kept solution.
+            VectorSlot::InitialGuess { direction } => self.kept[usize::from(direction)] = None,
+            VectorSlot::Rhs { direction } => self.live.rhs_replaced(usize::from(direction)),
+        }
         let shape = self.resident()?;
         if len != shape.n {
             return Err(ErrorCode::LengthMismatch {
@@ -682,6 +704,8 @@ impl<'a, E: Executor> Session<'a, E> {
                     self.solution[d].ok_or(out_of_order(SessionStep::NoPreviousSolution))?
                 }
                 Start::Uploaded => self.guess[d].exponent(SessionStep::NoInitialGuess)?,
+                // Never refused: with fewer solutions kept the prediction is of lower order.
+                Start::Predicted => self.solution[d].unwrap_or(0),
             };
         }
         let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
@@ -703,12 +727,29 @@ impl<'a, E: Executor> Session<'a, E> {
         for (d, v) in vectors.iter_mut().enumerate().take(directions) {
             let DirectionStorage { b, x, x0, r } = v;
             let (Some(b), Some(x), Some(x0), Some(r)) =
-                (b.get(..n), x.get_mut(..n), x0.get(..n), r.get_mut(..n))
+                (b.get(..n), x.get_mut(..n), x0.get_mut(..n), r.get_mut(..n))
             else {
                 return Err(too_large);
             };
-            if params.start == Start::Uploaded {
-                x.copy_from_slice(x0);
+            let kept = &mut self.kept[d];
+            match (params.start, self.solution[d], *kept) {
+                (Start::Uploaded, ..) => x.copy_from_slice(x0),
+                (Start::Predicted, None, _) => x.fill(0),
+                (Start::Predicted, Some(e1), None) => {
+                    x0.copy_from_slice(x);
+                    *kept = Some(e1);
+                }
+                (Start::Predicted, Some(e1), Some(e2)) => {
+                    x_exponents[d] = predict::extrapolate(x, e1, x0, e2);
+                    *kept = Some(e1);
+                }
+                _ => {}
+            }
+            if params.start == Start::Predicted {
+                // x0 now holds u(t−1), no longer an uploaded guess.
+                self.guess[d] = VectorState::Empty;
+            } else {
+                *kept = None;
             }
             let _ = systems.push(System {
                 b,
@@ -727,8 +768,13 @@ impl<'a, E: Executor> Session<'a, E> {
             plan: &plan,
         };
         let work = Work { p, kp, partial };
-        let report =
-            cg::solve(&matrix, &mut systems, work, params, &self.exec).map_err(ErrorCode::Solve)?;
+        if let Ok(started) = self.live.started_mut() {
+            started.field_exponent = None;
+        }
+        let report = cg::solve(&matrix, &mut systems, work, params, &self.exec).map_err(|e| {
+            self.kept = [None; MAX_DIRECTIONS];
+            ErrorCode::Solve(e)
+        })?;
         for (solution, system) in self.solution.iter_mut().zip(&systems) {
             *solution = Some(system.x_exponent);
         }
@@ -797,6 +843,8 @@ fn chunk_end(expected: u32, offset: u32, len: usize, limit: u32) -> Result<u32, 
         .filter(|&end| end <= limit)
         .ok_or(ErrorCode::ChunkTooLong)
 }
+
+mod live_glue;
 
 #[cfg(test)]
 mod tests;

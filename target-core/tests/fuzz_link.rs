@@ -157,12 +157,14 @@ fn random_request(rng: &mut Rng) -> Request {
         7 => Request::Solve(SolveParams {
             max_iterations: rng.below(50) as u32,
             tolerance: f64::from_bits(rng.next()),
-            start: match rng.below(3) {
+            start: match rng.below(4) {
                 0 => Start::Zero,
                 1 => Start::Previous,
-                _ => Start::Uploaded,
+                2 => Start::Uploaded,
+                _ => Start::Predicted,
             },
             directions: rng.below(5) as u8,
+            cycle_budget: rng.below(3) * u64::from(rng.number()),
         }),
         8 => Request::ReadSolution {
             direction: rng.below(4) as u8,

@@ -153,6 +153,7 @@ pub fn target_series(
         tolerance: config.tol.max(FIXED_POINT_FLOOR),
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     };
     let mut x = vec![0.0; n];
     let mut points = vec![(0, max_abs_diff(&x, &p.exact))];

@@ -161,6 +161,8 @@ fn run_one(
     };
     let params = StepParams {
         warm_start: true,
+        predict: false,
+        fuse: false,
         tol: config.tol,
         max_iterations: (10 * n).min(u32::MAX as usize) as u32,
         check_reference: false,

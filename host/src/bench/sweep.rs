@@ -216,6 +216,7 @@ fn measure(
             tolerance: 0.0,
             start: Start::Zero,
             directions: 1,
+            cycle_budget: 0,
         },
     )?;
     let wire = board.wire.read().since(before);

@@ -5,6 +5,7 @@
 pub mod bench;
 pub mod estimate;
 pub mod flash;
+pub mod live;
 pub mod model;
 pub mod observe;
 pub mod simulate;

@@ -57,6 +57,16 @@ pub struct SimulateArgs {
     #[arg(long)]
     pub cold: bool,
 
+    /// Warm-start from the previous step's solution uploaded by the host, instead of the
+    /// target's own prediction 2u(t−1) − u(t−2) (the default: no vector goes down for it).
+    #[arg(long, conflicts_with = "cold")]
+    pub no_predict: bool,
+
+    /// Solve x, y and z one after the other instead of fused in one target run per step
+    /// (unfused steps warm-start from the uploaded previous solution, never predicted).
+    #[arg(long)]
+    pub no_fuse: bool,
+
     /// Target CG tolerance per solve (relative residual; floored at 1e-7).
     #[arg(long, default_value_t = 1e-7)]
     pub tol: f64,
@@ -222,6 +232,8 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     let schedule = resolved.schedule;
     let params = StepParams {
         warm_start: !args.cold,
+        predict: !args.no_predict,
+        fuse: !args.no_fuse,
         tol: args.tol,
         max_iterations: args
             .max_iter
@@ -313,10 +325,10 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         "{} steps, {} CG iterations in all ({})",
         results.len(),
         total_iterations,
-        if args.cold {
-            "cold starts"
-        } else {
-            "warm starts from the previous step"
+        match (args.cold, args.no_fuse || args.no_predict) {
+            (true, _) => "cold starts",
+            (false, true) => "warm starts from the previous step",
+            (false, false) => "fused, started from the target's prediction 2u(t−1) − u(t−2)",
         }
     );
     if nonlinear.is_some() {

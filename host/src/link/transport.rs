@@ -671,6 +671,11 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::BeginUpdate { .. } => "BeginUpdate",
         Request::UpdateValues { .. } => "UpdateValues",
         Request::EndUpdate { .. } => "EndUpdate",
+        Request::LiveTool(_) => "LiveTool",
+        Request::LiveStart(_) => "LiveStart",
+        Request::LiveFrame { .. } => "LiveFrame",
+        Request::LiveForce { .. } => "LiveForce",
+        Request::ReadField { .. } => "ReadField",
     }
 }
 

@@ -225,6 +225,7 @@ fn run_fused(
             Start::Zero
         },
         directions: bs.len() as u8,
+        cycle_budget: 0,
     };
     let work = Work {
         p: &mut p,
@@ -436,6 +437,7 @@ fn short_workspace_is_an_error_not_a_panic() {
         tolerance: 1e-6,
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     };
     let work = Work {
         p: &mut [[0; 4]; 10],
@@ -479,6 +481,7 @@ fn iteration_cap_is_honoured() {
         tolerance: 1e-12,
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     };
     let work = Work {
         p: &mut vec![[0; 4]; 100],

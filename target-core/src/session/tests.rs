@@ -319,6 +319,7 @@ fn solve_req(start: Start) -> Request {
         tolerance: 1e-9,
         start,
         directions: 1,
+        cycle_budget: 0,
     })
 }
 
@@ -1172,6 +1173,7 @@ fn solves_the_1d_laplacian_like_a_direct_solver() {
             tolerance: 1e-6,
             start,
             directions: 1,
+            cycle_budget: 0,
         })
     };
     assert!(solved(s.handle(loose(Start::Zero))).iterations > 2);
@@ -1221,6 +1223,7 @@ fn solves_a_matrix_of_several_tiles_sent_in_many_chunks() {
         tolerance: 1e-10,
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     }));
     let report = solved(r);
     assert!(report.converged, "{report:?}");
@@ -1321,7 +1324,8 @@ fn start() -> impl Strategy<Value = Start> {
     prop_oneof![
         Just(Start::Zero),
         Just(Start::Previous),
-        Just(Start::Uploaded)
+        Just(Start::Uploaded),
+        Just(Start::Predicted)
     ]
 }
 
@@ -1388,6 +1392,7 @@ fn raw_request() -> impl Strategy<Value = Request> {
                 tolerance,
                 start,
                 directions: 1,
+                cycle_budget: 0,
             })
         ),
         (0u8..4, num(12))
@@ -1501,6 +1506,7 @@ fn step() -> impl Strategy<Value = Step> {
                 tolerance,
                 start,
                 directions: 1,
+                cycle_budget: 0,
             }))
         });
     let read = (0u8..4, 0u32..14)
@@ -1841,6 +1847,7 @@ fn fused_req(directions: u8) -> Request {
         tolerance: 1e-9,
         start: Start::Zero,
         directions,
+        cycle_budget: 0,
     })
 }
 
@@ -1984,3 +1991,6 @@ fn a_mirrored_half_solves_like_the_whole_persymmetric_matrix() {
         assert!((w - x).abs() < 1e-6 * x.abs(), "{w} vs exact {x}");
     }
 }
+
+mod live;
+mod predicted;

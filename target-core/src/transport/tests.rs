@@ -230,6 +230,7 @@ fn long_running_requests_are_acknowledged_first_and_notices_precede_replies() {
         tolerance: 0.1,
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     });
     feed_all(&mut link, &frame_of(2, solve), &mut service, &mut wire);
     assert_eq!(

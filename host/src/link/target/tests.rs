@@ -44,6 +44,7 @@ fn params() -> SolveParams {
         tolerance: 1e-9,
         start: Start::Zero,
         directions: 1,
+        cycle_budget: 0,
     }
 }
 

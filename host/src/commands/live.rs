@@ -1,0 +1,305 @@
+//! `deform live SCENARIO.toml`: the interactive real-time loop (see [`crate::live`]). With
+//! `--headless` the tool follows the scenario's keyframes for `--frames` frames and a JSON
+//! report says what the target achieved, every frame checked against a converged f64 solve.
+
+use std::fs::File;
+use std::io::{BufWriter, IsTerminal, Write};
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{bail, Context};
+use clap::Args;
+use deform_shared::live::LiveParams;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::bench::board::{timeouts, BenchBoard, BenchBoardChoice};
+use crate::encode::{EncodeOptions, Partition};
+use crate::live::headless::{self, FrameRecord, Script, Session, CLOCK_HZ};
+use crate::live::link::LiveLink;
+use crate::live::LiveSetup;
+use crate::model::Connection;
+use crate::scenario::Scenario;
+
+#[derive(Debug, Args)]
+pub struct LiveArgs {
+    /// Scenario file: the tissue, its fixed set and static loads, and the tool — its
+    /// `[[simulation.displace]]` nodes, moved along their keyframes over steps·dt.
+    pub scenario: PathBuf,
+
+    /// Run the scripted session without a browser (the tool follows the keyframes).
+    #[arg(long)]
+    pub headless: bool,
+
+    /// Full frames to run, spread evenly over the scenario's time span. Default: its steps.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
+    pub frames: Option<u32>,
+
+    /// Write the session's figures as JSON (frame cycles, rates at 100 MHz, iterations,
+    /// residuals, error against a converged solve, bytes per frame on the line).
+    #[arg(long, value_name = "FILE")]
+    pub report: Option<PathBuf>,
+
+    /// Write one CSV row per frame (t, tool, force and its reference, residual, iterations,
+    /// cycles, error against a converged solve, bytes up and down).
+    #[arg(long, value_name = "FILE")]
+    pub frames_csv: Option<PathBuf>,
+
+    /// Relative residual at which a frame's solve stops.
+    #[arg(long, default_value_t = 1e-4)]
+    pub tol: f64,
+
+    /// Cycle budget per frame's solve, in hart 0's cycles (0: none). 333 333 is 300 frames/s
+    /// at 100 MHz. Under QEMU with several harts hart 0 reads the machine-wide instruction
+    /// count, the sum over all harts, so there a budget limits the work of all MVUs together.
+    #[arg(long, default_value_t = 0)]
+    pub cycle_budget: u64,
+
+    /// Iteration budget per frame.
+    #[arg(long, default_value_t = 500)]
+    pub max_iter: u32,
+
+    /// Read the quantised field every this many frames (the field rate; 0: never).
+    #[arg(long, default_value_t = 10)]
+    pub field_every: u32,
+
+    /// Send every k-th node in a field frame.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
+    pub field_stride: u16,
+
+    /// Force queries from the local model between two full frames (the haptic rate).
+    #[arg(long, default_value_t = 3)]
+    pub forces_per_frame: u32,
+
+    /// MVUs (harts) to boot QEMU with and split K over.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u8).range(1..=8))]
+    pub mvus: u8,
+
+    /// Serial device of a real board running the firmware. Default: boot it in QEMU.
+    #[arg(long, value_name = "PATH")]
+    pub port: Option<String>,
+
+    /// Firmware ELF for QEMU. Default: $DEFORM_FIRMWARE, else the release build.
+    #[arg(long, value_name = "ELF")]
+    pub firmware: Option<PathBuf>,
+
+    /// Spring model, overriding the scenario's: a (6 axial neighbours) or b (all 26).
+    #[arg(long, value_name = "a|b", value_parser = ["a", "b"])]
+    pub model: Option<String>,
+
+    /// Seconds to wait for one frame's answer.
+    #[arg(long, default_value_t = 60)]
+    pub timeout: u64,
+}
+
+fn bar(len: u64) -> ProgressBar {
+    if !std::io::stderr().is_terminal() {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(len);
+    bar.set_style(
+        ProgressStyle::with_template("{msg:>8} [{bar:40}] {pos}/{len} {elapsed}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    bar.set_message("frames");
+    bar
+}
+
+pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
+    if !args.headless {
+        bail!("give --headless: the browser view (--serve) is not part of this build yet");
+    }
+    let mut scenario = Scenario::load(&args.scenario, None)?;
+    match args.model.as_deref() {
+        Some("a") => scenario.model.connection = Connection::Axial,
+        Some("b") => scenario.model.connection = Connection::AxialShear,
+        _ => {}
+    }
+    let Some(simulation) = scenario.simulation.clone() else {
+        bail!(
+            "{}: no [simulation] table, so no tool path: give [[simulation.displace]] keyframes",
+            args.scenario.display()
+        );
+    };
+    let frames = args.frames.unwrap_or(simulation.steps);
+    let end = simulation.end_time();
+    let times: Vec<f64> = (1..=frames)
+        .map(|i| end * f64::from(i) / f64::from(frames))
+        .collect();
+    let layout = EncodeOptions {
+        mvus: args.mvus,
+        partition: Partition::Rows,
+        use_symmetry: true,
+    };
+    let setup = LiveSetup::new(&simulation.spec_at(&scenario.model, 0.0), &layout)?;
+    let grid = setup.model.grid();
+    let tool_at = |t: f64| -> Vec<[f64; 3]> {
+        let spec = simulation.spec_at(&scenario.model, t);
+        setup
+            .tools
+            .iter()
+            .map(|&p| {
+                let node = grid.node(p);
+                spec.prescribed
+                    .iter()
+                    .find(|d| d.node == node)
+                    .map_or([0.0; 3], |d| d.u)
+            })
+            .collect()
+    };
+    let choice = match &args.port {
+        Some(port) => BenchBoardChoice::Port(port.clone()),
+        None => BenchBoardChoice::Qemu {
+            firmware: args.firmware.clone(),
+        },
+    };
+    let mut board = BenchBoard::open(
+        &choice,
+        args.mvus,
+        timeouts(Duration::from_secs(args.timeout)),
+    )?;
+    let params = LiveParams {
+        tolerance: args.tol as f32,
+        max_iterations: args.max_iter,
+        cycle_budget: args.cycle_budget,
+        scale: setup.scale.map(|s| s as f32),
+    };
+    println!("model       {}", setup.model.spec().describe());
+    println!(
+        "tool        {} node(s), {frames} frames over {end} s; tolerance {:e}, budget {} cycles, {} MVU(s)",
+        setup.tools.len(),
+        args.tol,
+        args.cycle_budget,
+        args.mvus
+    );
+    let mut link = LiveLink::start(&mut board.target, &setup, params)
+        .context("setting the live session up on the target")?;
+    println!(
+        "force model {} CG solve(s), {} iterations, {} cycles",
+        link.model.solves, link.model.iterations, link.model.cycles
+    );
+    let script = Script {
+        frames,
+        field_every: args.field_every,
+        field_stride: args.field_stride,
+        forces_per_frame: args.forces_per_frame,
+    };
+    let mut csv = match &args.frames_csv {
+        Some(path) => {
+            let mut f = BufWriter::new(
+                File::create(path).with_context(|| format!("creating {}", path.display()))?,
+            );
+            writeln!(f, "frame,t,tool_x,tool_y,tool_z,fx,fy,fz,fx_ref,fy_ref,fz_ref,residual,iterations,cycles,error_vs_converged,bytes_up,bytes_down")?;
+            Some(f)
+        }
+        None => None,
+    };
+    let progress = bar(u64::from(frames));
+    let mut written: std::io::Result<()> = Ok(());
+    let on_frame = |r: &FrameRecord| {
+        progress.inc(1);
+        if let Some(f) = csv.as_mut() {
+            let u = r.tool.first().copied().unwrap_or([0.0; 3]);
+            let line = writeln!(
+                f,
+                "{},{},{},{},{},{},{},{},{},{},{},{:e},{},{},{:e},{},{}",
+                r.frame,
+                r.t,
+                u[0],
+                u[1],
+                u[2],
+                r.force[0],
+                r.force[1],
+                r.force[2],
+                r.force_reference[0],
+                r.force_reference[1],
+                r.force_reference[2],
+                r.residual,
+                r.iterations,
+                r.cycles,
+                r.error_vs_converged,
+                r.bytes_up,
+                r.bytes_down
+            );
+            if written.is_ok() {
+                written = line;
+            }
+        }
+    };
+    let (records, summary) = headless::run(
+        &mut link,
+        &setup,
+        &board.wire,
+        &times,
+        &tool_at,
+        script,
+        on_frame,
+    )?;
+    progress.finish_and_clear();
+    written?;
+    if let Some(mut f) = csv {
+        f.flush()?;
+    }
+    let session = Session {
+        grid: [grid.nx(), grid.ny(), grid.nz()],
+        model: match setup.model.spec().connection {
+            Connection::Axial => "a".into(),
+            Connection::AxialShear => "b".into(),
+        },
+        mvus: args.mvus,
+        tolerance: args.tol,
+        cycle_budget: args.cycle_budget,
+        model_cycles: link.model.cycles,
+        model_iterations: link.model.iterations,
+        resets: link.resets,
+    };
+    let report = headless::report(session, &records, &summary);
+    println!(
+        "frames      {}: cycles p50 {:.0}, p99 {:.0}, max {:.0} → {:.0} frames/s at 100 MHz (worst {:.0})",
+        report.frames,
+        report.frame_cycles.p50,
+        report.frame_cycles.p99,
+        report.frame_cycles.max,
+        report.frames_per_s_at_100mhz.p50,
+        report.frames_per_s_at_100mhz.worst
+    );
+    println!(
+        "accuracy    error vs converged ≤ {:.2e} of max |u|, force ≤ {:.2e}, residual ≤ {:.2e}, iterations p50 {} max {}",
+        report.error_vs_converged_max,
+        report.force_error_max,
+        report.residual_max,
+        report.iterations.p50,
+        report.iterations.max
+    );
+    println!(
+        "force model {:.0} updates/s at 100 MHz ({} cycles per query), error ≤ {:.2e} of max |F|",
+        report.force_updates_per_s, report.force_query_cycles_max, report.model_force_error_max
+    );
+    println!(
+        "line        {} B up / {} B down per frame, field frame {} B ({:.3} B per component, quantisation ≤ {:.1e})",
+        report.bytes_up_per_frame,
+        report.bytes_down_per_frame.force,
+        report.bytes_down_per_frame.field,
+        report.bytes_down_per_frame.field_per_component,
+        report.field_quantisation_error_max
+    );
+    for r in &report.link_rates {
+        println!(
+            "  {:>9} baud: {:.0} frames/s, {:.0} force queries/s, {:.1} field frames/s",
+            r.baud, r.frames_per_s, r.force_queries_per_s, r.field_frames_per_s
+        );
+    }
+    if report.target_resets > 0 {
+        println!(
+            "target reset {} time(s); set up again each time",
+            report.target_resets
+        );
+    }
+    let _ = CLOCK_HZ;
+    if let Some(path) = &args.report {
+        let f = File::create(path).with_context(|| format!("creating {}", path.display()))?;
+        serde_json::to_writer_pretty(BufWriter::new(f), &report)?;
+        println!("wrote       {}", path.display());
+    }
+    Ok(())
+}

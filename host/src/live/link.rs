@@ -1,0 +1,177 @@
+//! The live requests over a [`Target`]: set-up, frames, force queries and field chunks.
+//!
+//! A target that resets mid-session loses its matrix, tool set and static loads; the host
+//! holds all of them ([`LiveSetup`]), so [`LiveLink`] shakes hands again, uploads them and
+//! repeats the frame, counting the resets. Only the prediction's history is lost: the next two
+//! frames start plainly.
+
+use std::time::Duration;
+
+use deform_shared::live::{
+    FieldChunk, ForceReport, FrameReport, LiveParams, ModelReport, MAX_TOOL_NODES,
+};
+use deform_shared::protocol::{Request, Response, VectorSlot};
+
+use super::LiveSetup;
+use crate::link::{LinkError, Port, Target};
+
+/// A started live session on a target.
+pub struct LiveLink<'a, P: Port> {
+    target: &'a mut Target<P>,
+    setup: &'a LiveSetup,
+    params: LiveParams,
+    /// Times the target reset and was set up again.
+    pub resets: u32,
+    /// What building the local force model cost, at the last set-up.
+    pub model: ModelReport,
+}
+
+fn unexpected(request: &'static str, expected: &'static str, got: Response) -> LinkError {
+    LinkError::Protocol {
+        request,
+        expected,
+        got: format!("{got:?}"),
+    }
+}
+
+/// The tool displacements as a frame carries them.
+fn tool_vec(tool: &[[f64; 3]]) -> heapless::Vec<[f32; 3], MAX_TOOL_NODES> {
+    tool.iter().map(|u| u.map(|v| v as f32)).collect()
+}
+
+impl<'a, P: Port> LiveLink<'a, P> {
+    /// Uploads the matrix, the tool rows and the static loads and starts the session.
+    pub fn start(
+        target: &'a mut Target<P>,
+        setup: &'a LiveSetup,
+        params: LiveParams,
+    ) -> Result<Self, LinkError> {
+        let mut link = LiveLink {
+            target,
+            setup,
+            params,
+            resets: 0,
+            model: ModelReport {
+                solves: 0,
+                iterations: 0,
+                cycles: 0,
+                converged: false,
+            },
+        };
+        link.begin()?;
+        Ok(link)
+    }
+
+    fn begin(&mut self) -> Result<(), LinkError> {
+        self.target.upload_matrix(&self.setup.matrix)?;
+        for row in &self.setup.rows {
+            match self
+                .target
+                .link_mut()
+                .request(&Request::LiveTool(row.clone()))?
+            {
+                Response::Ack => {}
+                other => return Err(unexpected("LiveTool", "Ack", other)),
+            }
+        }
+        let timeout = self.solve_timeout();
+        let request = Request::LiveStart(self.params);
+        self.model = match self.target.link_mut().request_within(&request, timeout)? {
+            Response::LiveReady(model) => model,
+            other => return Err(unexpected("LiveStart", "LiveReady", other)),
+        };
+        for (d, b) in self.setup.static_rhs.iter().enumerate() {
+            let slot = VectorSlot::Rhs { direction: d as u8 };
+            self.target.upload_vector(slot, b)?;
+        }
+        Ok(())
+    }
+
+    fn solve_timeout(&self) -> Duration {
+        self.target.timeouts().solve
+    }
+
+    /// Sends `request`; if the target reset, sets the session up again and repeats it once.
+    fn request(&mut self, request: &Request) -> Result<Response, LinkError> {
+        let timeout = self.solve_timeout();
+        match self.target.link_mut().request_within(request, timeout) {
+            Err(LinkError::TargetReset) => {
+                self.target.reset()?;
+                self.begin()?;
+                self.resets += 1;
+                self.target.link_mut().request_within(request, timeout)
+            }
+            other => other,
+        }
+    }
+
+    /// A full frame with the tool nodes at `tool`.
+    pub fn frame(&mut self, tool: &[[f64; 3]]) -> Result<FrameReport, LinkError> {
+        match self.request(&Request::LiveFrame {
+            tool: tool_vec(tool),
+        })? {
+            Response::LiveFrame(r) => Ok(r),
+            other => Err(unexpected("LiveFrame", "LiveFrame", other)),
+        }
+    }
+
+    /// A force query from the local model.
+    pub fn force(&mut self, tool: &[[f64; 3]]) -> Result<ForceReport, LinkError> {
+        match self.request(&Request::LiveForce {
+            tool: tool_vec(tool),
+        })? {
+            Response::LiveForce(r) => Ok(r),
+            other => Err(unexpected("LiveForce", "LiveForce", other)),
+        }
+    }
+
+    /// The last frame's quantised field: every `stride`-th node, as (node, u).
+    pub fn field(&mut self, stride: u16) -> Result<Vec<(usize, [f64; 3])>, LinkError> {
+        let n = self.setup.matrix.n as usize;
+        let step = usize::from(stride.max(1));
+        let per_chunk = deform_shared::live::FIELD_NODES * step;
+        let mut out = Vec::new();
+        let mut exponent = None;
+        let requests = (0..n).step_by(per_chunk).map(|offset| Request::ReadField {
+            offset: offset as u32,
+            stride: stride.max(1),
+        });
+        self.target.link_mut().run(requests, |request, reply| {
+            let Request::ReadField { offset, .. } = *request else {
+                return Err(unexpected("ReadField", "Field", reply));
+            };
+            match reply {
+                Response::Field(FieldChunk {
+                    offset: got,
+                    exponent: e,
+                    ref values,
+                }) if got == offset && *exponent.get_or_insert(e) == e => {
+                    let chunk = FieldChunk {
+                        offset: got,
+                        exponent: e,
+                        values: values.clone(),
+                    };
+                    let nodes = (offset as usize..n).step_by(step);
+                    out.extend(nodes.zip(chunk.displacements()));
+                    Ok(())
+                }
+                other => Err(unexpected(
+                    "ReadField",
+                    "a Field chunk at the offset asked, with the frame's exponent",
+                    other,
+                )),
+            }
+        })?;
+        Ok(out)
+    }
+
+    /// The last frame's full-precision solution (for checking, not the live path).
+    pub fn solution(&mut self) -> Result<[Vec<f64>; 3], LinkError> {
+        let n = self.setup.matrix.n as usize;
+        let mut u: [Vec<f64>; 3] = Default::default();
+        for (d, ud) in u.iter_mut().enumerate() {
+            *ud = self.target.read_direction_solution(d as u8, n)?;
+        }
+        Ok(u)
+    }
+}

@@ -1,0 +1,257 @@
+//! What a live session sends once, and the f64 reference every frame is checked against.
+//!
+//! The tool nodes are the scenario's prescribed nodes. The matrix is the model's with them
+//! eliminated, exactly as `deform solve` sends it; the static loads are the model's right-hand
+//! sides with the tool held at zero; each tool node's row of the *unconstrained* K (its springs
+//! to non-fixed nodes) lets the target move the tool's displacement into the right-hand side
+//! and sum the reaction force.
+
+use deform_shared::live::{Coupling, ToolRow, MAX_TOOL_NODES, MAX_TOOL_ROW};
+use deform_shared::qformat::quantize;
+
+use crate::encode::{encode_with, EncodeOptions, EncodedMatrix};
+use crate::model::assembly::assemble_laplacian;
+use crate::model::springs::{MeanOfEndNodes, Uniform};
+use crate::model::{Axis, Csr, Model, ModelError, ModelSpec, Node};
+use crate::reference;
+
+/// Why a live session cannot be set up.
+#[derive(Debug, thiserror::Error)]
+pub enum SetupError {
+    #[error("the scenario moves no tool: give a [[simulation.displace]] node with keyframes")]
+    NoTool,
+    #[error("{0} tool nodes; a live session drives at most {MAX_TOOL_NODES}")]
+    TooManyTools(usize),
+    #[error("the tool tissue model: {0}")]
+    Model(#[from] ModelError),
+    #[error("assembling K: {0}")]
+    Assembly(#[from] crate::model::assembly::AssemblyError),
+    #[error("encoding K: {0}")]
+    Encode(#[from] crate::encode::EncodeError),
+    #[error(
+        "tool node {node:?} has {count} springs to free nodes; a tool row holds {MAX_TOOL_ROW}"
+    )]
+    RowTooLong { node: Node, count: usize },
+    #[error("a tool row value does not fit the matrix's Q-format: {0}")]
+    Quantize(#[from] deform_shared::qformat::QFormatError),
+    #[error("f64 reference: {0}")]
+    Reference(#[from] reference::SolveError),
+}
+
+/// One tool node's row of the unconstrained K in f64: (column, value), diagonal included.
+pub type RowF64 = Vec<(usize, f64)>;
+
+/// Everything a live session uploads once, and its f64 twin.
+pub struct LiveSetup {
+    /// The model with the tool at rest (its prescribed displacements zero).
+    pub model: Model,
+    /// Tool node indices, in the order frames give their displacements.
+    pub tools: Vec<usize>,
+    /// The rows as the target gets them (raw values in the matrix's Q-format).
+    pub rows: Vec<ToolRow>,
+    /// The same rows in f64, diagonal included.
+    pub rows_f64: Vec<RowF64>,
+    pub matrix: EncodedMatrix,
+    /// The static right-hand sides for the unit matrix (loads / k_d, zero at the tool).
+    pub static_rhs: [Vec<f64>; 3],
+    /// k_d: forces are k_d times the unit matrix's.
+    pub scale: [f64; 3],
+}
+
+impl LiveSetup {
+    /// Sets up a session for `spec`, whose prescribed nodes are the tool.
+    pub fn new(spec: &ModelSpec, layout: &EncodeOptions) -> Result<Self, SetupError> {
+        if spec.prescribed.is_empty() {
+            return Err(SetupError::NoTool);
+        }
+        if spec.prescribed.len() > MAX_TOOL_NODES {
+            return Err(SetupError::TooManyTools(spec.prescribed.len()));
+        }
+        let mut rest = spec.clone();
+        for p in &mut rest.prescribed {
+            p.u = [0.0; 3];
+        }
+        let model = Model::build(&rest)?;
+        let grid = model.grid();
+        let tools: Vec<usize> = spec
+            .prescribed
+            .iter()
+            .filter_map(|p| grid.index(p.node))
+            .collect();
+        let free = if model.is_heterogeneous() {
+            assemble_laplacian(
+                grid,
+                spec.connection,
+                &MeanOfEndNodes(model.node_stiffness()),
+            )?
+        } else {
+            assemble_laplacian(grid, spec.connection, &Uniform(1.0))?
+        };
+        let rows_f64: Vec<RowF64> = tools
+            .iter()
+            .map(|&t| {
+                let (cols, vals) = free.row(t);
+                cols.iter()
+                    .zip(vals)
+                    .filter(|(&c, _)| !model.fixed_mask()[c])
+                    .map(|(&c, &v)| (c, v))
+                    .collect()
+            })
+            .collect();
+        let matrix = encode_with(model.unit_matrix(), layout)?.matrix;
+        let rows = tools
+            .iter()
+            .zip(&rows_f64)
+            .map(|(&t, row)| tool_row(t, row, matrix.frac_bits, &model))
+            .collect::<Result<_, _>>()?;
+        let static_rhs = Axis::ALL.map(|d| model.scaled_rhs(d));
+        let scale = Axis::ALL.map(|d| model.direction_scale(d));
+        Ok(LiveSetup {
+            model,
+            tools,
+            rows,
+            rows_f64,
+            matrix,
+            static_rhs,
+            scale,
+        })
+    }
+
+    /// The unit matrix the target holds (tool nodes eliminated).
+    pub fn unit_matrix(&self) -> &Csr {
+        self.model.unit_matrix()
+    }
+
+    /// The right-hand side of direction d with the tool at `tool`: the tool's displacement
+    /// moved over as [`Model::build`] does (b_i −= A_it·u_t, b_t = A_tt·u_t).
+    pub fn rhs(&self, d: usize, tool: &[[f64; 3]]) -> Vec<f64> {
+        let mut b = self.static_rhs[d].clone();
+        for ((&t, row), u) in self.tools.iter().zip(&self.rows_f64).zip(tool) {
+            for &(c, v) in row {
+                if c == t {
+                    b[t] = v * u[d];
+                } else if !self.tools.contains(&c) {
+                    b[c] -= v * u[d];
+                }
+            }
+        }
+        b
+    }
+
+    /// Reaction force Σ_t (K·u)_t per direction, with the tool nodes at `tool`.
+    pub fn reaction(&self, u: &[Vec<f64>; 3], tool: &[[f64; 3]]) -> [f64; 3] {
+        [0, 1, 2].map(|d| {
+            let mut sum = 0.0;
+            for row in &self.rows_f64 {
+                for &(c, v) in row {
+                    let uc = match self.tools.iter().position(|&t| t == c) {
+                        Some(j) => tool[j][d],
+                        None => u[d][c],
+                    };
+                    sum += v * uc;
+                }
+            }
+            self.scale[d] * sum
+        })
+    }
+
+    /// The converged f64 solution of one frame (relative residual 1e-12) and its reaction
+    /// force: what every target frame is checked against. `warm` starts the CG.
+    pub fn converged(
+        &self,
+        tool: &[[f64; 3]],
+        warm: Option<&[Vec<f64>; 3]>,
+    ) -> Result<([Vec<f64>; 3], [f64; 3]), SetupError> {
+        let k = self.unit_matrix();
+        let n = k.n();
+        let mut u: [Vec<f64>; 3] = Default::default();
+        for (d, ud) in u.iter_mut().enumerate() {
+            let b = self.rhs(d, tool);
+            let x0 = warm.map(|w| w[d].as_slice());
+            *ud = reference::solve(k, &b, x0, 1e-12, 20 * n.max(100))?.x;
+        }
+        let force = self.reaction(&u, tool);
+        Ok((u, force))
+    }
+}
+
+/// The target's form of tool node t's row: off-diagonal entries to non-fixed nodes.
+fn tool_row(t: usize, row: &RowF64, frac_bits: u8, model: &Model) -> Result<ToolRow, SetupError> {
+    let off: Vec<_> = row.iter().filter(|(c, _)| *c != t).collect();
+    if off.len() > MAX_TOOL_ROW {
+        return Err(SetupError::RowTooLong {
+            node: model.node(t),
+            count: off.len(),
+        });
+    }
+    let diagonal = row.iter().find(|(c, _)| *c == t).map_or(0.0, |(_, v)| *v);
+    let mut out = heapless::Vec::new();
+    for &&(column, v) in &off {
+        let _ = out.push(Coupling {
+            column: column as u32,
+            value: quantize(v, frac_bits)?,
+        });
+    }
+    Ok(ToolRow {
+        node: t as u32,
+        diagonal: quantize(diagonal, frac_bits)?,
+        row: out,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::prescribed::PrescribedDisplacement;
+
+    fn needle(u: [f64; 3]) -> ModelSpec {
+        let mut spec = ModelSpec::thesis_example();
+        spec.grid = crate::model::Grid::new(5, 5, 5).unwrap();
+        spec.connection = crate::model::springs::Connection::AxialShear;
+        spec.loads = vec![ModelSpec::default_load(spec.grid)];
+        spec.prescribed = vec![PrescribedDisplacement {
+            node: Node { i: 2, j: 2, k: 4 },
+            u,
+        }];
+        spec
+    }
+
+    /// The right-hand side moved over by the live setup equals the model's own.
+    #[test]
+    fn the_rhs_equals_the_models_with_the_tool_prescribed() {
+        let u = [0.2, -0.1, -0.7];
+        let setup = LiveSetup::new(&needle(u), &EncodeOptions::default()).unwrap();
+        let model = Model::build(&needle(u)).unwrap();
+        for (d, axis) in Axis::ALL.into_iter().enumerate() {
+            let want = model.scaled_rhs(axis);
+            let got = setup.rhs(d, &[u]);
+            let err = reference::max_abs_diff(&got, &want);
+            assert!(err < 1e-12, "direction {d}: {err}");
+        }
+        // A node of the top face has 17 neighbours in model B.
+        assert_eq!(setup.rows[0].row.len(), 17);
+        // The reaction equals the model's K·u at the tool node, summed with k_d.
+        let (x, force) = setup.converged(&[u], None).unwrap();
+        let k = Model::build(&needle(u)).unwrap();
+        for (d, axis) in Axis::ALL.into_iter().enumerate() {
+            let full = assemble_laplacian(k.grid(), k.spec().connection, &Uniform(1.0)).unwrap();
+            let mut y = vec![0.0; k.n()];
+            full.mul_vec_into(&x[d], &mut y);
+            let want = k.direction_scale(axis) * y[setup.tools[0]];
+            assert!(
+                (force[d] - want).abs() < 1e-9,
+                "{d}: {} vs {want}",
+                force[d]
+            );
+        }
+    }
+
+    #[test]
+    fn a_scenario_without_a_tool_is_refused() {
+        let spec = ModelSpec::thesis_example();
+        assert!(matches!(
+            LiveSetup::new(&spec, &EncodeOptions::default()),
+            Err(SetupError::NoTool)
+        ));
+    }
+}

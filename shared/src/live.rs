@@ -1,0 +1,249 @@
+//! The live loop's messages (protocol version 7): a tool pushes the tissue frame by frame, the
+//! reaction force comes back at haptic rate and the field at a lower rate (`deform live`).
+//!
+//! K, the fixed set and the static loads stay resident on the target. The host sends once per
+//! tool node its row of the unconstrained K ([`ToolRow`]: the couplings K_tf to the free
+//! nodes, K_tt among the tool nodes), then [`LiveParams`]. Each frame then carries only the
+//! tool nodes' prescribed displacements, a dozen bytes per node: the target moves them into
+//! the right-hand side itself (b_i = b_static,i − Σ_t K_it·u_t for the free neighbours, b_t =
+//! K_tt·u_t on the tool's own eliminated row, exactly as the host's model does), solves the
+//! three directions fused from its prediction within the budget and answers the reaction force
+//! Σ_t (K·u)_t, the residual reached, the iterations and the cycles ([`FrameReport`]).
+//!
+//! Between full frames a force query ([`ForceReport`]) is answered from a local linear model:
+//! for displacement tools the effective stiffness at the tool nodes, the Schur complement
+//! S = K_tt − K_tf·K_ff⁻¹·K_ft, of which the force summed over the tool nodes needs only the
+//! column sums s_j. The target computes them with CG solves when the tool set is given
+//! ([`ModelReport`]), and each full frame re-anchors the model: F(u) = F_frame + k_d·Σ_j s_j·
+//! (u_j − u_j,frame).
+//!
+//! The displacement field travels in its own [`FieldChunk`]s, quantised to `i16` per component
+//! with one power-of-two scale per frame, optionally every k-th node only.
+
+use heapless::Vec;
+use serde::{Deserialize, Serialize};
+
+/// Most tool nodes a live session drives.
+pub const MAX_TOOL_NODES: usize = 8;
+
+/// Most off-diagonal entries of a tool node's row (model B has 26 neighbours).
+pub const MAX_TOOL_ROW: usize = 32;
+
+/// Bytes of packed `i16` components one [`FieldChunk`] carries: 80 nodes of three components.
+pub const FIELD_BYTES: usize = 480;
+
+/// Nodes per [`FieldChunk`].
+pub const FIELD_NODES: usize = FIELD_BYTES / 6;
+
+/// One entry of a tool node's row of K: the column (a node index) and its raw value in the
+/// resident matrix's Q-format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Coupling {
+    pub column: u32,
+    pub value: i32,
+}
+
+/// A tool node and its row of the unconstrained K (fixed neighbours left out: they do not
+/// move). The node's own row in the resident matrix is its eliminated row K_tt alone.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ToolRow {
+    pub node: u32,
+    /// K_tt, raw.
+    pub diagonal: i32,
+    /// The off-diagonal entries, to free and to other tool nodes.
+    pub row: Vec<Coupling, MAX_TOOL_ROW>,
+}
+
+/// How every frame is solved, kept by the target from [`LiveStart`](crate::protocol::Request).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LiveParams {
+    /// Relative residual at which a frame's solve stops.
+    pub tolerance: f32,
+    /// Iteration budget of a frame.
+    pub max_iterations: u32,
+    /// Cycle budget of a frame's solve, 0 for none (`SolveParams::cycle_budget`).
+    pub cycle_budget: u64,
+    /// k_d per direction: the resident matrix times k_d is K_d (1 for heterogeneous tissue),
+    /// so forces come back in newtons.
+    pub scale: [f32; 3],
+}
+
+/// What building the local force model cost.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ModelReport {
+    /// Fused CG solves run (one per three tool nodes).
+    pub solves: u8,
+    /// CG iterations over those solves.
+    pub iterations: u32,
+    /// Hart 0's cycles for the whole model.
+    pub cycles: u64,
+    /// Every column converged.
+    pub converged: bool,
+}
+
+/// The answer to a full frame.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FrameReport {
+    /// Reaction force summed over the tool nodes, K·u, per direction (N).
+    pub force: [f32; 3],
+    /// The largest relative residual the three directions reached.
+    pub residual: f32,
+    /// Iterations of the fused loop.
+    pub iterations: u16,
+    /// Hart 0's cycles for the whole frame: right-hand side, prediction, solve, force.
+    pub cycles: u32,
+}
+
+/// The answer to a force query from the local model.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ForceReport {
+    pub force: [f32; 3],
+    /// Hart 0's cycles for the query.
+    pub cycles: u32,
+}
+
+/// A chunk of the last frame's displacement field: nodes `offset`, `offset + stride`, … (at
+/// most [`FIELD_NODES`]), three components each as little-endian `i16` q, the displacement
+/// being q·2^`exponent`. The exponent is the same for every chunk of a frame.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FieldChunk {
+    pub offset: u32,
+    pub exponent: i8,
+    pub values: Vec<u8, FIELD_BYTES>,
+}
+
+impl FieldChunk {
+    /// The displacements it carries, node by node.
+    pub fn displacements(&self) -> impl Iterator<Item = [f64; 3]> + '_ {
+        let scale = crate::qformat::pow2(i32::from(self.exponent));
+        self.values.chunks_exact(6).map(move |c| {
+            [0, 1, 2].map(|d| f64::from(i16::from_le_bytes([c[2 * d], c[2 * d + 1]])) * scale)
+        })
+    }
+}
+
+/// Why the target refused a live request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, thiserror::Error)]
+pub enum LiveError {
+    #[error("tool node {node} is outside the matrix")]
+    NodeOutOfRange { node: u32 },
+    #[error("column {column} of a tool row is outside the matrix")]
+    ColumnOutOfRange { column: u32 },
+    #[error("tool node {node} was given twice")]
+    DuplicateNode { node: u32 },
+    #[error("more than {max} tool nodes")]
+    TooManyNodes { max: u8 },
+    #[error("a raw value of a tool row does not fit the 21-bit value field")]
+    ValueOutOfRange,
+    #[error("no tool node was given before LiveStart")]
+    NoTool,
+    #[error("no live session: send the tool rows and LiveStart first")]
+    NotStarted,
+    #[error("{got} tool displacements for {expected} tool nodes")]
+    ToolCount { expected: u8, got: u8 },
+    #[error("a tool displacement or parameter is not finite")]
+    NotFinite,
+    #[error("no full frame yet: the local force model has no anchor")]
+    NoFrame,
+    #[error("the field stride must be at least 1")]
+    BadStride,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame;
+    use crate::protocol::{Envelope, Request, Response, MAX_FRAME_LEN};
+    use crate::transport::Uplink;
+
+    fn encoded_len<T: Serialize>(msg: &T) -> usize {
+        let mut buf = [0u8; MAX_FRAME_LEN];
+        frame::encode(msg, &mut buf).unwrap()
+    }
+
+    /// The budget: at most 32 bytes on the line up and 32 down per force frame, even
+    /// with the largest sequence number and a one-node tool.
+    #[test]
+    fn a_frame_fits_32_bytes_each_way() {
+        let tool = [[-1.25e-3f32, 7.5, f32::MAX]].into_iter().collect();
+        let up = Envelope {
+            seq: u16::MAX,
+            body: Request::LiveFrame { tool },
+        };
+        assert!(encoded_len(&up) <= 32, "{}", encoded_len(&up));
+        let report = FrameReport {
+            force: [f32::MIN, -0.5, 3.25],
+            residual: 1e-5,
+            iterations: 120,
+            cycles: 2_000_000,
+        };
+        let down = Uplink::Reply {
+            seq: u16::MAX,
+            body: Response::LiveFrame(report),
+        };
+        assert!(encoded_len(&down) <= 32, "{}", encoded_len(&down));
+    }
+
+    #[test]
+    fn the_largest_live_messages_fit_a_frame() {
+        let row = ToolRow {
+            node: u32::MAX,
+            diagonal: i32::MIN,
+            row: (0..MAX_TOOL_ROW as u32)
+                .map(|c| Coupling {
+                    column: u32::MAX - c,
+                    value: i32::MIN,
+                })
+                .collect(),
+        };
+        let up = Envelope {
+            seq: u16::MAX,
+            body: Request::LiveTool(row),
+        };
+        assert!(encoded_len(&up) + 16 <= MAX_FRAME_LEN);
+        let chunk = FieldChunk {
+            offset: u32::MAX,
+            exponent: i8::MIN,
+            values: (0..FIELD_BYTES).map(|_| 0).collect(),
+        };
+        let down = Uplink::Reply {
+            seq: u16::MAX,
+            body: Response::Field(chunk.clone()),
+        };
+        let n = encoded_len(&down);
+        assert!(n + 16 <= MAX_FRAME_LEN, "{n}");
+        // 2 bytes per component and the frame's overhead.
+        assert!(n as f64 / (FIELD_BYTES as f64 / 2.0) < 2.1, "{n}");
+        let mut buf = [0u8; MAX_FRAME_LEN];
+        let n = frame::encode(&down, &mut buf).unwrap();
+        let back: Uplink = frame::decode(&mut buf[..n - 1]).unwrap();
+        assert_eq!(
+            back,
+            Uplink::Reply {
+                seq: u16::MAX,
+                body: Response::Field(chunk)
+            }
+        );
+    }
+
+    #[test]
+    fn field_values_decode_with_their_scale() {
+        let mut values = Vec::new();
+        for q in [1i16, -2, i16::MAX, i16::MIN, 0, 300] {
+            values.extend_from_slice(&q.to_le_bytes()).unwrap();
+        }
+        let chunk = FieldChunk {
+            offset: 0,
+            exponent: -4,
+            values,
+        };
+        let got: std::vec::Vec<[f64; 3]> = chunk.displacements().collect();
+        assert_eq!(
+            got,
+            [
+                [0.0625, -0.125, 32767.0 / 16.0],
+                [-2048.0, 0.0, 300.0 / 16.0]
+            ]
+        );
+    }
+}

@@ -1,0 +1,453 @@
+//! The target's half of the live loop (`deform live`, protocol version 7; the messages and the
+//! scheme are in [`deform_shared::live`]): the tool set, the local force model, and the integer
+//! arithmetic that turns a frame's few tool displacements into right-hand sides, reaction forces
+//! and a quantised field. The session ([`crate::session`]) owns the vectors and runs the solves;
+//! this module only computes on what it is lent.
+//!
+//! Everything per frame is integer work on the few rows the tool touches, never a pass of soft
+//! float over n: a frame's right-hand side differs from the static one only in the tool nodes'
+//! free neighbours and the tool rows themselves.
+
+use deform_shared::live::{
+    Coupling, LiveError, LiveParams, ToolRow, FIELD_BYTES, MAX_TOOL_NODES, MAX_TOOL_ROW,
+};
+use deform_shared::qformat::{block_exponent, ldexp, to_mantissa};
+use deform_shared::word::{VALUE_MAX, VALUE_MIN};
+use heapless::Vec;
+
+use crate::predict::scale;
+
+/// Most distinct free rows the tool nodes couple to.
+pub const MAX_ROWS: usize = MAX_TOOL_NODES * MAX_TOOL_ROW;
+
+/// Marks a coupling to another tool node in [`Started::slots`].
+const TOOL_COLUMN: u16 = u16::MAX;
+
+/// Largest |mantissa| written into a right-hand side: 2^29, as the SVU's vectors.
+const TOP_BITS: i32 = 29;
+
+/// The live state of a session: the tool set as it arrives, then what `LiveStart` computed.
+#[derive(Default)]
+pub struct Live {
+    tools: Vec<ToolRow, MAX_TOOL_NODES>,
+    started: Option<Started>,
+}
+
+/// A started live session.
+pub struct Started {
+    pub params: LiveParams,
+    /// The free rows the tools couple to (node indices), each once.
+    rows: Vec<u32, MAX_ROWS>,
+    /// For each tool and each of its couplings, the index into `rows`, or [`TOOL_COLUMN`].
+    slots: [[u16; MAX_TOOL_ROW]; MAX_TOOL_NODES],
+    /// Column sums s_j of the Schur complement K_tt − K_tf·K_ff⁻¹·K_ft of the resident
+    /// matrix (before the factor k_d).
+    pub schur: [f64; MAX_TOOL_NODES],
+    /// Per direction, the static loads at the coupled rows, taken from the first frame's b.
+    snapshot: [Option<Snapshot>; 3],
+    /// The last full frame: its forces and tool displacements, the local model's anchor.
+    anchor: Option<([f64; 3], [[f32; 3]; MAX_TOOL_NODES])>,
+    /// The field's exponent for the last frame, once a chunk asked for it.
+    pub field_exponent: Option<i8>,
+}
+
+/// The static right-hand side of one direction, as far as frames need it.
+#[derive(Clone)]
+struct Snapshot {
+    exponent: i32,
+    /// Static mantissas at `rows`.
+    at_rows: Vec<i32, MAX_ROWS>,
+    /// Top bit (magnitude bits + exponent) of the static loads elsewhere, if there are any:
+    /// then b keeps them in place and its exponent can only grow.
+    elsewhere_top: Option<i32>,
+}
+
+/// Number of bits of |v| (0 for 0).
+fn bits(v: u64) -> i32 {
+    (u64::BITS - v.leading_zeros()) as i32
+}
+
+impl Live {
+    /// Forgets the tool set (a new matrix, a `Hello`).
+    pub fn clear(&mut self) {
+        *self = Live::default();
+    }
+
+    pub fn started(&self) -> Option<&Started> {
+        self.started.as_ref()
+    }
+
+    pub fn started_mut(&mut self) -> Result<&mut Started, LiveError> {
+        self.started.as_mut().ok_or(LiveError::NotStarted)
+    }
+
+    pub fn tools(&self) -> &[ToolRow] {
+        &self.tools
+    }
+
+    /// The tool rows and the started session, borrowed together.
+    pub fn parts(&mut self) -> Result<(&[ToolRow], &mut Started), LiveError> {
+        let Live { tools, started } = self;
+        Ok((tools, started.as_mut().ok_or(LiveError::NotStarted)?))
+    }
+
+    /// A right-hand side of direction `d` was uploaded: it is the new static load.
+    pub fn rhs_replaced(&mut self, d: usize) {
+        if let Some(s) = self.started.as_mut().and_then(|s| s.snapshot.get_mut(d)) {
+            *s = None;
+        }
+    }
+
+    /// Adds a tool node of an n-node matrix. A tool row after `LiveStart` begins a new set.
+    pub fn add_tool(&mut self, row: ToolRow, n: u32) -> Result<(), LiveError> {
+        if self.started.take().is_some() {
+            self.tools.clear();
+        }
+        if row.node >= n {
+            return Err(LiveError::NodeOutOfRange { node: row.node });
+        }
+        if let Some(c) = row.row.iter().find(|c| c.column >= n) {
+            return Err(LiveError::ColumnOutOfRange { column: c.column });
+        }
+        let fits = |v: i32| (VALUE_MIN..=VALUE_MAX).contains(&v);
+        if !fits(row.diagonal) || !row.row.iter().all(|c| fits(c.value)) {
+            return Err(LiveError::ValueOutOfRange);
+        }
+        if self.tools.iter().any(|t| t.node == row.node) {
+            return Err(LiveError::DuplicateNode { node: row.node });
+        }
+        self.tools.push(row).map_err(|_| LiveError::TooManyNodes {
+            max: MAX_TOOL_NODES as u8,
+        })
+    }
+
+    /// Starts the session with the tools given so far; the Schur sums are filled in by
+    /// [`Started::schur`] afterwards.
+    pub fn start(&mut self, params: LiveParams) -> Result<&mut Started, LiveError> {
+        if self.tools.is_empty() {
+            return Err(LiveError::NoTool);
+        }
+        let finite = params.tolerance.is_finite() && params.scale.iter().all(|s| s.is_finite());
+        if !finite {
+            return Err(LiveError::NotFinite);
+        }
+        let mut rows: Vec<u32, MAX_ROWS> = Vec::new();
+        let mut slots = [[TOOL_COLUMN; MAX_TOOL_ROW]; MAX_TOOL_NODES];
+        for (t, tool) in self.tools.iter().enumerate() {
+            for (k, c) in tool.row.iter().enumerate() {
+                if self.tools.iter().any(|o| o.node == c.column) {
+                    continue;
+                }
+                let slot = match rows.iter().position(|&r| r == c.column) {
+                    Some(i) => i,
+                    None => {
+                        // At most MAX_TOOL_NODES · MAX_TOOL_ROW distinct rows: always room.
+                        let _ = rows.push(c.column);
+                        rows.len() - 1
+                    }
+                };
+                slots[t][k] = slot as u16;
+            }
+        }
+        Ok(self.started.insert(Started {
+            params,
+            rows,
+            slots,
+            schur: [0.0; MAX_TOOL_NODES],
+            snapshot: [None, None, None],
+            anchor: None,
+            field_exponent: None,
+        }))
+    }
+}
+
+/// The tool displacements of direction `d` as mantissas with one exponent.
+pub fn tool_mantissas(
+    tool: &[[f32; 3]],
+    d: usize,
+) -> Result<(Vec<i32, MAX_TOOL_NODES>, i32), LiveError> {
+    let max = tool.iter().fold(0f64, |m, u| m.max(f64::from(u[d]).abs()));
+    let e = block_exponent(max);
+    let mut out = Vec::new();
+    for u in tool {
+        let m = to_mantissa(f64::from(u[d]), e).ok_or(LiveError::NotFinite)?;
+        let _ = out.push(m);
+    }
+    Ok((out, e))
+}
+
+/// Tool row `t`'s couplings, each with its slot in [`Started::rows`] (or [`TOOL_COLUMN`]).
+fn couplings<'a>(
+    tools: &'a [ToolRow],
+    started: &'a Started,
+    t: usize,
+) -> impl Iterator<Item = (&'a Coupling, u16)> + 'a {
+    let slots = started
+        .slots
+        .get(t)
+        .copied()
+        .unwrap_or([TOOL_COLUMN; MAX_TOOL_ROW]);
+    tools
+        .get(t)
+        .map(|tool| tool.row.as_slice())
+        .unwrap_or(&[])
+        .iter()
+        .zip(slots)
+}
+
+/// Index of the tool at node `column`, if it is one.
+fn tool_index(tools: &[ToolRow], column: u32) -> Option<usize> {
+    tools.iter().position(|t| t.node == column)
+}
+
+impl Started {
+    /// Takes the static loads of direction `d` from `b` (exponent `e`) if not yet done, and
+    /// zeroes the rows frames rewrite.
+    pub fn take_snapshot(&mut self, d: usize, tools: &[ToolRow], b: &mut [i32], e: i32) {
+        let Some(slot) = self.snapshot.get_mut(d) else {
+            return;
+        };
+        if slot.is_some() {
+            return;
+        }
+        let mut at_rows = Vec::new();
+        for &r in &self.rows {
+            let v = b.get_mut(r as usize).map_or(0, core::mem::take);
+            let _ = at_rows.push(v);
+        }
+        for t in tools {
+            if let Some(v) = b.get_mut(t.node as usize) {
+                *v = 0;
+            }
+        }
+        let max = b.iter().map(|v| v.unsigned_abs()).max().unwrap_or(0);
+        *slot = Some(Snapshot {
+            exponent: e,
+            at_rows,
+            elsewhere_top: (max != 0).then(|| bits(u64::from(max)) + e),
+        });
+    }
+
+    /// Moves the tool displacements `u` (mantissas, exponent `e_u`) of direction `d` into b,
+    /// whose current exponent is `e_b`: b_i = static_i − Σ_t K_it·u_t on the coupled rows,
+    /// b_t = K_tt·u_t on the tool rows, the rest left as it is. `f` is the matrix's Q-format.
+    /// Returns b's new exponent.
+    #[allow(clippy::too_many_arguments)]
+    pub fn patch_rhs(
+        &self,
+        d: usize,
+        tools: &[ToolRow],
+        b: &mut [i32],
+        e_b: i32,
+        u: &[i32],
+        e_u: i32,
+        f: i32,
+    ) -> i32 {
+        let Some(Some(snap)) = self.snapshot.get(d) else {
+            return e_b;
+        };
+        // Σ_t K_it·u_t per coupled row, exactly: |raw| < 2^20, |u| < 2^30, ≤ 256 terms.
+        let mut sums = [0i64; MAX_ROWS];
+        let mut diag = [0i64; MAX_TOOL_NODES];
+        for (t, tool) in tools.iter().enumerate() {
+            let ut = i64::from(u.get(t).copied().unwrap_or(0));
+            diag[t] = i64::from(tool.diagonal) * ut;
+            for (c, slot) in couplings(tools, self, t) {
+                if let Some(s) = sums.get_mut(usize::from(slot)) {
+                    *s += i64::from(c.value) * ut;
+                }
+            }
+        }
+        let e_tool = e_u - f;
+        let tool_max = sums.iter().chain(&diag).map(|v| v.unsigned_abs()).max();
+        let static_max = snap.at_rows.iter().map(|v| v.unsigned_abs()).max();
+        let tops = [
+            tool_max.filter(|&m| m != 0).map(|m| bits(m) + e_tool),
+            static_max
+                .filter(|&m| m != 0)
+                .map(|m| bits(u64::from(m)) + snap.exponent),
+            snap.elsewhere_top,
+        ];
+        let Some(top) = tops.into_iter().flatten().max() else {
+            // Nothing anywhere: b is zero.
+            b.fill(0);
+            return 0;
+        };
+        // Two terms below 2^top each: the sum stays below 2^(top + 1) = 2^(e + 29).
+        let mut e = top + 1 - TOP_BITS;
+        if snap.elsewhere_top.is_some() {
+            // The static loads elsewhere stay in b: its exponent only grows.
+            if e > e_b {
+                for v in b.iter_mut() {
+                    *v = scale(i64::from(*v), e - e_b) as i32;
+                }
+            } else {
+                e = e_b;
+            }
+        }
+        for (i, &r) in self.rows.iter().enumerate() {
+            let s = snap.at_rows.get(i).copied().unwrap_or(0);
+            let v = scale(i64::from(s), e - snap.exponent) - scale(sums[i], e - e_tool);
+            if let Some(slot) = b.get_mut(r as usize) {
+                *slot = v as i32;
+            }
+        }
+        for (t, tool) in tools.iter().enumerate() {
+            if let Some(slot) = b.get_mut(tool.node as usize) {
+                *slot = scale(diag[t], e - e_tool) as i32;
+            }
+        }
+        e
+    }
+
+    /// Reaction force of direction `d` before the factor k_d: Σ_t (K·u)_t with the free
+    /// displacements from `x` (exponent `e_x`) and the tool ones from `u` (exponent `e_u`).
+    pub fn reaction(
+        &self,
+        tools: &[ToolRow],
+        x: &[i32],
+        e_x: i32,
+        u: &[i32],
+        e_u: i32,
+        f: i32,
+    ) -> f64 {
+        let (mut free, mut tool) = (0i64, 0i64);
+        for (t, row) in tools.iter().enumerate() {
+            tool += i64::from(row.diagonal) * i64::from(u.get(t).copied().unwrap_or(0));
+            for (c, slot) in couplings(tools, self, t) {
+                let v = i64::from(c.value);
+                if slot == TOOL_COLUMN {
+                    let j = tool_index(tools, c.column).unwrap_or(0);
+                    tool += v * i64::from(u.get(j).copied().unwrap_or(0));
+                } else {
+                    free += v * i64::from(x.get(c.column as usize).copied().unwrap_or(0));
+                }
+            }
+        }
+        ldexp(free as f64, e_x - f) + ldexp(tool as f64, e_u - f)
+    }
+
+    /// b = K_f,t_j (column j's couplings to the free nodes), exponent −f: the right-hand side
+    /// whose solution z_j gives the Schur column j.
+    pub fn schur_rhs(&self, tools: &[ToolRow], j: usize, b: &mut [i32]) {
+        b.fill(0);
+        for (c, slot) in couplings(tools, self, j) {
+            if slot != TOOL_COLUMN {
+                if let Some(v) = b.get_mut(c.column as usize) {
+                    *v = c.value;
+                }
+            }
+        }
+    }
+
+    /// s_j = Σ_i [K_t_i,t_j − K_t_i,f·z_j] from the solution z_j (exponent `e_z`).
+    pub fn set_schur(&mut self, tools: &[ToolRow], j: usize, z: &[i32], e_z: i32, f: i32) {
+        let Some(node_j) = tools.get(j).map(|t| t.node) else {
+            return;
+        };
+        let mut tt = i64::from(tools[j].diagonal);
+        let mut tf = 0i64;
+        for t in 0..tools.len() {
+            for (c, slot) in couplings(tools, self, t) {
+                let v = i64::from(c.value);
+                if slot == TOOL_COLUMN {
+                    if c.column == node_j {
+                        tt += v;
+                    }
+                } else {
+                    tf += v * i64::from(z.get(c.column as usize).copied().unwrap_or(0));
+                }
+            }
+        }
+        if let Some(s) = self.schur.get_mut(j) {
+            *s = ldexp(tt as f64, -f) - ldexp(tf as f64, e_z - f);
+        }
+    }
+
+    /// Re-anchors the local model at a full frame.
+    pub fn anchor(&mut self, force: [f64; 3], tool: &[[f32; 3]]) {
+        let mut u = [[0f32; 3]; MAX_TOOL_NODES];
+        for (a, b) in u.iter_mut().zip(tool) {
+            *a = *b;
+        }
+        self.anchor = Some((force, u));
+        self.field_exponent = None;
+    }
+
+    /// The local model's force at tool displacements `tool`: F_frame + k_d·Σ_j s_j·Δu_j.
+    pub fn model_force(&self, tool: &[[f32; 3]]) -> Result<[f64; 3], LiveError> {
+        let (force, at) = self.anchor.as_ref().ok_or(LiveError::NoFrame)?;
+        let mut out = *force;
+        for (d, o) in out.iter_mut().enumerate() {
+            let mut sum = 0f64;
+            for (j, (now, then)) in tool.iter().zip(at).enumerate() {
+                let du = f64::from(now[d]) - f64::from(then[d]);
+                sum += self.schur.get(j).copied().unwrap_or(0.0) * du;
+            }
+            *o += f64::from(self.params.scale[d]) * sum;
+        }
+        if out.iter().all(|v| v.is_finite()) {
+            Ok(out)
+        } else {
+            Err(LiveError::NotFinite)
+        }
+    }
+}
+
+/// The field's exponent: the smallest that puts every component of the three solutions
+/// (mantissas and exponents) into an `i16`.
+pub fn field_exponent(solutions: &[(&[i32], i32)]) -> i8 {
+    let top = solutions
+        .iter()
+        .filter_map(|(x, e)| {
+            let max = x.iter().map(|v| v.unsigned_abs()).max().unwrap_or(0);
+            (max != 0).then(|| bits(u64::from(max)) + e)
+        })
+        .max();
+    // |q| < 2^15 before rounding; rounding up to 2^15 is clamped.
+    top.map_or(0, |t| {
+        (t - 15).clamp(i32::from(i8::MIN), i32::from(i8::MAX)) as i8
+    })
+}
+
+/// Packs nodes `offset, offset + stride, …` of the three solutions as `i16` triples at
+/// exponent `e`, as many as one chunk holds. Returns the packed bytes.
+pub fn pack_field(
+    solutions: &[(&[i32], i32)],
+    n: usize,
+    offset: usize,
+    stride: usize,
+    e: i8,
+) -> Vec<u8, FIELD_BYTES> {
+    let mut out = Vec::new();
+    let mut node = offset;
+    while node < n && out.len() + 6 <= FIELD_BYTES {
+        for (x, ex) in solutions {
+            let m = x.get(node).copied().unwrap_or(0);
+            let q = scale(i64::from(m), i32::from(e) - ex).clamp(-32767, 32767) as i16;
+            let _ = out.extend_from_slice(&q.to_le_bytes());
+        }
+        node = node.saturating_add(stride);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_field_quantises_to_i16_with_one_exponent() {
+        let (x, y, z) = ([1 << 29, -3, 0], [5, 7, -(1 << 20)], [0, 0, 0]);
+        let solutions = [(&x[..], -40), (&y[..], -20), (&z[..], 0)];
+        let e = field_exponent(&solutions);
+        // max |u| = 2^−11 (x[0]) and 2^−20·2^20 = 1 (y[2]): the top is 1.
+        assert_eq!(e, -14);
+        let packed = pack_field(&solutions, 3, 0, 2, e);
+        assert_eq!(packed.len(), 12, "nodes 0 and 2");
+        let q = |i: usize| i16::from_le_bytes([packed[2 * i], packed[2 * i + 1]]);
+        assert_eq!([q(0), q(1), q(2)], [8, 0, 0]);
+        assert_eq!([q(3), q(4), q(5)], [0, -16384, 0]);
+        assert_eq!(field_exponent(&[(&[0][..], 5)]), 0);
+    }
+}

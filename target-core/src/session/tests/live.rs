@@ -1,0 +1,255 @@
+//! The live loop on a 1-D chain against a direct f64 solve: frames, the local force model, the
+//! quantised field, and every refusal.
+
+use deform_shared::live::{Coupling, LiveError, LiveParams, ToolRow};
+
+use super::*;
+
+const N: usize = 21;
+const TOOL: usize = 10;
+const F: u8 = 18;
+const SCALE: [f32; 3] = [1.0, 2.0, 0.5];
+const U0: [f32; 3] = [0.3, -0.2, 0.05];
+
+/// tridiag(−1, 2, −1) with the tool node's row and column eliminated (its row keeps 2).
+fn chain() -> Encoded {
+    encode(N, 8, F, |i| {
+        laplacian_row(N)(i)
+            .into_iter()
+            .filter(|&(c, _)| (i == TOOL) == (c == TOOL))
+            .collect()
+    })
+}
+
+fn raw(v: f64) -> i32 {
+    quantize(v, F).unwrap()
+}
+
+fn tool_row(node: u32) -> ToolRow {
+    ToolRow {
+        node,
+        diagonal: raw(2.0),
+        row: [node - 1, node + 1]
+            .map(|column| Coupling {
+                column,
+                value: raw(-1.0),
+            })
+            .into_iter()
+            .collect(),
+    }
+}
+
+fn static_load() -> Vec<f64> {
+    (0..N)
+        .map(|i| {
+            if i == TOOL {
+                0.0
+            } else {
+                0.1 * (i as f64).sin()
+            }
+        })
+        .collect()
+}
+
+fn params() -> LiveParams {
+    LiveParams {
+        tolerance: 1e-7,
+        max_iterations: 500,
+        cycle_budget: 0,
+        scale: SCALE,
+    }
+}
+
+/// The converged displacements and reaction force of direction d at tool displacement `u`.
+fn reference(d: usize, u: f64) -> (Vec<f64>, f64) {
+    let mut b = static_load();
+    b[TOOL - 1] += u;
+    b[TOOL + 1] += u;
+    b[TOOL] = 2.0 * u;
+    let x = direct_solve(dense(&chain()), b);
+    let force = f64::from(SCALE[d]) * (2.0 * u - x[TOOL - 1] - x[TOOL + 1]);
+    (x, force)
+}
+
+fn started(s: &mut Session<'_, Sequential>) {
+    load(s, &chain());
+    assert_eq!(
+        s.handle(Request::LiveTool(tool_row(TOOL as u32))),
+        Response::Ack
+    );
+    match s.handle(Request::LiveStart(params())) {
+        Response::LiveReady(r) => assert!(r.converged && r.solves == 1, "{r:?}"),
+        other => panic!("{other:?}"),
+    }
+    let (e, m) = to_block(&static_load());
+    for d in 0..3 {
+        all_ack(
+            s,
+            vector_requests(VectorSlot::Rhs { direction: d }, e, &m, CHUNK_LEN),
+        );
+    }
+}
+
+fn tool_at(t: f32) -> heapless::Vec<[f32; 3], 8> {
+    [U0.map(|u| u * t)].into_iter().collect()
+}
+
+#[test]
+fn frames_match_a_direct_solve_and_the_local_model_predicts_the_next_force() {
+    let mut bufs = Bufs::new(4 * N, 8, N);
+    let mut s = bufs.session();
+    started(&mut s);
+    let mut predicted: Option<[f32; 3]> = None;
+    let mut iterations = Vec::new();
+    for step in 1..=5 {
+        let t = step as f32 * 0.7;
+        let report = match s.handle(Request::LiveFrame { tool: tool_at(t) }) {
+            Response::LiveFrame(r) => r,
+            other => panic!("{other:?}"),
+        };
+        iterations.push(report.iterations);
+        assert!(report.residual <= 1e-7, "{report:?}");
+        for d in 0..3 {
+            let (x, force) = reference(d, f64::from(U0[d] * t));
+            let got = read_direction(&mut s, d as u8, N);
+            assert!(max_rel_err(&got, &x) < 1e-5, "step {step} d {d}");
+            let err = (f64::from(report.force[d]) - force).abs();
+            assert!(err <= 1e-5 * force.abs().max(1e-3), "{report:?} vs {force}");
+            if let Some(p) = predicted {
+                // The chain is linear: the model is exact up to the solves' tolerance.
+                let err = (f64::from(p[d]) - force).abs();
+                assert!(err <= 1e-4 * force.abs().max(1e-3), "{p:?} vs {force}");
+            }
+        }
+        let next = tool_at((step + 1) as f32 * 0.7);
+        predicted = match s.handle(Request::LiveForce { tool: next }) {
+            Response::LiveForce(r) => Some(r.force),
+            other => panic!("{other:?}"),
+        };
+    }
+    // From the third frame on the start is predicted: a straight push costs little.
+    assert!(iterations[3] * 2 < iterations[0], "{iterations:?}");
+}
+
+#[test]
+fn the_field_arrives_quantised_to_its_scale() {
+    let mut bufs = Bufs::new(4 * N, 8, N);
+    let mut s = bufs.session();
+    started(&mut s);
+    assert!(matches!(
+        s.handle(Request::LiveFrame { tool: tool_at(1.0) }),
+        Response::LiveFrame(_)
+    ));
+    let want: Vec<Vec<f64>> = (0..3).map(|d| reference(d, f64::from(U0[d])).0).collect();
+    let max = want.iter().flatten().fold(0f64, |m, v| m.max(v.abs()));
+    for stride in [1u16, 3] {
+        let chunk = match s.handle(Request::ReadField { offset: 1, stride }) {
+            Response::Field(c) => c,
+            other => panic!("{other:?}"),
+        };
+        let nodes: Vec<usize> = (1..N).step_by(usize::from(stride)).collect();
+        let got: Vec<[f64; 3]> = chunk.displacements().collect();
+        assert_eq!(got.len(), nodes.len());
+        for (g, &node) in got.iter().zip(&nodes) {
+            for d in 0..3 {
+                assert!((g[d] - want[d][node]).abs() <= max * 1e-4, "{node} {d}");
+            }
+        }
+    }
+    assert_eq!(
+        s.handle(Request::ReadField {
+            offset: 0,
+            stride: 0
+        }),
+        err(ErrorCode::Live(LiveError::BadStride))
+    );
+}
+
+#[test]
+fn bad_live_requests_are_refused_clearly() {
+    let mut bufs = Bufs::new(4 * N, 8, N);
+    let mut s = bufs.session();
+    let live = |e| err(ErrorCode::Live(e));
+    assert_eq!(
+        s.handle(Request::LiveTool(tool_row(TOOL as u32))),
+        ooo(SessionStep::NoMatrix)
+    );
+    load(&mut s, &chain());
+    assert_eq!(
+        s.handle(Request::LiveFrame { tool: tool_at(1.0) }),
+        live(LiveError::NotStarted)
+    );
+    assert_eq!(
+        s.handle(Request::LiveStart(params())),
+        live(LiveError::NoTool)
+    );
+    let mut outside = tool_row(TOOL as u32);
+    outside.node = N as u32;
+    assert_eq!(
+        s.handle(Request::LiveTool(outside)),
+        live(LiveError::NodeOutOfRange { node: N as u32 })
+    );
+    let mut bad_column = tool_row(TOOL as u32);
+    bad_column.row[0].column = 99;
+    assert_eq!(
+        s.handle(Request::LiveTool(bad_column)),
+        live(LiveError::ColumnOutOfRange { column: 99 })
+    );
+    assert_eq!(
+        s.handle(Request::LiveTool(tool_row(TOOL as u32))),
+        Response::Ack
+    );
+    assert_eq!(
+        s.handle(Request::LiveTool(tool_row(TOOL as u32))),
+        live(LiveError::DuplicateNode { node: TOOL as u32 })
+    );
+    let mut nan = params();
+    nan.scale[1] = f32::NAN;
+    assert_eq!(
+        s.handle(Request::LiveStart(nan)),
+        live(LiveError::NotFinite)
+    );
+    assert!(matches!(
+        s.handle(Request::LiveStart(params())),
+        Response::LiveReady(_)
+    ));
+    // The static loads are not there yet.
+    assert_eq!(
+        s.handle(Request::LiveFrame { tool: tool_at(1.0) }),
+        ooo(SessionStep::NoRhs)
+    );
+    let (e, m) = to_block(&static_load());
+    for d in 0..3 {
+        all_ack(
+            &mut s,
+            vector_requests(VectorSlot::Rhs { direction: d }, e, &m, CHUNK_LEN),
+        );
+    }
+    assert_eq!(
+        s.handle(Request::LiveForce { tool: tool_at(1.0) }),
+        live(LiveError::NoFrame)
+    );
+    let two: heapless::Vec<[f32; 3], 8> = [[0.0; 3], [0.0; 3]].into_iter().collect();
+    assert_eq!(
+        s.handle(Request::LiveFrame { tool: two }),
+        live(LiveError::ToolCount {
+            expected: 1,
+            got: 2
+        })
+    );
+    let inf: heapless::Vec<[f32; 3], 8> = [[0.0, f32::INFINITY, 0.0]].into_iter().collect();
+    assert_eq!(
+        s.handle(Request::LiveFrame { tool: inf }),
+        live(LiveError::NotFinite)
+    );
+    assert!(matches!(
+        s.handle(Request::LiveFrame { tool: tool_at(1.0) }),
+        Response::LiveFrame(_)
+    ));
+    // A new matrix forgets the tool set.
+    load(&mut s, &chain());
+    assert_eq!(
+        s.handle(Request::LiveForce { tool: tool_at(1.0) }),
+        live(LiveError::NotStarted)
+    );
+}
