@@ -3,16 +3,16 @@
 //! report says what the target achieved, every frame checked against a converged f64 solve.
 
 use std::fs::File;
-use std::io::{BufWriter, IsTerminal, Write};
+use std::io::{BufWriter, Write};
 use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{bail, Context};
 use clap::Args;
 use deform_shared::live::LiveParams;
-use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::bench::board::{timeouts, BenchBoard, BenchBoardChoice};
+use crate::commands::simulate::bar;
 use crate::encode::{EncodeOptions, Partition};
 use crate::live::headless::{self, FrameRecord, Script, Session, CLOCK_HZ};
 use crate::live::link::LiveLink;
@@ -89,20 +89,6 @@ pub struct LiveArgs {
     /// Seconds to wait for one frame's answer.
     #[arg(long, default_value_t = 60)]
     pub timeout: u64,
-}
-
-fn bar(len: u64) -> ProgressBar {
-    if !std::io::stderr().is_terminal() {
-        return ProgressBar::hidden();
-    }
-    let bar = ProgressBar::new(len);
-    bar.set_style(
-        ProgressStyle::with_template("{msg:>8} [{bar:40}] {pos}/{len} {elapsed}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
-    bar.set_message("frames");
-    bar
 }
 
 pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
@@ -194,7 +180,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         }
         None => None,
     };
-    let progress = bar(u64::from(frames));
+    let progress = bar(u64::from(frames), "frames");
     let mut written: std::io::Result<()> = Ok(());
     let on_frame = |r: &FrameRecord| {
         progress.inc(1);
@@ -276,9 +262,11 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         report.force_updates_per_s, report.force_query_cycles_max, report.model_force_error_max
     );
     println!(
-        "line        {} B up / {} B down per frame, field frame {} B ({:.3} B per component, quantisation ≤ {:.1e})",
+        "line        {} B up / {} B down per frame (median; max {} / {}), field frame {} B ({:.3} B per component, quantisation ≤ {:.1e})",
         report.bytes_up_per_frame,
         report.bytes_down_per_frame.force,
+        report.bytes_up_per_frame_max,
+        report.bytes_down_per_frame_max,
         report.bytes_down_per_frame.field,
         report.bytes_down_per_frame.field_per_component,
         report.field_quantisation_error_max

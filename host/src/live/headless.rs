@@ -112,8 +112,14 @@ pub struct Report {
     pub field_quantisation_error_max: f64,
     pub model_cycles: u64,
     pub model_iterations: u32,
+    /// Median over the frames, on the line (a frame's request).
     pub bytes_up_per_frame: f64,
+    /// Median over the frames for `force` (a frame's answer); one field frame for `field`.
     pub bytes_down_per_frame: DownBytes,
+    /// The largest frame up and down: retransmissions included (a slow first frame outlasts
+    /// the host's retransmit timer).
+    pub bytes_up_per_frame_max: u64,
+    pub bytes_down_per_frame_max: u64,
     pub bytes_up_per_force_query: f64,
     pub bytes_down_per_force_query: f64,
     pub link_rates: Vec<LinkRate>,
@@ -276,8 +282,8 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
         .iter()
         .map(|r| force_error(&r.force, &r.force_reference, force_scale))
         .fold(0.0, f64::max);
-    let up = records.iter().map(|r| r.bytes_up).max().unwrap_or(0) as f64;
-    let down = records.iter().map(|r| r.bytes_down).max().unwrap_or(0) as f64;
+    let up = percentile(&sorted(records.iter().map(|r| r.bytes_up as f64)), 0.5);
+    let down = percentile(&sorted(records.iter().map(|r| r.bytes_down as f64)), 0.5);
     let (field_bytes, field_components) = summary
         .field
         .map_or((0.0, 0), |(b, c)| (b.received as f64, c));
@@ -334,6 +340,8 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
         model_cycles: session.model_cycles,
         model_iterations: session.model_iterations,
         bytes_up_per_frame: up,
+        bytes_up_per_frame_max: records.iter().map(|r| r.bytes_up).max().unwrap_or(0),
+        bytes_down_per_frame_max: records.iter().map(|r| r.bytes_down).max().unwrap_or(0),
         bytes_down_per_frame: DownBytes {
             force: down,
             field: field_bytes,
