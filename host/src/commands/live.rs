@@ -70,6 +70,12 @@ pub struct LiveArgs {
     #[arg(long, default_value_t = 3)]
     pub forces_per_frame: u32,
 
+    /// Run the tool in real time at this many frames per second of wall clock: a frame takes
+    /// the tool where it is now, frames the target cannot keep up with are dropped (not queued)
+    /// and the lag is reported. Default: every scripted frame, however long it takes.
+    #[arg(long, value_name = "HZ")]
+    pub pace: Option<f64>,
+
     /// MVUs (harts) to boot QEMU with and split K over.
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u8).range(1..=8))]
     pub mvus: u8,
@@ -169,7 +175,11 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         field_every: args.field_every,
         field_stride: args.field_stride,
         forces_per_frame: args.forces_per_frame,
+        pace: args.pace,
     };
+    if args.pace.is_some_and(|hz| !(hz.is_finite() && hz > 0.0)) {
+        bail!("--pace must be a positive frame rate");
+    }
     let mut csv = match &args.frames_csv {
         Some(path) => {
             let mut f = BufWriter::new(
@@ -238,6 +248,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         model_cycles: link.model.cycles,
         model_iterations: link.model.iterations,
         resets: link.resets,
+        paced: args.pace.is_some(),
     };
     let report = headless::report(session, &records, &summary);
     println!(
@@ -275,6 +286,12 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         println!(
             "  {:>9} baud: {:.0} frames/s, {:.0} force queries/s, {:.1} field frames/s",
             r.baud, r.frames_per_s, r.force_queries_per_s, r.field_frames_per_s
+        );
+    }
+    if let Some(lag) = report.lag {
+        println!(
+            "pace        {} frame slot(s) dropped, lag up to {:.3} s",
+            lag.frames_dropped, lag.lag_max_s
         );
     }
     if report.target_resets > 0 {

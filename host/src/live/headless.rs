@@ -25,6 +25,19 @@ pub struct Script {
     pub field_stride: u16,
     /// Force queries from the local model between two frames.
     pub forces_per_frame: u32,
+    /// Run the tool in real time at this frame rate (Hz): each frame takes the tool where the
+    /// wall clock has it now, the frame slots it fell behind are dropped (never queued) and the
+    /// lag is reported. `None`: every frame at its scripted time.
+    pub pace: Option<f64>,
+}
+
+/// How far a paced session fell behind the tool.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct Lag {
+    /// Frame slots skipped because the previous frame was still on its way.
+    pub frames_dropped: u64,
+    /// Largest wall time from a tool position to the answer for it, seconds.
+    pub lag_max_s: f64,
 }
 
 /// One frame as the target answered it, and its check.
@@ -124,6 +137,8 @@ pub struct Report {
     pub bytes_down_per_force_query: f64,
     pub link_rates: Vec<LinkRate>,
     pub target_resets: u32,
+    /// Paced sessions only.
+    pub lag: Option<Lag>,
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -180,8 +195,23 @@ pub fn run<P: Port>(
     let mut summary = Summary::default();
     let mut warm: Option<[Vec<f64>; 3]> = None;
     let mut previous_t = 0.0;
-    for (i, &t) in times.iter().enumerate() {
+    let clock = std::time::Instant::now();
+    let end = times.last().copied().unwrap_or(0.0);
+    let mut last_slot = 0u64;
+    for (i, &scripted) in times.iter().enumerate() {
         let frame = i as u32 + 1;
+        // Paced: the tool is where the wall clock has it; the slots missed are dropped.
+        let t = match script.pace {
+            None => scripted,
+            Some(hz) => {
+                let now = clock.elapsed().as_secs_f64().min(end);
+                let slot = (now * hz) as u64;
+                summary.lag.frames_dropped += slot.saturating_sub(last_slot + 1);
+                last_slot = slot.max(last_slot + 1);
+                now.max(previous_t)
+            }
+        };
+        let sent_at = clock.elapsed().as_secs_f64();
         // Force queries on the way from the previous frame's position to this one.
         if i > 0 {
             for q in 1..=script.forces_per_frame {
@@ -206,6 +236,11 @@ pub fn run<P: Port>(
         meter.lap();
         let answer: FrameReport = link.frame(&tool)?;
         let bytes = meter.lap();
+        if script.pace.is_some() {
+            // From the moment the tool was sampled at its position to the answer for it.
+            let lag = clock.elapsed().as_secs_f64() - sent_at;
+            summary.lag.lag_max_s = summary.lag.lag_max_s.max(lag);
+        }
         let u = link.solution()?;
         meter.lap();
         let (want, force_ref) = setup.converged(&tool, warm.as_ref())?;
@@ -256,6 +291,7 @@ pub struct Summary {
     pub force_bytes: Option<WireBytes>,
     pub field: Option<(WireBytes, usize)>,
     pub field_error: f64,
+    pub lag: Lag,
 }
 
 /// The session as the target ran it, for the report's header.
@@ -268,6 +304,7 @@ pub struct Session {
     pub model_cycles: u64,
     pub model_iterations: u32,
     pub resets: u32,
+    pub paced: bool,
 }
 
 /// The report over `records`.
@@ -355,5 +392,6 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
         bytes_down_per_force_query: force_bytes.received as f64,
         link_rates,
         target_resets: session.resets,
+        lag: session.paced.then_some(summary.lag),
     }
 }
