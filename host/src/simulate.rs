@@ -93,6 +93,20 @@ pub struct StepParams {
     pub layout: EncodeOptions,
 }
 
+impl StepParams {
+    /// The target solve of a step: to the tolerance (floored at the fixed-point floor), no
+    /// cycle budget.
+    fn solve(&self, start: Start, directions: u8) -> SolveParams {
+        SolveParams {
+            max_iterations: self.max_iterations,
+            tolerance: self.tol.max(FIXED_POINT_FLOOR),
+            start,
+            directions,
+            cycle_budget: 0,
+        }
+    }
+}
+
 /// What one step produced.
 #[derive(Debug, Clone)]
 pub struct StepResult {
@@ -303,13 +317,7 @@ fn solve_fused_step<P: Port>(
         }
         Start::Uploaded
     };
-    let solve = SolveParams {
-        max_iterations: params.max_iterations,
-        tolerance: params.tol.max(FIXED_POINT_FLOOR),
-        start,
-        directions: rhs.len() as u8,
-        cycle_budget: 0,
-    };
+    let solve = params.solve(start, rhs.len() as u8);
     let rhs: Vec<&[f64]> = rhs.iter().map(Vec::as_slice).collect();
     let (report, x) = target.solve_fused(&rhs, solve)?;
     result.iterations += report.directions.iter().map(|d| d.iterations).sum::<u32>();
@@ -338,14 +346,7 @@ fn solve_step_separately<P: Port>(
         } else {
             Start::Zero
         };
-        let solve = SolveParams {
-            max_iterations: params.max_iterations,
-            tolerance: params.tol.max(FIXED_POINT_FLOOR),
-            start,
-            directions: 1,
-            cycle_budget: 0,
-        };
-        let (report, x) = target.solve_for(b, solve)?;
+        let (report, x) = target.solve_for(b, params.solve(start, 1))?;
         result.iterations += report.iterations;
         result.reports.push(report);
         out.push(x);

@@ -41,7 +41,13 @@
 //!   matrix invalidates both vectors. A completed vector stays until replaced; a new `Rhs` does
 //!   not invalidate the solution.
 //! - **Solve** invalidates the previous solution only once its own checks passed; a failed solve
-//!   leaves no solution. `Start::Previous` uses the solution still in `x`.
+//!   leaves no solution. `Start::Previous` uses the solution still in `x`. `Start::Predicted`
+//!   extrapolates 2u(t−1) − u(t−2) ([`crate::predict`]) from the solution in `x` and the one
+//!   before it, which it keeps in `x0` (so it consumes an uploaded guess); with fewer solutions
+//!   it starts from u(t−1) or 0, never refused. Any other start, a new guess or a new matrix
+//!   restarts the prediction.
+//! - **Live loop** (`LiveTool`, `LiveStart`, `LiveFrame`, `LiveForce`, `ReadField`): see
+//!   [`crate::live`] and `live_glue.rs`; `BeginMatrix` and `Hello` forget the tool set.
 //! - **ReadSolution** at `offset ≥ n` is `ChunkTooLong`.
 //! - **Values-only update** (`BeginUpdate`, `UpdateValues`…, `EndUpdate`): needs a loaded
 //!   matrix (`OutOfOrder(NoMatrix)`; a `BeginUpdate` during an update starts it over) whose

@@ -3,16 +3,16 @@
 //! report says what the target achieved, every frame checked against a converged f64 solve.
 
 use std::fs::File;
-use std::io::{BufWriter, IsTerminal, Write};
+use std::io::{BufWriter, Write};
 use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{bail, Context};
 use clap::Args;
 use deform_shared::live::LiveParams;
-use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::bench::board::{timeouts, BenchBoard, BenchBoardChoice};
+use crate::commands::simulate::bar;
 use crate::encode::{EncodeOptions, Partition};
 use crate::live::headless::{self, FrameRecord, Script, Session, CLOCK_HZ};
 use crate::live::link::LiveLink;
@@ -70,6 +70,12 @@ pub struct LiveArgs {
     #[arg(long, default_value_t = 3)]
     pub forces_per_frame: u32,
 
+    /// Run the tool in real time at this many frames per second of wall clock: a frame takes
+    /// the tool where it is now, frames the target cannot keep up with are dropped (not queued)
+    /// and the lag is reported. Default: every scripted frame, however long it takes.
+    #[arg(long, value_name = "HZ")]
+    pub pace: Option<f64>,
+
     /// MVUs (harts) to boot QEMU with and split K over.
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u8).range(1..=8))]
     pub mvus: u8,
@@ -89,20 +95,6 @@ pub struct LiveArgs {
     /// Seconds to wait for one frame's answer.
     #[arg(long, default_value_t = 60)]
     pub timeout: u64,
-}
-
-fn bar(len: u64) -> ProgressBar {
-    if !std::io::stderr().is_terminal() {
-        return ProgressBar::hidden();
-    }
-    let bar = ProgressBar::new(len);
-    bar.set_style(
-        ProgressStyle::with_template("{msg:>8} [{bar:40}] {pos}/{len} {elapsed}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
-    bar.set_message("frames");
-    bar
 }
 
 pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
@@ -183,7 +175,11 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         field_every: args.field_every,
         field_stride: args.field_stride,
         forces_per_frame: args.forces_per_frame,
+        pace: args.pace,
     };
+    if args.pace.is_some_and(|hz| !(hz.is_finite() && hz > 0.0)) {
+        bail!("--pace must be a positive frame rate");
+    }
     let mut csv = match &args.frames_csv {
         Some(path) => {
             let mut f = BufWriter::new(
@@ -194,7 +190,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         }
         None => None,
     };
-    let progress = bar(u64::from(frames));
+    let progress = bar(u64::from(frames), "frames");
     let mut written: std::io::Result<()> = Ok(());
     let on_frame = |r: &FrameRecord| {
         progress.inc(1);
@@ -252,6 +248,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         model_cycles: link.model.cycles,
         model_iterations: link.model.iterations,
         resets: link.resets,
+        paced: args.pace.is_some(),
     };
     let report = headless::report(session, &records, &summary);
     println!(
@@ -276,9 +273,11 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         report.force_updates_per_s, report.force_query_cycles_max, report.model_force_error_max
     );
     println!(
-        "line        {} B up / {} B down per frame, field frame {} B ({:.3} B per component, quantisation ≤ {:.1e})",
+        "line        {} B up / {} B down per frame (median; max {} / {}), field frame {} B ({:.3} B per component, quantisation ≤ {:.1e})",
         report.bytes_up_per_frame,
         report.bytes_down_per_frame.force,
+        report.bytes_up_per_frame_max,
+        report.bytes_down_per_frame_max,
         report.bytes_down_per_frame.field,
         report.bytes_down_per_frame.field_per_component,
         report.field_quantisation_error_max
@@ -287,6 +286,12 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         println!(
             "  {:>9} baud: {:.0} frames/s, {:.0} force queries/s, {:.1} field frames/s",
             r.baud, r.frames_per_s, r.force_queries_per_s, r.field_frames_per_s
+        );
+    }
+    if let Some(lag) = report.lag {
+        println!(
+            "pace        {} frame slot(s) dropped, lag up to {:.3} s",
+            lag.frames_dropped, lag.lag_max_s
         );
     }
     if report.target_resets > 0 {

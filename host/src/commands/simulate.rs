@@ -126,7 +126,8 @@ pub(crate) fn parse_alpha(s: &str) -> Result<[f64; 3], String> {
 }
 
 /// A bar on stderr when it is a terminal, else hidden.
-fn bar(len: u64, what: &str) -> ProgressBar {
+/// A progress bar on stderr (hidden unless it is a terminal); `deform live` uses it too.
+pub(crate) fn bar(len: u64, what: &str) -> ProgressBar {
     if !std::io::stderr().is_terminal() {
         return ProgressBar::hidden();
     }

@@ -25,6 +25,19 @@ pub struct Script {
     pub field_stride: u16,
     /// Force queries from the local model between two frames.
     pub forces_per_frame: u32,
+    /// Run the tool in real time at this frame rate (Hz): each frame takes the tool where the
+    /// wall clock has it now, the frame slots it fell behind are dropped (never queued) and the
+    /// lag is reported. `None`: every frame at its scripted time.
+    pub pace: Option<f64>,
+}
+
+/// How far a paced session fell behind the tool.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct Lag {
+    /// Frame slots skipped because the previous frame was still on its way.
+    pub frames_dropped: u64,
+    /// Largest wall time from a tool position to the answer for it, seconds.
+    pub lag_max_s: f64,
 }
 
 /// One frame as the target answered it, and its check.
@@ -112,12 +125,20 @@ pub struct Report {
     pub field_quantisation_error_max: f64,
     pub model_cycles: u64,
     pub model_iterations: u32,
+    /// Median over the frames, on the line (a frame's request).
     pub bytes_up_per_frame: f64,
+    /// Median over the frames for `force` (a frame's answer); one field frame for `field`.
     pub bytes_down_per_frame: DownBytes,
+    /// The largest frame up and down: retransmissions included (a slow first frame outlasts
+    /// the host's retransmit timer).
+    pub bytes_up_per_frame_max: u64,
+    pub bytes_down_per_frame_max: u64,
     pub bytes_up_per_force_query: f64,
     pub bytes_down_per_force_query: f64,
     pub link_rates: Vec<LinkRate>,
     pub target_resets: u32,
+    /// Paced sessions only.
+    pub lag: Option<Lag>,
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -174,8 +195,23 @@ pub fn run<P: Port>(
     let mut summary = Summary::default();
     let mut warm: Option<[Vec<f64>; 3]> = None;
     let mut previous_t = 0.0;
-    for (i, &t) in times.iter().enumerate() {
+    let clock = std::time::Instant::now();
+    let end = times.last().copied().unwrap_or(0.0);
+    let mut last_slot = 0u64;
+    for (i, &scripted) in times.iter().enumerate() {
         let frame = i as u32 + 1;
+        // Paced: the tool is where the wall clock has it; the slots missed are dropped.
+        let t = match script.pace {
+            None => scripted,
+            Some(hz) => {
+                let now = clock.elapsed().as_secs_f64().min(end);
+                let slot = (now * hz) as u64;
+                summary.lag.frames_dropped += slot.saturating_sub(last_slot + 1);
+                last_slot = slot.max(last_slot + 1);
+                now.max(previous_t)
+            }
+        };
+        let sent_at = clock.elapsed().as_secs_f64();
         // Force queries on the way from the previous frame's position to this one.
         if i > 0 {
             for q in 1..=script.forces_per_frame {
@@ -200,6 +236,11 @@ pub fn run<P: Port>(
         meter.lap();
         let answer: FrameReport = link.frame(&tool)?;
         let bytes = meter.lap();
+        if script.pace.is_some() {
+            // From the moment the tool was sampled at its position to the answer for it.
+            let lag = clock.elapsed().as_secs_f64() - sent_at;
+            summary.lag.lag_max_s = summary.lag.lag_max_s.max(lag);
+        }
         let u = link.solution()?;
         meter.lap();
         let (want, force_ref) = setup.converged(&tool, warm.as_ref())?;
@@ -250,6 +291,7 @@ pub struct Summary {
     pub force_bytes: Option<WireBytes>,
     pub field: Option<(WireBytes, usize)>,
     pub field_error: f64,
+    pub lag: Lag,
 }
 
 /// The session as the target ran it, for the report's header.
@@ -262,6 +304,7 @@ pub struct Session {
     pub model_cycles: u64,
     pub model_iterations: u32,
     pub resets: u32,
+    pub paced: bool,
 }
 
 /// The report over `records`.
@@ -276,8 +319,8 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
         .iter()
         .map(|r| force_error(&r.force, &r.force_reference, force_scale))
         .fold(0.0, f64::max);
-    let up = records.iter().map(|r| r.bytes_up).max().unwrap_or(0) as f64;
-    let down = records.iter().map(|r| r.bytes_down).max().unwrap_or(0) as f64;
+    let up = percentile(&sorted(records.iter().map(|r| r.bytes_up as f64)), 0.5);
+    let down = percentile(&sorted(records.iter().map(|r| r.bytes_down as f64)), 0.5);
     let (field_bytes, field_components) = summary
         .field
         .map_or((0.0, 0), |(b, c)| (b.received as f64, c));
@@ -334,6 +377,8 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
         model_cycles: session.model_cycles,
         model_iterations: session.model_iterations,
         bytes_up_per_frame: up,
+        bytes_up_per_frame_max: records.iter().map(|r| r.bytes_up).max().unwrap_or(0),
+        bytes_down_per_frame_max: records.iter().map(|r| r.bytes_down).max().unwrap_or(0),
         bytes_down_per_frame: DownBytes {
             force: down,
             field: field_bytes,
@@ -347,5 +392,6 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
         bytes_down_per_force_query: force_bytes.received as f64,
         link_rates,
         target_resets: session.resets,
+        lag: session.paced.then_some(summary.lag),
     }
 }
