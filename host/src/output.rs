@@ -3,6 +3,7 @@
 //! |u| and the node stiffness as point data). The format follows the file extension, checked
 //! before any work is done.
 
+pub mod series;
 pub mod vtk;
 
 use std::fs::File;
