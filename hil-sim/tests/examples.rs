@@ -75,3 +75,8 @@ fn tumour_palpation_example() {
 fn needle_insertion_example() {
     run_example("needle-insertion");
 }
+
+#[test]
+fn needle_dynamic_example() {
+    run_example("needle-dynamic");
+}

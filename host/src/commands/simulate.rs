@@ -181,6 +181,12 @@ impl SimulateArgs {
                 .unwrap_or(10),
             dt: self.dt.or(simulation.as_ref().map(|s| s.dt)).unwrap_or(0.1),
         };
+        if !(schedule.dt.is_finite() && schedule.dt > 0.0) {
+            anyhow::bail!(
+                "--dt {}: the time step must be finite and greater than 0",
+                schedule.dt
+            );
+        }
         let nonlinear = self
             .alpha
             .or(simulation
@@ -200,6 +206,9 @@ impl SimulateArgs {
 pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     let resolved = args.resolve()?;
     let model = Model::build(&resolved.spec).context("building the model")?;
+    if let Some(dynamics) = &resolved.dynamics {
+        crate::dynamics::target::preflight(&model, dynamics, resolved.schedule.dt)?;
+    }
     let n = model.n();
     let mut series = match &args.out {
         Some(path) => Some(SeriesWriter::create(SeriesTarget::of(path))?),
