@@ -337,10 +337,16 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     if let Some(mut f) = csv {
         f.flush()?;
     }
+    let cycles: Vec<u64> = results
+        .iter()
+        .map(|r| crate::refine::critical_path_cycles(&r.reports))
+        .collect();
     println!(
-        "{} steps, {} CG iterations in all ({})",
+        "{} steps, {} CG iterations in all, {} critical-path cycles (worst step {}) ({})",
         results.len(),
         total_iterations,
+        cycles.iter().sum::<u64>(),
+        cycles.iter().max().unwrap_or(&0),
         if args.cold {
             "cold starts"
         } else {

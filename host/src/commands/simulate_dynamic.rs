@@ -29,13 +29,20 @@ struct Totals {
     bytes_after_first: u64,
 }
 
+/// CG iterations the target ran, a fused solve counted once (what the cycles follow).
+fn fused_iterations(s: &DynamicStep) -> u32 {
+    s.result.reports.iter().map(|r| r.iterations).sum()
+}
+
 fn line(s: &DynamicStep) -> String {
     let r = &s.result;
     let mut line = format!(
-        "step {:>4}  t = {:<8.4} iterations {:>4}  cycles {:>9}  residual {:.1e}  max |u| {:.4e}  energy {:.4e}  {} B",
+        "step {:>4}  t = {:<8.4} iterations {:>4} ({} solve(s), {} fused)  cycles {:>9}  residual {:.1e}  max |u| {:.4e}  energy {:.4e}  {} B",
         r.step,
         r.t,
         r.iterations,
+        r.reports.len(),
+        fused_iterations(s),
         s.cycles,
         r.residual,
         r.max_u,
@@ -109,10 +116,12 @@ pub fn run(
             if let Some(f) = csv.as_mut() {
                 writeln!(
                     f,
-                    "{},{},{},{},{:e},{:e},{:e},{},{}",
+                    "{},{},{},{},{},{},{:e},{:e},{:e},{},{}",
                     r.step,
                     r.t,
                     r.iterations,
+                    r.reports.len(),
+                    fused_iterations(s),
                     s.cycles,
                     r.residual,
                     r.max_u,
