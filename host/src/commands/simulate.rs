@@ -140,6 +140,17 @@ pub(crate) fn bar(len: u64, what: &str) -> ProgressBar {
     bar
 }
 
+/// Moves `bar` with a matrix upload and clears it when the upload is done.
+pub(crate) fn upload_progress(bar: &ProgressBar) -> impl FnMut(crate::link::UploadProgress) + '_ {
+    |p| {
+        bar.set_length(p.words_total as u64);
+        bar.set_position(p.words_sent as u64);
+        if p.words_sent == p.words_total {
+            bar.finish_and_clear();
+        }
+    }
+}
+
 /// A simulation's inputs once flags, scenario file and defaults are merged.
 pub struct ResolvedSimulation {
     /// The static model (a scenario's schedules at their final time).
@@ -214,7 +225,12 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         Some(path) => Some(SeriesWriter::create(SeriesTarget::of(path))?),
         None => None,
     };
-    let mut csv = match &args.steps_csv {
+    // The dynamic branch writes its own per-step CSV, with more columns.
+    let mut csv = match args
+        .steps_csv
+        .as_ref()
+        .filter(|_| resolved.dynamics.is_none())
+    {
         Some(path) => {
             let mut f = BufWriter::new(
                 File::create(path).with_context(|| format!("creating {}", path.display()))?,
@@ -322,13 +338,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
             .then_some(&step_model as crate::simulate::StepModel),
         nonlinear,
         params,
-        |p| {
-            upload_bar.set_length(p.words_total as u64);
-            upload_bar.set_position(p.words_sent as u64);
-            if p.words_sent == p.words_total {
-                upload_bar.finish_and_clear();
-            }
-        },
+        upload_progress(&upload_bar),
         &mut on_step,
     )
     .context("simulating on the target")?;

@@ -7,7 +7,7 @@ use std::io::{BufWriter, Write};
 
 use anyhow::Context;
 
-use super::simulate::{bar, ResolvedSimulation, SimulateArgs};
+use super::simulate::{bar, upload_progress, ResolvedSimulation, SimulateArgs};
 use crate::board::{self, Board};
 use crate::dynamics::target::{simulate_dynamic, DynamicParams, DynamicStep};
 use crate::dynamics::DynamicsSpec;
@@ -150,13 +150,7 @@ pub fn run(
         schedule,
         spec,
         params,
-        |p| {
-            upload_bar.set_length(p.words_total as u64);
-            upload_bar.set_position(p.words_sent as u64);
-            if p.words_sent == p.words_total {
-                upload_bar.finish_and_clear();
-            }
-        },
+        upload_progress(&upload_bar),
         &mut on_step,
     )
     .context("simulating the dynamics on the target")?;

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 
 use super::vtk::{write_pvd, write_vtk, VtkKind};
-use super::NodeDisplacement;
+use super::{write_csv_row, NodeDisplacement};
 
 /// Where and how the series goes, from the path's extension.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -86,12 +86,9 @@ impl SeriesWriter {
         let (dir, name) = match &self.target {
             SeriesTarget::Csv(_) => {
                 let out = self.csv.as_mut().expect("created with the file");
+                let prefix = format!("{step},{t},");
                 for r in rows {
-                    writeln!(
-                        out,
-                        "{step},{t},{},{},{},{:e},{:e},{:e}",
-                        r.i, r.j, r.k, r.ux, r.uy, r.uz
-                    )?;
+                    write_csv_row(out, &prefix, r)?;
                 }
                 self.steps.push((t, String::new()));
                 return Ok(());
