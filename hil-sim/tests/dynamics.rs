@@ -168,3 +168,40 @@ fn a_new_time_step_is_a_values_only_update() {
     }
     assert_alive(&mut qemu);
 }
+
+/// The first 10 steps of `examples/needle-dynamic.toml` (the needle going in) on the target,
+/// through the scenario and flag code `deform simulate` uses, equal the f64 stepper.
+#[test]
+fn the_dynamic_needle_example_on_the_target() {
+    use clap::Parser;
+    use deform_host::commands::simulate::SimulateArgs;
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: SimulateArgs,
+    }
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/needle-dynamic.toml"
+    );
+    let cli = Cli::try_parse_from(["deform", path, "--steps", "10"]).unwrap();
+    let resolved = cli.args.resolve().unwrap();
+    let dynamics = resolved.dynamics.clone().expect("the example is dynamic");
+    let model = Model::build(&resolved.spec).unwrap();
+    let mut qemu = boot();
+    let mut target = connect(&qemu);
+    let step_model = |t: f64| resolved.model_at(t);
+    let steps = simulate_dynamic(
+        &mut target,
+        &model,
+        Some(&step_model as StepModel),
+        resolved.schedule,
+        &dynamics,
+        params(),
+        |_| {},
+        |_| {},
+    )
+    .expect("dynamic series on QEMU");
+    check(&steps, "needle-dynamic");
+    assert_alive(&mut qemu);
+}

@@ -75,8 +75,3 @@ fn tumour_palpation_example() {
 fn needle_insertion_example() {
     run_example("needle-insertion");
 }
-
-#[test]
-fn needle_dynamic_example() {
-    run_example("needle-dynamic");
-}
