@@ -156,7 +156,30 @@ fn main() -> anyhow::Result<()> {
         one.per_iteration.svu_critical as f64 / n as f64,
         one_fused.per_iteration.svu_critical as f64 / (3.0 * n as f64)
     );
-    println!("critical path per CG iteration (T = slowest MVU + SVU), one direction:");
+    let (_, _, eight, eight_fused) = &table[table.len() - 1];
+    println!(
+        "SVU scalar work on hart 0 per iteration and direction (first iteration, {} MVUs): {} (one direction), {} (fused)\n",
+        eight.mvus,
+        eight.first_iteration_scalar,
+        eight_fused.first_iteration_scalar / 3
+    );
+    println!(
+        "whole solves as measured ({} iterations; every phase's slowest hart + hart 0's serial work, set-up included):",
+        one.iterations
+    );
+    for (harts, _, single, fused) in &table {
+        println!(
+            "  {harts} MVUs: one direction {} (MVU {} + SVU {}), three fused {} (MVU {} + SVU {})",
+            whole(single),
+            single.whole_solve.mvu_critical,
+            single.whole_solve.svu_critical,
+            whole(fused),
+            fused.whole_solve.mvu_critical,
+            fused.whole_solve.svu_critical,
+        );
+    }
+    println!();
+    println!("critical path of the first CG iteration (T = slowest MVU + SVU), one direction:");
     println!(
         "  MVUs   T_MVU      T_SVU      T          speed-up  MFLOPS@100MHz  overlap  saturations"
     );
@@ -173,7 +196,7 @@ fn main() -> anyhow::Result<()> {
             single.saturations,
         );
     }
-    println!("\nthree fused directions (per iteration of all three):");
+    println!("\nthree fused directions (first iteration of all three):");
     let f1 = total(one_fused);
     for (harts, _, _, fused) in &table {
         let t = total(fused);
@@ -187,6 +210,10 @@ fn main() -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+fn whole(report: &SolveReport) -> u64 {
+    report.whole_solve.mvu_critical + report.whole_solve.svu_critical
 }
 
 fn total(report: &SolveReport) -> u64 {

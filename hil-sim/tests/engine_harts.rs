@@ -1,6 +1,8 @@
 //! The CG engine on QEMU with 1, 2, 4 and 8 harts as MVUs: every partition gives the same bits,
-//! which match the f64 reference; fused directions equal separate solves; mirrored
-//! (persymmetric) tiles equal the whole matrix; the per-hart costs shrink with more MVUs.
+//! which match the f64 reference; fused directions (one, two and three, each with its own MVU
+//! assembly loop) equal separate solves; mirrored (persymmetric) tiles equal the whole matrix;
+//! the firmware's assembly MVU and SVU loops equal the host's portable specification bit for
+//! bit; the per-hart costs shrink with more MVUs.
 
 mod support;
 
@@ -246,6 +248,25 @@ fn one_to_eight_mvus_agree_bit_for_bit_and_with_f64() {
         let (_, x0) = target.solve_for(&b[0], params(1)).unwrap();
         assert_eq!(x0, base.x[0], "{harts} harts, mirrored, one direction");
         assert_eq!(x0, host_solve(&mirrored, &[&b[0]], mvus)[0]);
+        // Two fused directions (their own assembly loops, whole and mirrored; the new SVU
+        // passes on every hart): the host's portable loops, and the three-direction solve, bit
+        // for bit.
+        for matrix in [assign(&whole, mvus, false), assign(&half, mvus, harts > 1)] {
+            target.upload_matrix(&matrix).unwrap();
+            let (two, x2) = target.solve_fused(&refs[1..], params(2)).unwrap();
+            assert_eq!(two.saturations, 0);
+            assert_eq!(
+                x2,
+                host_solve(&matrix, &refs[1..], mvus),
+                "{harts} harts, two"
+            );
+            assert_eq!(
+                x2[..],
+                base.x[1..],
+                "{harts} harts, two vs three directions"
+            );
+            assert_eq!(two.directions[..], base.report.directions[1..]);
+        }
         assert_alive(&mut qemu);
     }
     for (harts, cost) in &costs {

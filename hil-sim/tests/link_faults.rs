@@ -138,7 +138,7 @@ fn a_large_matrix_upload_reports_bytes_per_nonzero_and_throughput() {
         words as f64 / elapsed.as_secs_f64(),
     );
     // full_upload_bytes counts two-byte sequence numbers; real ones take up to three.
-    let estimate = full_upload_bytes(&matrix);
+    let estimate = full_upload_bytes(&matrix).unwrap();
     assert!(
         sent >= estimate && sent - estimate <= target.stats().requests - before.requests,
         "sent {sent}, estimated {estimate}"

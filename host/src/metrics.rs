@@ -116,6 +116,8 @@ mod tests {
                 svu_total: 9_000,
             },
             saturations: 0,
+            whole_solve: IterationCost::default(),
+            first_iteration_scalar: 0,
         };
         let layout = EncodingSummary {
             nonzeros: 700,

@@ -87,9 +87,10 @@ impl Refined {
             .sum()
     }
 
-    /// Critical-path cycles over all solves: each solve's measured T = T_MVU + T_SVU per
-    /// iteration (the slowest MVU plus the SVU, thesis eq. 55) times its iterations. The MVU and
-    /// SVU loops do not depend on the data, so one measured iteration stands for all of them.
+    /// Critical-path cycles over all solves, as the target measured them: per solve, every
+    /// parallel phase's slowest hart plus hart 0's serial work, over the whole solve
+    /// (`SolveReport::whole_solve`; fused solves that drop converged directions and residual
+    /// replacements' extra MVU passes included). Nothing is extrapolated from one iteration.
     pub fn critical_path_cycles(&self) -> u64 {
         critical_path_cycles(&self.reports)
     }
@@ -105,14 +106,12 @@ impl Refined {
     }
 }
 
-/// Critical-path cycles of `reports`: each solve's measured T_MVU + T_SVU per iteration (the
-/// slowest MVU plus the SVU, thesis eq. 55) times its iterations.
+/// Critical-path cycles of `reports`, as the target measured them over each whole solve
+/// (`SolveReport::whole_solve`: every phase's slowest hart plus hart 0's serial work), summed.
 pub fn critical_path_cycles(reports: &[SolveReport]) -> u64 {
     reports
         .iter()
-        .map(|r| {
-            (r.per_iteration.mvu_critical + r.per_iteration.svu_critical) * r.iterations as u64
-        })
+        .map(|r| r.whole_solve.mvu_critical + r.whole_solve.svu_critical)
         .sum()
 }
 

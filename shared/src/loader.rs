@@ -8,8 +8,9 @@
 //! with the bytes `D L`), so each end can tell which program it is talking to.
 //!
 //! The host sends one request at a time and waits for the answer with the same sequence number
-//! (stop and wait: the image is small and the loader simple). A frame that does not decode is answered with [`LoaderError::Frame`] and sequence
-//! number [`UNKNOWN_SEQ`](crate::protocol::UNKNOWN_SEQ); the host then resends its request.
+//! (stop and wait: the image is small and the loader simple). A frame that does not decode is
+//! answered with [`LoaderError::Frame`] and sequence number [`UNKNOWN_SEQ`]; the host then
+//! resends its request.
 //!
 //! Session:
 //!
@@ -35,6 +36,11 @@ pub use crate::frame::CRC32;
 
 /// Bumped on any change to these types.
 pub const LOADER_PROTOCOL_VERSION: u16 = 1;
+
+/// The sequence number of the loader's answer to a frame it could not read (so it cannot know
+/// the frame's number): the host takes it as "resend". The application protocol does not use it;
+/// its transport answers an unreadable frame with a NAK.
+pub const UNKNOWN_SEQ: u16 = 0xFFFF;
 
 /// The first bytes of every loader frame's message.
 pub const LOADER_MAGIC: [u8; 2] = *b"DL";

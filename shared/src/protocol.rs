@@ -17,7 +17,7 @@
 //!
 //! Steps 3–4 repeat for as many right-hand sides as wanted; the matrix stays resident.
 //!
-//! # Parallel MVUs, mirrored tiles, fused directions (protocol version 4)
+//! # Parallel MVUs, mirrored tiles, fused directions (protocol version 5)
 //!
 //! - Each tile names the MVU (hart) that runs it (`TileHeader::mvu`, below `TargetInfo::harts`);
 //!   the solve uses `max(mvu) + 1` MVUs. y = Σ over all tiles whatever the assignment: when the
@@ -58,7 +58,7 @@ use crate::matrix::{MatrixError, TileHeader};
 /// Version 4 (link): the reliable transport ([`crate::transport`]: window, ACK/NAK, `Uplink` frames),
 /// fixed-width chunk payloads ([`crate::chunk`]) and 128-element chunks.
 /// Version 5 (engine): tiles carry their MVU and a mirrored flag, fused directions, per-hart costs.
-pub const PROTOCOL_VERSION: u16 = 5;
+pub const PROTOCOL_VERSION: u16 = 6;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -75,10 +75,6 @@ pub const CHUNK_LEN: usize = 128;
 /// Largest encoded frame, delimiter included, that either side must accept: the largest chunk
 /// message (≈ 540 bytes) with room for a few more header fields.
 pub const MAX_FRAME_LEN: usize = 576;
-
-/// Not used since protocol version 4, whose transport answers an unreadable frame with
-/// [`Uplink::Nak`](crate::transport::Uplink) instead; kept for code that still names it.
-pub const UNKNOWN_SEQ: u16 = 0xFFFF;
 
 /// Most log bytes one [`Response::Log`] carries: with its envelope it stays well inside
 /// [`MAX_FRAME_LEN`] even after the transport's own header.
@@ -236,12 +232,12 @@ pub struct DirectionReport {
     pub residual: f64,
 }
 
-/// Retired instructions of one CG iteration, measured hart by hart.
+/// Retired instructions of one CG iteration (or, in `SolveReport::whole_solve`, of a whole
+/// solve), measured hart by hart.
 ///
 /// Under QEMU `-icount` every hart's `minstret` reads one machine-wide instruction count, so the
-/// target measures these on an iteration whose parallel phases it runs one hart at a time (the
-/// others asleep in `wfi`): each hart's delta is then exactly its own work, barrier waits
-/// excluded. The MVU loop's count does not depend on the data, so one iteration stands for all.
+/// target runs every parallel phase one hart at a time (the others asleep in `wfi`): each
+/// hart's delta is then exactly its own work, barrier waits excluded.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct IterationCost {
     /// Σ over the MVU phase's steps of the slowest hart's instructions (thesis T_MVU).
@@ -277,11 +273,22 @@ pub struct SolveReport {
     pub mvu: PhaseCounters,
     /// Hart 0's counters over the SVU phases of the whole solve.
     pub svu: PhaseCounters,
-    /// Per-hart instruction counts of one iteration (zero if the solve needed no iteration).
+    /// Per-hart instruction counts of the first iteration (zero if the solve needed no
+    /// iteration): the MVU/SVU breakdown. The solve's total is `whole_solve`.
     pub per_iteration: IterationCost,
     /// Values that had to be clamped to fit their fixed-point format. The block-floating-point
     /// bounds make this impossible; anything but 0 means the result cannot be trusted.
     pub saturations: u32,
+    /// (Protocol version 6.) The whole solve's measured instruction counts: every parallel
+    /// phase of every iteration (residual replacements and the initial residual included) run
+    /// one hart at a time and its slowest hart's count summed, plus all of hart 0's serial work
+    /// from the start of the solve to its end. `mvu_critical + svu_critical` is the solve's
+    /// critical path, measured, not extrapolated from `per_iteration`.
+    pub whole_solve: IterationCost,
+    /// (Protocol version 6.) Hart 0's serial (scalar) instructions in the first iteration: α,
+    /// β, block exponents and combining the harts' partial results. Part of
+    /// `per_iteration.svu_critical`.
+    pub first_iteration_scalar: u64,
 }
 
 /// Why CG stopped without an answer.
@@ -464,6 +471,13 @@ mod tests {
                 svu_total: u64::MAX,
             },
             saturations: u32::MAX,
+            whole_solve: IterationCost {
+                mvu_critical: u64::MAX,
+                svu_critical: u64::MAX,
+                mvu_total: u64::MAX,
+                svu_total: u64::MAX,
+            },
+            first_iteration_scalar: u64::MAX,
         };
         let resp = crate::transport::Uplink::Reply {
             seq: u16::MAX,
@@ -491,7 +505,7 @@ mod tests {
         )
         .is_ok());
         let log = Envelope {
-            seq: UNKNOWN_SEQ,
+            seq: u16::MAX,
             body: Response::Log {
                 dropped: u32::MAX,
                 frames: (0..LOG_CHUNK).map(|_| 0xFF).collect(),

@@ -9,7 +9,7 @@
 //! - **Vectors** (loads, displacements) are block floating point: `i32` mantissas sharing one
 //!   exponent, value = m · 2^e, with |m| < 2^[`MANTISSA_BITS`]. One shared exponent per vector keeps
 //!   30 significant bits relative to the largest entry whatever the physical scale, which is what
-//!   lets the target's fixed-point CG never overflow (see `deform-engine`).
+//!   lets the target's fixed-point CG never overflow (see `deform_target_core::cg`).
 
 use fixed::types::extra::*;
 use fixed::FixedI32;

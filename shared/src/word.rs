@@ -24,9 +24,11 @@ pub const VALUE_MAX: i32 = (1 << (VALUE_BITS - 1)) - 1;
 /// Smallest encodable value (raw).
 pub const VALUE_MIN: i32 = -(1 << (VALUE_BITS - 1));
 
-const COLUMN_SHIFT: u32 = VALUE_BITS;
+/// Where the column field starts: bit 21.
+pub const COLUMN_SHIFT: u32 = VALUE_BITS;
 const COLUMN_MASK: u32 = (COLUMN_WINDOW - 1) << COLUMN_SHIFT;
-const VALUE_MASK: u32 = (1 << VALUE_BITS) - 1;
+/// Bits 20..0, the value field: what a values-only update replaces (protocol version 2).
+pub const VALUE_MASK: u32 = (1 << VALUE_BITS) - 1;
 
 /// Why a word could not be encoded. Encoders never truncate silently.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]

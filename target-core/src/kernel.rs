@@ -6,7 +6,8 @@
 //! - The search directions of all fused systems are interleaved, `p[i] = [p₀ᵢ, p₁ᵢ, p₂ᵢ, pad]`
 //!   ([`Lanes`], 16 bytes), so that one address computed from a word's column serves all three
 //!   loads with immediate offsets 0, 4, 8. The byte offset of column c is `16·c`, which is
-//!   `(w >> 17) & 0x1FF0` of the word `w`: two instructions.
+//!   `(w >> COLUMN_OFFSET_SHIFT) & COLUMN_OFFSET_MASK` of the word `w` (17 and 0x1FF0, derived
+//!   from [`deform_shared::word`]'s layout and pinned below): two instructions.
 //! - Row sums go to `y[row] : [i64; 3]` ([`Sums`]), one per direction.
 //!
 //! # Numerics
@@ -14,12 +15,14 @@
 //! Each product q·p (|q| < 2^20, |p| < 2^30) is exact in `i64`, and so is the row sum (at most
 //! 2^12 products of a tile row before the sum could reach 2^62; validated tiles have at most
 //! 512 columns per row, and [`crate::cg::plan`] refuses a matrix whose rows could overflow).
-//! pᵀKp is accumulated exactly in `i128` as each row ends. Nothing is rounded.
+//! Nothing is rounded. pᵀKp is not formed here but once per finished row of Kp, in the MVU
+//! phase's second step ([`p_kp_and_max`]), exactly in `i128`: per row rather than per tile row
+//! and mirror row, which halves its cost where rows span two tiles.
 //!
 //! # Loop shape
 //!
 //! Per word: load it, extract the column byte offset (2 ops) and add the base, sign-extend the
-//! value (`slli 11`, `srai 11`), then per direction one load and an exact 64-bit
+//! value (`slli`/`srai` by [`VALUE_SIGN_SHIFT`] = 11), then per direction one load and an exact 64-bit
 //! multiply–accumulate (`mul`, `mulh`, `add`, `sltu`, `add`, `add`), step the word pointer and
 //! branch back unless the word has ER (an unsigned compare `w < 2^30` tests ER and EM at
 //! once, since a validated tile sets EM only on a word that also has ER). A mirrored tile adds
@@ -27,12 +30,31 @@
 #![allow(unsafe_code)]
 
 use deform_shared::protocol::MAX_DIRECTIONS;
-use deform_shared::word::ER_BIT;
+use deform_shared::word::{COLUMN_BITS, COLUMN_SHIFT, COLUMN_WINDOW, EM_BIT, ER_BIT, VALUE_BITS};
 
 /// One node's search-direction mantissas of every fused direction, plus padding to 16 bytes.
 pub type Lanes = [i32; 4];
 /// One row's MVU results, one per direction.
 pub type Sums = [i64; MAX_DIRECTIONS];
+
+/// log2 of the bytes of one [`Lanes`]: a column's byte offset in p is c << LANE_SHIFT.
+const LANE_SHIFT: u32 = 4;
+/// `(w >> COLUMN_OFFSET_SHIFT) & COLUMN_OFFSET_MASK` is the byte offset 16·c of word w's column.
+pub const COLUMN_OFFSET_SHIFT: u32 = COLUMN_SHIFT - LANE_SHIFT;
+/// See [`COLUMN_OFFSET_SHIFT`]: the column field, moved down to bit [`LANE_SHIFT`].
+pub const COLUMN_OFFSET_MASK: u32 = (COLUMN_WINDOW - 1) << LANE_SHIFT;
+/// `((w << VALUE_SIGN_SHIFT) as i32) >> VALUE_SIGN_SHIFT` is word w's value, sign-extended.
+pub const VALUE_SIGN_SHIFT: u32 = 32 - VALUE_BITS;
+
+// The loops below rely on this layout: 16-byte lanes, the column field right above the value
+// field, ER right above the column field and EM above ER (so `w < ER_BIT` means "neither").
+// The assembly takes the shifts as `const` operands; these pin them to the values the
+// disassembly in docs/PERFORMANCE.md shows.
+const _: () = assert!(1 << LANE_SHIFT == core::mem::size_of::<Lanes>());
+const _: () = assert!(COLUMN_SHIFT == VALUE_BITS);
+const _: () = assert!(ER_BIT == 1 << (COLUMN_SHIFT + COLUMN_BITS) && EM_BIT == ER_BIT << 1);
+const _: () = assert!(COLUMN_OFFSET_SHIFT == 17 && COLUMN_OFFSET_MASK == 0x1FF0);
+const _: () = assert!(VALUE_SIGN_SHIFT == 11);
 
 /// Where one tile's words read and write. All pointers are into the solver's buffers.
 #[derive(Clone, Copy)]
@@ -50,91 +72,97 @@ pub struct TileRun {
     /// Where the mirror row `n − 1 − row_base`'s sums go; the next tile row's mirror is one
     /// slot *lower*.
     pub y_mirror: *mut Sums,
-    /// `&p[row_base]`, for pᵀKp.
-    pub p_row: *const Lanes,
-    /// `&p[n − 1 − row_base]`, for pᵀKp of the mirror rows.
-    pub p_mirror_row: *const Lanes,
 }
 
-/// p_i · acc exactly, as an `i128`, without a 128-bit multiply (which rv32 does in software):
-/// acc is split into its high and low 32 bits, each product fits `i64`.
-#[inline(always)]
-fn exact_product(p: i32, acc: i64) -> i128 {
-    let lo = (p as i64) * (acc as u32 as i64);
-    let hi = (p as i64) * (acc >> 32);
-    ((hi as i128) << 32) + lo as i128
+/// pᵀKp over rows `p`/`kp` (one hart's share of finished rows) for `directions`, exactly, and
+/// the OR of |Kp| per direction (whose highest bit is that of max |Kp|).
+///
+/// Each product p·Kp (|p| < 2^30, |Kp| < 2^62) is split by Kp's 32-bit halves h (signed) and l
+/// (unsigned) into p·l and p·h, two 64-bit products; their words are summed in three `i64`s by
+/// weight 2^0, 2^32 and 2^64, which cannot overflow for any n ≤ 2^16 (below 2^48, 2^50 and
+/// 2^46), and are joined into the `i128` once. That is about half the instructions of an
+/// `i128` accumulation per row on rv32.
+pub fn p_kp_and_max(
+    p: &[Lanes],
+    kp: &[Sums],
+    directions: usize,
+) -> ([i128; MAX_DIRECTIONS], [u64; MAX_DIRECTIONS]) {
+    let mut p_kp = [0i128; MAX_DIRECTIONS];
+    let mut or = [0u64; MAX_DIRECTIONS];
+    for d in 0..directions.min(MAX_DIRECTIONS) {
+        let (mut w0, mut w1, mut w2) = (0i64, 0i64, 0i64);
+        let mut o = 0u64;
+        for (pi, ki) in p.iter().zip(kp) {
+            let (pd, v) = (pi[d] as i64, ki[d]);
+            let low = pd * (v as u32 as i64);
+            let high = pd * (v >> 32);
+            w0 += low as u32 as i64;
+            w1 += (low >> 32) + (high as u32 as i64);
+            w2 += high >> 32;
+            o |= (v ^ (v >> 63)) as u64;
+        }
+        p_kp[d] = i128::from(w0) + (i128::from(w1) << 32) + (i128::from(w2) << 64);
+        or[d] = o;
+    }
+    (p_kp, or)
 }
 
 /// Runs one tile for `D` fused directions (`MIRROR`: persymmetric half storage), adding each
-/// row sum into `y` and p_row·(row sum) into `p_kp`.
+/// row sum into `y` (and each mirror row's into `y_mirror`).
 ///
 /// # Safety
 ///
 /// - The tile passed [`deform_shared::matrix::validate_tile`] for dimension n: `rows` ER words,
 ///   the last one ends the tile, every column c has `col_base + c < n`.
-/// - `p_cols` is `&p[col_base]` and `p_row` is `&p[row_base]` of a `p` with at least n
-///   elements; for `MIRROR`, `p_mirror_cols` is `&p[n − 1 − col_base]` and `p_mirror_row` is
-///   `&p[n − 1 − row_base]`.
+/// - `p_cols` is `&p[col_base]` of a `p` with at least n elements; for `MIRROR`,
+///   `p_mirror_cols` is `&p[n − 1 − col_base]`.
 /// - `y` points at `rows` writable slots (and `y_mirror` at the top of `rows` slots going
 ///   down, for `MIRROR`) that no one else accesses during the call.
 #[inline(always)]
-pub unsafe fn run_tile<const D: usize, const MIRROR: bool>(
-    t: &TileRun,
-    p_kp: &mut [i128; MAX_DIRECTIONS],
-) {
+pub unsafe fn run_tile<const D: usize, const MIRROR: bool>(t: &TileRun) {
     let mut w = t.words;
     let mut y = t.y;
     let mut y_mirror = t.y_mirror;
-    let mut p_row = t.p_row;
-    let mut p_mirror_row = t.p_mirror_row;
     let cols = t.p_cols as *const u8;
     let mirror_cols = t.p_mirror_cols as *const u8;
     for _ in 0..t.rows {
         let mut acc = [0i64; D];
         let mut mirror_acc = [0i64; D];
         #[cfg(target_arch = "riscv32")]
-        let in_assembly = D == 1 || D == 3;
+        {
+            // SAFETY: as for `portable_row`, whose sums these compute exactly.
+            w = unsafe {
+                if MIRROR {
+                    riscv::mirrored_row(w, cols, mirror_cols, &mut acc, &mut mirror_acc)
+                } else {
+                    riscv::row(w, cols, &mut acc)
+                }
+            };
+        }
         #[cfg(not(target_arch = "riscv32"))]
-        let in_assembly = false;
-        if in_assembly {
-            #[cfg(target_arch = "riscv32")]
-            {
-                // SAFETY: as for `portable_row`, whose sums these compute exactly.
-                w = unsafe {
-                    if MIRROR {
-                        riscv::mirrored_row(w, cols, mirror_cols, &mut acc, &mut mirror_acc)
-                    } else {
-                        riscv::row(w, cols, &mut acc)
-                    }
-                };
-            }
-        } else {
+        {
             // SAFETY: forwarded from the caller.
             w = unsafe {
                 portable_row::<D, MIRROR>(w, cols, mirror_cols, &mut acc, &mut mirror_acc)
             };
         }
-        // SAFETY: one slot per tile row, as the caller promised; p_row walks p[row_base..].
+        // SAFETY: one slot per tile row, as the caller promised.
         unsafe {
-            let (out, pi) = (&mut *y, &*p_row);
+            let out = &mut *y;
             for d in 0..D {
                 out[d] += acc[d];
-                p_kp[d] += exact_product(pi[d], acc[d]);
             }
         }
         y = y.wrapping_add(1);
-        p_row = p_row.wrapping_add(1);
         if MIRROR {
             // SAFETY: as above, walking down from the mirror of row_base.
             unsafe {
-                let (out, pi) = (&mut *y_mirror, &*p_mirror_row);
+                let out = &mut *y_mirror;
                 for d in 0..D {
                     out[d] += mirror_acc[d];
-                    p_kp[d] += exact_product(pi[d], mirror_acc[d]);
                 }
             }
             y_mirror = y_mirror.wrapping_sub(1);
-            p_mirror_row = p_mirror_row.wrapping_sub(1);
         }
     }
 }
@@ -146,6 +174,7 @@ pub unsafe fn run_tile<const D: usize, const MIRROR: bool>(
 ///
 /// `w` points at a row of a validated tile; `cols` and `mirror_cols` are as in [`TileRun`].
 #[inline(always)]
+#[cfg_attr(target_arch = "riscv32", allow(dead_code))] // the specification; the firmware runs `riscv`
 unsafe fn portable_row<const D: usize, const MIRROR: bool>(
     mut w: *const u32,
     cols: *const u8,
@@ -157,8 +186,8 @@ unsafe fn portable_row<const D: usize, const MIRROR: bool>(
         // SAFETY: the row has an ER word at or after `w`, inside the tile.
         let word = unsafe { *w };
         w = w.wrapping_add(1);
-        let offset = ((word >> 17) & 0x1FF0) as usize;
-        let value = (((word << 11) as i32) >> 11) as i64;
+        let offset = ((word >> COLUMN_OFFSET_SHIFT) & COLUMN_OFFSET_MASK) as usize;
+        let value = (((word << VALUE_SIGN_SHIFT) as i32) >> VALUE_SIGN_SHIFT) as i64;
         // SAFETY: offset = 16·c with col_base + c < n, so this is p[col_base + c].
         let lanes = unsafe { &*(cols.wrapping_add(offset) as *const Lanes) };
         for d in 0..D {
@@ -183,41 +212,52 @@ unsafe fn portable_row<const D: usize, const MIRROR: bool>(
 ///
 /// As [`run_tile`].
 #[inline(never)]
-pub unsafe fn run_tile_dyn(
-    t: &TileRun,
-    directions: usize,
-    mirrored: bool,
-    p_kp: &mut [i128; MAX_DIRECTIONS],
-) {
+pub unsafe fn run_tile_dyn(t: &TileRun, directions: usize, mirrored: bool) {
     // SAFETY: forwarded contract.
     unsafe {
         match (directions, mirrored) {
-            (1, false) => run_tile::<1, false>(t, p_kp),
-            (2, false) => run_tile::<2, false>(t, p_kp),
-            (1, true) => run_tile::<1, true>(t, p_kp),
-            (2, true) => run_tile::<2, true>(t, p_kp),
-            (_, false) => run_tile::<3, false>(t, p_kp),
-            (_, true) => run_tile::<3, true>(t, p_kp),
+            (1, false) => run_tile::<1, false>(t),
+            (2, false) => run_tile::<2, false>(t),
+            (1, true) => run_tile::<1, true>(t),
+            (2, true) => run_tile::<2, true>(t),
+            (_, false) => run_tile::<3, false>(t),
+            (_, true) => run_tile::<3, true>(t),
         }
     }
 }
 
-/// The inner loop in RV32IM assembly, for one and for three directions: 15 instructions per
-/// word for one direction, 29 per word (9.67 per multiply-accumulate) for three; mirrored
-/// tiles 23 and 51 (11.5 and 8.5 per multiply-accumulate). Rust's code generation spills the six accumulator words of the fused loop and adds
-/// a bounds-free but longer address computation; this is the loop the thesis's MVU pipeline
-/// does in hardware. The portable loop in [`run_tile`] is the specification, and the HIL tests
-/// check that the firmware's results equal the host's bit for bit.
+/// The inner loop in RV32IM assembly, for one, two and three directions, whole and mirrored
+/// tiles: 15 instructions per word for one direction, 22 for two (11 per multiply–accumulate),
+/// 29 for three (9.67); mirrored tiles 23, 37 and 51 (11.5, 9.25 and 8.5 per
+/// multiply–accumulate, each word serving its row and the mirror row). Rust's code generation
+/// spills the accumulator words of the fused loops and adds a longer address computation; this
+/// is the loop the thesis's MVU pipeline does in hardware. The portable loop ([`portable_row`])
+/// is the specification, and the HIL tests check that the firmware's results equal the host's
+/// bit for bit.
+///
+/// # Scheduling
+///
+/// The loops are ordered for an in-order five-stage core such as VexRiscv, where a load's or a
+/// multiply's result used by the very next instruction stalls the pipeline
+/// (`/work/shared/notes/litex-vexriscv.md`: CPI 1.64 naive, about 1.15 scheduled): the word
+/// pointer's increment sits between the word's load and its first use, the three lanes' loads
+/// are issued before the first multiply, and every `mul`/`mulh` result is consumed at least
+/// one instruction later. The instruction count is the same as unscheduled, so QEMU's counts do
+/// not change. No loop is unrolled: every word may end its row, so an unrolled body would need
+/// an exit test per word anyway, which is what the loop branch is.
 #[cfg(target_arch = "riscv32")]
 mod riscv {
-    use super::{Lanes, ER_BIT};
+    use super::{
+        Lanes, COLUMN_OFFSET_MASK, COLUMN_OFFSET_SHIFT, ER_BIT, MAX_DIRECTIONS, VALUE_SIGN_SHIFT,
+    };
     use core::arch::asm;
 
-    /// Byte offset of column c in the interleaved p: `(w >> 17) & COLUMN_MASK` = 16·c.
-    const COLUMN_MASK: u32 = 0x1FF0;
+    fn join(lo: u32, hi: u32) -> i64 {
+        ((u64::from(hi) << 32) | u64::from(lo)) as i64
+    }
 
-    /// Adds one row's products into `acc` (one or three directions) and returns the pointer to
-    /// the word after the row's ER word.
+    /// Adds one row's products into `acc` (`D` = 1, 2 or 3 directions) and returns the pointer
+    /// to the word after the row's ER word.
     ///
     /// # Safety
     ///
@@ -231,108 +271,159 @@ mod riscv {
     ) -> *const u32 {
         let _: *const Lanes = cols.cast();
         let mut wp = w;
-        if D == 1 {
-            let (mut lo, mut hi) = (0u32, 0u32);
-            // SAFETY: reads only the row's words and p[col_base + c] for its columns.
-            unsafe {
-                asm!(
-                    "2:",
-                    "lw {w}, 0({wp})",
-                    "srli {t}, {w}, 17",
-                    "and {t}, {t}, {mask}",
-                    "add {t}, {t}, {base}",
-                    "lw {t}, 0({t})",
-                    "slli {v}, {w}, 11",
-                    "srai {v}, {v}, 11",
-                    "mul {m}, {v}, {t}",
-                    "mulh {v}, {v}, {t}",
-                    "add {lo}, {lo}, {m}",
-                    "sltu {m}, {lo}, {m}",
-                    "add {hi}, {hi}, {v}",
-                    "add {hi}, {hi}, {m}",
-                    "addi {wp}, {wp}, 4",
-                    "bltu {w}, {er}, 2b",
-                    wp = inout(reg) wp,
-                    lo = inout(reg) lo,
-                    hi = inout(reg) hi,
-                    base = in(reg) cols,
-                    mask = in(reg) COLUMN_MASK,
-                    er = in(reg) ER_BIT,
-                    w = out(reg) _,
-                    t = out(reg) _,
-                    v = out(reg) _,
-                    m = out(reg) _,
-                    options(nostack, readonly),
-                );
+        let mut a = [0u32; 2 * MAX_DIRECTIONS];
+        match D {
+            1 => {
+                // SAFETY: reads only the row's words and p[col_base + c] for its columns.
+                unsafe {
+                    asm!(
+                        "2:",
+                        "lw {w}, 0({wp})",
+                        "addi {wp}, {wp}, 4",
+                        "srli {t}, {w}, {cs}",
+                        "and {t}, {t}, {mask}",
+                        "add {t}, {t}, {base}",
+                        "lw {t}, 0({t})",
+                        "slli {v}, {w}, {vs}",
+                        "srai {v}, {v}, {vs}",
+                        "mul {m}, {v}, {t}",
+                        "mulh {v}, {v}, {t}",
+                        "add {l0}, {l0}, {m}",
+                        "sltu {m}, {l0}, {m}",
+                        "add {h0}, {h0}, {v}",
+                        "add {h0}, {h0}, {m}",
+                        "bltu {w}, {er}, 2b",
+                        wp = inout(reg) wp,
+                        l0 = inout(reg) a[0],
+                        h0 = inout(reg) a[1],
+                        base = in(reg) cols,
+                        mask = in(reg) COLUMN_OFFSET_MASK,
+                        er = in(reg) ER_BIT,
+                        cs = const COLUMN_OFFSET_SHIFT,
+                        vs = const VALUE_SIGN_SHIFT,
+                        w = out(reg) _,
+                        t = out(reg) _,
+                        v = out(reg) _,
+                        m = out(reg) _,
+                        options(nostack, readonly),
+                    );
+                }
             }
-            acc[0] = ((u64::from(hi) << 32) | u64::from(lo)) as i64;
-        } else {
-            let (mut l0, mut h0, mut l1, mut h1, mut l2, mut h2) =
-                (0u32, 0u32, 0u32, 0u32, 0u32, 0u32);
-            // SAFETY: as above; the three lanes of p[col_base + c] are at offsets 0, 4, 8.
-            unsafe {
-                asm!(
-                    "2:",
-                    "lw {w}, 0({wp})",
-                    "srli {t}, {w}, 17",
-                    "and {t}, {t}, {mask}",
-                    "add {t}, {t}, {base}",
-                    "slli {v}, {w}, 11",
-                    "srai {v}, {v}, 11",
-                    "lw {p}, 0({t})",
-                    "mul {m}, {v}, {p}",
-                    "mulh {p}, {v}, {p}",
-                    "add {l0}, {l0}, {m}",
-                    "sltu {m}, {l0}, {m}",
-                    "add {h0}, {h0}, {p}",
-                    "add {h0}, {h0}, {m}",
-                    "lw {p}, 4({t})",
-                    "mul {m}, {v}, {p}",
-                    "mulh {p}, {v}, {p}",
-                    "add {l1}, {l1}, {m}",
-                    "sltu {m}, {l1}, {m}",
-                    "add {h1}, {h1}, {p}",
-                    "add {h1}, {h1}, {m}",
-                    "lw {p}, 8({t})",
-                    "mul {m}, {v}, {p}",
-                    "mulh {p}, {v}, {p}",
-                    "add {l2}, {l2}, {m}",
-                    "sltu {m}, {l2}, {m}",
-                    "add {h2}, {h2}, {p}",
-                    "add {h2}, {h2}, {m}",
-                    "addi {wp}, {wp}, 4",
-                    "bltu {w}, {er}, 2b",
-                    wp = inout(reg) wp,
-                    l0 = inout(reg) l0,
-                    h0 = inout(reg) h0,
-                    l1 = inout(reg) l1,
-                    h1 = inout(reg) h1,
-                    l2 = inout(reg) l2,
-                    h2 = inout(reg) h2,
-                    base = in(reg) cols,
-                    mask = in(reg) COLUMN_MASK,
-                    er = in(reg) ER_BIT,
-                    w = out(reg) _,
-                    t = out(reg) _,
-                    v = out(reg) _,
-                    p = out(reg) _,
-                    m = out(reg) _,
-                    options(nostack, readonly),
-                );
+            2 => {
+                // SAFETY: as above; the two lanes of p[col_base + c] are at offsets 0 and 4.
+                unsafe {
+                    asm!(
+                        "2:",
+                        "lw {w}, 0({wp})",
+                        "addi {wp}, {wp}, 4",
+                        "srli {t}, {w}, {cs}",
+                        "and {t}, {t}, {mask}",
+                        "add {t}, {t}, {base}",
+                        "slli {v}, {w}, {vs}",
+                        "lw {p0}, 0({t})",
+                        "lw {p1}, 4({t})",
+                        "srai {v}, {v}, {vs}",
+                        "mul {m0}, {v}, {p0}",
+                        "mulh {p0}, {v}, {p0}",
+                        "mul {m1}, {v}, {p1}",
+                        "add {l0}, {l0}, {m0}",
+                        "sltu {m0}, {l0}, {m0}",
+                        "mulh {p1}, {v}, {p1}",
+                        "add {h0}, {h0}, {p0}",
+                        "add {h0}, {h0}, {m0}",
+                        "add {l1}, {l1}, {m1}",
+                        "sltu {m1}, {l1}, {m1}",
+                        "add {h1}, {h1}, {p1}",
+                        "add {h1}, {h1}, {m1}",
+                        "bltu {w}, {er}, 2b",
+                        wp = inout(reg) wp,
+                        l0 = inout(reg) a[0],
+                        h0 = inout(reg) a[1],
+                        l1 = inout(reg) a[2],
+                        h1 = inout(reg) a[3],
+                        base = in(reg) cols,
+                        mask = in(reg) COLUMN_OFFSET_MASK,
+                        er = in(reg) ER_BIT,
+                        cs = const COLUMN_OFFSET_SHIFT,
+                        vs = const VALUE_SIGN_SHIFT,
+                        w = out(reg) _,
+                        t = out(reg) _,
+                        v = out(reg) _,
+                        p0 = out(reg) _,
+                        p1 = out(reg) _,
+                        m0 = out(reg) _,
+                        m1 = out(reg) _,
+                        options(nostack, readonly),
+                    );
+                }
             }
-            let sums = [join(l0, h0), join(l1, h1), join(l2, h2)];
-            acc.copy_from_slice(&sums[..D]);
+            _ => {
+                // SAFETY: as above; the three lanes of p[col_base + c] are at offsets 0, 4, 8.
+                unsafe {
+                    asm!(
+                        "2:",
+                        "lw {w}, 0({wp})",
+                        "addi {wp}, {wp}, 4",
+                        "srli {t}, {w}, {cs}",
+                        "and {t}, {t}, {mask}",
+                        "add {t}, {t}, {base}",
+                        "slli {v}, {w}, {vs}",
+                        "lw {p0}, 0({t})",
+                        "srai {v}, {v}, {vs}",
+                        "lw {p1}, 4({t})",
+                        "mul {m0}, {v}, {p0}",
+                        "lw {p2}, 8({t})",
+                        "mulh {p0}, {v}, {p0}",
+                        "add {l0}, {l0}, {m0}",
+                        "mul {m1}, {v}, {p1}",
+                        "sltu {m0}, {l0}, {m0}",
+                        "add {h0}, {h0}, {p0}",
+                        "mulh {p1}, {v}, {p1}",
+                        "add {h0}, {h0}, {m0}",
+                        "add {l1}, {l1}, {m1}",
+                        "mul {m0}, {v}, {p2}",
+                        "sltu {m1}, {l1}, {m1}",
+                        "add {h1}, {h1}, {p1}",
+                        "mulh {p2}, {v}, {p2}",
+                        "add {h1}, {h1}, {m1}",
+                        "add {l2}, {l2}, {m0}",
+                        "sltu {m0}, {l2}, {m0}",
+                        "add {h2}, {h2}, {p2}",
+                        "add {h2}, {h2}, {m0}",
+                        "bltu {w}, {er}, 2b",
+                        wp = inout(reg) wp,
+                        l0 = inout(reg) a[0],
+                        h0 = inout(reg) a[1],
+                        l1 = inout(reg) a[2],
+                        h1 = inout(reg) a[3],
+                        l2 = inout(reg) a[4],
+                        h2 = inout(reg) a[5],
+                        base = in(reg) cols,
+                        mask = in(reg) COLUMN_OFFSET_MASK,
+                        er = in(reg) ER_BIT,
+                        cs = const COLUMN_OFFSET_SHIFT,
+                        vs = const VALUE_SIGN_SHIFT,
+                        w = out(reg) _,
+                        t = out(reg) _,
+                        v = out(reg) _,
+                        p0 = out(reg) _,
+                        p1 = out(reg) _,
+                        p2 = out(reg) _,
+                        m0 = out(reg) _,
+                        m1 = out(reg) _,
+                        options(nostack, readonly),
+                    );
+                }
+            }
+        }
+        for (d, acc) in acc.iter_mut().enumerate() {
+            *acc = join(a[2 * d], a[2 * d + 1]);
         }
         wp
     }
 
-    fn join(lo: u32, hi: u32) -> i64 {
-        ((u64::from(hi) << 32) | u64::from(lo)) as i64
-    }
-
     /// [`row`] for a mirrored tile: each word also multiplies p[n − 1 − col_base − c] into the
-    /// mirror row's sums. 23 instructions per word for one direction (11.5 per
-    /// multiply-accumulate), 51 for three (8.5 per multiply-accumulate).
+    /// mirror row's sums.
     ///
     /// # Safety
     ///
@@ -346,143 +437,259 @@ mod riscv {
         mirror_acc: &mut [i64; D],
     ) -> *const u32 {
         let mut wp = w;
-        if D == 1 {
-            let (mut l0, mut h0, mut m0, mut n0) = (0u32, 0u32, 0u32, 0u32);
-            // SAFETY: reads only the row's words, p[col_base + c] and p[n − 1 − col_base − c].
-            unsafe {
-                asm!(
-                    "2:",
-                    "lw {w}, 0({wp})",
-                    "srli {t}, {w}, 17",
-                    "and {t}, {t}, {mask}",
-                    "sub {tm}, {mbase}, {t}",
-                    "add {t}, {t}, {base}",
-                    "slli {v}, {w}, 11",
-                    "srai {v}, {v}, 11",
-                    "lw {p}, 0({t})",
-                    "mul {m}, {v}, {p}",
-                    "mulh {p}, {v}, {p}",
-                    "add {l0}, {l0}, {m}",
-                    "sltu {m}, {l0}, {m}",
-                    "add {h0}, {h0}, {p}",
-                    "add {h0}, {h0}, {m}",
-                    "lw {p}, 0({tm})",
-                    "mul {m}, {v}, {p}",
-                    "mulh {p}, {v}, {p}",
-                    "add {m0}, {m0}, {m}",
-                    "sltu {m}, {m0}, {m}",
-                    "add {n0}, {n0}, {p}",
-                    "add {n0}, {n0}, {m}",
-                    "addi {wp}, {wp}, 4",
-                    "bltu {w}, {er}, 2b",
-                    wp = inout(reg) wp,
-                    l0 = inout(reg) l0,
-                    h0 = inout(reg) h0,
-                    m0 = inout(reg) m0,
-                    n0 = inout(reg) n0,
-                    base = in(reg) cols,
-                    mbase = in(reg) mirror_cols,
-                    mask = in(reg) COLUMN_MASK,
-                    er = in(reg) ER_BIT,
-                    w = out(reg) _,
-                    t = out(reg) _,
-                    tm = out(reg) _,
-                    v = out(reg) _,
-                    p = out(reg) _,
-                    m = out(reg) _,
-                    options(nostack, readonly),
-                );
+        // Own row's (lo, hi) per direction, then the mirror row's.
+        let mut a = [0u32; 4 * MAX_DIRECTIONS];
+        match D {
+            1 => {
+                // SAFETY: reads only the row's words, p[col_base + c] and p[n − 1 − col_base − c].
+                unsafe {
+                    asm!(
+                        "2:",
+                        "lw {w}, 0({wp})",
+                        "addi {wp}, {wp}, 4",
+                        "srli {t}, {w}, {cs}",
+                        "and {t}, {t}, {mask}",
+                        "sub {tm}, {mbase}, {t}",
+                        "add {t}, {t}, {base}",
+                        "lw {p}, 0({t})",
+                        "lw {q}, 0({tm})",
+                        "slli {v}, {w}, {vs}",
+                        "srai {v}, {v}, {vs}",
+                        "mul {m}, {v}, {p}",
+                        "mulh {p}, {v}, {p}",
+                        "mul {n}, {v}, {q}",
+                        "add {l0}, {l0}, {m}",
+                        "sltu {m}, {l0}, {m}",
+                        "mulh {q}, {v}, {q}",
+                        "add {h0}, {h0}, {p}",
+                        "add {h0}, {h0}, {m}",
+                        "add {l1}, {l1}, {n}",
+                        "sltu {n}, {l1}, {n}",
+                        "add {h1}, {h1}, {q}",
+                        "add {h1}, {h1}, {n}",
+                        "bltu {w}, {er}, 2b",
+                        wp = inout(reg) wp,
+                        l0 = inout(reg) a[0],
+                        h0 = inout(reg) a[1],
+                        l1 = inout(reg) a[6],
+                        h1 = inout(reg) a[7],
+                        base = in(reg) cols,
+                        mbase = in(reg) mirror_cols,
+                        mask = in(reg) COLUMN_OFFSET_MASK,
+                        er = in(reg) ER_BIT,
+                        cs = const COLUMN_OFFSET_SHIFT,
+                        vs = const VALUE_SIGN_SHIFT,
+                        w = out(reg) _,
+                        t = out(reg) _,
+                        tm = out(reg) _,
+                        v = out(reg) _,
+                        p = out(reg) _,
+                        q = out(reg) _,
+                        m = out(reg) _,
+                        n = out(reg) _,
+                        options(nostack, readonly),
+                    );
+                }
             }
-            acc[0] = join(l0, h0);
-            mirror_acc[0] = join(m0, n0);
-        } else {
-            let mut a = [0u32; 12];
-            // SAFETY: as above, three lanes at offsets 0, 4, 8 of both addresses.
-            unsafe {
-                asm!(
-                    "2:",
-                    "lw {w}, 0({wp})",
-                    "srli {t}, {w}, 17",
-                    "and {t}, {t}, {mask}",
-                    "sub {tm}, {mbase}, {t}",
-                    "add {t}, {t}, {base}",
-                    "slli {v}, {w}, 11",
-                    "srai {v}, {v}, 11",
-                    "lw {p}, 0({t})",
-                    "mul {m}, {v}, {p}",
-                    "mulh {p}, {v}, {p}",
-                    "add {a0}, {a0}, {m}",
-                    "sltu {m}, {a0}, {m}",
-                    "add {a1}, {a1}, {p}",
-                    "add {a1}, {a1}, {m}",
-                    "lw {p}, 4({t})",
-                    "mul {m}, {v}, {p}",
-                    "mulh {p}, {v}, {p}",
-                    "add {a2}, {a2}, {m}",
-                    "sltu {m}, {a2}, {m}",
-                    "add {a3}, {a3}, {p}",
-                    "add {a3}, {a3}, {m}",
-                    "lw {p}, 8({t})",
-                    "mul {m}, {v}, {p}",
-                    "mulh {p}, {v}, {p}",
-                    "add {a4}, {a4}, {m}",
-                    "sltu {m}, {a4}, {m}",
-                    "add {a5}, {a5}, {p}",
-                    "add {a5}, {a5}, {m}",
-                    "lw {p}, 0({tm})",
-                    "mul {m}, {v}, {p}",
-                    "mulh {p}, {v}, {p}",
-                    "add {a6}, {a6}, {m}",
-                    "sltu {m}, {a6}, {m}",
-                    "add {a7}, {a7}, {p}",
-                    "add {a7}, {a7}, {m}",
-                    "lw {p}, 4({tm})",
-                    "mul {m}, {v}, {p}",
-                    "mulh {p}, {v}, {p}",
-                    "add {a8}, {a8}, {m}",
-                    "sltu {m}, {a8}, {m}",
-                    "add {a9}, {a9}, {p}",
-                    "add {a9}, {a9}, {m}",
-                    "lw {p}, 8({tm})",
-                    "mul {m}, {v}, {p}",
-                    "mulh {p}, {v}, {p}",
-                    "add {a10}, {a10}, {m}",
-                    "sltu {m}, {a10}, {m}",
-                    "add {a11}, {a11}, {p}",
-                    "add {a11}, {a11}, {m}",
-                    "addi {wp}, {wp}, 4",
-                    "bltu {w}, {er}, 2b",
-                    wp = inout(reg) wp,
-                    a0 = inout(reg) a[0],
-                    a1 = inout(reg) a[1],
-                    a2 = inout(reg) a[2],
-                    a3 = inout(reg) a[3],
-                    a4 = inout(reg) a[4],
-                    a5 = inout(reg) a[5],
-                    a6 = inout(reg) a[6],
-                    a7 = inout(reg) a[7],
-                    a8 = inout(reg) a[8],
-                    a9 = inout(reg) a[9],
-                    a10 = inout(reg) a[10],
-                    a11 = inout(reg) a[11],
-                    base = in(reg) cols,
-                    mbase = in(reg) mirror_cols,
-                    mask = in(reg) COLUMN_MASK,
-                    er = in(reg) ER_BIT,
-                    w = out(reg) _,
-                    t = out(reg) _,
-                    tm = out(reg) _,
-                    v = out(reg) _,
-                    p = out(reg) _,
-                    m = out(reg) _,
-                    options(nostack, readonly),
-                );
+            2 => {
+                // SAFETY: as above, two lanes at offsets 0 and 4 of both addresses.
+                unsafe {
+                    asm!(
+                        "2:",
+                        "lw {w}, 0({wp})",
+                        "addi {wp}, {wp}, 4",
+                        "srli {t}, {w}, {cs}",
+                        "and {t}, {t}, {mask}",
+                        "sub {tm}, {mbase}, {t}",
+                        "add {t}, {t}, {base}",
+                        "lw {p}, 0({t})",
+                        "lw {q}, 4({t})",
+                        "slli {v}, {w}, {vs}",
+                        "srai {v}, {v}, {vs}",
+                        "mul {m}, {v}, {p}",
+                        "mulh {p}, {v}, {p}",
+                        "mul {n}, {v}, {q}",
+                        "add {a0}, {a0}, {m}",
+                        "sltu {m}, {a0}, {m}",
+                        "mulh {q}, {v}, {q}",
+                        "add {a1}, {a1}, {p}",
+                        "add {a1}, {a1}, {m}",
+                        "lw {p}, 0({tm})",
+                        "add {a2}, {a2}, {n}",
+                        "sltu {n}, {a2}, {n}",
+                        "add {a3}, {a3}, {q}",
+                        "lw {q}, 4({tm})",
+                        "add {a3}, {a3}, {n}",
+                        "mul {m}, {v}, {p}",
+                        "mulh {p}, {v}, {p}",
+                        "mul {n}, {v}, {q}",
+                        "add {a6}, {a6}, {m}",
+                        "sltu {m}, {a6}, {m}",
+                        "mulh {q}, {v}, {q}",
+                        "add {a7}, {a7}, {p}",
+                        "add {a7}, {a7}, {m}",
+                        "add {a8}, {a8}, {n}",
+                        "sltu {n}, {a8}, {n}",
+                        "add {a9}, {a9}, {q}",
+                        "add {a9}, {a9}, {n}",
+                        "bltu {w}, {er}, 2b",
+                        wp = inout(reg) wp,
+                        a0 = inout(reg) a[0],
+                        a1 = inout(reg) a[1],
+                        a2 = inout(reg) a[2],
+                        a3 = inout(reg) a[3],
+                        a6 = inout(reg) a[6],
+                        a7 = inout(reg) a[7],
+                        a8 = inout(reg) a[8],
+                        a9 = inout(reg) a[9],
+                        base = in(reg) cols,
+                        mbase = in(reg) mirror_cols,
+                        mask = in(reg) COLUMN_OFFSET_MASK,
+                        er = in(reg) ER_BIT,
+                        cs = const COLUMN_OFFSET_SHIFT,
+                        vs = const VALUE_SIGN_SHIFT,
+                        w = out(reg) _,
+                        t = out(reg) _,
+                        tm = out(reg) _,
+                        v = out(reg) _,
+                        p = out(reg) _,
+                        q = out(reg) _,
+                        m = out(reg) _,
+                        n = out(reg) _,
+                        options(nostack, readonly),
+                    );
+                }
             }
-            let own = [join(a[0], a[1]), join(a[2], a[3]), join(a[4], a[5])];
-            let mirrored = [join(a[6], a[7]), join(a[8], a[9]), join(a[10], a[11])];
-            acc.copy_from_slice(&own[..D]);
-            mirror_acc.copy_from_slice(&mirrored[..D]);
+            _ => {
+                // SAFETY: as above, three lanes at offsets 0, 4, 8 of both addresses.
+                unsafe {
+                    asm!(
+                        "2:",
+                        "lw {w}, 0({wp})",
+                        "addi {wp}, {wp}, 4",
+                        "srli {t}, {w}, {cs}",
+                        "and {t}, {t}, {mask}",
+                        "sub {tm}, {mbase}, {t}",
+                        "add {t}, {t}, {base}",
+                        "lw {p}, 0({t})",
+                        "slli {v}, {w}, {vs}",
+                        "srai {v}, {v}, {vs}",
+                        "mul {m}, {v}, {p}",
+                        "mulh {p}, {v}, {p}",
+                        "add {a0}, {a0}, {m}",
+                        "sltu {m}, {a0}, {m}",
+                        "add {a1}, {a1}, {p}",
+                        "lw {p}, 4({t})",
+                        "add {a1}, {a1}, {m}",
+                        "mul {m}, {v}, {p}",
+                        "mulh {p}, {v}, {p}",
+                        "add {a2}, {a2}, {m}",
+                        "sltu {m}, {a2}, {m}",
+                        "add {a3}, {a3}, {p}",
+                        "lw {p}, 8({t})",
+                        "add {a3}, {a3}, {m}",
+                        "mul {m}, {v}, {p}",
+                        "mulh {p}, {v}, {p}",
+                        "add {a4}, {a4}, {m}",
+                        "sltu {m}, {a4}, {m}",
+                        "add {a5}, {a5}, {p}",
+                        "lw {p}, 0({tm})",
+                        "add {a5}, {a5}, {m}",
+                        "mul {m}, {v}, {p}",
+                        "mulh {p}, {v}, {p}",
+                        "add {a6}, {a6}, {m}",
+                        "sltu {m}, {a6}, {m}",
+                        "add {a7}, {a7}, {p}",
+                        "lw {p}, 4({tm})",
+                        "add {a7}, {a7}, {m}",
+                        "mul {m}, {v}, {p}",
+                        "mulh {p}, {v}, {p}",
+                        "add {a8}, {a8}, {m}",
+                        "sltu {m}, {a8}, {m}",
+                        "add {a9}, {a9}, {p}",
+                        "lw {p}, 8({tm})",
+                        "add {a9}, {a9}, {m}",
+                        "mul {m}, {v}, {p}",
+                        "mulh {p}, {v}, {p}",
+                        "add {a10}, {a10}, {m}",
+                        "sltu {m}, {a10}, {m}",
+                        "add {a11}, {a11}, {p}",
+                        "add {a11}, {a11}, {m}",
+                        "bltu {w}, {er}, 2b",
+                        wp = inout(reg) wp,
+                        a0 = inout(reg) a[0],
+                        a1 = inout(reg) a[1],
+                        a2 = inout(reg) a[2],
+                        a3 = inout(reg) a[3],
+                        a4 = inout(reg) a[4],
+                        a5 = inout(reg) a[5],
+                        a6 = inout(reg) a[6],
+                        a7 = inout(reg) a[7],
+                        a8 = inout(reg) a[8],
+                        a9 = inout(reg) a[9],
+                        a10 = inout(reg) a[10],
+                        a11 = inout(reg) a[11],
+                        base = in(reg) cols,
+                        mbase = in(reg) mirror_cols,
+                        mask = in(reg) COLUMN_OFFSET_MASK,
+                        er = in(reg) ER_BIT,
+                        cs = const COLUMN_OFFSET_SHIFT,
+                        vs = const VALUE_SIGN_SHIFT,
+                        w = out(reg) _,
+                        t = out(reg) _,
+                        tm = out(reg) _,
+                        v = out(reg) _,
+                        p = out(reg) _,
+                        m = out(reg) _,
+                        options(nostack, readonly),
+                    );
+                }
+            }
+        }
+        for d in 0..D {
+            acc[d] = join(a[2 * d], a[2 * d + 1]);
+            mirror_acc[d] = join(a[6 + 2 * d], a[7 + 2 * d]);
         }
         wp
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn p_kp_is_the_exact_sum_of_products() {
+        let big = (1i64 << 62) - 1;
+        let values = [
+            0i64,
+            1,
+            -1,
+            big,
+            -big,
+            0x1234_5678_9ABC,
+            -(1 << 40) + 7,
+            u32::MAX as i64,
+        ];
+        let ps = [0i32, 1, -1, (1 << 30) - 1, -(1 << 30) + 1, 12345];
+        let mut p = Vec::new();
+        let mut kp = Vec::new();
+        for (i, &v) in values.iter().enumerate() {
+            for (j, &q) in ps.iter().enumerate() {
+                p.push([q, ps[(j + i) % ps.len()], -q, 0]);
+                kp.push([v, -v, values[(i + j) % values.len()]]);
+            }
+        }
+        let (got, or) = p_kp_and_max(&p, &kp, 3);
+        for d in 0..3 {
+            let want: i128 = p
+                .iter()
+                .zip(&kp)
+                .map(|(a, b)| a[d] as i128 * b[d] as i128)
+                .sum();
+            assert_eq!(got[d], want, "direction {d}");
+            let max = kp.iter().map(|r| r[d].unsigned_abs()).max().unwrap();
+            assert_eq!(64 - or[d].leading_zeros(), 64 - max.leading_zeros());
+        }
     }
 }

@@ -2,8 +2,9 @@
 //!
 //! The target's logic, free of hardware so that it runs in host tests too:
 //!
-//! - [`cg`]: conjugate gradients in block floating point. The MVU executes the instruction words
-//!   (thesis 4.2.1) and yields Kp and pᵀKp in one pass; the SVU does α, x, r, β and p (4.2.2).
+//! - [`cg`]: conjugate gradients in block floating point, phase by phase. The MVU
+//!   ([`kernel`]) executes the instruction words (thesis 4.2.1) and yields Kp and pᵀKp; the SVU
+//!   ([`svu`]) does α, r, β, x and p (4.2.2).
 //! - [`session`]: the protocol state machine. It owns no memory: the firmware lends it the
 //!   matrix store and the vectors, and it turns each request into exactly one response.
 //! - [`log_buffer`]: where the firmware's encoded defmt frames wait to be shipped; it never
@@ -11,8 +12,10 @@
 //! - [`transport`]: the target end of the reliable link: sequencing, selective repeat, NAKs,
 //!   duplicate suppression with cached replies, notices and the panic frame.
 #![cfg_attr(not(test), no_std)]
-// `unsafe` is allowed only where harts share vectors (`exec`) and in the MVU kernel (`kernel`),
-// each with its invariants written down.
+// `unsafe` is denied crate-wide and allowed (`#![allow(unsafe_code)]`) only in the modules
+// where harts share vectors or walk raw pointers: `exec` (the shared slices), `cg` (the phases
+// that hand the harts their slices), `kernel` (the MVU loop) and `svu` (the SVU's assembly
+// loops), each `unsafe` block with its invariants written down.
 #![deny(unsafe_code)]
 #![deny(clippy::undocumented_unsafe_blocks)]
 
@@ -21,4 +24,5 @@ pub mod exec;
 pub mod kernel;
 pub mod log_buffer;
 pub mod session;
+pub mod svu;
 pub mod transport;

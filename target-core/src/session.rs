@@ -61,7 +61,7 @@ use deform_shared::protocol::{
     VectorSlot, CHUNK_LEN, MAX_DIRECTIONS, MAX_HARTS, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{MANTISSA_LIMIT, MAX_FRAC_BITS};
-use deform_shared::word::{VALUE_BITS, VALUE_MAX, VALUE_MIN};
+use deform_shared::word::{VALUE_MASK, VALUE_MAX, VALUE_MIN};
 
 use crate::cg::{self, Matrix, Plan, PlanError, System, Work};
 use crate::exec::Executor;
@@ -139,9 +139,6 @@ struct Upload {
     /// The tile whose words are arriving, with the offset of its first word.
     current: Option<(TileHeader, u32)>,
 }
-
-/// Bits 20..0 of a word: the value field a values-only update replaces.
-const VALUE_FIELD: u32 = (1 << VALUE_BITS) - 1;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum MatrixState {
@@ -550,7 +547,7 @@ impl<'a, E: Executor> Session<'a, E> {
             .get_mut(to_usize(offset)..to_usize(end))
             .ok_or(ErrorCode::ChunkTooLong)?;
         for (d, &v) in dst.iter_mut().zip(values) {
-            *d = (*d & !VALUE_FIELD) | (v as u32 & VALUE_FIELD);
+            *d = (*d & !VALUE_MASK) | (v as u32 & VALUE_MASK);
         }
         self.matrix = MatrixState::Updating {
             shape,

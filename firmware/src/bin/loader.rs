@@ -29,7 +29,7 @@ use deform_shared::loader::{
     decode_frame, LoaderAction, LoaderEnvelope, LoaderError, LoaderInfo, LoaderRequest,
     LoaderResponse, LoaderSession, CRC32, LOADER_FRAME_LEN, LOADER_PROTOCOL_VERSION,
 };
-use deform_shared::protocol::UNKNOWN_SEQ;
+use deform_shared::loader::UNKNOWN_SEQ;
 
 use hw::Uart;
 

@@ -6,10 +6,9 @@
 //! K resident, each direction warm-started from the previous step), for the grids the thesis
 //! quotes (about 500 nodes: 8³ = 512) and for 1000 nodes (10³), on 1 and on several MVUs. A
 //! step's cycles are those of its three solves (one per direction), run one after the other:
-//! with one MVU the firmware's MVU and SVU counters of each solve, set-up included; with several,
-//! the critical path the target measures per iteration (T_MVU + T_SVU) times the iterations,
-//! plus one T_MVU for a warm start's initial residual b − A·x₀ (under `-icount` the harts share
-//! one instruction counter, so the phase counters would add the harts up instead).
+//! the critical path each solve measured over its whole run (`SolveReport::whole_solve`: every
+//! parallel phase's slowest hart plus hart 0's serial work, the warm start's initial residual
+//! b − A·x₀ and any residual replacement included).
 //!
 //! Two budgets are kept apart, because they have different cures:
 //! - **compute**: the CG cycles at 100 MHz, CPI 1;
@@ -127,22 +126,15 @@ fn yes_no(b: bool) -> &'static str {
     }
 }
 
-/// (MVU, SVU) critical-path cycles of a step's solves (see the module doc); `warm`: each solve
-/// started from an uploaded guess, so it computed b − A·x₀ first.
-fn step_cycles(reports: &[SolveReport], warm: bool) -> (u64, u64) {
-    let (mut mvu, mut svu) = (0, 0);
-    for r in reports {
-        if r.mvus <= 1 {
-            mvu += r.mvu.cycles;
-            svu += r.svu.cycles;
-        } else {
-            let cost = r.per_iteration;
-            let iterations = r.iterations as u64;
-            mvu += cost.mvu_critical * (iterations + warm as u64);
-            svu += cost.svu_critical * iterations;
-        }
-    }
-    (mvu, svu)
+/// (MVU, SVU) critical-path cycles of a step's solves, as the target measured them over each
+/// whole solve (`SolveReport::whole_solve`: the initial residual of a warm start included).
+fn step_cycles(reports: &[SolveReport]) -> (u64, u64) {
+    reports.iter().fold((0, 0), |(mvu, svu), r| {
+        (
+            mvu + r.whole_solve.mvu_critical,
+            svu + r.whole_solve.svu_critical,
+        )
+    })
 }
 
 /// Steps per second that `per_step` units allow at `rate` units per second.
@@ -198,7 +190,7 @@ fn run_one(
         },
         |r| {
             let now = wire.read();
-            let (mvu_cycles, svu_cycles) = step_cycles(&r.reports, params.warm_start && r.step > 1);
+            let (mvu_cycles, svu_cycles) = step_cycles(&r.reports);
             steps.push(StepBudget {
                 step: r.step,
                 iterations: r.iterations,

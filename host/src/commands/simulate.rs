@@ -82,7 +82,7 @@ pub struct SimulateArgs {
     pub logs: LogFlags,
 
     /// Seconds one target solve may take.
-    #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u64).range(1..))]
+    #[arg(long, default_value_t = super::solve::DEFAULT_TIMEOUT_SECONDS, value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout: u64,
 
     #[command(flatten)]

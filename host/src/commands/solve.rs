@@ -12,13 +12,14 @@ use std::time::Duration;
 
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
+use deform_shared::word::VALUE_BITS;
 use serde::Serialize;
 
 use crate::board::{Board, BoardChoice, DEFAULT_QEMU_HARTS};
 use crate::cli_logs::{LogFlags, LogOptions};
 use crate::cli_model::ModelFlags;
 use crate::encode::{encode_with, EncodeOptions, Encoding, EncodingSummary, Partition};
-use crate::link::{LinkFlags, Timeouts};
+use crate::link::{LinkFlags, Timeouts, DEFAULT_SOLVE_TIMEOUT};
 use crate::metrics::{performance, Performance};
 use crate::model::{Axis, Model, ModelSpec};
 use crate::output::{node_rows, write_displacements, OutputFormat};
@@ -161,7 +162,7 @@ impl LayoutFlags {
 /// The built-in solver defaults (what `--help` states).
 pub const DEFAULT_TOL: f64 = 1e-8;
 pub const DEFAULT_MAX_SOLVES: u32 = 8;
-pub const DEFAULT_TIMEOUT_SECONDS: u64 = 300;
+pub const DEFAULT_TIMEOUT_SECONDS: u64 = DEFAULT_SOLVE_TIMEOUT.as_secs();
 
 /// A solve's inputs once flags, scenario file and defaults are merged.
 pub struct ResolvedSolve {
@@ -204,14 +205,15 @@ pub struct EngineStats {
     pub fused: bool,
     /// Target solves in all (a fused solve counts once).
     pub target_solves: usize,
-    /// Per-iteration figures of the first target solve (all loaded directions).
+    /// The first target solve's first iteration (all loaded directions): the MVU/SVU
+    /// breakdown of one iteration.
     pub performance: Option<Performance>,
     /// Matrix words the MVUs fetched over all solves.
     pub words_fetched: u64,
     /// What the same iterations fetch with every direction solved on its own.
     pub words_fetched_unfused: u64,
-    /// Critical-path cycles (slowest MVU + SVU per iteration, times the iterations) over all
-    /// solves.
+    /// Critical-path cycles over all solves, measured on the target phase by phase (slowest
+    /// hart per parallel phase + hart 0's serial work), not extrapolated from one iteration.
     pub critical_path_cycles: u64,
     /// Hart 0's MVU + SVU `mcycle` over all solves (under QEMU -icount: all harts' sum).
     pub cycles: u64,
@@ -510,9 +512,11 @@ fn print_summary(stats: &SolveStats) {
         stats.n, stats.nnz, stats.fixed_nodes
     );
     if let (Some(w), Some(t), Some(f)) = (stats.words, stats.tiles, stats.frac_bits) {
+        // A value field of VALUE_BITS two's-complement bits with f fractional bits is
+        // Q(VALUE_BITS − 1 − f).f: one bit is the sign.
         println!(
             "encoding    {w} words in {t} tiles, Q{}.{f} values",
-            20 - f as i32
+            VALUE_BITS as i32 - 1 - f as i32
         );
     }
     if let Some(e) = &stats.engine {
@@ -543,7 +547,7 @@ fn print_summary(stats: &SolveStats) {
     }
     if let Some(e) = &stats.engine {
         println!(
-            "runs        {} target solve(s), {}; {} matrix words fetched ({} if solved one direction at a time); {} critical-path cycles in all",
+            "runs        {} target solve(s), {}; {} matrix words fetched ({} if solved one direction at a time); {} critical-path cycles in all (measured)",
             e.target_solves,
             if e.fused { "directions fused" } else { "one direction at a time" },
             e.words_fetched,
@@ -552,7 +556,7 @@ fn print_summary(stats: &SolveStats) {
         );
         if let Some(p) = &e.performance {
             println!(
-                "per iter.   {} MVU(s) × {} direction(s): {:.2} MVU instructions per word, {:.2} per multiply-accumulate; \
+                "1st iter.   {} MVU(s) × {} direction(s): {:.2} MVU instructions per word, {:.2} per multiply-accumulate; \
                  critical path {} cycles (MVU {} + SVU {}); {:.1} MFLOPS at 100 MHz by eq. 56 (m = {:.2}, n = {})",
                 p.mvus,
                 p.directions,

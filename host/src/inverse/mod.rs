@@ -33,6 +33,7 @@ pub mod regularise;
 pub mod solver;
 pub mod spring_field;
 pub mod synthetic;
+pub mod tumour;
 
 use crate::model::{Grid, Model, Node};
 

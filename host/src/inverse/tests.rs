@@ -5,8 +5,9 @@ use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 
 use super::synthetic::{forward, observe, Noise};
+use super::tumour::{distance_to_truth, tumour_model, tumour_observations};
 use super::*;
-use crate::model::{Connection, FixedNodeSet, Inclusion, ModelSpec, PointLoad, StiffnessField};
+use crate::model::{Connection, ModelSpec};
 
 type Host<'a> = SpdSolver<'a, Box<dyn serialport::SerialPort>>;
 
@@ -304,128 +305,6 @@ fn spring_field_refuses_undetermined_springs_unless_regularised() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("spring-field estimator is singular"), "{e}");
-}
-
-/// The tumour case of issue 6 (see docs/RESULTS.md): a 12³ grid, model A, resting on its
-/// bottom face, an inclusion 5× stiffer centred at (7, 5, 6) with radius 2.
-pub(crate) fn tumour_model(loads: Vec<PointLoad>) -> Model {
-    let grid = Grid::new(12, 12, 12).unwrap();
-    Model::build(&ModelSpec {
-        grid,
-        connection: Connection::Axial,
-        field: Some(StiffnessField {
-            background: 1.0,
-            inclusions: vec![Inclusion {
-                center: [7.0, 5.0, 6.0],
-                radius: 2.0,
-                k: 5.0,
-            }],
-            nodes: Vec::new(),
-        }),
-        fixed_sets: vec![FixedNodeSet::Face {
-            axis: crate::model::Axis::Z,
-            side: crate::model::Side::Low,
-        }],
-        fixed_nodes: Vec::new(),
-        prescribed: Vec::new(),
-        loads,
-        pressures: Vec::new(),
-        elasticity: crate::model::Elasticity::isotropic(1.0).unwrap(),
-    })
-    .unwrap()
-}
-
-/// The load cases of the tumour case: in each, x, y and z get point loads at different
-/// surface nodes, so one case gives three independent displacement fields.
-pub(crate) fn tumour_load_cases() -> Vec<Vec<PointLoad>> {
-    [
-        ["0,6,6:1,0,0", "6,0,6:0,1,0", "6,6,11:0,0,-1"],
-        ["11,6,6:-1,0,0", "6,11,6:0,-1,0", "3,3,11:0,0,-1"],
-        ["6,6,11:1,0,0", "6,6,11:0,1,0", "9,9,11:0,0,-1"],
-        ["0,3,9:1,0,0", "9,0,3:0,1,0", "3,9,11:0,0,-1"],
-    ]
-    .iter()
-    .map(|case| case.iter().map(|l| l.parse().unwrap()).collect())
-    .collect()
-}
-
-pub(crate) fn tumour_observations(sets_per_case: usize, variance: f64, seed: u64) -> Observations {
-    let mut all = Vec::new();
-    for (c, loads) in tumour_load_cases().into_iter().enumerate() {
-        let model = tumour_model(loads);
-        let truth = forward(&model).unwrap();
-        let obs = observe(
-            &model,
-            &truth,
-            sets_per_case,
-            (c * sets_per_case) as u64,
-            noise(variance, seed + c as u64),
-        )
-        .unwrap();
-        all.extend(obs.sets);
-    }
-    Observations {
-        grid: Grid::new(12, 12, 12).unwrap(),
-        sets: all,
-    }
-}
-
-/// The load-case and noise study behind docs/RESULTS.md's tumour table:
-/// `cargo test -p deform-host --release --lib tumour_study -- --ignored --nocapture`.
-#[test]
-#[ignore = "a study, about 30 s in release; run by hand for docs/RESULTS.md"]
-fn tumour_study() {
-    let model = tumour_model(Vec::new());
-    let net = Network::of(&model);
-    for (cases, sets, var) in [
-        (1, 1, 0.0),
-        (1, 20, 1e-8),
-        (2, 20, 1e-8),
-        (4, 20, 1e-8),
-        (4, 20, 1e-7),
-        (4, 20, 1e-6),
-    ] {
-        let mut obs = tumour_observations(sets, var, 100);
-        obs.sets.truncate(cases * sets);
-        for reg in [
-            vec![],
-            vec![regularise::Regularisation::Smooth(1e-4)],
-            vec![regularise::Regularisation::Tikhonov(1e-4)],
-        ] {
-            let names: Vec<String> = reg.iter().map(|r| r.to_string()).collect();
-            let line = match spring_field::estimate(&net, &obs, &reg, &mut host()) {
-                Ok(est) => {
-                    let c = est.stiff_region.centre;
-                    format!(
-                        "({:.2}, {:.2}, {:.2}) | {:.2} | {} | {:.2} – {:.2} | {:.1e} | {}",
-                        c[0],
-                        c[1],
-                        c[2],
-                        distance_to_truth(c),
-                        est.stiff_region.nodes,
-                        est.min_k,
-                        est.max_k,
-                        est.relative_residual,
-                        est.solves.iterations
-                    )
-                }
-                Err(e) => format!("refused: {e}"),
-            };
-            eprintln!(
-                "| {cases} | {sets} | {var:e} | {} | {line} |",
-                names.join(" ")
-            );
-        }
-    }
-}
-
-fn distance_to_truth(centre: [f64; 3]) -> f64 {
-    centre
-        .iter()
-        .zip([7.0, 5.0, 6.0])
-        .map(|(a, b)| (a - b) * (a - b))
-        .sum::<f64>()
-        .sqrt()
 }
 
 #[test]

@@ -34,6 +34,7 @@ pub use frame_reader::{FrameEvent, FrameReader};
 pub use port::{open_serial, Port, BAUD_RATE};
 pub use target::{
     full_upload_bytes, update_bytes, Target, Timeouts, UpdateError, UpdateReport, UploadProgress,
+    DEFAULT_SOLVE_TIMEOUT,
 };
 pub use transport::{
     request_name, Link, LinkConfig, LinkStats, NoticeHandler, DEFAULT_REQUEST_TIMEOUT,

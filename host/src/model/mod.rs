@@ -12,8 +12,10 @@
 //! heterogeneous tissue where no such factorisation exists.
 //!
 //! Submodules: [`grid`] (numbering), [`springs`] (models A/B, per-spring stiffness),
-//! [`assembly`] (the Laplacian), [`boundary`] (fixed nodes), [`loads`], [`elasticity`],
-//! [`sparse`] (CSR), [`matrix_market`] (export).
+//! [`assembly`] (the Laplacian), [`boundary`] (fixed nodes), [`prescribed`] (prescribed
+//! displacements), [`loads`], [`elasticity`], [`field`] (heterogeneous stiffness: inclusions),
+//! [`components`] (connected components: parts free to move rigidly), [`sparse`] (CSR), [`matrix_market`]
+//! (export); `triple` (the `I,J,K` syntax of flag values, private).
 
 pub mod assembly;
 pub mod boundary;

@@ -1798,7 +1798,7 @@ fn an_update_keeps_em_er_and_columns_and_a_crc_mismatch_drops_the_matrix() {
             values.iter_mut().for_each(|v| *v = -1);
         }
     }
-    let expected: Vec<u32> = e.words.iter().map(|&w| w | VALUE_FIELD).collect();
+    let expected: Vec<u32> = e.words.iter().map(|&w| w | VALUE_MASK).collect();
     let last = reqs.len() - 1;
     reqs[last] = Request::EndUpdate {
         crc32: words_crc(&expected),
