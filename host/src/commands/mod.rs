@@ -8,4 +8,5 @@ pub mod flash;
 pub mod model;
 pub mod observe;
 pub mod simulate;
+pub mod simulate_dynamic;
 pub mod solve;
