@@ -10,6 +10,7 @@
 //!   blocks and drops whole frames, counted, when full.
 //! - [`transport`]: the target end of the reliable link: sequencing, selective repeat, NAKs,
 //!   duplicate suppression with cached replies, notices and the panic frame.
+//! - `testkit` (tests only, feature `testkit`): owned session storage and tiled test systems.
 #![cfg_attr(not(test), no_std)]
 // `unsafe` is allowed only where harts share vectors (`exec`) and in the MVU kernel (`kernel`),
 // each with its invariants written down.
@@ -21,4 +22,6 @@ pub mod exec;
 pub mod kernel;
 pub mod log_buffer;
 pub mod session;
+#[cfg(any(test, feature = "testkit"))]
+pub mod testkit;
 pub mod transport;
