@@ -104,7 +104,7 @@ fn report() -> SolveReport {
 
 fn info() -> TargetInfo {
     TargetInfo {
-        protocol_version: PROTOCOL_VERSION,
+        protocol_version: 5,
         firmware_version: heapless::String::try_from("0.1.0").unwrap(),
         harts: 4,
         word_capacity: 524_288,
@@ -118,8 +118,9 @@ impl Golden for Request {
     const NAME: &'static str = "Request";
     fn samples() -> Vec<Self> {
         vec![
+            // A fixed number, not PROTOCOL_VERSION: a version bump alone changes no bytes.
             Request::Hello {
-                protocol_version: PROTOCOL_VERSION,
+                protocol_version: 5,
             },
             Request::BeginMatrix {
                 n: 1728,
@@ -147,6 +148,7 @@ impl Golden for Request {
             Request::ReadSolution {
                 direction: 1,
                 offset: 384,
+                len: 96,
             },
             Request::BeginUpdate {
                 words: 27_093,
@@ -471,9 +473,7 @@ impl Golden for LoaderRequest {
     const NAME: &'static str = "LoaderRequest";
     fn samples() -> Vec<Self> {
         vec![
-            LoaderRequest::Hello {
-                version: LOADER_PROTOCOL_VERSION,
-            },
+            LoaderRequest::Hello { version: 1 },
             LoaderRequest::Begin(ImageHeader {
                 load_address: 0x8010_0000,
                 length: 70_000,
@@ -504,7 +504,7 @@ impl Golden for LoaderResponse {
     fn samples() -> Vec<Self> {
         vec![
             LoaderResponse::Hello(LoaderInfo {
-                version: LOADER_PROTOCOL_VERSION,
+                version: 1,
                 ram_start: 0x8000_0000,
                 ram_end: 0x8800_0000,
                 loader_start: 0x8000_0000,
@@ -673,6 +673,7 @@ fn frames(out: &mut BTreeMap<String, BTreeMap<String, String>>) {
         body: Request::ReadSolution {
             direction: 0,
             offset: 128,
+            len: 128,
         },
     };
     let n = frame::encode(&request, &mut buf).unwrap();

@@ -167,6 +167,7 @@ fn random_request(rng: &mut Rng) -> Request {
         8 => Request::ReadSolution {
             direction: rng.below(4) as u8,
             offset: rng.number(),
+            len: rng.below(200) as u16,
         },
         9 => Request::BeginUpdate {
             words: rng.number(),

@@ -207,6 +207,7 @@ fn read_direction(s: &mut Session<'_, Sequential>, direction: u8, n: usize) -> V
         match s.handle(Request::ReadSolution {
             direction,
             offset: out.len() as u32,
+            len: CHUNK_LEN as u16,
         }) {
             Response::Solution {
                 direction: got,
@@ -333,7 +334,8 @@ fn a_version_mismatch_answers_hello_then_refuses_until_a_matching_hello() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         mismatch
     );
@@ -950,7 +952,8 @@ fn solve_checks_its_inputs_before_touching_anything() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         ooo(SessionStep::NoSolution)
     );
@@ -976,7 +979,8 @@ fn solve_checks_its_inputs_before_touching_anything() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         ooo(SessionStep::NoSolution)
     );
@@ -1018,14 +1022,16 @@ fn solves_the_1d_laplacian_like_a_direct_solver() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: n as u32
+            offset: n as u32,
+            len: CHUNK_LEN as u16
         }),
         err(ErrorCode::ChunkTooLong)
     );
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: u32::MAX
+            offset: u32::MAX,
+            len: CHUNK_LEN as u16
         }),
         err(ErrorCode::ChunkTooLong)
     );
@@ -1061,7 +1067,8 @@ fn solves_the_1d_laplacian_like_a_direct_solver() {
     assert!(matches!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         Response::Solution { .. }
     ));
@@ -1158,7 +1165,8 @@ fn a_failed_solve_leaves_no_solution() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         ooo(SessionStep::NoSolution)
     );
@@ -1256,8 +1264,11 @@ fn raw_request() -> impl Strategy<Value = Request> {
                 directions: 1,
             })
         ),
-        (0u8..4, num(12))
-            .prop_map(|(direction, offset)| Request::ReadSolution { direction, offset }),
+        (0u8..4, num(12)).prop_map(|(direction, offset)| Request::ReadSolution {
+            direction,
+            offset,
+            len: CHUNK_LEN as u16
+        }),
         (num(40), 0u8..24).prop_map(|(words, frac_bits)| Request::BeginUpdate { words, frac_bits }),
         (
             num(40),
@@ -1369,8 +1380,13 @@ fn step() -> impl Strategy<Value = Step> {
                 directions: 1,
             }))
         });
-    let read = (0u8..4, 0u32..14)
-        .prop_map(|(direction, offset)| Step::Raw(Request::ReadSolution { direction, offset }));
+    let read = (0u8..4, 0u32..14).prop_map(|(direction, offset)| {
+        Step::Raw(Request::ReadSolution {
+            direction,
+            offset,
+            len: CHUNK_LEN as u16,
+        })
+    });
     let update = (
         1usize..=12,
         3usize..=12,
@@ -1771,7 +1787,8 @@ fn directions_beyond_the_fused_count_are_refused() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 3,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         out_of_range
     );
@@ -1791,7 +1808,8 @@ fn directions_beyond_the_fused_count_are_refused() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 2,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         ooo(SessionStep::NoSolution)
     );

@@ -15,7 +15,9 @@ use deform_shared::loader::{
     self, LoaderAction, LoaderEnvelope, LoaderInfo, LoaderRequest, LoaderResponse, LoaderSession,
     LOADER_FRAME_LEN, LOADER_PROTOCOL_VERSION,
 };
-use deform_shared::protocol::{Envelope, Request, TargetInfo, MAX_FRAME_LEN, PROTOCOL_VERSION};
+use deform_shared::protocol::{
+    Envelope, Request, TargetInfo, CHUNK_LEN, MAX_FRAME_LEN, PROTOCOL_VERSION,
+};
 use deform_shared::transport::Uplink;
 
 use super::OwnedStorage;
@@ -246,6 +248,7 @@ fn session_requests() -> Vec<Envelope<Request>> {
         Request::ReadSolution {
             direction: 0,
             offset: 0,
+            len: CHUNK_LEN as u16,
         },
     ];
     requests
