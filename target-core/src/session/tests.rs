@@ -1868,3 +1868,38 @@ fn a_mirrored_half_solves_like_the_whole_persymmetric_matrix() {
         assert!((w - x).abs() < 1e-6 * x.abs(), "{w} vs exact {x}");
     }
 }
+
+/// `ReadSolution.len` (protocol 6) bounds the answer: a noisy line asks for short ones.
+#[test]
+fn a_solution_answer_holds_at_most_len_elements() {
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
+    let n = 10;
+    load(&mut s, &laplacian(n, 10));
+    load_rhs(&mut s, &[1.0; 10]);
+    assert!(matches!(
+        s.handle(solve_req(Start::Zero)),
+        Response::Solved(_)
+    ));
+    let whole = read_all(&mut s, n);
+    for (offset, len, expect) in [(0, 3, 3), (8, 5, 2), (0, 0, 0), (4, u16::MAX, 6)] {
+        let Response::Solution {
+            mantissas,
+            exponent,
+            ..
+        } = s.handle(Request::ReadSolution {
+            direction: 0,
+            offset,
+            len,
+        })
+        else {
+            panic!("no Solution for offset {offset}, len {len}")
+        };
+        assert_eq!(mantissas.len(), expect, "offset {offset}, len {len}");
+        let got: Vec<f64> = mantissas
+            .iter()
+            .map(|&m| from_mantissa(m, exponent))
+            .collect();
+        assert_eq!(got[..], whole[offset as usize..][..expect]);
+    }
+}
