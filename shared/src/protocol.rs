@@ -13,7 +13,8 @@
 //!    with the CRC of all words → `Ack` once the whole matrix is validated.
 //! 3. `BeginVector(Rhs { direction })` and its `VectorData` chunks for each direction to solve
 //!    (likewise an initial guess, if wanted).
-//! 4. `Solve` → `Solved(SolveReport)`, then `ReadSolution { direction, offset }` chunk by chunk.
+//! 4. `Solve` → `Solved(SolveReport)`, then `ReadSolution { direction, offset, len }` chunk by
+//!    chunk, each answer at most `len` elements long.
 //!
 //! Steps 3–4 repeat for as many right-hand sides as wanted; the matrix stays resident.
 //!
@@ -58,7 +59,9 @@ use crate::matrix::{MatrixError, TileHeader};
 /// Version 4 (link): the reliable transport ([`crate::transport`]: window, ACK/NAK, `Uplink` frames),
 /// fixed-width chunk payloads ([`crate::chunk`]) and 128-element chunks.
 /// Version 5 (engine): tiles carry their MVU and a mirrored flag, fused directions, per-hart costs.
-pub const PROTOCOL_VERSION: u16 = 6;
+/// Version 6 (engine): the whole solve's measured critical path (`SolveReport::whole_solve`).
+/// Version 7 (craft): `ReadSolution` carries the most elements its answer may hold (`len`).
+pub const PROTOCOL_VERSION: u16 = 7;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -178,6 +181,10 @@ pub enum Request {
     ReadSolution {
         direction: u8,
         offset: u32,
+        /// Most elements the answer may carry (it carries `min(len, CHUNK_LEN, n − offset)`):
+        /// the host shrinks replies on a noisy line as it shrinks its own chunks (protocol
+        /// version 7).
+        len: u16,
     },
     /// Starts a values-only update of the resident matrix (see the module doc).
     BeginUpdate {

@@ -111,7 +111,7 @@ fn report() -> SolveReport {
 
 fn info() -> TargetInfo {
     TargetInfo {
-        protocol_version: PROTOCOL_VERSION,
+        protocol_version: 5,
         firmware_version: heapless::String::try_from("0.1.0").unwrap(),
         harts: 4,
         word_capacity: 524_288,
@@ -125,8 +125,9 @@ impl Golden for Request {
     const NAME: &'static str = "Request";
     fn samples() -> Vec<Self> {
         vec![
+            // A fixed number, not PROTOCOL_VERSION: a version bump alone changes no bytes.
             Request::Hello {
-                protocol_version: PROTOCOL_VERSION,
+                protocol_version: 5,
             },
             Request::BeginMatrix {
                 n: 1728,
@@ -154,6 +155,7 @@ impl Golden for Request {
             Request::ReadSolution {
                 direction: 1,
                 offset: 384,
+                len: 96,
             },
             Request::BeginUpdate {
                 words: 27_093,
@@ -478,9 +480,7 @@ impl Golden for LoaderRequest {
     const NAME: &'static str = "LoaderRequest";
     fn samples() -> Vec<Self> {
         vec![
-            LoaderRequest::Hello {
-                version: LOADER_PROTOCOL_VERSION,
-            },
+            LoaderRequest::Hello { version: 1 },
             LoaderRequest::Begin(ImageHeader {
                 load_address: 0x8010_0000,
                 length: 70_000,
@@ -511,7 +511,7 @@ impl Golden for LoaderResponse {
     fn samples() -> Vec<Self> {
         vec![
             LoaderResponse::Hello(LoaderInfo {
-                version: LOADER_PROTOCOL_VERSION,
+                version: 1,
                 ram_start: 0x8000_0000,
                 ram_end: 0x8800_0000,
                 loader_start: 0x8000_0000,
@@ -680,6 +680,7 @@ fn frames(out: &mut BTreeMap<String, BTreeMap<String, String>>) {
         body: Request::ReadSolution {
             direction: 0,
             offset: 128,
+            len: 128,
         },
     };
     let n = frame::encode(&request, &mut buf).unwrap();
