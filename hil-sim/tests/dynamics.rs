@@ -5,8 +5,9 @@
 
 mod support;
 
-use deform_host::dynamics::target::{simulate_dynamic, DynamicParams, DynamicStep};
-use deform_host::dynamics::{DynamicsSpec, Scheme};
+use deform_host::dynamics::host::host_step;
+use deform_host::dynamics::target::{simulate_dynamic, DynamicParams, DynamicRunner, DynamicStep};
+use deform_host::dynamics::{DynamicsSpec, Loads, Scheme, StepMatrices};
 use deform_host::model::{Connection, Elasticity, Grid, Model, ModelError, ModelSpec};
 use deform_host::simulate::{Schedule, StepModel};
 
@@ -121,5 +122,86 @@ fn a_keyframed_needle_moves_the_tissue_on_the_target_as_in_f64() {
     check(&steps, "needle");
     let tip = grid.index("2,2,4".parse().unwrap()).unwrap();
     assert_eq!(steps[1].result.u[2][tip], -0.5);
+    assert_alive(&mut qemu);
+}
+
+/// A new h changes S's values only: the next step sends them as a values-only update, and
+/// the steps before and after still equal the f64 stepper run with the same h sequence.
+#[test]
+fn a_new_time_step_is_a_values_only_update() {
+    let mut qemu = boot();
+    let mut target = connect(&qemu);
+    let mut spec = ModelSpec::thesis_example();
+    spec.grid = Grid::new(5, 5, 5).unwrap();
+    spec.elasticity = Elasticity::isotropic(1.0).unwrap();
+    spec.loads = vec![ModelSpec::default_load(spec.grid)];
+    let model = Model::build(&spec).unwrap();
+    let dynamics = DynamicsSpec::uniform(0.5, [0.2; 3]);
+    let mut runner = DynamicRunner::new(&model, &dynamics, 0.05, params()).unwrap();
+    let loads = Loads::of(&model);
+    let first = runner.step(&mut target, 1, &loads, &loads, |_| {}).unwrap();
+    assert!(first.result.update.is_none());
+    runner.set_time_step(0.02).unwrap();
+    let second = runner.step(&mut target, 2, &loads, &loads, |_| {}).unwrap();
+    let update = second.result.update.expect("a values-only update");
+    assert!(update.bytes_sent < update.full_upload_bytes);
+    println!(
+        "new h: values-only update {} B against a full upload of {} B; step bytes {} then {}",
+        update.bytes_sent, update.full_upload_bytes, first.bytes_sent, second.bytes_sent
+    );
+    // The same two steps in f64 (the runner's own reference is checked per step too).
+    let system = runner.system().clone();
+    let mut state = deform_host::dynamics::State::rest(model.n());
+    for h in [0.05, 0.02] {
+        let m = StepMatrices::new(&system, h, Scheme::BackwardEuler).unwrap();
+        state = host_step(&system, &m, &state, &loads.to(&loads)).unwrap();
+    }
+    let scale = state
+        .u
+        .iter()
+        .map(|u| u.iter().fold(0.0f64, |a, b| a.max(b.abs())))
+        .fold(0.0, f64::max);
+    for d in 0..3 {
+        for (a, b) in runner.state.u[d].iter().zip(&state.u[d]) {
+            assert!((a - b).abs() <= 1e-8 * scale, "{a} vs {b}");
+        }
+    }
+    assert_alive(&mut qemu);
+}
+
+/// The first 10 steps of `examples/needle-dynamic.toml` (the needle going in) on the target,
+/// through the scenario and flag code `deform simulate` uses, equal the f64 stepper.
+#[test]
+fn the_dynamic_needle_example_on_the_target() {
+    use clap::Parser;
+    use deform_host::commands::simulate::SimulateArgs;
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: SimulateArgs,
+    }
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/needle-dynamic.toml"
+    );
+    let cli = Cli::try_parse_from(["deform", path, "--steps", "10"]).unwrap();
+    let resolved = cli.args.resolve().unwrap();
+    let dynamics = resolved.dynamics.clone().expect("the example is dynamic");
+    let model = Model::build(&resolved.spec).unwrap();
+    let mut qemu = boot();
+    let mut target = connect(&qemu);
+    let step_model = |t: f64| resolved.model_at(t);
+    let steps = simulate_dynamic(
+        &mut target,
+        &model,
+        Some(&step_model as StepModel),
+        resolved.schedule,
+        &dynamics,
+        params(),
+        |_| {},
+        |_| {},
+    )
+    .expect("dynamic series on QEMU");
+    check(&steps, "needle-dynamic");
     assert_alive(&mut qemu);
 }

@@ -8,16 +8,13 @@ mod support;
 
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_host::encode::EncodedMatrix;
-use deform_shared::matrix::TileHeader;
 use deform_shared::protocol::MAX_DIRECTIONS;
 use deform_shared::protocol::{SolveParams, SolveReport, Start};
-use deform_shared::qformat::{
-    block_exponent, choose_frac_bits, from_mantissa, quantize, to_mantissa,
-};
-use deform_shared::word::Word;
+use deform_shared::qformat::{block_exponent, choose_frac_bits, from_mantissa, to_mantissa};
 use deform_target_core::cg::{self, Matrix, System, Work};
 use deform_target_core::exec::Sequential;
-use support::{assert_alive, cholesky_solve, connect, decode_dense, max_relative_error};
+use deform_target_core::testkit::encode_rows;
+use support::{assert_alive, cholesky_solve, connect, decode_dense, encoded, max_relative_error};
 
 fn boot(harts: u8) -> Qemu {
     Qemu::start(&QemuConfig::new(firmware_elf()).harts(harts))
@@ -76,40 +73,11 @@ fn cube(m: usize, rows_per_tile: usize, half: bool) -> EncodedMatrix {
     };
     let frac_bits = choose_frac_bits(6.0).unwrap();
     let rows = if half { n / 2 } else { n };
-    let mut tiles = Vec::new();
-    let mut words = Vec::new();
-    for start in (0..rows).step_by(rows_per_tile) {
-        let end = (start + rows_per_tile).min(rows);
-        let entries: Vec<Vec<(usize, f64)>> = (start..end).map(row).collect();
-        let col_base = entries.iter().flatten().map(|e| e.0).min().unwrap();
-        let first = words.len();
-        for (r, e) in entries.iter().enumerate() {
-            for (k, &(c, v)) in e.iter().enumerate() {
-                let er = k + 1 == e.len();
-                let em = er && start + r + 1 == end;
-                let raw = quantize(v, frac_bits).unwrap() as i64;
-                words.push(
-                    Word::new((c - col_base) as u32, raw, er, em)
-                        .unwrap()
-                        .bits(),
-                );
-            }
-        }
-        tiles.push(TileHeader {
-            row_base: start as u32,
-            col_base: col_base as u32,
-            rows: (end - start) as u32,
-            words: (words.len() - first) as u32,
-            mvu: 0,
-            mirrored: half,
-        });
+    let mut system = encode_rows(n, rows, rows_per_tile, frac_bits, row);
+    for tile in &mut system.tiles {
+        tile.mirrored = half;
     }
-    EncodedMatrix {
-        n: n as u32,
-        frac_bits,
-        tiles,
-        words,
-    }
+    encoded(system)
 }
 
 /// `matrix` with its tiles spread over `mvus` MVUs: contiguous runs (thesis 4.1.2) or round

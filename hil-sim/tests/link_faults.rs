@@ -138,10 +138,14 @@ fn a_large_matrix_upload_reports_bytes_per_nonzero_and_throughput() {
         (sent + resent) as f64 / elapsed.as_secs_f64() / 1e3,
         words as f64 / elapsed.as_secs_f64(),
     );
-    // full_upload_bytes counts two-byte sequence numbers; real ones take up to three.
+    // full_upload_bytes counts two-byte sequence numbers (real ones take up to three) and
+    // full-size chunks; the adaptive link starts with smaller ones until the line has shown
+    // itself clean (host/src/link/adapt.rs: about the first 2 KB, ≲ 30 frames of ≤ 17 header
+    // bytes each, so at most 512 bytes more).
     let estimate = full_upload_bytes(&matrix).unwrap();
+    let requests = target.stats().requests - before.requests;
     assert!(
-        sent >= estimate && sent - estimate <= target.stats().requests - before.requests,
+        sent >= estimate && sent - estimate <= requests + 512,
         "sent {sent}, estimated {estimate}"
     );
     assert!(per_nonzero <= 4.2, "{per_nonzero} bytes per nonzero");

@@ -40,7 +40,8 @@ fn out_of_order_and_malformed_requests_get_typed_errors_and_no_panic() {
             &mut target,
             Request::ReadSolution {
                 direction: 0,
-                offset: 0
+                offset: 0,
+                len: CHUNK_LEN as u16
             }
         ),
         ErrorCode::OutOfOrder(SessionStep::NoSolution)

@@ -93,6 +93,7 @@ fn line_noise_neither_crashes_nor_confuses_the_firmware() {
         Request::ReadSolution {
             direction: 0,
             offset: 0,
+            len: CHUNK_LEN as u16,
         },
         9,
     ))

@@ -8,6 +8,7 @@
 //! - [`bench`]: the performance analysis behind `deform bench`.
 pub mod bench;
 pub mod board;
+pub mod cli_dynamics;
 pub mod cli_logs;
 pub mod cli_model;
 pub mod commands;

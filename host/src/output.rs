@@ -3,6 +3,7 @@
 //! |u| and the node stiffness as point data). The format follows the file extension, checked
 //! before any work is done.
 
+pub mod series;
 pub mod vtk;
 
 use std::fs::File;
@@ -102,6 +103,19 @@ pub fn write_displacements(
     }
 }
 
+/// One CSV row `PREFIXi,j,k,ux,uy,uz` (the prefix carries a time series' `step,t,`).
+pub(crate) fn write_csv_row(
+    out: &mut impl Write,
+    prefix: &str,
+    r: &NodeDisplacement,
+) -> std::io::Result<()> {
+    writeln!(
+        out,
+        "{prefix}{},{},{},{:e},{:e},{:e}",
+        r.i, r.j, r.k, r.ux, r.uy, r.uz
+    )
+}
+
 /// CSV (`stats` = `None`) or JSON.
 fn write_table(
     path: &PathBuf,
@@ -114,11 +128,7 @@ fn write_table(
         None => {
             writeln!(out, "i,j,k,ux,uy,uz")?;
             for r in rows {
-                writeln!(
-                    out,
-                    "{},{},{},{:e},{:e},{:e}",
-                    r.i, r.j, r.k, r.ux, r.uy, r.uz
-                )?;
+                write_csv_row(&mut out, "", r)?;
             }
         }
         Some(stats) => {

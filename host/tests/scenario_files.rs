@@ -16,7 +16,12 @@ fn error(src: &str) -> ScenarioError {
 
 #[test]
 fn shipped_examples_load_and_build() {
-    for name in ["thesis-cube", "tumour-palpation", "needle-insertion"] {
+    for name in [
+        "thesis-cube",
+        "tumour-palpation",
+        "needle-insertion",
+        "needle-dynamic",
+    ] {
         let s = Scenario::load(&examples().join(format!("{name}.toml")), None).unwrap();
         Model::build(&s.model).unwrap();
     }

@@ -13,7 +13,8 @@
 //!    with the CRC of all words → `Ack` once the whole matrix is validated.
 //! 3. `BeginVector(Rhs { direction })` and its `VectorData` chunks for each direction to solve
 //!    (likewise an initial guess, if wanted).
-//! 4. `Solve` → `Solved(SolveReport)`, then `ReadSolution { direction, offset }` chunk by chunk.
+//! 4. `Solve` → `Solved(SolveReport)`, then `ReadSolution { direction, offset, len }` chunk by
+//!    chunk, each answer at most `len` elements long.
 //!
 //! Steps 3–4 repeat for as many right-hand sides as wanted; the matrix stays resident.
 //!
@@ -59,8 +60,9 @@ use crate::matrix::{MatrixError, TileHeader};
 /// fixed-width chunk payloads ([`crate::chunk`]) and 128-element chunks.
 /// Version 5 (engine): tiles carry their MVU and a mirrored flag, fused directions, per-hart costs.
 /// Version 6 (engine): the whole solve's measured critical path (`SolveReport::whole_solve`).
-/// Version 7 (live): predicted warm starts, cycle budgets, the sparse frame messages.
-pub const PROTOCOL_VERSION: u16 = 7;
+/// Version 7 (craft): `ReadSolution` carries the most elements its answer may hold (`len`).
+/// Version 8 (live): predicted warm starts, cycle budgets, the sparse frame messages.
+pub const PROTOCOL_VERSION: u16 = 8;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -127,7 +129,7 @@ pub enum Start {
     Previous,
     /// x₀ = the uploaded `InitialGuess` vector.
     Uploaded,
-    /// x₀ predicted on the target from the solutions it keeps (protocol version 7): the linear
+    /// x₀ predicted on the target from the solutions it keeps (protocol version 8): the linear
     /// extrapolation 2u(t−1) − u(t−2) once two consecutive solves of the direction are known
     /// (the previous one `Predicted`), u(t−1) after one solve, 0 before any. No vector crosses
     /// the link. The target keeps u(t−1) in the `InitialGuess` slot, so a `Predicted` solve
@@ -147,7 +149,7 @@ pub struct SolveParams {
     /// Every matrix word fetched serves one multiply-accumulate per direction. Each direction
     /// stops on its own tolerance; the loop runs until all have stopped.
     pub directions: u8,
-    /// Cycle budget of the step (protocol version 7), 0 for none: the loop starts no new CG
+    /// Cycle budget of the step (protocol version 8), 0 for none: the loop starts no new CG
     /// iteration once the solve's measured critical path (as in `SolveReport::whole_solve`)
     /// reaches it. A step thus stops at the
     /// tolerance, at `max_iterations` (the iteration budget) or at this budget, whichever comes
@@ -192,6 +194,10 @@ pub enum Request {
     ReadSolution {
         direction: u8,
         offset: u32,
+        /// Most elements the answer may carry (it carries `min(len, CHUNK_LEN, n − offset)`):
+        /// the host shrinks replies on a noisy line as it shrinks its own chunks (protocol
+        /// version 7).
+        len: u16,
     },
     /// Starts a values-only update of the resident matrix (see the module doc).
     BeginUpdate {
@@ -208,7 +214,7 @@ pub enum Request {
     EndUpdate {
         crc32: u32,
     },
-    /// Live loop (protocol version 7, see [`crate::live`]): one tool node's row of the
+    /// Live loop (protocol version 8, see [`crate::live`]): one tool node's row of the
     /// unconstrained K, sent once per tool node before [`Request::LiveStart`].
     LiveTool(crate::live::ToolRow),
     /// Live loop: the tool set is complete; the target computes the local force model (the

@@ -26,6 +26,9 @@ use std::fmt::Write as _;
 use std::path::PathBuf;
 
 use deform_shared::frame::{self, FrameError};
+use deform_shared::live::{
+    Coupling, FieldChunk, ForceReport, FrameReport, LiveError, LiveParams, ModelReport, ToolRow,
+};
 use deform_shared::loader::{
     ImageHeader, LoaderEnvelope, LoaderError, LoaderInfo, LoaderRequest, LoaderResponse,
     LOADER_PROTOCOL_VERSION,
@@ -67,6 +70,7 @@ fn params() -> SolveParams {
         tolerance: 1e-8,
         start: Start::Previous,
         directions: 3,
+        cycle_budget: 300_000,
     }
 }
 
@@ -111,7 +115,7 @@ fn report() -> SolveReport {
 
 fn info() -> TargetInfo {
     TargetInfo {
-        protocol_version: PROTOCOL_VERSION,
+        protocol_version: 5,
         firmware_version: heapless::String::try_from("0.1.0").unwrap(),
         harts: 4,
         word_capacity: 524_288,
@@ -125,8 +129,9 @@ impl Golden for Request {
     const NAME: &'static str = "Request";
     fn samples() -> Vec<Self> {
         vec![
+            // A fixed number, not PROTOCOL_VERSION: a version bump alone changes no bytes.
             Request::Hello {
-                protocol_version: PROTOCOL_VERSION,
+                protocol_version: 5,
             },
             Request::BeginMatrix {
                 n: 1728,
@@ -154,6 +159,7 @@ impl Golden for Request {
             Request::ReadSolution {
                 direction: 1,
                 offset: 384,
+                len: 96,
             },
             Request::BeginUpdate {
                 words: 27_093,
@@ -164,6 +170,38 @@ impl Golden for Request {
                 values: [-1_048_576, 1_048_575].into_iter().collect(),
             },
             Request::EndUpdate { crc32: 0xCAFE_F00D },
+            Request::LiveTool(ToolRow {
+                node: 292,
+                diagonal: 26 << 9,
+                row: [
+                    Coupling {
+                        column: 291,
+                        value: -512,
+                    },
+                    Coupling {
+                        column: 293,
+                        value: -(1 << 20),
+                    },
+                ]
+                .into_iter()
+                .collect(),
+            }),
+            Request::LiveStart(LiveParams {
+                tolerance: 1e-4,
+                max_iterations: 60,
+                cycle_budget: 300_000,
+                scale: [1.0, 2.0, 0.5],
+            }),
+            Request::LiveFrame {
+                tool: [[0.0, -0.25, 1.5e-3]].into_iter().collect(),
+            },
+            Request::LiveForce {
+                tool: [[1.0, 0.0, -2.0], [0.5, 0.5, 0.5]].into_iter().collect(),
+            },
+            Request::ReadField {
+                offset: 80,
+                stride: 2,
+            },
         ]
     }
     fn variant(&self) -> &'static str {
@@ -180,6 +218,11 @@ impl Golden for Request {
             Request::BeginUpdate { .. } => "BeginUpdate",
             Request::UpdateValues { .. } => "UpdateValues",
             Request::EndUpdate { .. } => "EndUpdate",
+            Request::LiveTool(_) => "LiveTool",
+            Request::LiveStart(_) => "LiveStart",
+            Request::LiveFrame { .. } => "LiveFrame",
+            Request::LiveForce { .. } => "LiveForce",
+            Request::ReadField { .. } => "ReadField",
         }
     }
 }
@@ -202,6 +245,27 @@ impl Golden for Response {
                 dropped: 12,
                 frames: [1, 2, 3, 0].into_iter().collect(),
             },
+            Response::LiveReady(ModelReport {
+                solves: 3,
+                iterations: 412,
+                cycles: 1 << 33,
+                converged: true,
+            }),
+            Response::LiveFrame(FrameReport {
+                force: [-0.5, 0.0, 3.25],
+                residual: 1e-5,
+                iterations: 23,
+                cycles: 281_000,
+            }),
+            Response::LiveForce(ForceReport {
+                force: [1.0, -1.0, 0.125],
+                cycles: 900,
+            }),
+            Response::Field(FieldChunk {
+                offset: 6,
+                exponent: -12,
+                values: [1, 0, 0xFF, 0x7F, 0, 0x80].into_iter().collect(),
+            }),
         ]
     }
     fn variant(&self) -> &'static str {
@@ -212,6 +276,10 @@ impl Golden for Response {
             Response::Solved(_) => "Solved",
             Response::Solution { .. } => "Solution",
             Response::Log { .. } => "Log",
+            Response::LiveReady(_) => "LiveReady",
+            Response::LiveFrame(_) => "LiveFrame",
+            Response::LiveForce(_) => "LiveForce",
+            Response::Field(_) => "Field",
         }
     }
 }
@@ -292,6 +360,10 @@ impl Golden for ErrorCode {
                 rows: 9000,
                 capacity: 8192,
             },
+            ErrorCode::Live(LiveError::ToolCount {
+                expected: 4,
+                got: 3,
+            }),
         ]
     }
     fn variant(&self) -> &'static str {
@@ -313,6 +385,7 @@ impl Golden for ErrorCode {
             ErrorCode::ValueOutOfRange(_) => "ValueOutOfRange",
             ErrorCode::DirectionOutOfRange { .. } => "DirectionOutOfRange",
             ErrorCode::OverlapTooLarge { .. } => "OverlapTooLarge",
+            ErrorCode::Live(_) => "Live",
         }
     }
 }
@@ -463,13 +536,56 @@ impl Golden for VectorSlot {
 impl Golden for Start {
     const NAME: &'static str = "Start";
     fn samples() -> Vec<Self> {
-        vec![Start::Zero, Start::Previous, Start::Uploaded]
+        vec![
+            Start::Zero,
+            Start::Previous,
+            Start::Uploaded,
+            Start::Predicted,
+        ]
     }
     fn variant(&self) -> &'static str {
         match self {
             Start::Zero => "Zero",
             Start::Previous => "Previous",
             Start::Uploaded => "Uploaded",
+            Start::Predicted => "Predicted",
+        }
+    }
+}
+
+impl Golden for LiveError {
+    const NAME: &'static str = "LiveError";
+    fn samples() -> Vec<Self> {
+        vec![
+            LiveError::NodeOutOfRange { node: 9999 },
+            LiveError::ColumnOutOfRange { column: 70_000 },
+            LiveError::DuplicateNode { node: 3 },
+            LiveError::TooManyNodes { max: 8 },
+            LiveError::ValueOutOfRange,
+            LiveError::NoTool,
+            LiveError::NotStarted,
+            LiveError::ToolCount {
+                expected: 2,
+                got: 1,
+            },
+            LiveError::NotFinite,
+            LiveError::NoFrame,
+            LiveError::BadStride,
+        ]
+    }
+    fn variant(&self) -> &'static str {
+        match self {
+            LiveError::NodeOutOfRange { .. } => "NodeOutOfRange",
+            LiveError::ColumnOutOfRange { .. } => "ColumnOutOfRange",
+            LiveError::DuplicateNode { .. } => "DuplicateNode",
+            LiveError::TooManyNodes { .. } => "TooManyNodes",
+            LiveError::ValueOutOfRange => "ValueOutOfRange",
+            LiveError::NoTool => "NoTool",
+            LiveError::NotStarted => "NotStarted",
+            LiveError::ToolCount { .. } => "ToolCount",
+            LiveError::NotFinite => "NotFinite",
+            LiveError::NoFrame => "NoFrame",
+            LiveError::BadStride => "BadStride",
         }
     }
 }
@@ -478,9 +594,7 @@ impl Golden for LoaderRequest {
     const NAME: &'static str = "LoaderRequest";
     fn samples() -> Vec<Self> {
         vec![
-            LoaderRequest::Hello {
-                version: LOADER_PROTOCOL_VERSION,
-            },
+            LoaderRequest::Hello { version: 1 },
             LoaderRequest::Begin(ImageHeader {
                 load_address: 0x8010_0000,
                 length: 70_000,
@@ -511,7 +625,7 @@ impl Golden for LoaderResponse {
     fn samples() -> Vec<Self> {
         vec![
             LoaderResponse::Hello(LoaderInfo {
-                version: LOADER_PROTOCOL_VERSION,
+                version: 1,
                 ram_start: 0x8000_0000,
                 ram_end: 0x8800_0000,
                 loader_start: 0x8000_0000,
@@ -680,6 +794,7 @@ fn frames(out: &mut BTreeMap<String, BTreeMap<String, String>>) {
         body: Request::ReadSolution {
             direction: 0,
             offset: 128,
+            len: 128,
         },
     };
     let n = frame::encode(&request, &mut buf).unwrap();
@@ -711,6 +826,7 @@ fn current() -> BTreeMap<String, BTreeMap<String, String>> {
     entries::<MatrixError>("protocol", &mut out);
     entries::<VectorSlot>("protocol", &mut out);
     entries::<Start>("protocol", &mut out);
+    entries::<LiveError>("protocol", &mut out);
     entries::<LoaderRequest>("loader", &mut out);
     entries::<LoaderResponse>("loader", &mut out);
     entries::<LoaderError>("loader", &mut out);

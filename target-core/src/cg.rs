@@ -693,7 +693,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         for (st, lane) in self.state.iter_mut().zip(&mut lanes).take(directions) {
             if st.active {
                 st.residual_sq = st.ratio(st.rr_f, st.r.e);
-                st.active = st.residual_sq > self.tol_sq;
+                st.active = !within(st.residual_sq, self.tol_sq);
             }
             st.p = st.r;
             *lane = if st.active { Lane::R } else { Lane::Zero };
@@ -737,10 +737,11 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             let st = &mut self.state[d];
             let x = Lin::new(alphas[d], st.p, false, 1.0, st.x, &mut self.sat);
             xp_plans[d].x = Some(x);
-            if st.residual_sq <= self.tol_sq || st.iterations >= self.params.max_iterations {
+            if within(st.residual_sq, self.tol_sq) || st.iterations >= self.params.max_iterations {
                 st.active = false;
                 // Converged on the recursive residual: check it against b − A·x.
-                verify[d] = st.residual_sq <= self.tol_sq && st.replacements < MAX_REPLACEMENTS;
+                verify[d] =
+                    within(st.residual_sq, self.tol_sq) && st.replacements < MAX_REPLACEMENTS;
                 continue;
             }
             // β = r_newᵀr_new / rᵀr
@@ -802,7 +803,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         let mut lanes = [Lane::Keep; MAX_DIRECTIONS];
         for d in (0..self.directions()).filter(|&d| verify[d]) {
             let st = &mut self.state[d];
-            if st.residual_sq > self.tol_sq && st.iterations < self.params.max_iterations {
+            if !within(st.residual_sq, self.tol_sq) && st.iterations < self.params.max_iterations {
                 st.active = true;
                 st.p = st.r;
                 lanes[d] = Lane::R;
@@ -991,6 +992,13 @@ fn finish<E: Executor>(solver: Solver<'_, '_, '_, E>) -> (SolveReport, [i32; MAX
         });
     }
     (report, solver.x_exponents)
+}
+
+/// x ≤ limit for non-negative finite `f64`s, whose bit patterns order like the numbers: a few
+/// integer instructions instead of a soft-float comparison on rv32.
+fn within(x: f64, limit: f64) -> bool {
+    debug_assert!(x >= 0.0 && limit >= 0.0);
+    x.to_bits() <= limit.to_bits()
 }
 
 /// x·2^k: the exponent field adjusted directly where the result stays a normal number (a few

@@ -11,6 +11,7 @@
 //!   blocks and drops whole frames, counted, when full.
 //! - [`transport`]: the target end of the reliable link: sequencing, selective repeat, NAKs,
 //!   duplicate suppression with cached replies, notices and the panic frame.
+//! - `testkit` (tests only, feature `testkit`): owned session storage and tiled test systems.
 #![cfg_attr(not(test), no_std)]
 // `unsafe` is denied crate-wide and allowed (`#![allow(unsafe_code)]`) only in the modules
 // where harts share vectors or walk raw pointers: `exec` (the shared slices), `cg` (the phases
@@ -27,4 +28,6 @@ pub mod log_buffer;
 pub mod predict;
 pub mod session;
 pub mod svu;
+#[cfg(any(test, feature = "testkit"))]
+pub mod testkit;
 pub mod transport;

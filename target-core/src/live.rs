@@ -1,4 +1,4 @@
-//! The target's half of the live loop (`deform live`, protocol version 7; the messages and the
+//! The target's half of the live loop (`deform live`, protocol version 8; the messages and the
 //! scheme are in [`deform_shared::live`]): the tool set, the local force model, and the integer
 //! arithmetic that turns a frame's few tool displacements into right-hand sides, reaction forces
 //! and a quantised field. The session ([`crate::session`]) owns the vectors and runs the solves;

@@ -299,7 +299,11 @@ impl<'a, E: Executor> Session<'a, E> {
                 mantissas,
             } => self.vector_data(slot, offset, &mantissas),
             Request::Solve(params) => self.solve(&params),
-            Request::ReadSolution { direction, offset } => self.read_solution(direction, offset),
+            Request::ReadSolution {
+                direction,
+                offset,
+                len,
+            } => self.read_solution(direction, offset, len),
             Request::BeginUpdate { words, frac_bits } => self.begin_update(words, frac_bits),
             Request::UpdateValues { offset, values } => self.update_values(offset, &values),
             Request::EndUpdate { crc32 } => self.end_update(crc32),
@@ -787,7 +791,12 @@ impl<'a, E: Executor> Session<'a, E> {
         Ok(Response::Solved(report))
     }
 
-    fn read_solution(&mut self, direction: u8, offset: u32) -> Result<Response, ErrorCode> {
+    fn read_solution(
+        &mut self,
+        direction: u8,
+        offset: u32,
+        len: u16,
+    ) -> Result<Response, ErrorCode> {
         let d = direction_index(direction)?;
         let exponent = self
             .solution
@@ -799,7 +808,8 @@ impl<'a, E: Executor> Session<'a, E> {
         if offset >= shape.n {
             return Err(ErrorCode::ChunkTooLong);
         }
-        let end = offset.saturating_add(to_u32(CHUNK_LEN)).min(shape.n);
+        let len = u32::from(len).min(to_u32(CHUNK_LEN));
+        let end = offset.saturating_add(len).min(shape.n);
         let values = self
             .store
             .directions

@@ -140,10 +140,11 @@ pub struct Lin {
 
 /// The left shift that brings a vector with max |m| ≤ `bound` into [2^30, 2^31).
 pub fn normalising_shift(bound: u64) -> u32 {
-    if bound == 0 {
-        0
-    } else {
-        (30 - (63 - bound.leading_zeros() as i32)).clamp(0, 31) as u32
+    match u32::try_from(bound) {
+        Ok(0) => 0,
+        // 30 − ⌊log2 bound⌋ = leading zeros − 1, with a 32-bit count (rv32 has no 64-bit one).
+        Ok(b) => b.leading_zeros().saturating_sub(1),
+        Err(_) => 0,
     }
 }
 
@@ -155,7 +156,12 @@ fn decompose(c: f64) -> (bool, u64, i32) {
     if biased == 0 || biased == 0x7FF {
         return (false, 0, 0);
     }
-    (c < 0.0, (bits & ((1 << 52) - 1)) | (1 << 52), biased - 1075)
+    // The sign from its bit: an f64 comparison is a soft-float call on rv32.
+    (
+        bits >> 63 == 1,
+        (bits & ((1 << 52) - 1)) | (1 << 52),
+        biased - 1075,
+    )
 }
 
 /// An upper bound on |c|·bound·2^e as (mantissa, exponent): c's mantissa cut to 31 bits and
@@ -202,7 +208,10 @@ impl Lin {
             (lo >> gap) + 1
         };
         let sum = hi + lo;
-        let bits = 64 - sum.leading_zeros() as i32;
+        let bits = match (sum >> 32) as u32 {
+            0 => 32 - (sum as u32).leading_zeros() as i32,
+            top => 64 - top.leading_zeros() as i32,
+        };
         // floor(log2(bound)) = bits − 1 + e_hi; e = that + 1 − BOUND_BITS.
         let e = bits + e_hi - BOUND_BITS;
         let ku = if u_normalised {

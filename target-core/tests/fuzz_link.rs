@@ -1,7 +1,8 @@
 //! Seeded fuzzing of everything the target does with UART bytes: the frame decoder (COBS, CRC),
 //! the message decoder (postcard, behind a *valid* CRC so that the random bytes reach it), and
 //! the whole target transport with the real session behind it. None may panic, whatever the
-//! input. (cargo-fuzz needs a nightly toolchain, so a fixed-seed generator drives them.)
+//! input. A fixed-seed generator drives them here, so they run in every `cargo test`; the
+//! coverage-guided libFuzzer targets over the same code are in `fuzz/` (docs/PROTOCOL.md §8).
 //!
 //! `cargo test` runs a short round of each; the long run, at least a million inputs each, is
 //!
@@ -18,8 +19,7 @@ use deform_shared::protocol::{
     MAX_FRAME_LEN, PROTOCOL_VERSION,
 };
 use deform_shared::transport::Uplink;
-use deform_target_core::exec::Sequential;
-use deform_target_core::session::{DirectionStorage, Session, Storage};
+use deform_target_core::testkit::OwnedStorage;
 use deform_target_core::transport::{TargetLink, Tx};
 
 /// Inputs per fuzzer in the short run (every `cargo test`).
@@ -169,6 +169,7 @@ fn random_request(rng: &mut Rng) -> Request {
         8 => Request::ReadSolution {
             direction: rng.below(4) as u8,
             offset: rng.number(),
+            len: rng.below(200) as u16,
         },
         9 => Request::BeginUpdate {
             words: rng.number(),
@@ -333,32 +334,10 @@ fn info() -> TargetInfo {
     }
 }
 
-/// One direction's vectors, lent to the session.
-fn direction(vectors: &mut [Vec<i32>; 4]) -> DirectionStorage<'_> {
-    let [b, x, x0, r] = vectors;
-    DirectionStorage { b, x, x0, r }
-}
-
 fn fuzz_target_link(inputs: u64) {
-    let n = 256;
-    let mut words = vec![0u32; 4096];
-    let mut tiles = vec![TileHeader::default(); 16];
-    let mut vectors: [[Vec<i32>; 4]; 3] =
-        std::array::from_fn(|_| std::array::from_fn(|_| vec![0; n]));
-    let [d0, d1, d2] = &mut vectors;
-    let mut p = vec![[0; 4]; n];
-    let mut kp = vec![[0; 3]; n];
-    let mut partial = vec![[0; 3]; 2 * n];
-    let storage = Storage {
-        words: &mut words,
-        tiles: &mut tiles,
-        directions: [direction(d0), direction(d1), direction(d2)],
-        p: &mut p,
-        kp: &mut kp,
-        partial: &mut partial,
-    };
+    let mut storage = OwnedStorage::for_info(&info());
     // Two MVUs, run one after the other, so tiles for MVU 1 are legal and 2, 3 refused.
-    let mut session = Session::new(storage, info(), Sequential { harts: 2 });
+    let mut session = storage.session(info(), 2);
     let mut link = Box::new(TargetLink::new());
     let mut wire = CheckedWire { frames: 0 };
     let mut rng = Rng(0x7A26_E71C_0000_0003);

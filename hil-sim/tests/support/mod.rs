@@ -7,9 +7,9 @@ use std::time::Duration;
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_host::encode::EncodedMatrix;
 use deform_host::link::{Target, Timeouts};
-use deform_shared::matrix::TileHeader;
-use deform_shared::qformat::{choose_frac_bits, dequantize, quantize};
-use deform_shared::word::{Word, COLUMN_WINDOW};
+use deform_shared::qformat::choose_frac_bits;
+use deform_shared::word::COLUMN_WINDOW;
+use deform_target_core::testkit::{banded_row, dense, encode_rows, TestSystem};
 
 /// Boots the firmware; a missing ELF or QEMU fails the test with the fix in the message.
 pub fn boot() -> Qemu {
@@ -52,65 +52,37 @@ pub fn assert_alive(qemu: &mut Qemu) {
 pub fn banded_spd(n: u32, half_bandwidth: u32) -> EncodedMatrix {
     let h = half_bandwidth;
     assert!(h >= 1 && 2 * h < COLUMN_WINDOW);
-    let frac_bits = choose_frac_bits(2.0).unwrap();
-    let diagonal = quantize(2.0, frac_bits).unwrap() as i64;
-    let off_diagonal = quantize(-1.0 / h as f64, frac_bits).unwrap() as i64;
     // A tile's rows touch `h` columns on either side; they must stay in its 512-column window.
-    let tile_rows = COLUMN_WINDOW - 2 * h;
-    let mut tiles = Vec::new();
-    let mut words = Vec::new();
-    let mut row_base = 0;
-    while row_base < n {
-        let rows = tile_rows.min(n - row_base);
-        let col_base = row_base.saturating_sub(h);
-        let first = words.len();
-        for r in row_base..row_base + rows {
-            let columns = r.saturating_sub(h)..=(r + h).min(n - 1);
-            let last_column = *columns.end();
-            for c in columns {
-                let raw = if c == r { diagonal } else { off_diagonal };
-                let end_of_row = c == last_column;
-                let end_of_tile = end_of_row && r + 1 == row_base + rows;
-                words.push(
-                    Word::new(c - col_base, raw, end_of_row, end_of_tile)
-                        .unwrap()
-                        .bits(),
-                );
-            }
-        }
-        tiles.push(TileHeader {
-            row_base,
-            col_base,
-            rows,
-            words: (words.len() - first) as u32,
-            mvu: 0,
-            mirrored: false,
-        });
-        row_base += rows;
-    }
-    EncodedMatrix {
+    let tile_rows = (COLUMN_WINDOW - 2 * h) as usize;
+    let frac_bits = choose_frac_bits(2.0).unwrap();
+    let n = n as usize;
+    encoded(encode_rows(
         n,
+        n,
+        tile_rows,
         frac_bits,
-        tiles,
-        words,
+        banded_row(n, h as usize),
+    ))
+}
+
+/// A test system as the host's encoded matrix.
+pub fn encoded(s: TestSystem) -> EncodedMatrix {
+    EncodedMatrix {
+        n: s.n,
+        frac_bits: s.frac_bits,
+        tiles: s.tiles,
+        words: s.words,
     }
 }
 
 /// The encoded matrix as the target sees it, dense, in f64.
 pub fn decode_dense(matrix: &EncodedMatrix) -> Vec<Vec<f64>> {
-    let n = matrix.n as usize;
-    let mut dense = vec![vec![0.0; n]; n];
-    let mut words = matrix.words.iter();
-    for tile in &matrix.tiles {
-        let mut row = tile.row_base as usize;
-        for &bits in words.by_ref().take(tile.words as usize) {
-            let word = Word(bits);
-            let column = (tile.col_base + word.column()) as usize;
-            dense[row][column] += dequantize(word.raw_value(), matrix.frac_bits).unwrap();
-            row += word.end_of_row() as usize;
-        }
-    }
-    dense
+    dense(&TestSystem {
+        n: matrix.n,
+        frac_bits: matrix.frac_bits,
+        tiles: matrix.tiles.clone(),
+        words: matrix.words.clone(),
+    })
 }
 
 /// Solves the SPD system `a x = b` in f64 by Cholesky factorisation.

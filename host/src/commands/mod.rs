@@ -9,4 +9,5 @@ pub mod live;
 pub mod model;
 pub mod observe;
 pub mod simulate;
+pub mod simulate_dynamic;
 pub mod solve;

@@ -6,6 +6,9 @@
 //! `[simulation]` table the steps, dt, keyframed loads and prescribed displacements and the
 //! displacement-dependent model come from the file (--steps, --dt, --alpha override them);
 //! without one, the model's loads are ramped linearly.
+//!
+//! With `--dynamic` (or `[simulation] dynamic = true`) the steps are elastodynamic instead:
+//! [`super::simulate_dynamic`] runs them (masses and dampers, [`crate::dynamics`]).
 
 use std::fs::File;
 use std::io::{BufWriter, IsTerminal, Write};
@@ -17,13 +20,15 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::board::{self, Board, BoardChoice};
+use crate::cli_dynamics::DynamicFlags;
 use crate::cli_logs::LogFlags;
 use crate::cli_model::ModelFlags;
 use crate::commands::solve::{resolve_model, LayoutFlags};
+use crate::dynamics::DynamicsSpec;
 use crate::link::{LinkFlags, Timeouts};
 use crate::model::{Model, ModelError, ModelSpec};
 use crate::output::node_rows;
-use crate::output::vtk::{write_pvd, write_vtk, VtkKind};
+use crate::output::series::{SeriesTarget, SeriesWriter};
 use crate::scenario::Simulation;
 use crate::simulate::{simulate_with, Nonlinear, Schedule, StepParams, StepResult};
 
@@ -97,8 +102,10 @@ pub struct SimulateArgs {
     #[arg(long, value_name = "FILE")]
     pub steps_csv: Option<PathBuf>,
 
-    /// Directory for one `step_NNNN.vtu` per step and `series.pvd` (open it in ParaView).
-    #[arg(long, value_name = "DIR")]
+    /// Every step's displacements: `FILE.csv` (rows `step,t,i,j,k,ux,uy,uz`), `FILE.pvd`
+    /// (a ParaView collection with `FILE_NNNN.vtu` beside it), or a directory (one
+    /// `step_NNNN.vtu` per step and `series.pvd`).
+    #[arg(long, value_name = "FILE.csv|FILE.pvd|DIR")]
     pub out: Option<PathBuf>,
 
     /// Also solve every step with the f64 reference and print the deviation.
@@ -107,6 +114,9 @@ pub struct SimulateArgs {
 
     #[command(flatten)]
     pub layout: LayoutFlags,
+
+    #[command(flatten)]
+    pub dynamics: DynamicFlags,
 }
 
 /// `A0,A1,A2` for `--alpha` (also `deform observe`'s).
@@ -125,7 +135,6 @@ pub(crate) fn parse_alpha(s: &str) -> Result<[f64; 3], String> {
     }
 }
 
-/// A bar on stderr when it is a terminal, else hidden.
 /// A progress bar on stderr (hidden unless it is a terminal); `deform live` uses it too.
 pub(crate) fn bar(len: u64, what: &str) -> ProgressBar {
     if !std::io::stderr().is_terminal() {
@@ -141,6 +150,17 @@ pub(crate) fn bar(len: u64, what: &str) -> ProgressBar {
     bar
 }
 
+/// Moves `bar` with a matrix upload and clears it when the upload is done.
+pub(crate) fn upload_progress(bar: &ProgressBar) -> impl FnMut(crate::link::UploadProgress) + '_ {
+    |p| {
+        bar.set_length(p.words_total as u64);
+        bar.set_position(p.words_sent as u64);
+        if p.words_sent == p.words_total {
+            bar.finish_and_clear();
+        }
+    }
+}
+
 /// A simulation's inputs once flags, scenario file and defaults are merged.
 pub struct ResolvedSimulation {
     /// The static model (a scenario's schedules at their final time).
@@ -149,6 +169,8 @@ pub struct ResolvedSimulation {
     pub nonlinear: Option<Nonlinear>,
     /// The scenario's `[simulation]`, whose keyframes drive the steps.
     pub simulation: Option<Simulation>,
+    /// Masses and dampers, if the run is dynamic.
+    pub dynamics: Option<DynamicsSpec>,
 }
 
 impl ResolvedSimulation {
@@ -165,6 +187,13 @@ impl SimulateArgs {
     /// Reads the scenario file, if any (as `deform solve` does), and merges flags over it.
     pub fn resolve(&self) -> anyhow::Result<ResolvedSimulation> {
         let (scenario, spec) = resolve_model(self.scenario.as_deref(), &self.model)?;
+        let dynamics = self.dynamics.resolve(
+            scenario
+                .as_ref()
+                .and_then(|s| s.simulation.as_ref())
+                .is_some_and(|s| s.dynamic),
+            scenario.as_ref().and_then(|s| s.dynamics.as_ref()),
+        )?;
         let simulation = scenario.and_then(|s| s.simulation);
         let schedule = Schedule {
             steps: self
@@ -173,6 +202,12 @@ impl SimulateArgs {
                 .unwrap_or(10),
             dt: self.dt.or(simulation.as_ref().map(|s| s.dt)).unwrap_or(0.1),
         };
+        if !(schedule.dt.is_finite() && schedule.dt > 0.0) {
+            anyhow::bail!(
+                "--dt {}: the time step must be finite and greater than 0",
+                schedule.dt
+            );
+        }
         let nonlinear = self
             .alpha
             .or(simulation
@@ -184,6 +219,7 @@ impl SimulateArgs {
             schedule,
             nonlinear,
             simulation,
+            dynamics,
         })
     }
 }
@@ -191,11 +227,20 @@ impl SimulateArgs {
 pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     let resolved = args.resolve()?;
     let model = Model::build(&resolved.spec).context("building the model")?;
-    let n = model.n();
-    if let Some(dir) = &args.out {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    if let Some(dynamics) = &resolved.dynamics {
+        crate::dynamics::target::preflight(&model, dynamics, resolved.schedule.dt)?;
     }
-    let mut csv = match &args.steps_csv {
+    let n = model.n();
+    let mut series = match &args.out {
+        Some(path) => Some(SeriesWriter::create(SeriesTarget::of(path))?),
+        None => None,
+    };
+    // The dynamic branch writes its own per-step CSV, with more columns.
+    let mut csv = match args
+        .steps_csv
+        .as_ref()
+        .filter(|_| resolved.dynamics.is_none())
+    {
         Some(path) => {
             let mut f = BufWriter::new(
                 File::create(path).with_context(|| format!("creating {}", path.display()))?,
@@ -231,6 +276,11 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         }
     );
     let schedule = resolved.schedule;
+    if let Some(dynamics) = &resolved.dynamics {
+        return super::simulate_dynamic::run(
+            args, &resolved, dynamics, &model, &mut board, layout, series,
+        );
+    }
     let params = StepParams {
         warm_start: !args.cold,
         predict: !args.no_predict,
@@ -247,7 +297,6 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     // Firmware log lines print above the bar, not through it.
     board::lock(board.logs()).set_progress(Some(steps_bar.clone()));
     let upload_bar = bar(0, "upload");
-    let mut pvd = Vec::new();
     let mut total_iterations = 0u64;
     let mut saved = 0u64;
     let mut written: anyhow::Result<()> = Ok(());
@@ -279,16 +328,10 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
                     r.step, r.t, r.iterations, r.residual, r.max_u
                 )?;
             }
-            if let Some(dir) = &args.out {
-                let name = format!("step_{:04}.vtu", r.step);
+            if let Some(series) = series.as_mut() {
                 // The node stiffness shown is the model's (a displacement-dependent model's
                 // springs change per step; that per-spring field is not written).
-                write_vtk(
-                    &dir.join(&name),
-                    &node_rows(&model, &r.u),
-                    VtkKind::Unstructured,
-                )?;
-                pvd.push((r.t, name));
+                series.write_step(r.step, r.t, &node_rows(&model, &r.u))?;
             }
             Ok(())
         };
@@ -307,13 +350,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
             .then_some(&step_model as crate::simulate::StepModel),
         nonlinear,
         params,
-        |p| {
-            upload_bar.set_length(p.words_total as u64);
-            upload_bar.set_position(p.words_sent as u64);
-            if p.words_sent == p.words_total {
-                upload_bar.finish_and_clear();
-            }
-        },
+        upload_progress(&upload_bar),
         &mut on_step,
     )
     .context("simulating on the target")?;
@@ -322,10 +359,16 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     if let Some(mut f) = csv {
         f.flush()?;
     }
+    let cycles: Vec<u64> = results
+        .iter()
+        .map(|r| crate::refine::critical_path_cycles(&r.reports))
+        .collect();
     println!(
-        "{} steps, {} CG iterations in all ({})",
+        "{} steps, {} CG iterations in all, {} critical-path cycles (worst step {}) ({})",
         results.len(),
         total_iterations,
+        cycles.iter().sum::<u64>(),
+        cycles.iter().max().unwrap_or(&0),
         match (args.cold, args.no_fuse || args.no_predict) {
             (true, _) => "cold starts",
             (false, true) => "warm starts from the previous step",
@@ -335,10 +378,8 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     if nonlinear.is_some() {
         println!("values-only updates saved {saved} bytes on the wire against full uploads");
     }
-    if let Some(dir) = &args.out {
-        let path = dir.join("series.pvd");
-        write_pvd(&path, &pvd)?;
-        println!("wrote       {} (+{} .vtu files)", path.display(), pvd.len());
+    if let Some(series) = series {
+        println!("wrote       {}", series.finish()?);
     }
     if let Some(path) = &args.steps_csv {
         println!("wrote       {}", path.display());

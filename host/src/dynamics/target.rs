@@ -113,6 +113,17 @@ fn encode_groups(
         .collect()
 }
 
+/// Everything [`DynamicRunner::new`] checks, without a target: the masses, dampers and h,
+/// and that the target's fixed point can hold S. Run before a board is opened.
+pub fn preflight(model: &Model, spec: &DynamicsSpec, h: f64) -> Result<(), DynamicsError> {
+    let system = DynamicSystem::new(model, spec)?;
+    let m = StepMatrices::new(&system, h, spec.scheme)?;
+    for g in &m.groups {
+        check_representable(m.matrix(g[0]), system.mass(), h)?;
+    }
+    Ok(())
+}
+
 /// A dynamic model on a target: the step matrices of the current h, which of them the target
 /// holds, and the state (plus the f64 reference's, if checked). `deform simulate --dynamic`
 /// drives it over a schedule; an interactive loop can call [`DynamicRunner::step`] with the

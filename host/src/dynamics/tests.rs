@@ -352,3 +352,71 @@ fn an_s_the_fixed_point_cannot_hold_is_refused() {
     let s = ok.step_matrix(Axis::Z, 1e4, Scheme::BackwardEuler);
     assert!(fixed_point::check_representable(&s, ok.mass(), 1e4).is_err());
 }
+
+/// The shipped `examples/needle-dynamic.toml` does what its comment says: node (5, 5, 7), two
+/// below the tip, lags the needle, overshoots its quasi-static value a little while the tip is
+/// held, swings a little past rest after the withdrawal and relaxes.
+#[test]
+fn the_dynamic_needle_example_lags_overshoots_and_relaxes() {
+    let path = std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/needle-dynamic.toml"
+    ));
+    let scenario = crate::scenario::Scenario::load(path, None).unwrap();
+    let sim = scenario.simulation.clone().unwrap();
+    assert!(sim.dynamic);
+    let cli = crate::cli_dynamics::DynamicFlags {
+        dynamic: false,
+        mass: None,
+        damping: None,
+        rayleigh: None,
+        scheme: None,
+        max_solves: 8,
+    };
+    let spec = cli
+        .resolve(true, scenario.dynamics.as_ref())
+        .unwrap()
+        .unwrap();
+    let at = |t: f64| Model::build(&sim.spec_at(&scenario.model, t)).unwrap();
+    let model = at(0.0);
+    let node = model.grid().index(Node::new(5, 5, 7)).unwrap();
+    let states = run(
+        &model,
+        &spec,
+        sim.dt,
+        sim.steps as usize,
+        State::rest(model.n()),
+        |t| Loads::of(&at(t)),
+    );
+    let held = at(1.0);
+    let statics = reference::solve(
+        held.unit_matrix(),
+        &held.scaled_rhs(Axis::Z),
+        None,
+        1e-12,
+        10_000,
+    )
+    .unwrap()
+    .x[node];
+    let uz = |t: f64| states[(t / sim.dt).round() as usize].u[2][node];
+    assert!(uz(0.5) > 0.7 * statics, "lags: {} vs {statics}", uz(0.5));
+    let deepest = states[..=75]
+        .iter()
+        .map(|s| s.u[2][node])
+        .fold(0.0, f64::min);
+    let overshoot = deepest / statics - 1.0;
+    assert!((0.02..0.25).contains(&overshoot), "overshoot {overshoot}");
+    let rebound = states[80..]
+        .iter()
+        .map(|s| s.u[2][node])
+        .fold(0.0, f64::max);
+    assert!(
+        rebound > 0.0 && rebound < 0.25 * statics.abs(),
+        "rebound {rebound}"
+    );
+    let last = states.last().unwrap().u[2][node];
+    assert!(
+        last.abs() < 0.05 * statics.abs() && last.abs() < 0.5 * rebound,
+        "relaxes: {last}"
+    );
+}

@@ -9,13 +9,13 @@ use std::sync::Arc;
 use std::thread;
 
 use deform_shared::frame::{self, Feed, FrameAccumulator, FrameError};
-use deform_shared::matrix::TileHeader;
 use deform_shared::protocol::{
     Envelope, Request, Response, TargetInfo, MAX_FRAME_LEN, PROTOCOL_VERSION,
 };
 use deform_shared::transport::Uplink;
 use deform_target_core::exec::Sequential;
-use deform_target_core::session::{DirectionStorage, Session, Storage};
+use deform_target_core::session::Session;
+use deform_target_core::testkit::OwnedStorage;
 use deform_target_core::transport::{TargetLink, Tx};
 
 /// What the fake target got from the host.
@@ -97,25 +97,7 @@ pub fn serve_session_through(
 /// A fresh session over freshly leaked storage (the session borrows it for the test's life).
 /// Its MVUs run one after another on this thread, as many as `info` reports.
 fn fresh_session(info: TargetInfo) -> Session<'static, Sequential> {
-    let n = info.max_n as usize;
-    let direction = || DirectionStorage {
-        b: vec![0; n].leak(),
-        x: vec![0; n].leak(),
-        x0: vec![0; n].leak(),
-        r: vec![0; n].leak(),
-    };
-    let storage = Storage {
-        words: vec![0; info.word_capacity as usize].leak(),
-        tiles: vec![TileHeader::default(); info.tile_capacity as usize].leak(),
-        directions: [direction(), direction(), direction()],
-        p: vec![[0; 4]; n].leak(),
-        kp: vec![[0; 3]; n].leak(),
-        partial: vec![[0; 3]; 2 * n].leak(),
-    };
-    let harts = Sequential {
-        harts: usize::from(info.harts),
-    };
-    Session::new(storage, info, harts)
+    OwnedStorage::leaked_session(info)
 }
 
 /// Like [`serve_session_through`]; after `reset_after` handled requests the target "reboots":

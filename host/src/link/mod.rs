@@ -16,6 +16,7 @@
 //!
 //! [`Envelope`]: deform_shared::protocol::Envelope
 
+mod adapt;
 mod error;
 mod flags;
 mod frame_reader;
@@ -28,6 +29,7 @@ mod fake_target;
 #[cfg(test)]
 mod test_systems;
 
+pub use adapt::{best_chunk, Adaptive, ChunkSize, MIN_CHUNK};
 pub use error::{Capacity, LinkError};
 pub use flags::LinkFlags;
 pub use frame_reader::{FrameEvent, FrameReader};

@@ -11,6 +11,7 @@ use deform_shared::transport::WINDOW;
 use deform_shared::word::{Word, VALUE_MASK};
 use serialport::SerialPort;
 
+use super::adapt::ChunkSize;
 use super::transport::{Exchange, LinkConfig, DEFAULT_REQUEST_TIMEOUT};
 use super::{open_serial, request_name, Capacity, Link, LinkError, LinkStats, Port};
 use crate::encode::EncodedMatrix;
@@ -128,8 +129,9 @@ fn frame_bytes(request: &Request) -> Result<u64, LinkError> {
         })
 }
 
-/// The requests of a full upload of `matrix`, in order.
-fn upload_requests(matrix: &EncodedMatrix) -> impl Iterator<Item = Request> + '_ {
+/// The requests of a full upload of `matrix`, in order, each tile's words in chunks of the size
+/// `chunk` holds when the link takes them.
+fn upload_requests(matrix: &EncodedMatrix, chunk: ChunkSize) -> impl Iterator<Item = Request> + '_ {
     let begin = Request::BeginMatrix {
         n: matrix.n,
         frac_bits: matrix.frac_bits,
@@ -140,12 +142,12 @@ fn upload_requests(matrix: &EncodedMatrix) -> impl Iterator<Item = Request> + '_
     let tiles = matrix.tile_words().flat_map(move |(header, words)| {
         let start = offset;
         offset += words.len();
-        std::iter::once(Request::Tile(*header)).chain(words.chunks(CHUNK_LEN).enumerate().map(
-            move |(i, chunk)| Request::Words {
-                offset: (start + i * CHUNK_LEN) as u32,
-                words: chunk.iter().copied().collect(),
-            },
-        ))
+        std::iter::once(Request::Tile(*header)).chain(chunk.ranges(words.len()).map(move |range| {
+            Request::Words {
+                offset: (start + range.start) as u32,
+                words: words[range].iter().copied().collect(),
+            }
+        }))
     });
     std::iter::once(begin)
         .chain(tiles)
@@ -154,19 +156,21 @@ fn upload_requests(matrix: &EncodedMatrix) -> impl Iterator<Item = Request> + '_
         }))
 }
 
-/// The requests of a values-only update to `matrix`'s values, in order.
-fn update_requests(matrix: &EncodedMatrix) -> impl Iterator<Item = Request> + '_ {
+/// The requests of a values-only update to `matrix`'s values, in order, in chunks of the size
+/// `chunk` holds when the link takes them.
+fn update_requests(matrix: &EncodedMatrix, chunk: ChunkSize) -> impl Iterator<Item = Request> + '_ {
     let begin = Request::BeginUpdate {
         words: matrix.words.len() as u32,
         frac_bits: matrix.frac_bits,
     };
-    let chunks = matrix
-        .words
-        .chunks(CHUNK_LEN)
-        .enumerate()
-        .map(|(i, chunk)| Request::UpdateValues {
-            offset: (i * CHUNK_LEN) as u32,
-            values: chunk.iter().map(|&w| Word(w).raw_value()).collect(),
+    let chunks = chunk
+        .ranges(matrix.words.len())
+        .map(|range| Request::UpdateValues {
+            offset: range.start as u32,
+            values: matrix.words[range]
+                .iter()
+                .map(|&w| Word(w).raw_value())
+                .collect(),
         });
     std::iter::once(begin)
         .chain(chunks)
@@ -175,14 +179,19 @@ fn update_requests(matrix: &EncodedMatrix) -> impl Iterator<Item = Request> + '_
         }))
 }
 
-/// Bytes a full upload of `matrix` puts on the wire (see [`UpdateReport`]).
+/// Bytes a full upload of `matrix` in full-size chunks puts on the wire (see [`UpdateReport`]).
 pub fn full_upload_bytes(matrix: &EncodedMatrix) -> Result<u64, LinkError> {
-    upload_requests(matrix).map(|r| frame_bytes(&r)).sum()
+    upload_requests(matrix, ChunkSize::fixed(CHUNK_LEN))
+        .map(|r| frame_bytes(&r))
+        .sum()
 }
 
-/// Bytes a values-only update to `matrix` puts on the wire (see [`UpdateReport`]).
+/// Bytes a values-only update to `matrix` in full-size chunks puts on the wire (see
+/// [`UpdateReport`]).
 pub fn update_bytes(matrix: &EncodedMatrix) -> Result<u64, LinkError> {
-    update_requests(matrix).map(|r| frame_bytes(&r)).sum()
+    update_requests(matrix, ChunkSize::fixed(CHUNK_LEN))
+        .map(|r| frame_bytes(&r))
+        .sum()
 }
 
 impl Target<Box<dyn SerialPort>> {
@@ -279,16 +288,18 @@ impl<P: Port> Target<P> {
         validate_matrix(matrix).map_err(LinkError::MalformedMatrix)?;
         let words_total = matrix.words.len();
         self.resident = None;
-        self.link.run(upload_requests(matrix), |request, reply| {
-            expect_ack_reply(request, reply)?;
-            if let Request::Words { offset, words } = request {
-                progress(UploadProgress {
-                    words_sent: *offset as usize + words.len(),
-                    words_total,
-                });
-            }
-            Ok(())
-        })?;
+        let chunk = self.link.chunk_size();
+        self.link
+            .run(upload_requests(matrix, chunk), |request, reply| {
+                expect_ack_reply(request, reply)?;
+                if let Request::Words { offset, words } = request {
+                    progress(UploadProgress {
+                        words_sent: *offset as usize + words.len(),
+                        words_total,
+                    });
+                }
+                Ok(())
+            })?;
         self.resident = Some(matrix.clone());
         Ok(())
     }
@@ -321,7 +332,9 @@ impl<P: Port> Target<P> {
         self.resident = None;
         let bytes_sent = update_bytes(matrix)?;
         let full_upload_bytes = full_upload_bytes(matrix)?;
-        self.link.run(update_requests(matrix), expect_ack_reply)?;
+        let chunk = self.link.chunk_size();
+        self.link
+            .run(update_requests(matrix, chunk), expect_ack_reply)?;
         self.resident = Some(matrix.clone());
         Ok(UpdateReport {
             bytes_sent,
@@ -365,13 +378,13 @@ impl<P: Port> Target<P> {
             len: values.len() as u32,
         };
         let chunks =
-            mantissas
-                .chunks(CHUNK_LEN)
-                .enumerate()
-                .map(|(i, chunk)| Request::VectorData {
+            self.link
+                .chunk_size()
+                .ranges(mantissas.len())
+                .map(|range| Request::VectorData {
                     slot,
-                    offset: (i * CHUNK_LEN) as u32,
-                    mantissas: chunk.iter().copied().collect(),
+                    offset: range.start as u32,
+                    mantissas: mantissas[range].iter().copied().collect(),
                 });
         self.link
             .run(std::iter::once(begin).chain(chunks), expect_ack_reply)
@@ -392,8 +405,9 @@ impl<P: Port> Target<P> {
     }
 
     /// Reads the first `n` entries of the last solution of `direction`, chunk by chunk with the
-    /// window full. It is returned only once every chunk arrived, of the direction and at the
-    /// offset asked for, with the same exponent (each in a frame whose CRC passed).
+    /// window full, each answer as long as the link's adapted chunk size when it is asked for.
+    /// It is returned only once every chunk arrived, of the direction and at the offset asked
+    /// for, with the same exponent (each in a frame whose CRC passed).
     pub fn read_direction_solution(
         &mut self,
         direction: u8,
@@ -401,17 +415,20 @@ impl<P: Port> Target<P> {
     ) -> Result<Vec<f64>, LinkError> {
         let mut solution = Vec::with_capacity(n);
         let mut first_exponent = None;
-        let requests = (0..n)
-            .step_by(CHUNK_LEN)
-            .map(|offset| Request::ReadSolution {
+        let requests = self
+            .link
+            .chunk_size()
+            .ranges(n)
+            .map(|range| Request::ReadSolution {
                 direction,
-                offset: offset as u32,
+                offset: range.start as u32,
+                len: range.len() as u16,
             });
         self.link.run(requests, |request, reply| {
-            let Request::ReadSolution { offset, .. } = *request else {
+            let Request::ReadSolution { offset, len, .. } = *request else {
                 return Err(unexpected(request, "Solution", &reply));
             };
-            let wanted = (n - offset as usize).min(CHUNK_LEN);
+            let wanted = usize::from(len);
             match reply {
                 Response::Solution {
                     direction: got_direction,

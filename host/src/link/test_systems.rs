@@ -1,54 +1,24 @@
 //! Small SPD systems with exact reference solutions, for the link's end-to-end unit tests.
 
-use deform_shared::matrix::TileHeader;
-use deform_shared::qformat::{choose_frac_bits, quantize};
-use deform_shared::word::Word;
+use deform_shared::qformat::choose_frac_bits;
+use deform_target_core::testkit::{banded_row, encode_rows};
 
 use crate::encode::EncodedMatrix;
 
 /// Rows per tile: a tile's rows `r` touch columns `r-1 ..= r+1`, well inside one 512-column
 /// window, and a small tile height makes even modest n span several tiles.
-const TILE_ROWS: u32 = 100;
+const TILE_ROWS: usize = 100;
 
 /// The 1-D Laplacian tridiag(-1, 2, -1) of order `n` (Dirichlet ends, so SPD).
 pub fn laplacian_1d(n: u32) -> EncodedMatrix {
     let frac_bits = choose_frac_bits(2.0).unwrap();
-    let raw = |v: f64| quantize(v, frac_bits).unwrap() as i64;
-    let mut tiles = Vec::new();
-    let mut words = Vec::new();
-    for row_base in (0..n).step_by(TILE_ROWS as usize) {
-        let rows = TILE_ROWS.min(n - row_base);
-        let col_base = row_base.saturating_sub(1);
-        let first = words.len();
-        for r in row_base..row_base + rows {
-            let entries: Vec<(u32, f64)> = [(r.wrapping_sub(1), -1.0), (r, 2.0), (r + 1, -1.0)]
-                .into_iter()
-                .filter(|&(c, _)| c < n)
-                .collect();
-            for (k, &(c, v)) in entries.iter().enumerate() {
-                let end_of_row = k + 1 == entries.len();
-                let end_of_tile = end_of_row && r + 1 == row_base + rows;
-                words.push(
-                    Word::new(c - col_base, raw(v), end_of_row, end_of_tile)
-                        .unwrap()
-                        .bits(),
-                );
-            }
-        }
-        tiles.push(TileHeader {
-            row_base,
-            col_base,
-            rows,
-            words: (words.len() - first) as u32,
-            mvu: 0,
-            mirrored: false,
-        });
-    }
+    let n = n as usize;
+    let s = encode_rows(n, n, TILE_ROWS, frac_bits, banded_row(n, 1));
     EncodedMatrix {
-        n,
+        n: s.n,
         frac_bits,
-        tiles,
-        words,
+        tiles: s.tiles,
+        words: s.words,
     }
 }
 

@@ -22,6 +22,7 @@ use deform_shared::protocol::{Envelope, ErrorCode, Request, Response, MAX_FRAME_
 use deform_shared::transport::{Uplink, WINDOW};
 use serialport::SerialPort;
 
+use super::adapt::{Adaptive, ChunkSize};
 use super::{open_serial, FrameEvent, FrameReader, LinkError, Port};
 
 /// How long a request may wait for its reply, retransmissions included, unless told otherwise.
@@ -110,6 +111,8 @@ struct InFlight {
     /// When the target acknowledged a long-running request.
     accepted: Option<Instant>,
     reply: Option<Response>,
+    /// Whether a NAK already reported this send of it as damaged (see [`Adaptive`]).
+    damage_counted: bool,
 }
 
 /// Something the target says besides replies, handed to the notice handler.
@@ -132,6 +135,8 @@ pub struct Link<P: Port = Box<dyn SerialPort>> {
     srtt: Option<Duration>,
     /// Its smoothed variation.
     rttvar: Duration,
+    /// Chunk size and window, adapted to the line (see [`super::adapt`]).
+    adapt: Adaptive,
 }
 
 impl Link<Box<dyn SerialPort>> {
@@ -156,7 +161,15 @@ impl<P: Port> Link<P> {
             notice_handler: None,
             srtt: None,
             rttvar: Duration::ZERO,
+            adapt: Adaptive::new(WINDOW),
         }
+    }
+
+    /// Turns the adaptation off: every chunk `chunk` elements, the whole window, whatever the
+    /// line does (for tests that count requests, and for comparisons).
+    pub fn with_fixed_chunk(mut self, chunk: usize) -> Self {
+        self.adapt = Adaptive::fixed(chunk, self.config.window);
+        self
     }
 
     /// Sets how long a request may wait for its reply, retransmissions included.
@@ -182,6 +195,17 @@ impl<P: Port> Link<P> {
             window: config.window.clamp(1, WINDOW),
             ..config
         };
+        self.adapt.set_max_window(self.config.window);
+    }
+
+    /// The chunk size the link has adapted to, for request generators to read as they go.
+    pub fn chunk_size(&self) -> ChunkSize {
+        self.adapt.chunk_handle()
+    }
+
+    /// The adaptation's state: chunk, window, estimated byte-error rate.
+    pub fn adaptive(&self) -> &Adaptive {
+        &self.adapt
     }
 
     pub fn stats(&self) -> LinkStats {
@@ -243,7 +267,7 @@ impl<P: Port> Link<P> {
         let mut exhausted = false;
         loop {
             // Fill the window, unless a failure stops new requests.
-            while !exhausted && failure.is_none() && window.len() < usize::from(self.config.window)
+            while !exhausted && failure.is_none() && window.len() < usize::from(self.adapt.window())
             {
                 let Some(request) = requests.next() else {
                     exhausted = true;
@@ -264,6 +288,7 @@ impl<P: Port> Link<P> {
                     retries: 0,
                     accepted: None,
                     reply: None,
+                    damage_counted: false,
                 });
             }
             // Deliver the replies that are in order.
@@ -318,9 +343,16 @@ impl<P: Port> Link<P> {
             if let Some(i) = oldest {
                 wake = wake.min(window[i].timer + self.backoff(&window[i]));
             }
+            let (corrupt, received) = (self.stats.corrupt_frames, self.stats.bytes_received);
             match self.receive(wake)? {
                 None => {}
                 Some(up) => self.on_frame(up, &mut window)?,
+            }
+            // What the line did, for the chunk and window (see `adapt`).
+            self.adapt
+                .traffic((self.stats.bytes_received - received) as usize);
+            for _ in corrupt..self.stats.corrupt_frames {
+                self.adapt.damage();
             }
             // Retransmit the oldest if its timer ran out.
             let now = Instant::now();
@@ -369,6 +401,7 @@ impl<P: Port> Link<P> {
         self.stats.bytes_resent += entry.frame.len() as u64;
         entry.last_sent = Instant::now();
         entry.timer = entry.last_sent;
+        entry.damage_counted = false;
         if entry.accepted.is_none() {
             entry.retries += 1;
         }
@@ -417,6 +450,14 @@ impl<P: Port> Link<P> {
             Uplink::Nak { expected } => {
                 self.stats.naks += 1;
                 let guard = self.nak_guard();
+                if let Some(entry) = window
+                    .iter_mut()
+                    .find(|e| e.seq == expected && e.reply.is_none() && !e.damage_counted)
+                {
+                    // One damaged frame however many NAKs name it before it is sent again.
+                    entry.damage_counted = true;
+                    self.adapt.damage();
+                }
                 if let Some(entry) = window.iter_mut().find(|e| e.seq == expected) {
                     // Several NAKs may name the same frame (each corrupt frame that follows
                     // the loss draws one); resend it at once, then at most once per round trip.
@@ -581,6 +622,7 @@ impl<P: Port> Link<P> {
         self.port.flush().map_err(io_error)?;
         self.flushed = true;
         self.stats.bytes_sent += bytes.len() as u64;
+        self.adapt.traffic(bytes.len());
         Ok(())
     }
 

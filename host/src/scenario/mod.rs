@@ -33,6 +33,8 @@
 //! out = "u.csv"                # relative to the current directory, like --out
 //!
 //! [simulation]                 # for `deform simulate`; see [`simulation`]
+//!
+//! [dynamics]                   # masses and dampers (dynamic = true); see [`dynamics`]
 //! ```
 //!
 //! `deform solve` and `deform model` solve one static state: the `[boundary]` and `[loads]`
@@ -43,6 +45,7 @@
 //! types from the TOML parser, semantic errors (a node outside the grid, a bad face name, a
 //! non-positive stiffness, unsorted keyframes) from spans kept while parsing.
 
+pub mod dynamics;
 pub mod simulation;
 
 use std::fmt;
@@ -56,6 +59,7 @@ use crate::model::{
     Connection, Elasticity, FacePressure, FixedNodeSet, Grid, Inclusion, ModelSpec, Node,
     PointLoad, PrescribedDisplacement, StiffnessField,
 };
+pub use dynamics::DynamicsSettings;
 pub use simulation::{value_at, Keyframe, NodeSchedule, Nonlinear, Simulation};
 use simulation::{ScheduleToml, SimulationToml};
 
@@ -101,6 +105,8 @@ pub struct Scenario {
     pub solver: SolverSettings,
     pub out: Option<PathBuf>,
     pub simulation: Option<Simulation>,
+    /// `[dynamics]`: masses and dampers for a dynamic simulation.
+    pub dynamics: Option<DynamicsSettings>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -114,6 +120,7 @@ struct FileToml {
     solver: Option<Spanned<SolverSettings>>,
     output: Option<OutputToml>,
     simulation: Option<SimulationToml>,
+    dynamics: Option<dynamics::DynamicsToml>,
 }
 
 #[derive(Debug, Clone, Copy, Deserialize)]
@@ -492,12 +499,17 @@ impl Scenario {
             }
         }
 
+        let dynamics = match &file.dynamics {
+            None => None,
+            Some(d) => Some(dynamics::resolve_dynamics(&cx, grid, d)?),
+        };
         Ok(Scenario {
             path: path.to_path_buf(),
             model: spec,
             solver,
             out: file.output.and_then(|o| o.out),
             simulation,
+            dynamics,
         })
     }
 }
@@ -558,6 +570,7 @@ fn resolve_simulation(
         displace: schedules(&sim.displace, "simulation.displace")?,
         load: schedules(&sim.load, "simulation.load")?,
         nonlinear: sim.nonlinear.clone(),
+        dynamic: sim.dynamic.unwrap_or(false),
     })
 }
 

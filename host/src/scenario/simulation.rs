@@ -5,6 +5,7 @@
 //! [simulation]
 //! steps = 50          # time steps
 //! dt = 0.02           # seconds per step; the run covers t = 0 … steps·dt
+//! dynamic = true      # optional: masses and dampers of [dynamics], loads without a ramp
 //!
 //! [[simulation.displace]]            # a prescribed displacement over time
 //! node = [5, 5, 9]
@@ -58,6 +59,8 @@ pub struct Simulation {
     pub displace: Vec<NodeSchedule>,
     pub load: Vec<NodeSchedule>,
     pub nonlinear: Option<Nonlinear>,
+    /// Elastodynamics (masses and dampers, `[dynamics]`) instead of quasi-static steps.
+    pub dynamic: bool,
 }
 
 impl Simulation {
@@ -133,6 +136,7 @@ pub struct SimulationToml {
     #[serde(default)]
     pub load: Vec<ScheduleToml>,
     pub nonlinear: Option<Nonlinear>,
+    pub dynamic: Option<bool>,
 }
 
 /// `[[simulation.displace]]` / `[[simulation.load]]` as written in the file.
@@ -196,6 +200,7 @@ mod tests {
                 keyframes: vec![[0.0, 0.0, 0.0, 0.0], [1.0, 4.0, 0.0, 0.0]],
             }],
             nonlinear: None,
+            dynamic: false,
         };
         let static_load = PointLoad {
             node: side,

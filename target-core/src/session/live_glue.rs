@@ -1,4 +1,4 @@
-//! The session's live-loop requests (protocol version 7, [`deform_shared::live`]): the tool
+//! The session's live-loop requests (protocol version 8, [`deform_shared::live`]): the tool
 //! set, the local force model, full frames, force queries and the quantised field. The
 //! arithmetic is in [`crate::live`]; this is where it meets the session's vectors and solves.
 

@@ -3,83 +3,18 @@
 
 use super::*;
 use crate::exec::Sequential;
+use crate::testkit::{banded_row, dense, encode_rows, OwnedStorage, TestSystem};
 
 /// The host's stand-in for the firmware's harts.
 const HARTS: Sequential = Sequential { harts: 4 };
 use deform_shared::frame;
 use deform_shared::protocol::{Envelope, SolveFailure, SolveReport, MAX_FRAME_LEN};
-use deform_shared::qformat::{block_exponent, from_mantissa, quantize, to_mantissa};
+use deform_shared::qformat::{block_exponent, from_mantissa, to_mantissa};
 use deform_shared::word::{Word, VALUE_MAX, VALUE_MIN};
 use proptest::prelude::*;
 
 // ---------------------------------------------------------------------------------------------
 // Fixtures
-
-/// Owned buffers to lend a session.
-struct Bufs {
-    words: Vec<u32>,
-    tiles: Vec<TileHeader>,
-    directions: [DirectionBufs; MAX_DIRECTIONS],
-    p: Vec<Lanes>,
-    kp: Vec<Sums>,
-    partial: Vec<Sums>,
-}
-
-struct DirectionBufs {
-    b: Vec<i32>,
-    x: Vec<i32>,
-    x0: Vec<i32>,
-    r: Vec<i32>,
-}
-
-impl DirectionBufs {
-    fn new(max_n: usize) -> Self {
-        DirectionBufs {
-            b: vec![0; max_n],
-            x: vec![0; max_n],
-            x0: vec![0; max_n],
-            r: vec![0; max_n],
-        }
-    }
-
-    fn storage(&mut self) -> DirectionStorage<'_> {
-        DirectionStorage {
-            b: &mut self.b,
-            x: &mut self.x,
-            x0: &mut self.x0,
-            r: &mut self.r,
-        }
-    }
-}
-
-impl Bufs {
-    fn new(words: usize, tiles: usize, max_n: usize) -> Self {
-        Bufs {
-            words: vec![0; words],
-            tiles: vec![TileHeader::default(); tiles],
-            directions: std::array::from_fn(|_| DirectionBufs::new(max_n)),
-            p: vec![[0; 4]; max_n],
-            kp: vec![[0; MAX_DIRECTIONS]; max_n],
-            partial: vec![[0; MAX_DIRECTIONS]; 2 * max_n],
-        }
-    }
-
-    fn storage(&mut self) -> Storage<'_> {
-        let [d0, d1, d2] = &mut self.directions;
-        Storage {
-            words: &mut self.words,
-            tiles: &mut self.tiles,
-            directions: [d0.storage(), d1.storage(), d2.storage()],
-            p: &mut self.p,
-            kp: &mut self.kp,
-            partial: &mut self.partial,
-        }
-    }
-
-    fn session(&mut self) -> Session<'_, Sequential> {
-        Session::new(self.storage(), info(), HARTS)
-    }
-}
 
 fn info() -> TargetInfo {
     TargetInfo {
@@ -94,13 +29,7 @@ fn info() -> TargetInfo {
 }
 
 /// A matrix encoded as tiles, ready to upload.
-#[derive(Debug, Clone)]
-struct Encoded {
-    n: u32,
-    frac_bits: u8,
-    tiles: Vec<TileHeader>,
-    words: Vec<u32>,
-}
+type Encoded = TestSystem;
 
 /// Encodes the rows `row(i) = [(column, value)]` of an n×n matrix, `rows_per_tile` rows per
 /// tile, each tile's column window starting at its smallest column.
@@ -110,79 +39,16 @@ fn encode(
     frac_bits: u8,
     row: impl Fn(usize) -> Vec<(usize, f64)>,
 ) -> Encoded {
-    let mut tiles = Vec::new();
-    let mut words = Vec::new();
-    for base in (0..n).step_by(rows_per_tile) {
-        let rows: Vec<_> = (base..n.min(base + rows_per_tile)).map(&row).collect();
-        let col_base = rows.iter().flatten().map(|&(c, _)| c).min().unwrap_or(0);
-        let start = words.len();
-        for entries in &rows {
-            if entries.is_empty() {
-                words.push(Word::empty_row(false).bits());
-            }
-            for (k, &(c, v)) in entries.iter().enumerate() {
-                let raw = quantize(v, frac_bits).unwrap() as i64;
-                let er = k + 1 == entries.len();
-                words.push(
-                    Word::new((c - col_base) as u32, raw, er, false)
-                        .unwrap()
-                        .bits(),
-                );
-            }
-        }
-        *words.last_mut().unwrap() |= deform_shared::word::EM_BIT;
-        tiles.push(TileHeader {
-            row_base: base as u32,
-            col_base: col_base as u32,
-            rows: rows.len() as u32,
-            words: (words.len() - start) as u32,
-            mvu: 0,
-            mirrored: false,
-        });
-    }
-    Encoded {
-        n: n as u32,
-        frac_bits,
-        tiles,
-        words,
-    }
+    encode_rows(n, n, rows_per_tile, frac_bits, row)
 }
 
 /// tridiag(−1, 2, −1), the 1-D Laplacian.
 fn laplacian_row(n: usize) -> impl Fn(usize) -> Vec<(usize, f64)> {
-    move |i| {
-        let mut r = Vec::new();
-        if i > 0 {
-            r.push((i - 1, -1.0));
-        }
-        r.push((i, 2.0));
-        if i + 1 < n {
-            r.push((i + 1, -1.0));
-        }
-        r
-    }
+    banded_row(n, 1)
 }
 
 fn laplacian(n: usize, rows_per_tile: usize) -> Encoded {
     encode(n, rows_per_tile, 18, laplacian_row(n))
-}
-
-fn dense(e: &Encoded) -> Vec<Vec<f64>> {
-    let n = e.n as usize;
-    let mut a = vec![vec![0.0; n]; n];
-    let mut words = e.words.iter();
-    for t in &e.tiles {
-        let mut row = t.row_base as usize;
-        for _ in 0..t.words {
-            let w = Word(*words.next().unwrap());
-            let v = w.raw_value() as f64 / (1u64 << e.frac_bits) as f64;
-            a[row][t.col_base as usize + w.column() as usize] += v;
-            if w.end_of_row() {
-                row += 1;
-            }
-        }
-    }
-    a
 }
 
 /// Gaussian elimination with partial pivoting.
@@ -342,6 +208,7 @@ fn read_direction(s: &mut Session<'_, Sequential>, direction: u8, n: usize) -> V
         match s.handle(Request::ReadSolution {
             direction,
             offset: out.len() as u32,
+            len: CHUNK_LEN as u16,
         }) {
             Response::Solution {
                 direction: got,
@@ -374,8 +241,8 @@ fn max_rel_err(got: &[f64], want: &[f64]) -> f64 {
 
 #[test]
 fn hello_reports_capacities_clamped_to_the_storage() {
-    let mut bufs = Bufs::new(100, 7, 20);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 7, 20);
+    let mut s = bufs.session(info(), HARTS.harts);
     let Response::Hello(info) = s.handle(Request::Hello {
         protocol_version: PROTOCOL_VERSION,
     }) else {
@@ -392,8 +259,8 @@ fn hello_reports_capacities_clamped_to_the_storage() {
 
 #[test]
 fn advertised_capacities_below_the_storage_are_kept_and_enforced() {
-    let mut bufs = Bufs::new(100, 7, 20);
-    bufs.directions[1].r.truncate(15); // r of direction 1 limits max_n to 15
+    let mut bufs = OwnedStorage::new(100, 7, 20);
+    bufs.directions[1][3].truncate(15); // r of direction 1 limits max_n to 15
     let storage = bufs.storage();
     let mut s = Session::new(
         storage,
@@ -441,16 +308,16 @@ fn advertised_capacities_below_the_storage_are_kept_and_enforced() {
 
 #[test]
 fn a_fresh_session_needs_no_hello() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     load(&mut s, &laplacian(10, 10));
     assert!(s.matrix_loaded());
 }
 
 #[test]
 fn a_version_mismatch_answers_hello_then_refuses_until_a_matching_hello() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let e = laplacian(10, 10);
     load(&mut s, &e);
     let other = PROTOCOL_VERSION.wrapping_add(1);
@@ -468,7 +335,8 @@ fn a_version_mismatch_answers_hello_then_refuses_until_a_matching_hello() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         mismatch
     );
@@ -483,8 +351,8 @@ fn a_version_mismatch_answers_hello_then_refuses_until_a_matching_hello() {
 
 #[test]
 fn hello_resets_a_loaded_matrix_and_an_upload() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let e = laplacian(10, 10);
     load(&mut s, &e);
     s.handle(Request::Hello {
@@ -513,8 +381,8 @@ fn hello_resets_a_loaded_matrix_and_an_upload() {
 
 #[test]
 fn begin_matrix_checks_the_announced_shape() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let bm = |n, frac_bits, tiles, words| Request::BeginMatrix {
         n,
         frac_bits,
@@ -571,8 +439,8 @@ fn begin_matrix_checks_the_announced_shape() {
 
 #[test]
 fn begin_matrix_drops_the_loaded_matrix_even_when_refused() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let e = laplacian(10, 10);
     load(&mut s, &e);
     load_rhs(&mut s, &[1.0; 10]);
@@ -598,8 +466,8 @@ fn begin_matrix_drops_the_loaded_matrix_even_when_refused() {
 
 #[test]
 fn tiles_and_words_without_an_upload_are_out_of_order() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let e = laplacian(10, 10);
     assert_eq!(
         s.handle(Request::Tile(e.tiles[0])),
@@ -632,8 +500,8 @@ fn tiles_and_words_without_an_upload_are_out_of_order() {
 
 #[test]
 fn words_need_a_tile_and_a_tile_needs_its_words() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let e = laplacian(10, 5);
     assert_eq!(s.handle(begin(&e)), Response::Ack);
     assert_eq!(
@@ -705,8 +573,8 @@ fn words_need_a_tile_and_a_tile_needs_its_words() {
 
 #[test]
 fn word_chunks_must_be_in_order_and_within_the_tile() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let e = laplacian(10, 5);
     let first = e.tiles[0].words as usize;
     s.handle(begin(&e));
@@ -771,8 +639,8 @@ fn word_chunks_must_be_in_order_and_within_the_tile() {
 
 #[test]
 fn tile_headers_are_checked_on_arrival_and_a_refused_header_changes_nothing() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let e = laplacian(10, 5);
     s.handle(begin(&e));
     let t = e.tiles[0];
@@ -821,8 +689,8 @@ fn tile_headers_are_checked_on_arrival_and_a_refused_header_changes_nothing() {
 
 #[test]
 fn a_malformed_tile_aborts_the_upload() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let mut e = laplacian(10, 5);
     let last = e.tiles[0].words as usize - 1;
     e.words[last] &= !deform_shared::word::EM_BIT;
@@ -839,8 +707,8 @@ fn a_malformed_tile_aborts_the_upload() {
 
 #[test]
 fn each_tile_is_validated_against_n_when_complete() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     // Column 10 in a 10×10 matrix.
     let e = encode(10, 5, 18, |i| {
         if i == 7 {
@@ -877,8 +745,8 @@ fn each_tile_is_validated_against_n_when_complete() {
 
 #[test]
 fn end_matrix_checks_the_word_total_and_the_crc() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let e = laplacian(10, 10);
     // Tiles that hold fewer words than announced.
     let mut reqs = matrix_requests(&e, 64);
@@ -924,8 +792,8 @@ fn end_matrix_checks_the_word_total_and_the_crc() {
 
 #[test]
 fn vectors_need_a_matrix_of_their_length() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let bv = |slot, len| Request::BeginVector {
         slot,
         exponent: 0,
@@ -970,8 +838,8 @@ fn vectors_need_a_matrix_of_their_length() {
 
 #[test]
 fn vector_chunks_are_checked() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     load(&mut s, &laplacian(10, 10));
     let slot = VectorSlot::INITIAL_GUESS;
     let vd = |offset, m: &[i32]| Request::VectorData {
@@ -1061,8 +929,8 @@ fn vector_chunks_are_checked() {
 
 #[test]
 fn a_new_matrix_invalidates_the_vectors() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let e = laplacian(10, 10);
     load(&mut s, &e);
     let (exp, m) = to_block(&[1.0; 10]);
@@ -1079,13 +947,14 @@ fn a_new_matrix_invalidates_the_vectors() {
 
 #[test]
 fn solve_checks_its_inputs_before_touching_anything() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     assert_eq!(s.handle(solve_req(Start::Zero)), ooo(SessionStep::NoMatrix));
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         ooo(SessionStep::NoSolution)
     );
@@ -1111,7 +980,8 @@ fn solve_checks_its_inputs_before_touching_anything() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         ooo(SessionStep::NoSolution)
     );
@@ -1122,8 +992,8 @@ fn solve_checks_its_inputs_before_touching_anything() {
 
 #[test]
 fn solves_the_1d_laplacian_like_a_direct_solver() {
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let n = 10;
     let e = laplacian(n, n);
     assert_eq!(e.tiles.len(), 1);
@@ -1153,14 +1023,16 @@ fn solves_the_1d_laplacian_like_a_direct_solver() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: n as u32
+            offset: n as u32,
+            len: CHUNK_LEN as u16
         }),
         err(ErrorCode::ChunkTooLong)
     );
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: u32::MAX
+            offset: u32::MAX,
+            len: CHUNK_LEN as u16
         }),
         err(ErrorCode::ChunkTooLong)
     );
@@ -1197,7 +1069,8 @@ fn solves_the_1d_laplacian_like_a_direct_solver() {
     assert!(matches!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         Response::Solution { .. }
     ));
@@ -1209,8 +1082,8 @@ fn solves_the_1d_laplacian_like_a_direct_solver() {
 #[test]
 fn solves_a_matrix_of_several_tiles_sent_in_many_chunks() {
     let n = 600;
-    let mut bufs = Bufs::new(2000, 8, n);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(2000, 8, n);
+    let mut s = bufs.session(info(), HARTS.harts);
     // Rows split 250/250/100, each tile's column window starting one column before its rows.
     let e = laplacian(n, 250);
     assert_eq!(e.tiles.len(), 3);
@@ -1257,8 +1130,8 @@ fn rows_split_between_tiles_add_up() {
     let mut e = lower.clone();
     e.tiles.extend(&upper.tiles);
     e.words.extend(&upper.words);
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     all_ack(&mut s, matrix_requests(&e, 5));
     load_rhs(&mut s, &[1.0; 10]);
     assert!(solved(s.handle(solve_req(Start::Zero))).converged);
@@ -1270,8 +1143,8 @@ fn rows_split_between_tiles_add_up() {
 #[test]
 fn a_failed_solve_leaves_no_solution() {
     let n = 10;
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     load(&mut s, &laplacian(n, n));
     load_rhs(&mut s, &[1.0; 10]);
     assert!(solved(s.handle(solve_req(Start::Zero))).converged);
@@ -1295,7 +1168,8 @@ fn a_failed_solve_leaves_no_solution() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 0,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         ooo(SessionStep::NoSolution)
     );
@@ -1395,8 +1269,11 @@ fn raw_request() -> impl Strategy<Value = Request> {
                 cycle_budget: 0,
             })
         ),
-        (0u8..4, num(12))
-            .prop_map(|(direction, offset)| Request::ReadSolution { direction, offset }),
+        (0u8..4, num(12)).prop_map(|(direction, offset)| Request::ReadSolution {
+            direction,
+            offset,
+            len: CHUNK_LEN as u16
+        }),
         (num(40), 0u8..24).prop_map(|(words, frac_bits)| Request::BeginUpdate { words, frac_bits }),
         (
             num(40),
@@ -1509,8 +1386,13 @@ fn step() -> impl Strategy<Value = Step> {
                 cycle_budget: 0,
             }))
         });
-    let read = (0u8..4, 0u32..14)
-        .prop_map(|(direction, offset)| Step::Raw(Request::ReadSolution { direction, offset }));
+    let read = (0u8..4, 0u32..14).prop_map(|(direction, offset)| {
+        Step::Raw(Request::ReadSolution {
+            direction,
+            offset,
+            len: CHUNK_LEN as u16,
+        })
+    });
     let update = (
         1usize..=12,
         3usize..=12,
@@ -1580,8 +1462,8 @@ proptest! {
     #[test]
     fn random_request_sequences_never_panic(steps in prop::collection::vec(step(), 0..40)) {
         // Small buffers: capacities are hit often.
-        let mut bufs = Bufs::new(40, 4, 12);
-        let mut s = bufs.session();
+        let mut bufs = OwnedStorage::new(40, 4, 12);
+        let mut s = bufs.session(info(), HARTS.harts);
         let mut frame = [0u8; MAX_FRAME_LEN];
         let mut n = 0;
         for req in steps.into_iter().flat_map(|step| expand(step, &mut n)) {
@@ -1625,15 +1507,15 @@ fn a_solve_after_an_update_equals_one_after_a_fresh_upload() {
     assert_eq!(old.tiles, new.tiles);
     let b: Vec<f64> = (0..n).map(|i| 1.0 + (i as f64 * 0.3).cos()).collect();
 
-    let mut fresh_bufs = Bufs::new(400, 8, n);
-    let mut fresh = fresh_bufs.session();
+    let mut fresh_bufs = OwnedStorage::new(400, 8, n);
+    let mut fresh = fresh_bufs.session(info(), HARTS.harts);
     load(&mut fresh, &new);
     load_rhs(&mut fresh, &b);
     let fresh_report = solved(fresh.handle(solve_req(Start::Zero)));
     let fresh_x = read_all(&mut fresh, n);
 
-    let mut bufs = Bufs::new(400, 8, n);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(400, 8, n);
+    let mut s = bufs.session(info(), HARTS.harts);
     load(&mut s, &old);
     load_rhs(&mut s, &b);
     solved(s.handle(solve_req(Start::Zero)));
@@ -1654,8 +1536,8 @@ fn the_previous_solution_survives_an_update_for_a_warm_start() {
     let old = band(n, 40, 18, 3.0, 1.0);
     let new = band(n, 40, 18, 3.03, 1.01);
     let b: Vec<f64> = (0..n).map(|i| (i as f64 * 0.2).sin() + 1.5).collect();
-    let mut bufs = Bufs::new(200, 4, n);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(200, 4, n);
+    let mut s = bufs.session(info(), HARTS.harts);
     load(&mut s, &old);
     load_rhs(&mut s, &b);
     solved(s.handle(solve_req(Start::Zero)));
@@ -1676,8 +1558,8 @@ fn the_previous_solution_survives_an_update_for_a_warm_start() {
 fn an_update_needs_a_resident_matrix_of_its_word_count() {
     let e = band(10, 10, 18, 2.0, 1.0);
     let words = e.words.len() as u32;
-    let mut bufs = Bufs::new(100, 4, 10);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 10);
+    let mut s = bufs.session(info(), HARTS.harts);
     let begin_update = |words, frac_bits| Request::BeginUpdate { words, frac_bits };
     assert_eq!(
         s.handle(begin_update(words, 18)),
@@ -1721,8 +1603,8 @@ fn an_update_needs_a_resident_matrix_of_its_word_count() {
 fn update_chunks_are_checked_and_a_refused_chunk_writes_nothing() {
     let e = band(10, 10, 18, 2.0, 1.0);
     let words = e.words.len();
-    let mut bufs = Bufs::new(100, 4, 10);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 10);
+    let mut s = bufs.session(info(), HARTS.harts);
     load(&mut s, &e);
     load_rhs(&mut s, &[1.0; 10]);
     solved(s.handle(solve_req(Start::Zero)));
@@ -1793,8 +1675,8 @@ fn update_chunks_are_checked_and_a_refused_chunk_writes_nothing() {
 fn an_update_keeps_em_er_and_columns_and_a_crc_mismatch_drops_the_matrix() {
     let e = band(10, 4, 18, 2.0, 1.0);
     let words = e.words.len();
-    let mut bufs = Bufs::new(100, 4, 10);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 10);
+    let mut s = bufs.session(info(), HARTS.harts);
     load(&mut s, &e);
     load_rhs(&mut s, &[1.0; 10]);
     // All-ones value fields (-1 raw): the flags and columns must survive.
@@ -1858,8 +1740,8 @@ fn a_fused_solve_equals_separate_solves_per_direction() {
     let rhs: Vec<Vec<f64>> = (0..3)
         .map(|d| (0..n).map(|i| ((i * (d + 3)) % 7) as f64 - 3.0).collect())
         .collect();
-    let mut bufs = Bufs::new(1000, 10, 64);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(1000, 10, 64);
+    let mut s = bufs.session(info(), HARTS.harts);
     load(&mut s, &e);
     let mut singles = Vec::new();
     for b in &rhs {
@@ -1893,8 +1775,8 @@ fn a_fused_solve_equals_separate_solves_per_direction() {
 #[test]
 fn directions_beyond_the_fused_count_are_refused() {
     let e = laplacian(8, 8);
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     load(&mut s, &e);
     let out_of_range = err(ErrorCode::DirectionOutOfRange {
         direction: 3,
@@ -1912,7 +1794,8 @@ fn directions_beyond_the_fused_count_are_refused() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 3,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         out_of_range
     );
@@ -1932,7 +1815,8 @@ fn directions_beyond_the_fused_count_are_refused() {
     assert_eq!(
         s.handle(Request::ReadSolution {
             direction: 2,
-            offset: 0
+            offset: 0,
+            len: CHUNK_LEN as u16
         }),
         ooo(SessionStep::NoSolution)
     );
@@ -1947,8 +1831,8 @@ fn directions_beyond_the_fused_count_are_refused() {
 fn a_tile_for_a_missing_hart_is_refused() {
     let mut e = laplacian(8, 4);
     e.tiles[1].mvu = 1;
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     let mut reqs = matrix_requests(&e, CHUNK_LEN).into_iter();
     for req in reqs.by_ref().take(3) {
         assert_eq!(s.handle(req), Response::Ack);
@@ -1974,8 +1858,8 @@ fn a_mirrored_half_solves_like_the_whole_persymmetric_matrix() {
     half.tiles[0].mirrored = true;
     half.words.truncate(half.tiles[0].words as usize);
     let b: Vec<f64> = (0..n).map(|i| 1.0 + i as f64).collect();
-    let mut bufs = Bufs::new(100, 4, 16);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
     load(&mut s, &whole);
     load_rhs(&mut s, &b);
     solved(s.handle(solve_req(Start::Zero)));
@@ -1989,6 +1873,41 @@ fn a_mirrored_half_solves_like_the_whole_persymmetric_matrix() {
     for ((g, w), x) in got.iter().zip(&want).zip(&exact) {
         assert!((g - x).abs() < 1e-6 * x.abs(), "{g} vs exact {x}");
         assert!((w - x).abs() < 1e-6 * x.abs(), "{w} vs exact {x}");
+    }
+}
+
+/// `ReadSolution.len` (protocol 6) bounds the answer: a noisy line asks for short ones.
+#[test]
+fn a_solution_answer_holds_at_most_len_elements() {
+    let mut bufs = OwnedStorage::new(100, 4, 16);
+    let mut s = bufs.session(info(), HARTS.harts);
+    let n = 10;
+    load(&mut s, &laplacian(n, 10));
+    load_rhs(&mut s, &[1.0; 10]);
+    assert!(matches!(
+        s.handle(solve_req(Start::Zero)),
+        Response::Solved(_)
+    ));
+    let whole = read_all(&mut s, n);
+    for (offset, len, expect) in [(0, 3, 3), (8, 5, 2), (0, 0, 0), (4, u16::MAX, 6)] {
+        let Response::Solution {
+            mantissas,
+            exponent,
+            ..
+        } = s.handle(Request::ReadSolution {
+            direction: 0,
+            offset,
+            len,
+        })
+        else {
+            panic!("no Solution for offset {offset}, len {len}")
+        };
+        assert_eq!(mantissas.len(), expect, "offset {offset}, len {len}");
+        let got: Vec<f64> = mantissas
+            .iter()
+            .map(|&m| from_mantissa(m, exponent))
+            .collect();
+        assert_eq!(got[..], whole[offset as usize..][..expect]);
     }
 }
 

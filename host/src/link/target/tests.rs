@@ -485,7 +485,8 @@ fn a_target_that_resets_mid_session_is_given_its_matrix_again() {
     // Hello + BeginMatrix + 3 tiles + 9 word chunks + EndMatrix = 15 requests, then the
     // target reboots as the right-hand side arrives.
     serve_resetting(target, info(), |b| b.to_vec(), Some(16));
-    let mut target = Target::handshake(Link::new(host), quick()).unwrap();
+    let link = Link::new(host).with_fixed_chunk(CHUNK_LEN);
+    let mut target = Target::handshake(link, quick()).unwrap();
     target.upload_matrix(&matrix).unwrap();
     let got = target.solve_for(&rhs, params()).unwrap();
     assert_eq!(target.resumes(), 1);
@@ -494,7 +495,8 @@ fn a_target_that_resets_mid_session_is_given_its_matrix_again() {
     // A warm start cannot resume: the state it starts from is gone.
     let (host, target) = UnixStream::pair().unwrap();
     serve_resetting(target, info(), |b| b.to_vec(), Some(16));
-    let mut target = Target::handshake(Link::new(host), quick()).unwrap();
+    let link = Link::new(host).with_fixed_chunk(CHUNK_LEN);
+    let mut target = Target::handshake(link, quick()).unwrap();
     target.upload_matrix(&matrix).unwrap();
     let warm = SolveParams {
         start: Start::Previous,
@@ -503,4 +505,41 @@ fn a_target_that_resets_mid_session_is_given_its_matrix_again() {
     let err = target.solve_for(&rhs, warm).unwrap_err();
     assert!(matches!(err, LinkError::TargetReset), "{err:?}");
     assert!(err.to_string().contains("reset mid-session"), "{err}");
+}
+
+/// At a byte-error rate of 1e-2 each way a full 540-byte chunk frame arrives intact 0.4 % of
+/// the time: only a link that shrinks its chunks and replies gets through, and it must give
+/// the clean run's bits.
+#[test]
+fn at_a_byte_error_rate_of_1e_2_the_link_shrinks_its_chunks_and_still_matches_bit_for_bit() {
+    let n = 600;
+    let matrix = laplacian_1d(n);
+    let rhs: Vec<f64> = (0..n).map(|i| 1.0 + (i as f64 * 0.1).sin()).collect();
+    let (mut clean, _) = session_target(info());
+    clean.upload_matrix(&matrix).unwrap();
+    let (clean_report, clean_x) = clean.solve_for(&rhs, params()).unwrap();
+    assert_eq!(clean.link_mut().adaptive().damage_seen(), 0);
+    assert_eq!(
+        clean.link_mut().adaptive().chunk(),
+        CHUNK_LEN,
+        "a clean line grows to full chunks"
+    );
+
+    let (host, target) = UnixStream::pair().unwrap();
+    serve_session_through(target, info(), noisy_line(0x1E2_2026, 1e-2));
+    let patient = Timeouts {
+        retries: 60,
+        request: Duration::from_secs(30),
+        ..quick()
+    };
+    let mut noisy = Target::handshake(Link::new(host), patient).unwrap();
+    noisy.upload_matrix(&matrix).unwrap();
+    let (report, x) = noisy.solve_for(&rhs, params()).unwrap();
+    assert_eq!(report, clean_report);
+    assert_eq!(x, clean_x, "bit for bit");
+    let adaptive = noisy.link_mut().adaptive();
+    assert!(
+        adaptive.damage_seen() > 0 && adaptive.smallest_chunk() <= 16,
+        "the chunk adapted: {adaptive:?}"
+    );
 }

@@ -107,6 +107,7 @@ fn a_silent_target_fails_after_the_retries_naming_the_request() {
         .request(&Request::ReadSolution {
             direction: 0,
             offset: 0,
+            len: deform_shared::protocol::CHUNK_LEN as u16,
         })
         .unwrap_err();
     let waited = started.elapsed();
@@ -219,6 +220,7 @@ fn error_answers_carry_the_targets_code() {
         .request(&Request::ReadSolution {
             direction: 0,
             offset: 0,
+            len: deform_shared::protocol::CHUNK_LEN as u16,
         })
         .unwrap_err();
     assert_eq!(err.target_code(), Some(code));

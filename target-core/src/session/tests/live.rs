@@ -2,6 +2,7 @@
 //! quantised field, and every refusal.
 
 use deform_shared::live::{Coupling, LiveError, LiveParams, ToolRow};
+use deform_shared::qformat::quantize;
 
 use super::*;
 
@@ -96,8 +97,8 @@ fn tool_at(t: f32) -> heapless::Vec<[f32; 3], 8> {
 
 #[test]
 fn frames_match_a_direct_solve_and_the_local_model_predicts_the_next_force() {
-    let mut bufs = Bufs::new(4 * N, 8, N);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(4 * N, 8, N);
+    let mut s = bufs.session(info(), HARTS.harts);
     started(&mut s);
     let mut predicted: Option<[f32; 3]> = None;
     let mut iterations = Vec::new();
@@ -133,8 +134,8 @@ fn frames_match_a_direct_solve_and_the_local_model_predicts_the_next_force() {
 
 #[test]
 fn the_field_arrives_quantised_to_its_scale() {
-    let mut bufs = Bufs::new(4 * N, 8, N);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(4 * N, 8, N);
+    let mut s = bufs.session(info(), HARTS.harts);
     started(&mut s);
     assert!(matches!(
         s.handle(Request::LiveFrame { tool: tool_at(1.0) }),
@@ -167,8 +168,8 @@ fn the_field_arrives_quantised_to_its_scale() {
 
 #[test]
 fn bad_live_requests_are_refused_clearly() {
-    let mut bufs = Bufs::new(4 * N, 8, N);
-    let mut s = bufs.session();
+    let mut bufs = OwnedStorage::new(4 * N, 8, N);
+    let mut s = bufs.session(info(), HARTS.harts);
     let live = |e| err(ErrorCode::Live(e));
     assert_eq!(
         s.handle(Request::LiveTool(tool_row(TOOL as u32))),

@@ -1,0 +1,6 @@
+//! libFuzzer target: see `deform_target_core::testkit::fuzz::target_session`.
+#![no_main]
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| {
+    deform_target_core::testkit::fuzz::target_session(data);
+});

@@ -1,0 +1,201 @@
+//! A time series' displacements, as `deform simulate --out` writes them:
+//!
+//! - `FILE.csv`: every step's every node, `step,t,i,j,k,ux,uy,uz`;
+//! - `FILE.pvd`: that ParaView collection, with one `FILE_NNNN.vtu` per step beside it;
+//! - any other path: a directory with `step_NNNN.vtu` per step and `series.pvd`.
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+
+use super::vtk::{write_pvd, write_vtk, VtkKind};
+use super::{write_csv_row, NodeDisplacement};
+
+/// Where and how the series goes, from the path's extension.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum SeriesTarget {
+    Csv(PathBuf),
+    Pvd(PathBuf),
+    Directory(PathBuf),
+}
+
+impl SeriesTarget {
+    pub fn of(path: &Path) -> Self {
+        match path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase)
+            .as_deref()
+        {
+            Some("csv") => SeriesTarget::Csv(path.to_path_buf()),
+            Some("pvd") => SeriesTarget::Pvd(path.to_path_buf()),
+            _ => SeriesTarget::Directory(path.to_path_buf()),
+        }
+    }
+}
+
+/// Writes the steps as they come.
+#[derive(Debug)]
+pub struct SeriesWriter {
+    target: SeriesTarget,
+    csv: Option<BufWriter<File>>,
+    /// (t, .vtu name relative to the .pvd; empty for CSV) so far.
+    steps: Vec<(f64, String)>,
+}
+
+impl SeriesWriter {
+    /// Creates the CSV file (with its header) or the directory, before any step is solved.
+    pub fn create(target: SeriesTarget) -> anyhow::Result<Self> {
+        let csv = match &target {
+            SeriesTarget::Csv(path) => {
+                let file =
+                    File::create(path).with_context(|| format!("creating {}", path.display()))?;
+                let mut out = BufWriter::new(file);
+                writeln!(out, "step,t,i,j,k,ux,uy,uz")?;
+                Some(out)
+            }
+            SeriesTarget::Pvd(path) => {
+                if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                    std::fs::create_dir_all(dir)
+                        .with_context(|| format!("creating {}", dir.display()))?;
+                }
+                None
+            }
+            SeriesTarget::Directory(dir) => {
+                std::fs::create_dir_all(dir)
+                    .with_context(|| format!("creating {}", dir.display()))?;
+                None
+            }
+        };
+        Ok(Self {
+            target,
+            csv,
+            steps: Vec::new(),
+        })
+    }
+
+    /// Step `step` at time `t`.
+    pub fn write_step(
+        &mut self,
+        step: u32,
+        t: f64,
+        rows: &[NodeDisplacement],
+    ) -> anyhow::Result<()> {
+        let (dir, name) = match &self.target {
+            SeriesTarget::Csv(_) => {
+                let out = self.csv.as_mut().expect("created with the file");
+                let prefix = format!("{step},{t},");
+                for r in rows {
+                    write_csv_row(out, &prefix, r)?;
+                }
+                self.steps.push((t, String::new()));
+                return Ok(());
+            }
+            SeriesTarget::Pvd(path) => {
+                let stem = path
+                    .file_stem()
+                    .and_then(|s| s.to_str())
+                    .unwrap_or("series");
+                (
+                    path.parent().map(Path::to_path_buf).unwrap_or_default(),
+                    format!("{stem}_{step:04}.vtu"),
+                )
+            }
+            SeriesTarget::Directory(dir) => (dir.clone(), format!("step_{step:04}.vtu")),
+        };
+        write_vtk(&dir.join(&name), rows, VtkKind::Unstructured)?;
+        self.steps.push((t, name));
+        Ok(())
+    }
+
+    /// Flushes the CSV or writes the .pvd; returns a line saying what was written.
+    pub fn finish(self) -> anyhow::Result<String> {
+        match self.target {
+            SeriesTarget::Csv(path) => {
+                let mut out = self.csv.expect("created with the file");
+                out.flush()
+                    .with_context(|| format!("writing {}", path.display()))?;
+                Ok(format!("{} ({} steps)", path.display(), self.steps.len()))
+            }
+            SeriesTarget::Pvd(path) => {
+                write_pvd(&path, &self.steps)?;
+                Ok(format!(
+                    "{} (+{} .vtu files beside it)",
+                    path.display(),
+                    self.steps.len()
+                ))
+            }
+            SeriesTarget::Directory(dir) => {
+                let path = dir.join("series.pvd");
+                write_pvd(&path, &self.steps)?;
+                Ok(format!(
+                    "{} (+{} .vtu files)",
+                    path.display(),
+                    self.steps.len()
+                ))
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rows() -> Vec<NodeDisplacement> {
+        (0..2)
+            .map(|i| NodeDisplacement {
+                i,
+                j: 0,
+                k: 0,
+                ux: i as f64 * 0.5,
+                uy: 0.0,
+                uz: -1.0,
+                stiffness: 1.0,
+            })
+            .collect()
+    }
+
+    fn temp(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("deform-series-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    #[test]
+    fn a_pvd_path_is_a_file_with_its_vtu_files_beside_it() {
+        let dir = temp("pvd");
+        let path = dir.join("needle.pvd");
+        let mut w = SeriesWriter::create(SeriesTarget::of(&path)).unwrap();
+        w.write_step(1, 0.5, &rows()).unwrap();
+        w.write_step(2, 1.0, &rows()).unwrap();
+        w.finish().unwrap();
+        assert!(path.is_file(), "needle.pvd must be a file");
+        assert!(dir.join("needle_0001.vtu").is_file());
+        let pvd = std::fs::read_to_string(&path).unwrap();
+        assert!(pvd.contains(r#"file="needle_0002.vtu""#), "{pvd}");
+        let dir_out = dir.join("series");
+        let mut w = SeriesWriter::create(SeriesTarget::of(&dir_out)).unwrap();
+        w.write_step(1, 0.5, &rows()).unwrap();
+        w.finish().unwrap();
+        assert!(dir_out.join("series.pvd").is_file() && dir_out.join("step_0001.vtu").is_file());
+    }
+
+    #[test]
+    fn a_csv_path_gets_every_step_and_node() {
+        let dir = temp("csv");
+        let path = dir.join("u.csv");
+        let mut w = SeriesWriter::create(SeriesTarget::of(&path)).unwrap();
+        w.write_step(1, 0.5, &rows()).unwrap();
+        w.write_step(2, 1.0, &rows()).unwrap();
+        w.finish().unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], "step,t,i,j,k,ux,uy,uz");
+        assert_eq!(lines.len(), 5);
+        assert_eq!(lines[4], "2,1,1,0,0,5e-1,0e0,-1e0");
+    }
+}
