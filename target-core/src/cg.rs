@@ -66,6 +66,10 @@ use crate::svu::{
 /// residual is accepted (the host's refinement takes over from there).
 const MAX_REPLACEMENTS: u32 = 2;
 
+/// The largest left shift of b (|b| < 2^30) onto K·x's exponent for which K·x − b·2^s is
+/// formed exactly in `i64` ([`Solver::residual_of`]): |b·2^31| < 2^61 and |K·x| < 2^62.
+const MAX_B_SHIFT: u32 = 31;
+
 /// A row's total word count (over all tiles and mirrors) above which its i64 sum could
 /// overflow: 2^12 products below 2^50 stay below 2^62.
 pub const MAX_WORDS_PER_ROW: u32 = 1 << 12;
@@ -508,25 +512,69 @@ impl<E: Executor> Engine<'_, '_, E> {
         self.run(&task, clock, false);
     }
 
-    /// What each direction's lane of p becomes, on every hart's share in parallel.
+    /// K·x − b·2^s, exact, in place of K·x for each direction with a shift `s`, with the OR of
+    /// the differences' magnitudes in `kp_or`: b − A·x cancels to a few bits when x is a good
+    /// guess, and only the exact `i64` difference keeps those bits (see
+    /// [`Solver::residual_of`]). |b·2^s| < 2^61 for s ≤ [`MAX_B_SHIFT`] and |K·x| < 2^62, so the
+    /// difference fits.
+    fn subtract_b(
+        &self,
+        b: &[&[i32]; MAX_DIRECTIONS],
+        shifts: [Option<u32>; MAX_DIRECTIONS],
+        clock: &mut Clock,
+    ) {
+        let n = self.a.n;
+        let task = |h: usize| {
+            let range = share(n, self.harts, h);
+            // SAFETY: each hart writes only its own share of Kp and its own result slot; b is
+            // only read.
+            unsafe {
+                let out = &mut self.out.slice_mut(h..h + 1)[0];
+                let kp = self.kp.slice_mut(range.clone());
+                for (d, shift) in shifts.iter().enumerate().take(self.directions) {
+                    let Some(s) = *shift else { continue };
+                    let mut or = 0u64;
+                    for (ki, &bi) in kp.iter_mut().zip(&b[d][range.clone()]) {
+                        let v = ki[d].wrapping_sub(i64::from(bi) << s);
+                        ki[d] = v;
+                        or |= (v ^ (v >> 63)) as u64;
+                    }
+                    out.kp_or[d] = or;
+                }
+            }
+        };
+        self.run(&task, clock, false);
+    }
+
+    /// What each direction's lane of p becomes, on every hart's share in parallel. A lane
+    /// copied from x or r also gets the OR of its magnitudes (`p_or`), the tight bound
+    /// [`Solver::tighten_r_bounds`] needs.
     fn set_lanes(&self, lanes: [Lane; MAX_DIRECTIONS], clock: &mut Clock) {
         let n = self.a.n;
         let task = |h: usize| {
             let range = share(n, self.harts, h);
-            // SAFETY: each hart writes only its own share of p; x and r are only read.
+            // SAFETY: each hart writes only its own share of p and its own result slot; x and
+            // r are only read.
             unsafe {
+                let out = &mut self.out.slice_mut(h..h + 1)[0];
                 let p = self.p.slice_mut(range.clone());
                 for (d, lane) in lanes.iter().enumerate().take(self.directions) {
                     let from = match lane {
                         Lane::Keep => continue,
                         Lane::Zero => {
                             p.iter_mut().for_each(|pi| pi[d] = 0);
+                            out.p_or[d] = 0;
                             continue;
                         }
                         Lane::X => &self.xs[d].as_slice()[range.clone()],
                         Lane::R => &self.rs[d].as_slice()[range.clone()],
                     };
-                    p.iter_mut().zip(from).for_each(|(pi, &v)| pi[d] = v);
+                    let mut or = 0u32;
+                    for (pi, &v) in p.iter_mut().zip(from) {
+                        pi[d] = v;
+                        or |= magnitude_bits(v);
+                    }
+                    out.p_or[d] = or;
                 }
             }
         };
@@ -626,9 +674,9 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         self.engine.directions
     }
 
-    /// Pass R's plan for direction d: r ← r + c·K·v, where K·v is in the MVU's results and v's
-    /// block is `v` (p, or x when computing b − A·x).
-    fn r_plan(&mut self, d: usize, c: f64, v: Block) -> PassR {
+    /// Pass R's plan for direction d: r ← keep·r + c·K·v, where K·v is in the MVU's results
+    /// and v's block is `v` (p, or x when computing b − A·x); `keep` is 1 or 0.
+    fn r_plan(&mut self, d: usize, c: f64, v: Block, keep: f64) -> PassR {
         let kp_max = self
             .engine
             .outs()
@@ -640,7 +688,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             bound,
         };
         PassR {
-            lin: Lin::new(c, kp, true, 1.0, self.state[d].r, &mut self.sat),
+            lin: Lin::new(c, kp, true, keep, self.state[d].r, &mut self.sat),
             narrow,
         }
     }
@@ -662,14 +710,31 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         st.residual_sq = st.ratio(st.rr_f, plan.lin.e);
     }
 
-    /// r = b − K·v for the directions in `which`, whose v (x) is in their lane of p: one MVU
-    /// pass and pass R.
+    /// r = b − K·x for the directions in `which`, whose x is in their lane of p (and b in r):
+    /// one MVU pass and pass R.
+    ///
+    /// With a good x (a predicted or warm start, a residual replacement) b and K·x agree to
+    /// many bits. Pass R would round K·x to 31 bits and r to an exponent sized for |b| + |K·x|,
+    /// leaving r a few bits, rounded at about 2^-29 of max |b|, which is near the tolerances
+    /// asked for: CG then chases that rounding. So where b's exponent is at most
+    /// [`MAX_B_SHIFT`] above K·x's, K·x − b is formed exactly in `i64` first and pass R only
+    /// narrows and negates it, r at the exponent of the difference itself.
     fn residual_of(&mut self, which: [bool; MAX_DIRECTIONS]) {
         self.engine.mvu(&mut self.clock);
         let t = self.engine.exec.now();
+        let mut shifts = [None; MAX_DIRECTIONS];
+        for d in (0..self.directions()).filter(|&d| which[d]) {
+            let s = self.state[d].b.e - (self.state[d].x.e - self.f());
+            shifts[d] = u32::try_from(s).ok().filter(|&s| s <= MAX_B_SHIFT);
+        }
+        if shifts.iter().any(Option::is_some) {
+            self.engine
+                .subtract_b(&self.systems_b, shifts, &mut self.clock);
+        }
         let mut plans = [None; MAX_DIRECTIONS];
         for d in (0..self.directions()).filter(|&d| which[d]) {
-            plans[d] = Some(self.r_plan(d, -1.0, self.state[d].x));
+            let keep = if shifts[d].is_some() { 0.0 } else { 1.0 };
+            plans[d] = Some(self.r_plan(d, -1.0, self.state[d].x, keep));
         }
         self.engine.pass_r(&plans, &mut self.clock);
         for (d, plan) in plans.iter().enumerate() {
@@ -699,7 +764,26 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             *lane = if st.active { Lane::R } else { Lane::Zero };
         }
         self.engine.set_lanes(lanes, &mut self.clock);
+        self.tighten_r_bounds(lanes);
         charge(&mut self.clock.svu, t, self.engine.exec);
+    }
+
+    /// After r was copied into p (`Lane::R`, a start or a restart): r's and p's bound from the
+    /// OR of r's magnitudes that the copy measured. Pass R bounds r through the high words of
+    /// r², which cannot see below 2^16: tight for a residual the SVU itself normalised, but an
+    /// r that cancelled to a few bits (b − A·x₀ on pass R's path, see
+    /// [`Solver::residual_of`]) would be believed 2^16 when it is 2^4, and the next updates
+    /// of r and p would choose exponents 12 bits too coarse and lose those bits.
+    fn tighten_r_bounds(&mut self, lanes: [Lane; MAX_DIRECTIONS]) {
+        let outs = self.engine.outs();
+        for (d, lane) in lanes.iter().enumerate().take(self.directions()) {
+            if *lane == Lane::R {
+                let or = outs.iter().fold(0u32, |o, out| o | out.p_or[d]);
+                let st = &mut self.state[d];
+                st.r.bound = st.r.bound.min(bound_of(or));
+                st.p = st.r;
+            }
+        }
     }
 
     /// One CG iteration of every active direction: MVU, α, pass R, β, pass XP. Returns the
@@ -725,7 +809,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             // α = rᵀr / pᵀKp; exponents: 2e_r and 2e_p − F.
             let p_kp = u128_to_f64(p_kp as u128);
             alphas[d] = scale2(st.rr_f / p_kp, 2 * st.r.e - 2 * st.p.e + self.f());
-            r_plans[d] = Some(self.r_plan(d, -alphas[d], st.p));
+            r_plans[d] = Some(self.r_plan(d, -alphas[d], st.p, 1.0));
         }
         self.engine.pass_r(&r_plans, &mut self.clock);
         let mut xp_plans = [PassXP::NONE; MAX_DIRECTIONS];
@@ -811,6 +895,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         }
         if lanes.iter().any(|&l| l != Lane::Keep) {
             self.engine.set_lanes(lanes, &mut self.clock);
+            self.tighten_r_bounds(lanes);
         }
         charge(&mut self.clock.svu, t, self.engine.exec);
     }
