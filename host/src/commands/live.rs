@@ -18,6 +18,8 @@ use crate::live::headless::{self, FrameRecord, Script, Session, CLOCK_HZ};
 use crate::live::link::LiveLink;
 use crate::live::LiveSetup;
 use crate::model::Connection;
+use crate::output::node_rows;
+use crate::output::vtk::{write_pvd, write_vtk, VtkKind};
 use crate::scenario::Scenario;
 
 #[derive(Debug, Args)]
@@ -43,6 +45,11 @@ pub struct LiveArgs {
     /// cycles, error against a converged solve, bytes up and down).
     #[arg(long, value_name = "FILE")]
     pub frames_csv: Option<PathBuf>,
+
+    /// Record the session for ParaView: one .vtu per frame (the frame's solution) and
+    /// series.pvd in this directory.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
 
     /// Relative residual at which a frame's solve stops.
     #[arg(long, default_value_t = 1e-4)]
@@ -190,10 +197,25 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         }
         None => None,
     };
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let mut pvd = Vec::new();
     let progress = bar(u64::from(frames), "frames");
     let mut written: std::io::Result<()> = Ok(());
     let on_frame = |r: &FrameRecord| {
         progress.inc(1);
+        if let Some(dir) = &args.out {
+            let name = format!("frame_{:05}.vtu", r.frame);
+            let path = dir.join(&name);
+            if let Err(e) = write_vtk(&path, &node_rows(&setup.model, &r.u), VtkKind::Unstructured)
+            {
+                if written.is_ok() {
+                    written = Err(std::io::Error::other(format!("{}: {e:#}", path.display())));
+                }
+            }
+            pvd.push((r.t, name));
+        }
         if let Some(f) = csv.as_mut() {
             let u = r.tool.first().copied().unwrap_or([0.0; 3]);
             let line = writeln!(
@@ -235,6 +257,11 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     written?;
     if let Some(mut f) = csv {
         f.flush()?;
+    }
+    if let Some(dir) = &args.out {
+        let path = dir.join("series.pvd");
+        write_pvd(&path, &pvd)?;
+        println!("wrote       {} (+{} .vtu files)", path.display(), pvd.len());
     }
     let session = Session {
         grid: [grid.nx(), grid.ny(), grid.nz()],
