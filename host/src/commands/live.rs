@@ -18,6 +18,8 @@ use crate::live::headless::{self, FrameRecord, Script, Session, CLOCK_HZ};
 use crate::live::link::LiveLink;
 use crate::live::LiveSetup;
 use crate::model::Connection;
+use crate::output::node_rows;
+use crate::output::vtk::{write_pvd, write_vtk, VtkKind};
 use crate::scenario::Scenario;
 
 #[derive(Debug, Args)]
@@ -43,6 +45,11 @@ pub struct LiveArgs {
     /// cycles, error against a converged solve, bytes up and down).
     #[arg(long, value_name = "FILE")]
     pub frames_csv: Option<PathBuf>,
+
+    /// Record the session for ParaView: one .vtu per frame (the frame's solution) and
+    /// series.pvd in this directory.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
 
     /// Relative residual at which a frame's solve stops.
     #[arg(long, default_value_t = 1e-4)]
@@ -79,6 +86,11 @@ pub struct LiveArgs {
     /// MVUs (harts) to boot QEMU with and split K over.
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u8).range(1..=8))]
     pub mvus: u8,
+
+    /// Where frames are solved: `qemu` (the firmware in QEMU, default) or `host` (the f64
+    /// reference alone: forces and fields, no target figures).
+    #[arg(long, value_name = "qemu|host", default_value = "qemu", value_parser = ["qemu", "host"])]
+    pub target: String,
 
     /// Serial device of a real board running the firmware. Default: boot it in QEMU.
     #[arg(long, value_name = "PATH")]
@@ -139,6 +151,9 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
             })
             .collect()
     };
+    if args.target == "host" {
+        return run_on_host(args, &setup, &times, &tool_at);
+    }
     let choice = match &args.port {
         Some(port) => BenchBoardChoice::Port(port.clone()),
         None => BenchBoardChoice::Qemu {
@@ -190,10 +205,25 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         }
         None => None,
     };
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let mut pvd = Vec::new();
     let progress = bar(u64::from(frames), "frames");
     let mut written: std::io::Result<()> = Ok(());
     let on_frame = |r: &FrameRecord| {
         progress.inc(1);
+        if let Some(dir) = &args.out {
+            let name = format!("frame_{:05}.vtu", r.frame);
+            let path = dir.join(&name);
+            if let Err(e) = write_vtk(&path, &node_rows(&setup.model, &r.u), VtkKind::Unstructured)
+            {
+                if written.is_ok() {
+                    written = Err(std::io::Error::other(format!("{}: {e:#}", path.display())));
+                }
+            }
+            pvd.push((r.t, name));
+        }
         if let Some(f) = csv.as_mut() {
             let u = r.tool.first().copied().unwrap_or([0.0; 3]);
             let line = writeln!(
@@ -235,6 +265,11 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     written?;
     if let Some(mut f) = csv {
         f.flush()?;
+    }
+    if let Some(dir) = &args.out {
+        let path = dir.join("series.pvd");
+        write_pvd(&path, &pvd)?;
+        println!("wrote       {} (+{} .vtu files)", path.display(), pvd.len());
     }
     let session = Session {
         grid: [grid.nx(), grid.ny(), grid.nz()],
@@ -304,6 +339,62 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     if let Some(path) = &args.report {
         let f = File::create(path).with_context(|| format!("creating {}", path.display()))?;
         serde_json::to_writer_pretty(BufWriter::new(f), &report)?;
+        println!("wrote       {}", path.display());
+    }
+    Ok(())
+}
+
+/// `--target host`: every frame solved by the f64 reference (converged), its force printed and,
+/// with `--report`, written as JSON: the tool path and forces without any target figures.
+fn run_on_host(
+    args: &LiveArgs,
+    setup: &LiveSetup,
+    times: &[f64],
+    tool_at: &dyn Fn(f64) -> Vec<[f64; 3]>,
+) -> anyhow::Result<()> {
+    #[derive(serde::Serialize)]
+    struct HostFrame {
+        t: f64,
+        tool: Vec<[f64; 3]>,
+        force: [f64; 3],
+        max_u: f64,
+    }
+    let progress = bar(times.len() as u64, "frames");
+    let mut warm: Option<[Vec<f64>; 3]> = None;
+    let mut frames = Vec::new();
+    for &t in times {
+        let tool = tool_at(t);
+        let (u, force) = setup.converged(&tool, warm.as_ref())?;
+        let max_u = u
+            .iter()
+            .map(|v| crate::reference::max_abs(v))
+            .fold(0.0, f64::max);
+        frames.push(HostFrame {
+            t,
+            tool,
+            force,
+            max_u,
+        });
+        warm = Some(u);
+        progress.inc(1);
+    }
+    progress.finish_and_clear();
+    if let Some(last) = frames.last() {
+        println!(
+            "host        {} frames solved by the f64 reference; last force ({:.6e}, {:.6e}, {:.6e}) N, max |u| {:.4e}",
+            frames.len(),
+            last.force[0],
+            last.force[1],
+            last.force[2],
+            last.max_u
+        );
+    }
+    if let Some(path) = &args.report {
+        let f = File::create(path).with_context(|| format!("creating {}", path.display()))?;
+        serde_json::to_writer_pretty(
+            BufWriter::new(f),
+            &serde_json::json!({ "frames": frames.len(), "target": "host", "per_frame": frames }),
+        )?;
         println!("wrote       {}", path.display());
     }
     Ok(())
