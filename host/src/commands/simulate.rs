@@ -62,7 +62,8 @@ pub struct SimulateArgs {
     #[arg(long)]
     pub cold: bool,
 
-    /// Target CG tolerance per solve (relative residual; floored at 1e-7).
+    /// Target CG tolerance per solve (relative residual; floored at 1e-7). With --dynamic: the
+    /// true relative residual of each step's S·v₁ = b, reached by refinement on the host.
     #[arg(long, default_value_t = 1e-7)]
     pub tol: f64,
 
