@@ -28,7 +28,7 @@ use deform_shared::frame::{self, Feed, FrameAccumulator, FrameError};
 use deform_shared::loader::UNKNOWN_SEQ;
 use deform_shared::loader::{
     decode_frame, LoaderAction, LoaderEnvelope, LoaderError, LoaderInfo, LoaderRequest,
-    LoaderResponse, LoaderSession, CRC32, LOADER_FRAME_LEN, LOADER_PROTOCOL_VERSION,
+    LoaderResponse, LoaderSession, CRC32, LOADER_FRAME_LEN, LOADER_PROTOCOL_VERSION, UNKNOWN_SEQ,
 };
 
 use hw::Uart;
