@@ -89,6 +89,11 @@ def main():
             integrated_main_ram_init=[0] * (args.main_ram_size // 4),
         )
     soc = SimSoC(**soc_args)
+    if args.bios:
+        # No memory test of main RAM at boot (2 MiB written and read back: tens of seconds of
+        # simulation before the BIOS asks for a serial boot); the BIOS skips it when told that
+        # main RAM was initialised.
+        soc.add_config("MAIN_RAM_INIT")
 
     sim_config = SimConfig()
     sim_config.add_clocker("sys_clk", freq_hz=int(1e6))
