@@ -40,6 +40,9 @@ struct Args {
     /// CG iterations per measured solve (the tolerance is unreachable, so each runs them all).
     #[arg(long, default_value_t = 8)]
     iterations: u32,
+    /// Store the whole K (one multiply-accumulate per word) instead of the mirrored half.
+    #[arg(long)]
+    whole: bool,
     /// The soft core's clock for the time column, MHz.
     #[arg(long, default_value_t = 100.0)]
     clock_mhz: f64,
@@ -92,9 +95,14 @@ fn main() -> anyhow::Result<()> {
     let qemu = Qemu::start(&QemuConfig::new(firmware_elf()))?;
     let mut virt = Target::connect(qemu.pty_path().to_str().unwrap_or_default(), timeouts)?;
     println!(
-        "deform on a LiteX VexRiscv (imac, Verilator) and QEMU virt, model {}, 1 MVU, {} \
+        "deform on a LiteX VexRiscv (imac, Verilator) and QEMU virt, model {}, 1 MVU, {}, {} \
          iterations per solve; per CG iteration:",
         connection.letter(),
+        if args.whole {
+            "whole K"
+        } else {
+            "mirrored half of K where persymmetric"
+        },
         args.iterations
     );
     println!(
@@ -122,7 +130,7 @@ fn main() -> anyhow::Result<()> {
             &EncodeOptions {
                 mvus: 1,
                 partition: Partition::Rows,
-                use_symmetry: true,
+                use_symmetry: !args.whole,
             },
         )?;
         let rhs = model.scaled_rhs(Axis::X);
