@@ -92,13 +92,13 @@ fn main(hart: usize) -> ! {
         Board::exit(EXIT_NO_STORAGE)
     };
     defmt::info!(
-        "deform firmware {=str} up on {=str}: {=usize} words, {=usize} tiles, n <= {=usize}, {=usize} harts",
+        "deform firmware {=str} up: {=usize} words, {=usize} tiles, n <= {=usize}, {=usize} harts, board {=str}",
         FIRMWARE_VERSION,
-        Board::NAME,
         store::WORD_CAPACITY,
         store::TILE_CAPACITY,
         store::MAX_N,
-        count
+        count,
+        Board::NAME
     );
     let mut handle = |body| activity::logged(body, |body| session.handle(body));
     loop {
