@@ -1,25 +1,60 @@
-//! Puts the linker scripts where the linker finds them and gives each binary its own:
+//! Puts the board's linker scripts where the linker finds them and gives each binary its own:
 //!
-//! - `deform-firmware` (the application): `memory.x`, riscv-rt's `link.x`, `build-id.x` (the GNU
-//!   build id note in the image, see src/build_id.rs) and defmt's `defmt.x` (its string table).
-//! - `deform-loader` (the serial loader, src/bin/loader.rs): `loader-memory.x` and `link.x`.
+//! - `deform-firmware` (the application): the board's `memory.x`, riscv-rt's `link.x`,
+//!   `build-id.x` (the GNU build id note in the image, see src/build_id.rs) and defmt's
+//!   `defmt.x` (its string table).
+//! - `deform-loader` (the serial loader, src/bin/loader.rs; `qemu-virt` only):
+//!   `loader-memory.x` and `link.x`.
+//!
+//! The board is the cargo feature (`qemu-virt` by default, or `litex-vexriscv`):
+//!
+//! - `qemu-virt`: `boards/qemu-virt/memory.x` and `loader-memory.x` as they are.
+//! - `litex-vexriscv`: `memory.x` and `litex_csr.rs` (the CSR register addresses, main RAM and
+//!   clock for src/board/litex_vexriscv.rs) are generated from the SoC's `csr.json`:
+//!   `$DEFORM_LITEX_CSR_JSON` if set (the csr.json LiteX wrote for your SoC), else the committed
+//!   `boards/litex-vexriscv/csr.json`, which describes the SoC hil-sim generates
+//!   (hil-sim/litex/deform_soc.py, 2 MiB main RAM; hil-sim checks that its SoC still matches).
 //!
 //! riscv-rt 0.18's `link.x` does not include the memory layout itself: it must come first.
 
-use std::{env, fs, path::PathBuf};
+use std::{env, fs, path::Path, path::PathBuf};
 
-const SCRIPTS: &[(&str, &[u8])] = &[
-    ("memory.x", include_bytes!("memory.x")),
-    ("loader-memory.x", include_bytes!("loader-memory.x")),
-    ("build-id.x", include_bytes!("build-id.x")),
+use serde_json::Value;
+
+/// Names the csr.json of the SoC to build for (LiteX boards).
+const CSR_JSON_ENV: &str = "DEFORM_LITEX_CSR_JSON";
+const DEFAULT_CSR_JSON: &str = "boards/litex-vexriscv/csr.json";
+
+/// The CSR registers the LiteX board's drivers use: (csr.json name, Rust constant).
+const LITEX_REGISTERS: &[(&str, &str)] = &[
+    ("uart_rxtx", "UART_RXTX"),
+    ("uart_txfull", "UART_TXFULL"),
+    ("uart_rxempty", "UART_RXEMPTY"),
+    ("uart_ev_pending", "UART_EV_PENDING"),
+    ("uart_ev_enable", "UART_EV_ENABLE"),
+    ("uart_txempty", "UART_TXEMPTY"),
+    ("timer0_load", "TIMER0_LOAD"),
+    ("timer0_reload", "TIMER0_RELOAD"),
+    ("timer0_en", "TIMER0_EN"),
+    ("timer0_update_value", "TIMER0_UPDATE_VALUE"),
+    ("timer0_value", "TIMER0_VALUE"),
 ];
 
 fn main() {
     let out = PathBuf::from(env::var_os("OUT_DIR").expect("cargo sets OUT_DIR"));
-    for (name, text) in SCRIPTS {
-        fs::write(out.join(name), text).expect("write a linker script");
-        println!("cargo:rerun-if-changed={name}");
+    let qemu = env::var_os("CARGO_FEATURE_QEMU_VIRT").is_some();
+    let litex = env::var_os("CARGO_FEATURE_LITEX_VEXRISCV").is_some();
+    // Both or neither: src/board/mod.rs stops the build with a clear message.
+    if qemu {
+        copy_script("boards/qemu-virt/memory.x", &out.join("memory.x"));
+        copy_script(
+            "boards/qemu-virt/loader-memory.x",
+            &out.join("loader-memory.x"),
+        );
+    } else if litex {
+        litex_board(&out);
     }
+    copy_script("build-id.x", &out.join("build-id.x"));
     println!("cargo:rustc-link-search={}", out.display());
     for arg in [
         "-Tmemory.x",
@@ -30,8 +65,69 @@ fn main() {
     ] {
         println!("cargo:rustc-link-arg-bin=deform-firmware={arg}");
     }
-    for arg in ["-Tloader-memory.x", "-Tlink.x"] {
-        println!("cargo:rustc-link-arg-bin=deform-loader={arg}");
+    if qemu {
+        for arg in ["-Tloader-memory.x", "-Tlink.x"] {
+            println!("cargo:rustc-link-arg-bin=deform-loader={arg}");
+        }
     }
     println!("cargo:rerun-if-changed=build.rs");
+}
+
+fn copy_script(from: &str, to: &Path) {
+    let text = fs::read(from).unwrap_or_else(|e| panic!("reading {from}: {e}"));
+    fs::write(to, text).expect("write a linker script");
+    println!("cargo:rerun-if-changed={from}");
+}
+
+/// Writes `memory.x` and `litex_csr.rs` from the SoC's csr.json.
+fn litex_board(out: &Path) {
+    println!("cargo:rerun-if-env-changed={CSR_JSON_ENV}");
+    let path = match env::var_os(CSR_JSON_ENV) {
+        Some(path) if !path.is_empty() => PathBuf::from(path),
+        _ => PathBuf::from(DEFAULT_CSR_JSON),
+    };
+    println!("cargo:rerun-if-changed={}", path.display());
+    let text = fs::read_to_string(&path)
+        .unwrap_or_else(|e| panic!("reading the LiteX csr.json {}: {e}", path.display()));
+    let json: Value = serde_json::from_str(&text)
+        .unwrap_or_else(|e| panic!("{} is not JSON: {e}", path.display()));
+    let number = |v: &Value, what: &str| -> u64 {
+        v.as_u64()
+            .unwrap_or_else(|| panic!("{}: {what} missing or not a number", path.display()))
+    };
+    let ram = &json["memories"]["main_ram"];
+    let (ram_base, ram_size) = (
+        number(&ram["base"], "memories.main_ram.base"),
+        number(&ram["size"], "memories.main_ram.size"),
+    );
+    let clock = number(
+        &json["constants"]["config_clock_frequency"],
+        "constants.config_clock_frequency",
+    );
+    let mut rust = format!(
+        "// Generated by build.rs from {}.\n\
+         pub const MAIN_RAM_BASE: u32 = {ram_base:#x};\n\
+         pub const MAIN_RAM_SIZE: u32 = {ram_size:#x};\n\
+         pub const CLOCK_FREQUENCY: u64 = {clock};\n",
+        path.display()
+    );
+    for (name, constant) in LITEX_REGISTERS {
+        let addr = number(
+            &json["csr_registers"][name]["addr"],
+            &format!("csr_registers.{name}.addr"),
+        );
+        rust += &format!("pub const {constant}: usize = {addr:#x};\n");
+    }
+    fs::write(out.join("litex_csr.rs"), rust).expect("write litex_csr.rs");
+    let memory = format!(
+        "/* Generated by build.rs from {}: LiteX main RAM (cached; the CPU resets into it in\n   \
+         hil-sim's SoC, the BIOS loads the image there in the stock one). One hart. */\n\
+         MEMORY\n{{\n  RAM : ORIGIN = {ram_base:#x}, LENGTH = {ram_size:#x}\n}}\n\
+         REGION_ALIAS(\"REGION_TEXT\", RAM);\nREGION_ALIAS(\"REGION_RODATA\", RAM);\n\
+         REGION_ALIAS(\"REGION_DATA\", RAM);\nREGION_ALIAS(\"REGION_BSS\", RAM);\n\
+         REGION_ALIAS(\"REGION_HEAP\", RAM);\nREGION_ALIAS(\"REGION_STACK\", RAM);\n\
+         _max_hart_id = 0;\n",
+        path.display()
+    );
+    fs::write(out.join("memory.x"), memory).expect("write memory.x");
 }

@@ -1,4 +1,4 @@
-//! The harts as MVUs: boot, the worker loop, and the executor that runs the solver's phases on
+//! The harts as MVUs (on a board with several, see [`Bsp::HARTS`]): boot, the worker loop, and the executor that runs the solver's phases on
 //! all of them (see `deform_target_core::exec`).
 //!
 //! - Boot: riscv-rt calls `_mp_hook` on every hart. Hart 0 returns 1 and initialises RAM; the
@@ -21,20 +21,17 @@ use core::sync::atomic::{fence, AtomicU32, AtomicUsize, Ordering};
 use deform_shared::protocol::{PhaseCounters, MAX_HARTS};
 use deform_target_core::exec::{Executor, PhaseClock, Task};
 
-/// Core-local interruptor of QEMU `virt`: one MSIP word per hart, and the machine timer.
-const CLINT_MSIP: usize = 0x0200_0000;
-const CLINT_MTIME: usize = 0x0200_BFF8;
-/// Hart 0's timer compare register.
-const CLINT_MTIMECMP0: usize = 0x0200_4000;
-/// `mtime` ticks at 10 MHz on QEMU `virt`.
-const MTIME_HZ: u64 = 10_000_000;
-/// How long hart 0 waits at boot for the other harts to report (virtual time).
-const PROBE_TICKS: u64 = MTIME_HZ / 200;
+use crate::board::{Board, Bsp};
 
-// The boot hook (riscv-rt: assembly, hart id in a0, must not touch s0–s2). Harts other than 0
-// enable only the software-interrupt wake-up (interrupts stay globally off, no trap is taken),
-// sleep until MSIP is set, clear it and return 0: riscv-rt then skips RAM initialisation for
-// them and enters `main(hartid)`.
+/// How long hart 0 waits at boot for the other harts to report (virtual time).
+const PROBE_TICKS: u64 = Board::TICK_HZ / 200;
+
+// The boot hook of a multi-hart board (riscv-rt: assembly, hart id in a0, must not touch
+// s0–s2). Harts other than 0 enable only the software-interrupt wake-up (interrupts stay
+// globally off, no trap is taken), sleep until their CLINT MSIP word is set, clear it and
+// return 0: riscv-rt then skips RAM initialisation for them and enters `main(hartid)`.
+// A single-hart board keeps riscv-rt's default hook.
+#[cfg(feature = "qemu-virt")]
 core::arch::global_asm!(
     r#"
     .section .init.mp_hook, "ax"
@@ -48,7 +45,7 @@ _mp_hook:
     bnez t1, 3f
     wfi
     j 1b
-3:  li t1, 0x02000000
+3:  li t1, {msip}
     slli t2, a0, 2
     add t1, t1, t2
     sw zero, 0(t1)
@@ -56,7 +53,8 @@ _mp_hook:
     ret
 2:  li a0, 1
     ret
-"#
+"#,
+    msip = const crate::board::qemu_virt::MSIP_BASE,
 );
 
 /// Workers that have reached their loop.
@@ -68,7 +66,7 @@ const ALL: usize = usize::MAX;
 /// What hart 0 publishes for a phase.
 struct Dispatch {
     /// Bumped (Release) after the fields below are set; workers read them after seeing it.
-    generation: AtomicU32,
+    generation: AtomicUsize,
     harts: AtomicUsize,
     only: AtomicUsize,
     done: AtomicUsize,
@@ -81,7 +79,7 @@ struct Dispatch {
 unsafe impl Sync for Dispatch {}
 
 static DISPATCH: Dispatch = Dispatch {
-    generation: AtomicU32::new(0),
+    generation: AtomicUsize::new(0),
     harts: AtomicUsize::new(0),
     only: AtomicUsize::new(ALL),
     done: AtomicUsize::new(0),
@@ -89,31 +87,14 @@ static DISPATCH: Dispatch = Dispatch {
     counts: [const { AtomicU32::new(0) }; MAX_HARTS],
 };
 
-fn msip(hart: usize) -> *mut u32 {
-    (CLINT_MSIP + 4 * hart) as *mut u32
-}
-
 /// Sends hart `hart` a software interrupt.
 fn ipi(hart: usize) {
-    // SAFETY: the CLINT's MSIP word of a hart below 8, always mapped on QEMU virt (a write to a
-    // hart that does not exist is ignored); no Rust-visible memory is touched.
-    unsafe { core::ptr::write_volatile(msip(hart), 1) }
+    Board::wake(hart);
 }
 
 /// Clears this hart's software interrupt.
 fn clear_ipi(hart: usize) {
-    // SAFETY: as in `ipi`.
-    unsafe { core::ptr::write_volatile(msip(hart), 0) }
-}
-
-fn mtime() -> u64 {
-    // SAFETY: the CLINT's mtime register, always mapped on QEMU virt; reading has no effect.
-    // Two 32-bit reads: the low word may wrap in between, which only shortens one wait.
-    unsafe {
-        let lo = core::ptr::read_volatile(CLINT_MTIME as *const u32);
-        let hi = core::ptr::read_volatile((CLINT_MTIME + 4) as *const u32);
-        (u64::from(hi) << 32) | u64::from(lo)
-    }
+    Board::clear_wake(hart);
 }
 
 /// Sleeps until `ready()` holds; each wake-up clears this hart's IPI.
@@ -126,43 +107,38 @@ fn sleep_until(hart: usize, ready: impl Fn() -> bool) {
     }
 }
 
-/// Sets hart 0's timer compare register (the low word last, with the high word parked at its
-/// maximum meanwhile, so no spurious match happens in between).
-fn set_timer0(at: u64) {
-    let (lo, hi) = (
-        CLINT_MTIMECMP0 as *mut u32,
-        (CLINT_MTIMECMP0 + 4) as *mut u32,
-    );
-    // SAFETY: hart 0's mtimecmp, always mapped on QEMU virt; no Rust-visible memory.
-    unsafe {
-        core::ptr::write_volatile(hi, u32::MAX);
-        core::ptr::write_volatile(lo, at as u32);
-        core::ptr::write_volatile(hi, (at >> 32) as u32);
-    }
-}
-
 /// Wakes the other harts once RAM is initialised and counts those that report within
 /// [`PROBE_TICKS`]. Call once, from hart 0. Returns the number of harts, hart 0 included.
 ///
 /// Hart 0 sleeps while it waits (woken by each reporting worker's IPI, or by its timer at the
 /// deadline): under `-icount` a spinning hart is not preempted until its budget runs out, so
 /// the workers would never get to run.
+// On a one-hart board (LiteX) this returns at once, and clippy sees the rest's ranges and
+// comparisons on `Board::HARTS - 1 == 0` as empty or constant.
+#[allow(
+    clippy::reversed_empty_ranges,
+    clippy::absurd_extreme_comparisons,
+    clippy::unnecessary_min_or_max
+)]
 pub fn start_workers() -> usize {
+    if Board::HARTS == 1 {
+        return 1;
+    }
     // SAFETY: enables only the wake-up of `wfi` by this hart's software and timer interrupts;
     // with `mstatus.MIE` clear no trap is taken.
     unsafe {
         riscv::register::mie::set_msoft();
         riscv::register::mie::set_mtimer();
     }
-    let deadline = mtime() + PROBE_TICKS;
-    set_timer0(deadline);
+    let deadline = Board::ticks() + PROBE_TICKS;
+    Board::wake_at(deadline);
     fence(Ordering::SeqCst);
-    for hart in 1..MAX_HARTS {
+    for hart in 1..Board::HARTS {
         ipi(hart);
     }
     loop {
         let up = HARTS_UP.load(Ordering::Acquire);
-        if up >= MAX_HARTS - 1 || mtime() >= deadline {
+        if up >= Board::HARTS - 1 || Board::ticks() >= deadline {
             break;
         }
         let pending = riscv::register::mip::read();
@@ -177,13 +153,13 @@ pub fn start_workers() -> usize {
     // SAFETY: as above.
     unsafe { riscv::register::mie::clear_mtimer() };
     clear_ipi(0);
-    1 + HARTS_UP.load(Ordering::Acquire).min(MAX_HARTS - 1)
+    1 + HARTS_UP.load(Ordering::Acquire).min(Board::HARTS - 1)
 }
 
 /// The loop of every hart but 0: run the phases it is woken for, forever.
 pub fn worker(hart: usize) -> ! {
     let mut seen = DISPATCH.generation.load(Ordering::Acquire);
-    HARTS_UP.fetch_add(1, Ordering::AcqRel);
+    crate::atomic::fetch_add(&HARTS_UP, 1);
     ipi(0);
     loop {
         sleep_until(hart, || DISPATCH.generation.load(Ordering::Acquire) != seen);
@@ -207,7 +183,7 @@ pub fn worker(hart: usize) -> ! {
             }
         }
         let expected = if only == ALL { harts - 1 } else { 1 };
-        if DISPATCH.done.fetch_add(1, Ordering::AcqRel) + 1 == expected {
+        if crate::atomic::fetch_add(&DISPATCH.done, 1) + 1 == expected {
             ipi(0);
         }
     }
@@ -230,7 +206,7 @@ impl Harts {
         DISPATCH.only.store(only, Ordering::Relaxed);
         DISPATCH.done.store(0, Ordering::Relaxed);
         clear_ipi(0);
-        DISPATCH.generation.fetch_add(1, Ordering::AcqRel);
+        crate::atomic::fetch_add(&DISPATCH.generation, 1);
         if only == ALL {
             for hart in 1..harts {
                 ipi(hart);

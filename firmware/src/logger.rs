@@ -14,7 +14,7 @@
 //! never taken), so a hart never waits for itself.
 
 use core::cell::UnsafeCell;
-use core::sync::atomic::{AtomicBool, Ordering};
+use core::sync::atomic::{AtomicUsize, Ordering};
 
 use deform_shared::protocol::LOG_CHUNK;
 use deform_target_core::log_buffer::LogBuffer as Frames;
@@ -51,7 +51,7 @@ impl LogBuffer {
 }
 
 struct SharedLog {
-    locked: AtomicBool,
+    locked: AtomicUsize,
     buffer: UnsafeCell<LogBuffer>,
 }
 
@@ -60,7 +60,7 @@ struct SharedLog {
 unsafe impl Sync for SharedLog {}
 
 static LOG: SharedLog = SharedLog {
-    locked: AtomicBool::new(false),
+    locked: AtomicUsize::new(0),
     buffer: UnsafeCell::new(LogBuffer {
         encoder: defmt::Encoder::new(),
         store: Frames::new(),
@@ -69,17 +69,13 @@ static LOG: SharedLog = SharedLog {
 
 impl SharedLog {
     fn lock(&self) {
-        while self
-            .locked
-            .compare_exchange_weak(false, true, Ordering::Acquire, Ordering::Relaxed)
-            .is_err()
-        {
+        while !crate::atomic::set_flag(&self.locked, Ordering::Acquire) {
             core::hint::spin_loop();
         }
     }
 
     fn unlock(&self) {
-        self.locked.store(false, Ordering::Release);
+        self.locked.store(0, Ordering::Release);
     }
 
     /// The buffer; only between `lock` and `unlock`.

@@ -1,20 +1,25 @@
 //! # deform-firmware
 //!
-//! The target side of deform on QEMU's riscv32 `virt` machine: it feeds the UART's bytes to the
+//! The target side of deform on a RISC-V board — QEMU's riscv32 `virt` machine or a LiteX SoC
+//! with a VexRiscv CPU, chosen by a cargo feature ([`board`]): it feeds the UART's bytes to the
 //! transport ([`deform_target_core::transport::TargetLink`]), which hands each request, in
 //! sequence order and exactly once, to [`deform_target_core::session::Session`] and writes back
 //! its reply (see [`deform_shared::transport`] and [`deform_shared::protocol`]). The session and the CG solver
 //! are hardware-free and tested on the host; this crate adds only the devices and the storage.
 //!
-//! - Hart 0 runs the protocol; every hart (up to 8, QEMU `-smp N`) is an MVU and runs its share
+//! - Hart 0 runs the protocol; every hart (up to 8 on QEMU `-smp N`, one on LiteX) is an MVU and runs its share
 //!   of each CG phase ([`harts`]). `TargetInfo::harts` reports how many came up.
-//! - Storage ([`store`]): a matrix store of 512 Ki words and 4096 tiles, vectors for n ≤ 65536
-//!   in three directions, all static and zeroed at boot (`.bss`).
-//! - Timing: the solver's phases are charged with `mcycle`/`minstret`, exact under `-icount`;
-//!   per-hart counts come from one iteration whose phases run one hart at a time.
-//! - UART ([`hw::Uart`]): while waiting for input the hart sleeps in `wfi` (woken through the
-//!   PLIC; interrupts stay globally off). Its FIFOs go on only after the first request, so that
-//!   a request sent while the firmware still boots is not lost.
+//! - Storage ([`store`]): a matrix store and vectors sized by the board (QEMU: 512 Ki words,
+//!   4096 tiles, n ≤ 65536; LiteX: 64 Ki words, 1024 tiles, n ≤ 8192) in three directions, all
+//!   static and zeroed at boot (`.bss`).
+//! - Timing: the solver's phases are charged with `mcycle`/`minstret`: exact instruction counts
+//!   under QEMU `-icount` (where a cycle is an instruction), the RTL's real cycles beside the
+//!   instructions retired on LiteX; per-hart counts come from one iteration whose phases run one
+//!   hart at a time.
+//! - UART (the board's [`Bsp::Uart`](board::Bsp::Uart)): on QEMU the hart sleeps in `wfi` while
+//!   it waits (woken through the PLIC; interrupts stay globally off), and the FIFOs go on only
+//!   after the first request, so that a request sent while the firmware still boots is not lost;
+//!   on LiteX the UART is polled.
 //! - The byte stream can be anything: undecodable or overlong frames are NAKed, duplicates get
 //!   their cached reply, frames from beyond a gap are held (see the transport).
 //!
@@ -22,7 +27,7 @@
 //!
 //! Nothing may write to the UART but frames, so a fault cannot print a message. A panic sends
 //! one last [`Uplink::Panic`](deform_shared::transport::Uplink::Panic) frame with its message;
-//! then every fault stops QEMU through the SiFive test device with a distinctive exit status:
+//! then every fault stops QEMU through the SiFive test device (on LiteX the hart parks) with a distinctive exit status:
 //! [`EXIT_PANIC`] (101) for a Rust panic, [`EXIT_EXCEPTION`] (102) for a CPU exception and
 //! [`EXIT_INTERRUPT`] (103) for an unexpected interrupt. Normal operation never exits.
 #![no_std]
@@ -30,9 +35,10 @@
 #![deny(unsafe_op_in_unsafe_fn, clippy::undocumented_unsafe_blocks)]
 
 mod activity;
+mod atomic;
+mod board;
 mod build_id;
 mod harts;
-mod hw;
 mod logger;
 mod store;
 
@@ -40,8 +46,8 @@ use deform_shared::protocol::{ErrorCode, Response, TargetInfo, PROTOCOL_VERSION}
 use deform_target_core::session::Session;
 use deform_target_core::transport::{self, LinkEvent, TargetLink, Tx};
 
+use board::{Board, Bsp, Serial};
 use harts::Harts;
-use hw::Uart;
 use store::TakeOnce;
 
 /// QEMU exit status after a panic.
@@ -76,22 +82,23 @@ fn main(hart: usize) -> ! {
     if hart != 0 {
         harts::worker(hart);
     }
-    let mut uart = Uart::init();
+    let mut uart = Board::uart();
     let Some(buffers) = store::BUFFERS.take() else {
-        hw::exit(EXIT_NO_STORAGE)
+        Board::exit(EXIT_NO_STORAGE)
     };
     let count = harts::start_workers();
     let mut session = Session::new(buffers.storage(), target_info(count), Harts { count });
     let Some(link) = LINK.take() else {
-        hw::exit(EXIT_NO_STORAGE)
+        Board::exit(EXIT_NO_STORAGE)
     };
     defmt::info!(
-        "deform firmware {=str} up: {=usize} words, {=usize} tiles, n <= {=usize}, {=usize} harts",
+        "deform firmware {=str} up: {=usize} words, {=usize} tiles, n <= {=usize}, {=usize} harts, board {=str}",
         FIRMWARE_VERSION,
         store::WORD_CAPACITY,
         store::TILE_CAPACITY,
         store::MAX_N,
-        count
+        count,
+        Board::NAME
     );
     let mut handle = |body| activity::logged(body, |body| session.handle(body));
     loop {
@@ -108,13 +115,13 @@ fn main(hart: usize) -> ! {
 static LINK: TakeOnce<TargetLink> = TakeOnce::new(TargetLink::new());
 
 /// The UART as the transport's output.
-struct UartTx<'a>(&'a mut Uart);
+struct UartTx<'a>(&'a mut <Board as Bsp>::Uart);
 
 impl Tx for UartTx<'_> {
     fn write(&mut self, frame: &[u8]) {
         // The target writes only after a complete frame arrived, and the host waits for the
         // answer to its first frame (`Hello`) before it sends more: the line is quiet then.
-        self.0.enable_fifos();
+        self.0.line_quiet();
         self.0.write(frame);
     }
 
@@ -131,26 +138,41 @@ impl Tx for UartTx<'_> {
 /// [`Uplink::Panic`]: deform_shared::transport::Uplink::Panic
 #[panic_handler]
 fn panic(info: &core::panic::PanicInfo) -> ! {
+    report_fault(format_args!("{info}"));
+    Board::exit(EXIT_PANIC)
+}
+
+/// Sends `message` (truncated) in a final [`Uplink::Panic`] frame.
+///
+/// [`Uplink::Panic`]: deform_shared::transport::Uplink::Panic
+fn report_fault(message: core::fmt::Arguments<'_>) {
     use core::fmt::Write;
     let mut text = heapless::String::<{ deform_shared::transport::PANIC_MESSAGE_LEN }>::new();
     // A message longer than the buffer is cut off: `write!` stops at the first failed push.
-    let _ = write!(text, "{info}");
+    let _ = text.write_fmt(message);
     let mut frame = [0u8; 2 * deform_shared::transport::PANIC_MESSAGE_LEN];
     let len = transport::panic_frame(&text, &mut frame);
-    // A delimiter first ends whatever frame was being written when the panic struck.
-    hw::write_raw(&[deform_shared::frame::DELIMITER]);
-    hw::write_raw(frame.get(..len).unwrap_or(&[]));
-    hw::exit(EXIT_PANIC)
+    // A delimiter first ends whatever frame was being written when the fault struck.
+    Board::write_raw(&[deform_shared::frame::DELIMITER]);
+    Board::write_raw(frame.get(..len).unwrap_or(&[]));
 }
 
-/// Every exception riscv-rt does not route elsewhere (which is all of them) lands here.
+/// Every exception riscv-rt does not route elsewhere (which is all of them) lands here: it is
+/// reported like a panic (cause and address, for a board with no other way out, such as
+/// LiteX's), then QEMU stops with [`EXIT_EXCEPTION`].
 #[export_name = "ExceptionHandler"]
 fn exception_handler(_: &riscv_rt::TrapFrame) -> ! {
-    hw::exit(EXIT_EXCEPTION)
+    report_fault(format_args!(
+        "CPU exception: mcause {:#x}, mepc {:#010x}, mtval {:#010x}",
+        riscv::register::mcause::read().bits(),
+        riscv::register::mepc::read(),
+        riscv::register::mtval::read()
+    ));
+    Board::exit(EXIT_EXCEPTION)
 }
 
 /// Interrupts are never enabled; should one arrive anyway, stop.
 #[export_name = "DefaultHandler"]
 fn default_handler() -> ! {
-    hw::exit(EXIT_INTERRUPT)
+    Board::exit(EXIT_INTERRUPT)
 }

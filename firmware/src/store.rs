@@ -1,23 +1,24 @@
 //! The firmware's static storage: the matrix store and the vectors, lent to the session.
 
 use core::cell::UnsafeCell;
-use core::sync::atomic::{AtomicBool, Ordering};
+use core::sync::atomic::{AtomicUsize, Ordering};
 
+use crate::board::{Board, Bsp};
 use deform_shared::matrix::TileHeader;
 use deform_shared::protocol::MAX_DIRECTIONS;
 use deform_target_core::kernel::{Lanes, Sums};
 use deform_target_core::session::{DirectionStorage, Storage};
 
-/// Instruction words the matrix store holds (2 MiB).
-pub const WORD_CAPACITY: usize = 512 * 1024;
-/// Tile headers the matrix store holds (80 KiB).
-pub const TILE_CAPACITY: usize = 4096;
-/// Largest dimension. Per direction four vectors of 256 KiB (3 MiB for three directions), the
-/// interleaved search directions 1 MiB, K·p 1.5 MiB.
-pub const MAX_N: usize = 65536;
-/// Rows of private partial sums for MVUs whose row ranges overlap (1.5 MiB): the overlapping
-/// scheme (thesis 4.1.1) may use up to n of them beyond the rows themselves.
-pub const PARTIAL_ROWS: usize = 65536;
+/// Instruction words the matrix store holds (the board's [`Bsp::WORD_CAPACITY`]).
+pub const WORD_CAPACITY: usize = Board::WORD_CAPACITY;
+/// Tile headers the matrix store holds.
+pub const TILE_CAPACITY: usize = Board::TILE_CAPACITY;
+/// Largest dimension. Per direction four vectors of `4·MAX_N` bytes, the interleaved search
+/// directions `16·MAX_N`, K·p `12·MAX_N`.
+pub const MAX_N: usize = Board::MAX_N;
+/// Rows of private partial sums for MVUs whose row ranges overlap (`12·MAX_N` bytes): the
+/// overlapping scheme (thesis 4.1.1) may use up to n of them beyond the rows themselves.
+pub const PARTIAL_ROWS: usize = MAX_N;
 
 /// Everything the session works in. All zero at boot, so it lands in `.bss`.
 pub struct Buffers {
@@ -94,7 +95,7 @@ impl Buffers {
 /// `&'static mut` without `static mut`, guarded by an atomic flag so that a second `take` (from
 /// any hart) gets `None` instead of an aliasing reference.
 pub struct TakeOnce<T> {
-    taken: AtomicBool,
+    taken: AtomicUsize,
     value: UnsafeCell<T>,
 }
 
@@ -106,7 +107,7 @@ unsafe impl<T: Send> Sync for TakeOnce<T> {}
 impl<T> TakeOnce<T> {
     pub const fn new(value: T) -> Self {
         Self {
-            taken: AtomicBool::new(false),
+            taken: AtomicUsize::new(0),
             value: UnsafeCell::new(value),
         }
     }
@@ -115,10 +116,10 @@ impl<T> TakeOnce<T> {
     // A `&mut` from a `&` is this type's purpose; the flag makes it unique.
     #[allow(clippy::mut_from_ref)]
     pub fn take(&'static self) -> Option<&'static mut T> {
-        if self.taken.swap(true, Ordering::AcqRel) {
+        if !crate::atomic::set_flag(&self.taken, Ordering::AcqRel) {
             return None;
         }
-        // SAFETY: the swap returned `false`, which happens exactly once, so no other reference
+        // SAFETY: the flag was set here, which happens exactly once, so no other reference
         // to `value` exists or will ever be created; it lives as long as the static.
         Some(unsafe { &mut *self.value.get() })
     }

@@ -19,6 +19,7 @@
 //! virtual nanosecond), which is what lets the firmware's `mcycle`/`minstret` reports be compared
 //! between runs.
 
+pub mod litex;
 pub mod relay;
 
 use std::ffi::OsString;
@@ -30,8 +31,8 @@ use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::{Duration, Instant};
 
-/// The most harts the firmware uses (its `_max_hart_id` is 7).
-pub const MAX_HARTS: u8 = 8;
+/// The most harts the firmware uses (its `_max_hart_id` is 7): the protocol's, in `shared`.
+pub const MAX_HARTS: u8 = deform_shared::protocol::MAX_HARTS as u8;
 
 /// The QEMU binary that emulates the 32-bit RISC-V `virt` machine.
 pub const QEMU_BINARY: &str = "qemu-system-riscv32";
@@ -81,7 +82,7 @@ pub fn loader_elf() -> PathBuf {
     }
 }
 
-fn workspace_root() -> PathBuf {
+pub(crate) fn workspace_root() -> PathBuf {
     let manifest_dir = Path::new(env!("CARGO_MANIFEST_DIR"));
     manifest_dir.parent().unwrap_or(manifest_dir).to_path_buf()
 }

@@ -125,8 +125,8 @@ fn a_keyframed_needle_moves_the_tissue_on_the_target_as_in_f64() {
     assert_alive(&mut qemu);
 }
 
-/// A new h changes S's values only: the next step sends them as a values-only update, and
-/// the steps before and after still equal the f64 stepper run with the same h sequence.
+/// A new h (or new masses and dampers) changes S's values only: the next step sends them as a
+/// values-only update, and every step still equals the f64 stepper.
 #[test]
 fn a_new_time_step_is_a_values_only_update() {
     let mut qemu = boot();
@@ -149,7 +149,7 @@ fn a_new_time_step_is_a_values_only_update() {
         "new h: values-only update {} B against a full upload of {} B; step bytes {} then {}",
         update.bytes_sent, update.full_upload_bytes, first.bytes_sent, second.bytes_sent
     );
-    // The same two steps in f64 (the runner's own reference is checked per step too).
+    // The same two steps in f64 from scratch (the runner's own reference runs alongside too).
     let system = runner.system().clone();
     let mut state = deform_host::dynamics::State::rest(model.n());
     for h in [0.05, 0.02] {
@@ -165,6 +165,16 @@ fn a_new_time_step_is_a_values_only_update() {
         for (a, b) in runner.state.u[d].iter().zip(&state.u[d]) {
             assert!((a - b).abs() <= 1e-8 * scale, "{a} vs {b}");
         }
+    }
+    // Heavier nodes and stiffer dampers: again values only, and still the f64 stepper's answer.
+    runner
+        .set_model(&model, &DynamicsSpec::uniform(2.0, [0.6; 3]))
+        .unwrap();
+    let third = runner.step(&mut target, 3, &loads, &loads, |_| {}).unwrap();
+    assert!(third.result.update.is_some(), "a values-only update");
+    for s in [&first, &second, &third] {
+        let dev = s.result.deviation.unwrap();
+        assert!(dev <= 1e-8, "step {}: {dev:e}", s.result.step);
     }
     assert_alive(&mut qemu);
 }

@@ -149,7 +149,11 @@ fn a_large_matrix_upload_reports_bytes_per_nonzero_and_throughput() {
         "sent {sent}, estimated {estimate}"
     );
     assert!(per_nonzero <= 4.2, "{per_nonzero} bytes per nonzero");
+    // A clean line corrupts nothing. On a loaded machine a spurious timeout resend may reach
+    // the target after it answered and forgot the frame, which it NAKs: so a NAK is allowed
+    // only in the wake of a resend.
     let stats = target.stats();
-    assert_eq!((stats.corrupt_frames, stats.naks), (0, 0), "{stats:?}");
+    assert_eq!(stats.corrupt_frames, 0, "{stats:?}");
+    assert!(stats.naks <= stats.retransmits, "{stats:?}");
     assert_alive(&mut qemu);
 }

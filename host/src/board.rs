@@ -1,6 +1,8 @@
-//! Which target the host talks to: a QEMU soft core it boots itself, or a real board on a serial
-//! port. Both end in the same [`Target`] over the same serial code path; QEMU only adds a process
-//! that lives as long as the session (and is killed when the [`Board`] is dropped).
+//! Which target the host talks to: a QEMU soft core it boots itself, a LiteX VexRiscv SoC
+//! simulated by Verilator (cycle-accurate RTL, [`deform_hil_sim::litex`]), or a real board on a
+//! serial port. All end in the same [`Target`] over the same serial code path; QEMU or the
+//! simulator only add processes that live as long as the session (killed when the [`Board`] is
+//! dropped).
 //!
 //! Every board's firmware logs ([`crate::firmware_logs`]) are decoded and printed as they arrive:
 //! the link hands each `Log` notice to the board's [`FirmwareLogs`].
@@ -9,10 +11,12 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
 use anyhow::Context;
+use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim};
 use deform_hil_sim::{firmware_elf, loader_elf, Qemu, QemuConfig};
 
 use crate::cli_logs::LogOptions;
 use crate::firmware_logs::{FirmwareElf, FirmwareLogs};
+use crate::flash::sfl::{SflClient, SflReport, SflTimeouts};
 use crate::flash::{
     check_build_id, flash, FlashError, FlashImage, FlashProgress, FlashReport, LoaderLink,
     LoaderTimeouts,
@@ -22,6 +26,17 @@ use crate::link::{open_serial, Link, Target, Timeouts};
 /// Harts a QEMU board gets when `--mvus` does not say: the most a target may have
 /// ([`deform_shared::protocol::MAX_HARTS`]), so that by default every MVU is used.
 pub const DEFAULT_QEMU_HARTS: u8 = deform_shared::protocol::MAX_HARTS as u8;
+
+/// Which simulated board to boot when no `--port` names a real one (`deform simulate` and
+/// `deform bench`; `deform solve` has its own `--target` with `host` besides).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum SimulatedBoard {
+    /// QEMU's riscv32 `virt` machine: exact instruction counts, up to 8 harts.
+    #[default]
+    Qemu,
+    /// A LiteX VexRiscv SoC under Verilator: real cycles, one hart, ~0.8 M cycles/s.
+    Litex,
+}
 
 /// Where to run.
 #[derive(Debug, Clone)]
@@ -38,6 +53,9 @@ pub enum BoardChoice {
         firmware: Option<PathBuf>,
         harts: u8,
     },
+    /// Load this firmware ELF (`None`: the `litex-vexriscv` build) into the main RAM of the
+    /// simulated LiteX VexRiscv SoC and run it there (one hart; real cycles).
+    Litex { firmware: Option<PathBuf> },
     /// A board already running the firmware, on this serial device.
     Port(String),
 }
@@ -52,12 +70,23 @@ pub enum LoaderChoice {
     Port(String),
 }
 
+/// Where a stock LiteX BIOS waits for a serial boot, for [`Board::flash_litex_bios`].
+#[derive(Debug, Clone)]
+pub enum BiosChoice {
+    /// The simulated LiteX SoC with its ROM and BIOS, started here.
+    Simulated,
+    /// A LiteX board on this serial device.
+    Port(String),
+}
+
 /// A connected target, with the QEMU process behind it when there is one.
 pub struct Board {
     pub target: Target,
     logs: Arc<Mutex<FirmwareLogs>>,
     /// Declared after `target` so that the port closes before QEMU is killed.
     qemu: Option<Qemu>,
+    /// The simulated LiteX SoC, when that is the board (also after `target`).
+    litex: Option<LitexSim>,
     via_loader: bool,
 }
 
@@ -75,6 +104,24 @@ impl Board {
                 let target = connect(link, timeouts, &firmware_logs)
                     .with_context(|| format!("connecting to the board on {path}"))?;
                 Board::new(target, firmware_logs, None, false)
+            }
+            BoardChoice::Litex { firmware } => {
+                let elf = firmware.clone().unwrap_or_else(litex_firmware_elf);
+                let firmware_logs = firmware_logs(Some(logs.elf.as_deref().unwrap_or(&elf)), logs)?;
+                let sim = LitexSim::start(&LitexConfig::new(&elf))
+                    .context("starting the simulated LiteX SoC")?;
+                let path = sim.serial_path().to_string_lossy().into_owned();
+                let link = Link::new(open_serial(&path)?);
+                let target =
+                    connect(link, litex_timeouts(timeouts), &firmware_logs).with_context(|| {
+                        format!(
+                            "connecting to the firmware {} on the LiteX SoC on {path}",
+                            elf.display()
+                        )
+                    })?;
+                let mut board = Board::new(target, firmware_logs, None, false)?;
+                board.litex = Some(sim);
+                Ok(board)
             }
             BoardChoice::Qemu { firmware, harts } => {
                 let elf = firmware.clone().unwrap_or_else(firmware_elf);
@@ -142,6 +189,46 @@ impl Board {
         Ok((Board::new(target, firmware_logs, qemu, via_loader)?, report))
     }
 
+    /// Boots the firmware `elf` through a stock LiteX BIOS's serial boot (SFL, see
+    /// [`crate::flash::sfl`]), then shakes hands with the started firmware and checks it is the
+    /// image sent.
+    pub fn flash_litex_bios(
+        choice: &BiosChoice,
+        elf: &Path,
+        timeouts: Timeouts,
+        sfl_timeouts: SflTimeouts,
+        logs: &LogOptions,
+        progress: impl FnMut(usize),
+    ) -> anyhow::Result<(Board, SflReport)> {
+        let image = FlashImage::from_file(elf)?;
+        let firmware_logs = firmware_logs(Some(logs.elf.as_deref().unwrap_or(elf)), logs)?;
+        let (sim, path) = match choice {
+            BiosChoice::Simulated => {
+                let sim = LitexSim::start(&LitexConfig::bios())
+                    .context("starting the simulated LiteX SoC with its BIOS")?;
+                let path = sim.serial_path().to_string_lossy().into_owned();
+                (Some(sim), path)
+            }
+            BiosChoice::Port(path) => (None, path.clone()),
+        };
+        let flashed = || -> anyhow::Result<(Target, SflReport)> {
+            let mut port = open_serial(&path)?;
+            let mut client = SflClient::new(&mut port, sfl_timeouts);
+            client.handshake()?;
+            let report = client.boot(&image, progress)?;
+            let target = connect(Link::new(port), litex_timeouts(timeouts), &firmware_logs)
+                .map_err(FlashError::Application)?;
+            check_build_id(&image, &target.info().build_id)?;
+            Ok((target, report))
+        };
+        let (target, report) = flashed().with_context(|| {
+            format!("booting {} through the LiteX BIOS on {path}", elf.display())
+        })?;
+        let mut board = Board::new(target, firmware_logs, None, true)?;
+        board.litex = sim;
+        Ok((board, report))
+    }
+
     fn new(
         target: Target,
         logs: Arc<Mutex<FirmwareLogs>>,
@@ -155,6 +242,7 @@ impl Board {
             target,
             logs,
             qemu,
+            litex: None,
             via_loader,
         })
     }
@@ -173,8 +261,28 @@ impl Board {
                 q.pty_path().display()
             ),
             Some(q) => format!("QEMU riscv32 virt, pty {}", q.pty_path().display()),
-            None => "serial board".to_string(),
+            None => match &self.litex {
+                Some(sim) if self.via_loader => format!(
+                    "LiteX VexRiscv SoC under Verilator, booted by its BIOS (SFL), serial {}",
+                    sim.serial_path().display()
+                ),
+                Some(sim) => format!(
+                    "LiteX VexRiscv SoC under Verilator, serial {}",
+                    sim.serial_path().display()
+                ),
+                None => "serial board".to_string(),
+            },
         }
+    }
+}
+
+/// The simulated SoC runs about 0.8 M cycles per second and boots in about one: the handshake
+/// gets at least a minute, and each `Hello` some seconds before it is resent.
+pub fn litex_timeouts(timeouts: Timeouts) -> Timeouts {
+    Timeouts {
+        handshake: timeouts.handshake.max(std::time::Duration::from_secs(60)),
+        hello_retry: timeouts.hello_retry.max(std::time::Duration::from_secs(5)),
+        ..timeouts
     }
 }
 

@@ -30,9 +30,9 @@
 //!
 //! # Phases of [`solve`]
 //!
-//! [`Solver::start`] (r₀ = b − A·x₀ where there is a guess, p₀ = r₀), then per iteration
-//! [`Solver::iterate`] (MVU, α, pass R, β, pass XP) and [`Solver::replace_residuals`]
-//! (r = b − A·x for directions that converged on the recursive residual), then [`finish`].
+//! `Solver::start` (r₀ = b − A·x₀ where there is a guess, p₀ = r₀), then per iteration
+//! `Solver::iterate` (MVU, α, pass R, β, pass XP) and `Solver::replace_residuals`
+//! (r = b − A·x for directions that converged on the recursive residual), then `finish`.
 //!
 //! # Measured, not extrapolated
 //!

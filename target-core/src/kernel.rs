@@ -41,7 +41,7 @@ pub type Sums = [i64; MAX_DIRECTIONS];
 const LANE_SHIFT: u32 = 4;
 /// `(w >> COLUMN_OFFSET_SHIFT) & COLUMN_OFFSET_MASK` is the byte offset 16·c of word w's column.
 pub const COLUMN_OFFSET_SHIFT: u32 = COLUMN_SHIFT - LANE_SHIFT;
-/// See [`COLUMN_OFFSET_SHIFT`]: the column field, moved down to bit [`LANE_SHIFT`].
+/// See [`COLUMN_OFFSET_SHIFT`]: the column field, moved down to bit `LANE_SHIFT` (4: 16-byte lanes).
 pub const COLUMN_OFFSET_MASK: u32 = (COLUMN_WINDOW - 1) << LANE_SHIFT;
 /// `((w << VALUE_SIGN_SHIFT) as i32) >> VALUE_SIGN_SHIFT` is word w's value, sign-extended.
 pub const VALUE_SIGN_SHIFT: u32 = 32 - VALUE_BITS;

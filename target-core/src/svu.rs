@@ -18,25 +18,34 @@
 //! `z_i = mulh(A, u_i << k_u) + mulh(B, y_i << k_y)` — `mulh` is the high word of the 64-bit
 //! product, i.e. ⌊A·(u << k)/2^32⌋. Hart 0 folds the scalar and the exponents into the 32-bit
 //! multipliers A, B; the shifts k normalise u and y so that their bound lies in [2^30, 2^31).
-//! That is four instructions per term (load, shift, `mulh`, and the add shared by two terms);
-//! the previous SVU (issue 4) also kept A in [2^30, 2^31) by a variable right shift after the
-//! product and rounded it with a 64-bit add, which the bound below shows is not needed:
+//! That is a shift and a `mulh` per term where the previous SVU (issue 4) also kept A in
+//! [2^30, 2^31) by a variable right shift after the product; the bound below shows that this is
+//! not needed:
 //!
 //! - The output exponent e_z is chosen so that the bound |a|·‖u‖ + |b|·‖y‖ (from the tracked
-//!   maxima) is below 2^29 output units ([`BOUND_BITS`]).
+//!   maxima, formed in integers from the scalars' mantissas rounded up) is below 2^29 output
+//!   units ([`BOUND_BITS`]).
 //! - Then |A| = |a|·2^(e_u − k_u − e_z + 32) < 2^29 · 2^32 / 2^30 = 2^31: A fits `i32` (rounding
 //!   it to an integer can reach 2^31 only by half a unit, which is clamped to `i32::MAX`).
-//! - Each term is off by less than 1 unit (the floor of `mulh`) plus |u << k|·½/2^32 < ¼ unit
-//!   (A's rounding), so |z| < 2^29 + 2.5 < 2^30 ([`OUTPUT_BITS`]): the MVU's products stay exact
-//!   and nothing can saturate. A term too small to matter simply gets a small A: its absolute
-//!   error is what counts, and that is bounded as above.
+//! - Each term is off by less than 1 unit (the floor of `mulh`, or half a unit where the term
+//!   is rounded) plus |u << k|·½/2^32 < ¼ unit (A's rounding), so |z| < 2^29 + 2.5 < 2^30
+//!   ([`OUTPUT_BITS`]): the MVU's products stay exact and nothing can saturate. A term too
+//!   small to matter simply gets a small A: its absolute error is what counts, and that is
+//!   bounded as above.
+//!
+//! Which terms are rounded: the α terms, α·p into x and α·Kp into r, are rounded to nearest
+//! (`mul`, `mulh` and the low word's carry into the high one), because x and r accumulate them
+//! over all iterations and a floor's −½-unit bias would add up (on the unit tests it cost the
+//! 1e-7 accuracy). The power-of-two terms (x's and r's own, r's in p) are exact whenever the
+//! exponent does not grow, and β·p is rebuilt every iteration, so these are floored.
 //!
 //! The maxima are measured in every pass, so the exponent follows each vector down as the
 //! residual shrinks: x and p by an OR of their magnitudes (the same highest bit as the maximum),
-//! r through its squares, which Σr² needs anyway (the OR of ⌊4r²/2^32⌋ bounds max r² within a
-//! factor 2). Σr² is the exact integer Σ⌊4r_i²/2^32⌋, in units of 2^(2e_r + 30): every square
-//! below 2^15 units of r counts as 0, which leaves Σr² exact to about n·2^-24 of the largest
-//! square — far below what α and β need.
+//! r through its squares, which Σr² needs anyway (the OR of the squares' high words bounds
+//! max r² within a factor 2^32, i.e. max |r| within 2^16 at worst and a factor of √2 once
+//! |r| ≥ 2^16). Σr² is exact: squares below 2^60 summed in `u64` blocks of 16 into a `u128`.
+//! A cheaper Σ⌊4r²/2^32⌋ was tried: it rounds a residual of many small elements to nothing near
+//! the fixed-point floor, and the unit tests caught the lost accuracy.
 //!
 //! K·p comes from the MVU as exact `i64` row sums; pass R narrows each to 31 bits with a
 //! loop-invariant funnel shift chosen from max |Kp| ([`Narrow`]).

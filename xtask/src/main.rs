@@ -1,8 +1,11 @@
 //! `cargo xtask <command>`: the project's automation, in Rust so that it runs wherever cargo
 //! does (the alias lives in `.cargo/config.toml`).
 //!
-//! - `setup`: installs what a fresh machine lacks: the RISC-V target, clippy and rustfmt, QEMU.
-//! - `firmware`: builds the firmware ELF that QEMU boots.
+//! - `setup`: installs what a fresh machine lacks: the RISC-V target, clippy and rustfmt, QEMU,
+//!   and for the LiteX target Verilator, its libraries, the RISC-V binutils and GCC (the stock
+//!   BIOS), socat, and the LiteX Python packages in a venv under `target/litex`.
+//! - `firmware [--board qemu|litex]`: builds the firmware ELF for QEMU `virt` (and the serial
+//!   loader), or for a LiteX VexRiscv SoC.
 //! - `run [-- ARGS…]`: setup, firmware, then `deform solve ARGS…` (default: the default scenario
 //!   solved on QEMU).
 //! - `test`: the whole gate CI runs: setup, firmware, formatting and clippy of both workspaces,
@@ -20,6 +23,9 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 // Where the firmware lands, which environment variable points the HIL tests and
 // `deform --target qemu` at it, and which QEMU runs it: one definition, in hil-sim.
+use deform_hil_sim::litex::{
+    litex_dir, LITEX_FIRMWARE_BUILD_PATH, LITEX_FIRMWARE_ENV, LITEX_PYTHON_PACKAGES,
+};
 use deform_hil_sim::{
     FIRMWARE_BUILD_PATH, FIRMWARE_ENV, LOADER_BUILD_PATH, LOADER_ENV, QEMU_BINARY,
 };
@@ -27,6 +33,21 @@ use deform_hil_sim::{
 const RISCV_TARGET: &str = "riscv32imac-unknown-none-elf";
 /// The Debian package that holds `qemu-system-riscv32`.
 const QEMU_PACKAGE: &str = "qemu-system-misc";
+/// Debian packages of the LiteX target: Verilator and the libraries its simulator links,
+/// binutils and GCC for RISC-V and meson/ninja (the stock LiteX BIOS), socat (the serial
+/// bridge), and Python's venv.
+const LITEX_PACKAGES: &[&str] = &[
+    "verilator",
+    "libevent-dev",
+    "libjson-c-dev",
+    "zlib1g-dev",
+    "binutils-riscv64-unknown-elf",
+    "gcc-riscv64-unknown-elf",
+    "meson",
+    "ninja-build",
+    "socat",
+    "python3-venv",
+];
 /// The scenario `cargo xtask run` solves when given no arguments.
 const DEFAULT_RUN_ARGS: &[&str] = &["--target", "qemu"];
 
@@ -47,8 +68,11 @@ const FIRMWARE_ENV_BLOCKLIST: &[&str] = &[
 const USAGE: &str = "usage: cargo xtask <command>
 
 commands:
-  setup              install the RISC-V target, clippy, rustfmt and QEMU if missing
-  firmware           build the firmware ELF and the serial loader (firmware/, release)
+  setup              install the RISC-V target, clippy, rustfmt, QEMU and the LiteX
+                     toolchain (Verilator, RISC-V GCC, socat, a Python venv) if missing
+  firmware [--board qemu|litex]
+                     build the firmware ELF (firmware/, release): for QEMU `virt` with the
+                     serial loader (default), or for the LiteX VexRiscv SoC
   run [-- ARGS...]   setup + firmware, then `deform solve ARGS...` (default: --target qemu)
   test               setup + firmware, fmt and clippy everywhere, then cargo test --workspace";
 
@@ -57,7 +81,17 @@ fn main() -> ExitCode {
     let started = Instant::now();
     let result = match args.first().map(String::as_str) {
         Some("setup") => setup(),
-        Some("firmware") => build_firmware().map(|_| ()),
+        Some("firmware") => match args.get(1..).unwrap_or_default() {
+            [] => build_firmware().map(|_| ()),
+            [flag, board] if flag == "--board" && board == "qemu" => build_firmware().map(|_| ()),
+            [flag, board] if flag == "--board" && board == "litex" => {
+                build_litex_firmware().map(|_| ())
+            }
+            other => Err(anyhow::anyhow!(
+                "firmware takes `--board qemu` or `--board litex`, not `{}`\n\n{USAGE}",
+                other.join(" ")
+            )),
+        },
         Some("run") => run(&args[1..]),
         Some("test") => test(),
         Some("help" | "--help" | "-h") => {
@@ -152,7 +186,8 @@ fn is_executable(path: &Path) -> bool {
 
 fn setup() -> Result<()> {
     setup_rust()?;
-    setup_qemu()
+    setup_qemu()?;
+    setup_litex()
 }
 
 fn setup_rust() -> Result<()> {
@@ -241,6 +276,75 @@ fn setup_qemu() -> Result<()> {
     }
 }
 
+/// The LiteX target's Debian packages, then its Python venv (`target/litex/venv`, or under
+/// `$DEFORM_LITEX_DIR`), each only if missing.
+fn setup_litex() -> Result<()> {
+    let missing: Vec<&str> = LITEX_PACKAGES
+        .iter()
+        .copied()
+        .filter(|p| {
+            output_of("dpkg-query", &["-W", "-f=${Status}", p])
+                .is_none_or(|status| !status.contains("install ok installed"))
+        })
+        .collect();
+    if missing.is_empty() {
+        eprintln!("==> LiteX toolchain (Verilator, RISC-V GCC, socat): present");
+    } else {
+        let apt = |args: &[&str]| -> Result<Command> {
+            let mut cmd = if is_root() {
+                Command::new("apt-get")
+            } else if on_path("sudo").is_some() {
+                let mut cmd = Command::new("sudo");
+                cmd.arg("apt-get");
+                cmd
+            } else {
+                bail!(
+                    "installing {} needs root; run as root:\n    apt-get install -y {}",
+                    missing.join(" "),
+                    missing.join(" ")
+                )
+            };
+            cmd.args(["-o", "DPkg::Lock::Timeout=600"]).args(args);
+            Ok(cmd)
+        };
+        step("refresh the Debian package lists", &mut apt(&["update"])?)?;
+        step(
+            &format!("install the LiteX toolchain ({})", missing.join(" ")),
+            apt(&["install", "-y", "--no-install-recommends"])?
+                .args(&missing)
+                .env("DEBIAN_FRONTEND", "noninteractive"),
+        )?;
+    }
+    setup_litex_venv()
+}
+
+/// The venv with [`LITEX_PYTHON_PACKAGES`]; a file in it records what was installed, so a
+/// changed list reinstalls.
+fn setup_litex_venv() -> Result<()> {
+    let dir = litex_dir();
+    let venv = dir.join("venv");
+    let marker = venv.join("deform-packages.txt");
+    let wanted = LITEX_PYTHON_PACKAGES.join("\n");
+    if std::fs::read_to_string(&marker).is_ok_and(|have| have == wanted) {
+        eprintln!("==> LiteX Python packages: present in {}", venv.display());
+        return Ok(());
+    }
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    if !venv.join("bin/python").is_file() {
+        step(
+            "create the LiteX Python venv",
+            Command::new("python3").arg("-m").arg("venv").arg(&venv),
+        )?;
+    }
+    step(
+        "install the LiteX Python packages (litex, migen, VexRiscv, picolibc, ...)",
+        Command::new(venv.join("bin/pip"))
+            .args(["install", "--quiet", "--disable-pip-version-check"])
+            .args(LITEX_PYTHON_PACKAGES),
+    )?;
+    std::fs::write(&marker, wanted).with_context(|| format!("writing {}", marker.display()))
+}
+
 fn is_root() -> bool {
     output_of("id", &["-u"]).is_some_and(|uid| uid.trim() == "0")
 }
@@ -277,6 +381,38 @@ fn build_firmware() -> Result<PathBuf> {
     }
     eprintln!("    loader:   {}", loader.display());
     Ok(elf)
+}
+
+/// Builds the firmware for the `litex-vexriscv` board (its own target dir, beside the QEMU
+/// build) and returns the ELF's path. Its addresses come from the committed csr.json, or from
+/// `$DEFORM_LITEX_CSR_JSON` (see firmware/build.rs).
+fn build_litex_firmware() -> Result<PathBuf> {
+    let root = workspace_root();
+    step(
+        "build the firmware for the LiteX VexRiscv board (release)",
+        &mut litex_firmware_cargo("build"),
+    )?;
+    let elf = root.join(LITEX_FIRMWARE_BUILD_PATH);
+    if !elf.is_file() {
+        bail!("the LiteX firmware built, but {} is missing", elf.display());
+    }
+    eprintln!("    firmware (LiteX): {}", elf.display());
+    Ok(elf)
+}
+
+/// `cargo SUBCOMMAND` for the firmware with the `litex-vexriscv` board, in its own target dir.
+fn litex_firmware_cargo(subcommand: &str) -> Command {
+    let mut cmd = firmware_cargo();
+    cmd.args([
+        subcommand,
+        "--release",
+        "--no-default-features",
+        "--features",
+        "litex-vexriscv",
+        "--target-dir",
+        "target/litex-vexriscv",
+    ]);
+    cmd
 }
 
 /// The arguments for `deform solve`: those after an optional `--`, or the default scenario.
@@ -317,6 +453,7 @@ fn run(args: &[String]) -> Result<()> {
 fn test() -> Result<()> {
     setup()?;
     let elf = build_firmware()?;
+    let litex_elf = build_litex_firmware()?;
     step(
         "check formatting (workspace)",
         cargo().args(["fmt", "--all", "--check"]),
@@ -337,14 +474,19 @@ fn test() -> Result<()> {
         firmware_cargo().args(["clippy", "--release", "--", "-D", "warnings"]),
     )?;
     step(
+        "clippy (firmware, LiteX board)",
+        litex_firmware_cargo("clippy").args(["--", "-D", "warnings"]),
+    )?;
+    step(
         "check formatting (firmware)",
         firmware_cargo().args(["fmt", "--check"]),
     )?;
     step(
-        "test (workspace, QEMU hardware-in-the-loop included)",
+        "test (workspace, QEMU and LiteX hardware-in-the-loop included)",
         cargo()
             .args(["test", "--workspace"])
             .env(FIRMWARE_ENV, elf)
+            .env(LITEX_FIRMWARE_ENV, litex_elf)
             .env(LOADER_ENV, workspace_root().join(LOADER_BUILD_PATH)),
     )
 }

@@ -17,21 +17,21 @@
 #![no_main]
 #![deny(unsafe_op_in_unsafe_fn, clippy::undocumented_unsafe_blocks)]
 
-// The UART and QEMU exit are the application's; the loader has no use for its cycle counters.
+// The board layer is the application's (built with the `qemu-virt` board: on LiteX the stock
+// BIOS is the loader); the loader uses its UART, RAM bounds, hart count and wake-ups.
 #[allow(dead_code)]
-#[path = "../hw.rs"]
-mod hw;
+#[path = "../board/mod.rs"]
+mod board;
 
 use core::sync::atomic::{AtomicU32, Ordering};
 
 use deform_shared::frame::{self, Feed, FrameAccumulator, FrameError};
-use deform_shared::loader::UNKNOWN_SEQ;
 use deform_shared::loader::{
     decode_frame, LoaderAction, LoaderEnvelope, LoaderError, LoaderInfo, LoaderRequest,
-    LoaderResponse, LoaderSession, CRC32, LOADER_FRAME_LEN, LOADER_PROTOCOL_VERSION,
+    LoaderResponse, LoaderSession, CRC32, LOADER_FRAME_LEN, LOADER_PROTOCOL_VERSION, UNKNOWN_SEQ,
 };
 
-use hw::Uart;
+use board::{qemu_virt::MSIP_BASE, Board, Bsp, Serial};
 
 /// QEMU exit status after a panic (as the application's).
 const EXIT_PANIC: u16 = 101;
@@ -40,9 +40,9 @@ const EXIT_EXCEPTION: u16 = 102;
 /// QEMU exit status after an interrupt (none is ever enabled).
 const EXIT_INTERRUPT: u16 = 103;
 
-/// The RAM an image may occupy: QEMU `virt` RAM as hil-sim configures it (`-m 64M`).
-const RAM_START: u32 = 0x8000_0000;
-const RAM_END: u32 = 0x8400_0000;
+/// The RAM an image may occupy: the board's (QEMU `virt` as hil-sim configures it, `-m 64M`).
+const RAM_START: u32 = Board::RAM_START;
+const RAM_END: u32 = Board::RAM_END;
 
 // At reset QEMU jumps to the start of RAM: on to riscv-rt's `_start`, up where the loader lives.
 core::arch::global_asm!(
@@ -60,9 +60,7 @@ extern "C" {
 }
 
 /// Harts the loader hands over to the application (`_max_hart_id` + 1 in loader-memory.x).
-const HARTS: usize = 8;
-/// CLINT machine software interrupt pending register of hart 0; hart h's is 4·h further.
-const CLINT_MSIP: usize = 0x0200_0000;
+const HARTS: usize = Board::HARTS;
 
 /// Where the harts other than 0 go once the image is started; 0 until then.
 static RELEASE_ENTRY: AtomicU32 = AtomicU32::new(0);
@@ -101,7 +99,7 @@ core::arch::global_asm!(
     "3:",
     "li a0, 1",
     "ret",
-    clint = const CLINT_MSIP,
+    clint = const MSIP_BASE,
     release = sym RELEASE_ENTRY,
 );
 
@@ -117,7 +115,7 @@ fn loader_info() -> LoaderInfo {
 
 #[riscv_rt::entry]
 fn main() -> ! {
-    let mut uart = Uart::init();
+    let mut uart = Board::uart();
     let info = loader_info();
     let mut session = LoaderSession::new();
     let mut frames = FrameAccumulator::<LOADER_FRAME_LEN>::new();
@@ -169,9 +167,9 @@ fn main() -> ! {
     }
 }
 
-fn send(uart: &mut Uart, out: &mut [u8], seq: u16, body: LoaderResponse) {
+fn send(uart: &mut <Board as Bsp>::Uart, out: &mut [u8], seq: u16, body: LoaderResponse) {
     // A request is complete and the host awaits its answer: the line is quiet.
-    uart.enable_fifos();
+    uart.line_quiet();
     match frame::encode(&LoaderEnvelope::new(seq, body), out)
         .ok()
         .and_then(|len| out.get(..len))
@@ -188,9 +186,9 @@ fn send(uart: &mut Uart, out: &mut [u8], seq: u16, body: LoaderResponse) {
 fn start(entry: u32) -> ! {
     RELEASE_ENTRY.store(entry, Ordering::Release);
     for hart in 1..HARTS {
-        // SAFETY: the CLINT's MSIP registers of QEMU virt, always mapped; raising a hart's
-        // software interrupt only wakes it in `_mp_hook` (QEMU ignores harts it lacks).
-        unsafe { core::ptr::write_volatile((CLINT_MSIP + 4 * hart) as *mut u32, 1) };
+        // Raising a hart's software interrupt only wakes it in `_mp_hook` (QEMU ignores harts
+        // it lacks).
+        Board::wake(hart);
     }
     // SAFETY: `entry` lies inside an image whose every byte arrived CRC-checked and whose whole
     // CRC was then verified in RAM; `fence.i` makes the freshly written code visible to
@@ -200,15 +198,15 @@ fn start(entry: u32) -> ! {
 
 #[panic_handler]
 fn panic(_: &core::panic::PanicInfo) -> ! {
-    hw::exit(EXIT_PANIC)
+    Board::exit(EXIT_PANIC)
 }
 
 #[export_name = "ExceptionHandler"]
 fn exception_handler(_: &riscv_rt::TrapFrame) -> ! {
-    hw::exit(EXIT_EXCEPTION)
+    Board::exit(EXIT_EXCEPTION)
 }
 
 #[export_name = "DefaultHandler"]
 fn default_handler() -> ! {
-    hw::exit(EXIT_INTERRUPT)
+    Board::exit(EXIT_INTERRUPT)
 }

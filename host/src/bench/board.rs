@@ -13,6 +13,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
+use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim};
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use serialport::SerialPort;
 
@@ -120,6 +121,8 @@ pub type BenchTarget = Target<CountingPort<Box<dyn SerialPort>>>;
 pub enum BenchBoardChoice {
     /// Boot this firmware (`None`: the default build) in QEMU with as many harts as asked.
     Qemu { firmware: Option<PathBuf> },
+    /// Load this firmware (`None`: the `litex-vexriscv` build) into the simulated LiteX SoC.
+    Litex { firmware: Option<PathBuf> },
     /// A board already running the firmware; its hart count is what it reports.
     Port(String),
 }
@@ -130,6 +133,7 @@ pub struct BenchBoard {
     pub wire: WireCounter,
     /// Declared after `target` so that the port closes before QEMU is killed.
     _qemu: Option<Qemu>,
+    _litex: Option<LitexSim>,
 }
 
 impl BenchBoard {
@@ -139,14 +143,26 @@ impl BenchBoard {
         harts: u8,
         timeouts: Timeouts,
     ) -> anyhow::Result<BenchBoard> {
-        let (qemu, path) = match choice {
-            BenchBoardChoice::Port(path) => (None, path.clone()),
+        let (mut qemu, mut litex) = (None, None);
+        let mut timeouts = timeouts;
+        let path = match choice {
+            BenchBoardChoice::Port(path) => path.clone(),
             BenchBoardChoice::Qemu { firmware } => {
                 let elf = firmware.clone().unwrap_or_else(firmware_elf);
-                let qemu = Qemu::start(&QemuConfig::new(&elf).harts(harts))
+                let started = Qemu::start(&QemuConfig::new(&elf).harts(harts))
                     .with_context(|| format!("starting QEMU with {harts} hart(s)"))?;
-                let pty = qemu.pty_path().to_string_lossy().into_owned();
-                (Some(qemu), pty)
+                let pty = started.pty_path().to_string_lossy().into_owned();
+                qemu = Some(started);
+                pty
+            }
+            BenchBoardChoice::Litex { firmware } => {
+                let elf = firmware.clone().unwrap_or_else(litex_firmware_elf);
+                let started = LitexSim::start(&LitexConfig::new(&elf))
+                    .context("starting the simulated LiteX SoC")?;
+                let path = started.serial_path().to_string_lossy().into_owned();
+                litex = Some(started);
+                timeouts = crate::board::litex_timeouts(timeouts);
+                path
             }
         };
         let (port, wire) = CountingPort::new(open_serial(&path)?);
@@ -156,6 +172,7 @@ impl BenchBoard {
             target,
             wire,
             _qemu: qemu,
+            _litex: litex,
         })
     }
 }

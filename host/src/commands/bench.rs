@@ -15,6 +15,7 @@ use crate::bench::realtime::{self, RealtimeConfig};
 use crate::bench::report::{write_files, BenchReport};
 use crate::bench::sweep::{self, SweepConfig};
 use crate::bench::{plots, BenchModel};
+use crate::board::SimulatedBoard;
 use crate::encode::Partition;
 
 /// The parts of the bench.
@@ -91,6 +92,12 @@ pub struct BenchArgs {
     #[arg(long, value_name = "PATH")]
     pub port: Option<String>,
 
+    /// The simulated board when no --port is given: `qemu` (exact instruction counts), or
+    /// `litex` (real cycles of a VexRiscv under Verilator, one MVU; use small --edges and
+    /// `--mvus 1`).
+    #[arg(long, value_enum, default_value_t = SimulatedBoard::Qemu)]
+    pub target: SimulatedBoard,
+
     /// Firmware ELF for QEMU. Default: $DEFORM_FIRMWARE, else the release build.
     #[arg(long, value_name = "ELF")]
     pub firmware: Option<PathBuf>,
@@ -120,9 +127,12 @@ impl BenchArgs {
     }
 
     fn choice(&self) -> BenchBoardChoice {
-        match &self.port {
-            Some(port) => BenchBoardChoice::Port(port.clone()),
-            None => BenchBoardChoice::Qemu {
+        match (&self.port, self.target) {
+            (Some(port), _) => BenchBoardChoice::Port(port.clone()),
+            (None, SimulatedBoard::Qemu) => BenchBoardChoice::Qemu {
+                firmware: self.firmware.clone(),
+            },
+            (None, SimulatedBoard::Litex) => BenchBoardChoice::Litex {
                 firmware: self.firmware.clone(),
             },
         }

@@ -237,6 +237,9 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
             firmware: args.firmware.clone(),
             harts: DEFAULT_QEMU_HARTS,
         }),
+        (None, TargetKind::Litex) => Some(BoardChoice::Litex {
+            firmware: args.firmware.clone(),
+        }),
         (None, TargetKind::Host) => None,
     };
     let (target_name, (homogeneous, parametric, spring_field)) = match choice {

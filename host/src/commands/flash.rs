@@ -9,10 +9,11 @@ use anyhow::Context;
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::board::{self, Board, LoaderChoice};
+use crate::board::{self, BiosChoice, Board, LoaderChoice};
 use crate::cli_logs::LogFlags;
+use crate::flash::sfl::{detect_bios, SflTimeouts};
 use crate::flash::{hex, FlashImage, LoaderTimeouts, IMAGE_ATTEMPTS};
-use crate::link::Timeouts;
+use crate::link::{open_serial, Timeouts};
 
 /// Where the loader runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -21,6 +22,22 @@ pub enum FlashTarget {
     /// command ends: this checks an image end to end; `deform solve --via-loader` flashes and
     /// then solves in one run.
     Qemu,
+    /// Start the simulated LiteX SoC with its ROM and the stock LiteX BIOS and boot the
+    /// firmware (built with `cargo xtask firmware --board litex`) through the BIOS's serial
+    /// boot (SFL).
+    Litex,
+}
+
+/// How to talk to what waits on the port.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum FlashProtocol {
+    /// Poke the line with a newline: a LiteX BIOS answers with its prompt (or its serial-boot
+    /// request), our loader stays silent.
+    Auto,
+    /// deform's own serial loader (QEMU, or a board booted into it): CRC-32-verified image.
+    Deform,
+    /// The stock LiteX BIOS's serial boot (SFL, as `litex_term --kernel`): CRC-16 per frame.
+    Litex,
 }
 
 /// Upload a firmware ELF to a target's RAM through its serial loader and start it.
@@ -38,6 +55,11 @@ pub struct FlashArgs {
     /// Where the loader runs when there is no --port. [default: qemu]
     #[arg(long, value_enum)]
     pub target: Option<FlashTarget>,
+
+    /// The loader's protocol on --port: `deform` (ours), `litex` (the stock LiteX BIOS), or
+    /// `auto` to find out.
+    #[arg(long, value_enum, default_value_t = FlashProtocol::Auto)]
+    pub protocol: FlashProtocol,
 
     /// Seconds one loader request waits for its answer before it is sent again.
     #[arg(long, value_name = "SECONDS", default_value_t = 2.0, value_parser = parse_seconds)]
@@ -87,6 +109,20 @@ pub fn run(args: &FlashArgs) -> anyhow::Result<()> {
         image.crc32(),
         image.build_id.as_deref().map_or("none".into(), hex)
     );
+    let bios = match (&args.port, args.target, args.protocol) {
+        (None, Some(FlashTarget::Litex), _) => Some(BiosChoice::Simulated),
+        (Some(port), _, FlashProtocol::Litex) => Some(BiosChoice::Port(port.clone())),
+        (Some(port), _, FlashProtocol::Auto) => {
+            let mut line = open_serial(port)?;
+            detect_bios(&mut line, Duration::from_secs(2))
+                .with_context(|| format!("probing {port} for a LiteX BIOS"))?
+                .then(|| BiosChoice::Port(port.clone()))
+        }
+        _ => None,
+    };
+    if let Some(bios) = bios {
+        return flash_litex_bios(args, &bios, &image);
+    }
     let choice = match &args.port {
         Some(port) => LoaderChoice::Port(port.clone()),
         None => LoaderChoice::Qemu {
@@ -135,6 +171,43 @@ pub fn run(args: &FlashArgs) -> anyhow::Result<()> {
         report.attempts,
         report.resends
     );
+    print_running(&board);
+    Ok(())
+}
+
+/// Boots the image through a stock LiteX BIOS (SFL) and reports as [`run`] does.
+fn flash_litex_bios(args: &FlashArgs, bios: &BiosChoice, image: &FlashImage) -> anyhow::Result<()> {
+    let sfl_timeouts = SflTimeouts {
+        answer: Duration::from_secs_f64(args.request_timeout),
+        retries: args.retries,
+        ..SflTimeouts::default()
+    };
+    let bar = progress_bar(image.bytes.len() as u64);
+    let started = std::time::Instant::now();
+    let (board, report) = Board::flash_litex_bios(
+        bios,
+        &args.firmware,
+        Timeouts::default(),
+        sfl_timeouts,
+        &args.logs.options(),
+        |sent| bar.set_position(sent as u64),
+    )?;
+    bar.finish_and_clear();
+    println!("target      {}", board.describe());
+    println!(
+        "flashed     {} bytes in {} SFL frames through the LiteX BIOS, {:.1} s with the boot \
+         and handshake ({} bytes on the wire), {} resent frame(s); CRC-16 checked per frame",
+        image.bytes.len(),
+        report.frames,
+        started.elapsed().as_secs_f64(),
+        report.wire_bytes,
+        report.resends
+    );
+    print_running(&board);
+    Ok(())
+}
+
+fn print_running(board: &Board) {
     let info = board.target.info();
     println!(
         "running     deform firmware {} (protocol {}, {} hart(s), build id {})",
@@ -150,5 +223,4 @@ pub fn run(args: &FlashArgs) -> anyhow::Result<()> {
             logs.bytes, logs.frames
         );
     }
-    Ok(())
 }

@@ -72,7 +72,8 @@ pub struct SimulateArgs {
     #[arg(long)]
     pub no_fuse: bool,
 
-    /// Target CG tolerance per solve (relative residual; floored at 1e-7).
+    /// Target CG tolerance per solve (relative residual; floored at 1e-7). With --dynamic: the
+    /// true relative residual of each step's S·v₁ = b, reached by refinement on the host.
     #[arg(long, default_value_t = 1e-7)]
     pub tol: f64,
 
@@ -83,6 +84,11 @@ pub struct SimulateArgs {
     /// Serial device of a real board. Default: boot the firmware in QEMU.
     #[arg(long, value_name = "PATH")]
     pub port: Option<String>,
+
+    /// The simulated board when no --port is given: `qemu`, or `litex` (the `--board litex`
+    /// firmware on a LiteX VexRiscv SoC under Verilator; slow, keep it small).
+    #[arg(long, value_enum, default_value_t = board::SimulatedBoard::Qemu)]
+    pub target: board::SimulatedBoard,
 
     /// Firmware ELF for QEMU. Default: $DEFORM_FIRMWARE, else the release build.
     #[arg(long, value_name = "ELF")]
@@ -250,11 +256,14 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         }
         None => None,
     };
-    let choice = match &args.port {
-        Some(port) => BoardChoice::Port(port.clone()),
-        None => BoardChoice::Qemu {
+    let choice = match (&args.port, args.target) {
+        (Some(port), _) => BoardChoice::Port(port.clone()),
+        (None, board::SimulatedBoard::Qemu) => BoardChoice::Qemu {
             firmware: args.firmware.clone(),
             harts: args.layout.qemu_harts(),
+        },
+        (None, board::SimulatedBoard::Litex) => BoardChoice::Litex {
+            firmware: args.firmware.clone(),
         },
     };
     let timeouts = args.link.apply(Timeouts {

@@ -35,6 +35,11 @@ pub enum TargetKind {
     Qemu,
     /// The f64 reference CG on this computer (the thesis's "general purpose computer").
     Host,
+    /// Load the `litex-vexriscv` firmware into a LiteX SoC with a VexRiscv CPU, simulated cycle
+    /// for cycle by Verilator (`cargo xtask setup` and `cargo xtask firmware --board litex`
+    /// first; the SoC is built once, ~2 min). One MVU; about 0.8 M cycles per second: keep the
+    /// grid small.
+    Litex,
 }
 
 /// Solve the tissue model for the displacements u_x, u_y, u_z of every node.
@@ -49,7 +54,8 @@ pub struct SolveArgs {
     #[command(flatten)]
     pub model: ModelFlags,
 
-    /// Where CG runs: `qemu` boots the firmware under QEMU, `host` uses the f64 reference solver.
+    /// Where CG runs: `qemu` boots the firmware under QEMU, `litex` on a simulated LiteX
+    /// VexRiscv SoC, `host` uses the f64 reference solver.
     /// Ignored when --port names a real board. [default: qemu]
     #[arg(long, value_enum)]
     pub target: Option<TargetKind>,
@@ -59,8 +65,9 @@ pub struct SolveArgs {
     #[arg(long, value_name = "PATH")]
     pub port: Option<String>,
 
-    /// Firmware ELF for --target qemu. Default: $DEFORM_FIRMWARE, else the release build in
-    /// firmware/target (`cargo xtask firmware` builds it).
+    /// Firmware ELF for --target qemu or litex. Default: $DEFORM_FIRMWARE, else the release
+    /// build in firmware/target (`cargo xtask firmware` builds it); for litex
+    /// $DEFORM_LITEX_FIRMWARE, else the `--board litex` build.
     #[arg(long, value_name = "ELF")]
     pub firmware: Option<PathBuf>,
 
@@ -301,6 +308,9 @@ impl SolveArgs {
             (None, TargetKind::Qemu) => Some(BoardChoice::Qemu {
                 firmware: self.firmware.clone(),
                 harts: self.layout.qemu_harts(),
+            }),
+            (None, TargetKind::Litex) => Some(BoardChoice::Litex {
+                firmware: self.firmware.clone(),
             }),
             (None, TargetKind::Host) => None,
         };

@@ -181,6 +181,23 @@ impl DynamicRunner {
         Ok(())
     }
 
+    /// New masses, dampers or springs (the same grid, network and constrained nodes), keeping
+    /// the state: S's pattern is K's, so the next step sends S's values only.
+    pub fn set_model(&mut self, model: &Model, spec: &DynamicsSpec) -> Result<(), DynamicRunError> {
+        let system = DynamicSystem::new(model, spec)?;
+        if system.n() != self.system.n() || system.constrained() != self.system.constrained() {
+            return Err(DynamicRunError::MatrixChanged(self.state.t));
+        }
+        let matrices = StepMatrices::new(&system, self.matrices.h, spec.scheme)?;
+        self.encoded = encode_groups(&system, &matrices, &self.params.layout)?;
+        self.system = system;
+        self.matrices = matrices;
+        if self.resident.is_some() {
+            self.resident = Some(usize::MAX);
+        }
+        Ok(())
+    }
+
     /// Makes the target hold group `gi`'s S: a full upload the first time, values after.
     fn make_resident<P: Port>(
         &mut self,

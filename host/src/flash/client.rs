@@ -8,10 +8,9 @@
 use std::time::{Duration, Instant};
 
 use deform_shared::frame::{self, FrameError, DELIMITER};
-use deform_shared::loader::UNKNOWN_SEQ;
 use deform_shared::loader::{
     decode_frame, LoaderEnvelope, LoaderError, LoaderInfo, LoaderRequest, LoaderResponse,
-    LOADER_FRAME_LEN, LOADER_PROTOCOL_VERSION,
+    LOADER_FRAME_LEN, LOADER_PROTOCOL_VERSION, UNKNOWN_SEQ,
 };
 use deform_shared::protocol::{Envelope, Request, PROTOCOL_VERSION};
 

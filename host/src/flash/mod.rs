@@ -9,6 +9,7 @@
 
 mod client;
 mod image;
+pub mod sfl;
 
 use std::time::{Duration, Instant};
 

@@ -1,0 +1,120 @@
+#!/usr/bin/env python3
+"""Generates deform's LiteX SoC for Verilator: a VexRiscv CPU, main RAM, a UART and timer0.
+
+Run by deform-hil-sim (src/litex.rs) inside the project's own virtual environment, once per SoC
+configuration: the output folder is keyed by a hash of this file and of the arguments, so a
+changed SoC gets a new folder and an unchanged one is never regenerated.
+
+Two shapes:
+
+- without --bios (the HIL target): no ROM, the CPU resets into main RAM, whose init file
+  (gateware/sim_main_ram.init) is rewritten with each new firmware image, no re-Verilating;
+- with --bios: the stock litex_sim SoC with its ROM and the stock LiteX BIOS, which waits for a
+  serial boot (SFL) before its prompt; `deform flash --protocol litex` loads the firmware
+  through it.
+
+The UART's simulator module is LiteX's serial2tcp with one change, made here at build time (no
+LiteX code is kept in the repository): it reads from the socket only what its 2048-byte ring
+buffer can take. The stock module reads regardless and overwrites unconsumed bytes, so a host
+with more than 2 KiB in flight saw corrupt frames; bounded, the rest waits in the socket (TCP
+flow control reaches back through socat to the host's writes).
+
+Both shapes have the same CSR map (ctrl, identifier, timer0, uart; no sim_debug registers), so
+one firmware build runs on either. The script only writes the gateware and build_sim.sh; the
+caller runs that (the Verilator build) and the simulator itself.
+"""
+
+import argparse
+import os
+
+import litex.build.sim
+
+from litex.build.sim.config import SimConfig
+from litex.soc.integration.builder import Builder
+from litex.tools.litex_sim import SimSoC
+
+
+FLOW_MODULE = "serial2tcp_flow"
+
+
+def write_flow_module(out):
+    """serial2tcp, reading no more than its ring buffer has room for (see above)."""
+    core = os.path.join(os.path.dirname(litex.build.sim.__file__), "core", "modules", "serial2tcp")
+    with open(os.path.join(core, "serial2tcp.c")) as f:
+        source = f.read()
+    unbounded = "read_len = read(fd, buffer, 1024);"
+    bounded = (
+        "if (s->datalen >= 2048) return; /* full: leave the rest in the socket */\n"
+        "  read_len = read(fd, buffer, (2048 - s->datalen) < 1024 ? (2048 - s->datalen) : 1024);"
+    )
+    name = '"serial2tcp",'
+    if source.count(unbounded) != 1 or source.count(name) != 1:
+        raise SystemExit("serial2tcp.c is not the version this script patches")
+    source = source.replace(unbounded, bounded).replace(name, '"%s",' % FLOW_MODULE)
+    folder = os.path.join(out, "extra_mods")
+    os.makedirs(os.path.join(folder, FLOW_MODULE), exist_ok=True)
+    with open(os.path.join(folder, FLOW_MODULE, FLOW_MODULE + ".c"), "w") as f:
+        f.write(source)
+    with open(os.path.join(core, "Makefile")) as f:
+        makefile = f.read()
+    with open(os.path.join(folder, FLOW_MODULE, "Makefile"), "w") as f:
+        f.write(makefile)
+    return folder
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--cpu-variant", default="imac", help="VexRiscv variant (imac reads mcycle)")
+    parser.add_argument("--main-ram-size", type=lambda s: int(s, 0), default=0x200000)
+    parser.add_argument("--bios", action="store_true", help="ROM with the stock LiteX BIOS")
+    args = parser.parse_args()
+
+    soc_args = dict(
+        cpu_type="vexriscv",
+        cpu_variant=args.cpu_variant,
+        uart_name="sim",
+        integrated_sram_size=0x2000,
+        integrated_main_ram_size=args.main_ram_size,
+    )
+    if args.bios:
+        # litex_sim's default ROM; the BIOS and its picolibc are built into it.
+        soc_args.update(integrated_rom_size=0x20000)
+    else:
+        soc_args.update(
+            integrated_rom_size=0,
+            cpu_reset_address=0x40000000,
+            # All zero, but present: the RAM then reads its contents from sim_main_ram.init,
+            # which the caller rewrites for every firmware.
+            integrated_main_ram_init=[0] * (args.main_ram_size // 4),
+        )
+    soc = SimSoC(**soc_args)
+    if args.bios:
+        # No memory test of main RAM at boot (2 MiB written and read back: tens of seconds of
+        # simulation before the BIOS asks for a serial boot); the BIOS skips it when told that
+        # main RAM was initialised.
+        soc.add_config("MAIN_RAM_INIT")
+
+    sim_config = SimConfig()
+    sim_config.add_clocker("sys_clk", freq_hz=int(1e6))
+    # The port is a placeholder: the caller writes sim_config.js anew for every run.
+    sim_config.add_module(FLOW_MODULE, "serial", args={"port": 1})
+
+    builder = Builder(
+        soc,
+        output_dir=args.out,
+        compile_software=args.bios,
+        csr_json=os.path.join(args.out, "csr.json"),
+    )
+    out = os.path.abspath(args.out)
+    os.makedirs(out, exist_ok=True)
+    builder.build(
+        sim_config=sim_config,
+        run=False,
+        extra_mods=[FLOW_MODULE],
+        extra_mods_path=write_flow_module(out),
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,181 @@
+//! The firmware on a real soft core's RTL: a LiteX SoC with a VexRiscv CPU simulated cycle for
+//! cycle by Verilator (hil-sim's `litex` module), driven through `deform solve`'s own code path.
+//!
+//! Needs `cargo xtask setup` (Verilator, socat, the LiteX venv) and the LiteX firmware
+//! (`cargo xtask firmware --board litex`, or `$DEFORM_LITEX_FIRMWARE`); the first run builds the
+//! SoC (about 2 minutes, cached in target/litex). The simulator runs about 0.8 M cycles per
+//! second, so the systems here are small.
+
+mod support;
+
+use std::time::{Duration, Instant};
+
+use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim};
+use deform_host::board::{BiosChoice, Board, BoardChoice};
+use deform_host::cli_model::{ConnectionArg, ModelArgs};
+use deform_host::commands::solve::{solve_model, SolvePlan};
+use deform_host::flash::sfl::SflTimeouts;
+use deform_host::link::{open_serial, Link, Target, Timeouts};
+use deform_host::model::{Grid, Node, PointLoad};
+
+use support::deviation_from_reference;
+
+fn start() -> LitexSim {
+    LitexSim::start(&LitexConfig::new(litex_firmware_elf()))
+        .unwrap_or_else(|e| panic!("cannot start the LiteX SoC: {e}"))
+}
+
+/// The simulated SoC boots in about a second of wall time, more on a busy machine.
+fn timeouts() -> Timeouts {
+    Timeouts {
+        handshake: Duration::from_secs(120),
+        hello_retry: Duration::from_secs(5),
+        request: Duration::from_secs(60),
+        solve: Duration::from_secs(600),
+        ..Timeouts::default()
+    }
+}
+
+#[test]
+fn model_b_on_6_cubed_matches_f64_to_1e_8_with_refinement() {
+    let args = ModelArgs {
+        grid: Grid::new(6, 6, 6).unwrap(),
+        connection: ConnectionArg::B,
+        load: vec![
+            PointLoad {
+                node: Node { i: 3, j: 3, k: 5 },
+                force: [0.3, -1.0, 0.5],
+            },
+            PointLoad {
+                node: Node { i: 1, j: 4, k: 2 },
+                force: [0.0, 0.25, -2.0],
+            },
+        ],
+        ..ModelArgs::default()
+    };
+    let model = args.build().expect("model builds");
+    let plan = SolvePlan {
+        board: Some(BoardChoice::Litex { firmware: None }),
+        tol: 1e-10,
+        max_iter: None,
+        max_solves: 8,
+        solve_timeout: Duration::from_secs(600),
+        layout: Default::default(),
+        precondition: Default::default(),
+        fuse: true,
+        link: Default::default(),
+        logs: Default::default(),
+    };
+    let started = Instant::now();
+    let solved = solve_model(&model, &plan).expect("solve on the LiteX SoC");
+    let (rel, scale) = deviation_from_reference(&solved);
+    println!(
+        "6³ model B on LiteX VexRiscv: max |u| = {scale:.6e}, deviation from f64 {rel:.3e}, \
+         {:.1} s wall",
+        started.elapsed().as_secs_f64()
+    );
+    assert!(scale > 0.0);
+    assert!(rel <= 1e-8, "deviation {rel:e} of max |u|");
+    let engine = solved.stats.engine.as_ref().expect("a target run");
+    assert!(engine.target_solves >= 2, "refinement ran: {engine:?}");
+    assert!(engine.cycles > 0);
+    for d in &solved.stats.directions {
+        assert!(d.relative_residual <= 1e-10, "{d:?}");
+    }
+}
+
+/// Garbage on the line gets an error frame (a NAK naming the request the target waits for),
+/// a frame with a wrong CRC too; the firmware keeps serving the session afterwards.
+#[test]
+fn bad_bytes_are_answered_with_an_error_frame() {
+    let sim = start();
+    let path = sim.serial_path().to_string_lossy().into_owned();
+    let port = open_serial(&path).expect("open the bridge's pty");
+    let mut target = Target::handshake(Link::new(port), timeouts())
+        .unwrap_or_else(|e| panic!("handshake: {e}; simulator:\n{}", sim.output()));
+    assert_eq!(target.info().harts, 1, "{:?}", target.info());
+    let before = target.stats().naks;
+    // Not COBS of any frame: a short frame of junk, and a frame whose CRC is wrong.
+    for junk in [
+        &[0x05u8, 0x01, 0x02, 0x03, 0x04, 0x00][..],
+        &[0x03, 0xFF, 0xEE, 0x00],
+    ] {
+        target.link_mut().send_raw(junk).unwrap();
+    }
+    // The next exchange reads the NAKs that arrived meanwhile.
+    let matrix = support::banded_spd(16, 1);
+    target.upload_matrix(&matrix).unwrap();
+    let naks = target.stats().naks - before;
+    assert!(
+        naks >= 2,
+        "{naks} NAK(s) for two bad frames: {:?}",
+        target.stats()
+    );
+    let (report, x) = target
+        .solve_for(
+            &[1.0; 16],
+            deform_shared::protocol::SolveParams {
+                max_iterations: 200,
+                tolerance: 1e-9,
+                start: deform_shared::protocol::Start::Zero,
+                directions: 1,
+                cycle_budget: 0,
+            },
+        )
+        .unwrap();
+    assert!(report.converged, "{report:?}");
+    let reference = support::cholesky_solve(&support::decode_dense(&matrix), &[1.0; 16]);
+    let error = support::max_relative_error(&x, &reference);
+    assert!(error <= 1e-6, "deviation {error:e} from the f64 solution");
+    // Real cycles: the RTL takes more cycles than it retires instructions.
+    assert!(
+        report.mvu.cycles > report.mvu.instructions && report.mvu.instructions > 0,
+        "{report:?}"
+    );
+}
+
+/// The stock LiteX BIOS (the litex_sim SoC with ROM, built once) boots our firmware over its
+/// serial line (SFL), as `litex_term --kernel` would; the firmware then solves.
+#[test]
+fn the_stock_litex_bios_boots_the_firmware_which_then_solves() {
+    let elf = litex_firmware_elf();
+    let started = Instant::now();
+    let (mut board, report) = Board::flash_litex_bios(
+        &BiosChoice::Simulated,
+        &elf,
+        timeouts(),
+        SflTimeouts::default(),
+        &Default::default(),
+        |_| {},
+    )
+    .unwrap_or_else(|e| panic!("boot through the BIOS: {e:#}"));
+    println!(
+        "booted through the LiteX BIOS: {} SFL frames, {} resent, {:.1} s",
+        report.frames,
+        report.resends,
+        started.elapsed().as_secs_f64()
+    );
+    assert!(report.frames > 1);
+    assert_eq!(board.target.info().harts, 1);
+    let matrix = support::banded_spd(32, 2);
+    board.target.upload_matrix(&matrix).unwrap();
+    let b: Vec<f64> = (0..32).map(|i| 1.0 + f64::from(i % 5)).collect();
+    let (report, x) = board
+        .target
+        .solve_for(
+            &b,
+            deform_shared::protocol::SolveParams {
+                max_iterations: 400,
+                tolerance: 1e-9,
+                start: deform_shared::protocol::Start::Zero,
+                directions: 1,
+                cycle_budget: 0,
+            },
+        )
+        .unwrap();
+    assert!(report.converged, "{report:?}");
+    // Against the f64 solution of the same (quantised) system.
+    let reference = support::cholesky_solve(&support::decode_dense(&matrix), &b);
+    let error = support::max_relative_error(&x, &reference);
+    assert!(error <= 1e-6, "deviation {error:e} from the f64 solution");
+}
