@@ -8,6 +8,7 @@ use deform_shared::live::{
 
 use super::*;
 use crate::live::{field_exponent, pack_field, tool_mantissas};
+use deform_shared::protocol::SolveReport;
 
 /// The Schur columns' tolerance: the fixed-point CG's floor, which the host's refinement
 /// also uses.
@@ -142,7 +143,7 @@ impl<E: Executor> Session<'_, E> {
             *out = f64::from(params.scale[d]) * started.reaction(tools, x, e_x, &u, e_u, f);
         }
         started.anchor(force, tool);
-        let cycles = self.exec.now().cycles.wrapping_sub(t0.cycles);
+        let cycles = frame_cycles(self.exec.now().cycles.wrapping_sub(t0.cycles), &report);
         Ok(Response::LiveFrame(FrameReport {
             force: force.map(|v| v as f32),
             residual: report.residual as f32,
@@ -199,4 +200,22 @@ impl<E: Executor> Session<'_, E> {
             values,
         }))
     }
+}
+
+/// A frame's cycles on the critical path, from hart 0's cycle count over the frame (`elapsed`).
+/// With one MVU that count is the frame's time. With several, QEMU `-icount` gives every hart
+/// one machine-wide counter, so hart 0's count over the solve is all harts' work added up: the
+/// solve's share is replaced by its measured critical path (`SolveReport::whole_solve`: every
+/// parallel phase's slowest hart plus hart 0's serial work), and hart 0's own work around the
+/// solve (right-hand sides, prediction, reaction force) is kept as it is.
+fn frame_cycles(elapsed: u64, report: &SolveReport) -> u64 {
+    if report.mvus <= 1 {
+        return elapsed;
+    }
+    let on_hart0 = report.mvu.cycles.saturating_add(report.svu.cycles);
+    let critical = report
+        .whole_solve
+        .mvu_critical
+        .saturating_add(report.whole_solve.svu_critical);
+    elapsed.saturating_sub(on_hart0).saturating_add(critical)
 }
