@@ -177,7 +177,10 @@ function connect() {
     const m = JSON.parse(event.data);
     if (m.type === 'mesh') buildMesh(m);
     else if (m.type === 'frame') show(m);
-    else if (m.type === 'error') $('status').textContent = `server: ${m.message}`;
+    else if (m.type === 'error') {
+      $('status').textContent = `server: ${m.message}`;
+      readout.dataset.error = m.message;
+    }
   };
 }
 connect();

@@ -27,6 +27,10 @@ use deform_hil_sim::{
 const RISCV_TARGET: &str = "riscv32imac-unknown-none-elf";
 /// The Debian package that holds `qemu-system-riscv32`.
 const QEMU_PACKAGE: &str = "qemu-system-misc";
+/// The browser test of `deform live --serve` drives these (Debian's packages).
+const CHROMIUM_PACKAGES: [&str; 2] = ["chromium", "chromium-driver"];
+const CHROMIUM_BINARY: &str = "/usr/bin/chromium";
+const CHROMEDRIVER_BINARY: &str = "/usr/bin/chromedriver";
 /// The scenario `cargo xtask run` solves when given no arguments.
 const DEFAULT_RUN_ARGS: &[&str] = &["--target", "qemu"];
 
@@ -47,7 +51,7 @@ const FIRMWARE_ENV_BLOCKLIST: &[&str] = &[
 const USAGE: &str = "usage: cargo xtask <command>
 
 commands:
-  setup              install the RISC-V target, clippy, rustfmt and QEMU if missing
+  setup              install the RISC-V target, clippy, rustfmt, QEMU and Chromium if missing
   firmware           build the firmware ELF and the serial loader (firmware/, release)
   run [-- ARGS...]   setup + firmware, then `deform solve ARGS...` (default: --target qemu)
   test               setup + firmware, fmt and clippy everywhere, then cargo test --workspace";
@@ -152,7 +156,8 @@ fn is_executable(path: &Path) -> bool {
 
 fn setup() -> Result<()> {
     setup_rust()?;
-    setup_qemu()
+    setup_qemu()?;
+    setup_chromium()
 }
 
 fn setup_rust() -> Result<()> {
@@ -207,7 +212,40 @@ fn setup_qemu() -> Result<()> {
         eprintln!("==> QEMU: {}", path.display());
         return Ok(());
     }
-    let apt_install = ["install", "-y", "--no-install-recommends", QEMU_PACKAGE];
+    apt_install(&["--no-install-recommends", QEMU_PACKAGE], "QEMU")?;
+    match on_path(QEMU_BINARY) {
+        Some(path) => {
+            eprintln!("==> QEMU: {}", path.display());
+            Ok(())
+        }
+        None => bail!("{QEMU_PACKAGE} was installed but {QEMU_BINARY} is still not on PATH"),
+    }
+}
+
+/// Debian's Chromium and its WebDriver, for the browser test of `deform live --serve`.
+fn setup_chromium() -> Result<()> {
+    let wanted = [CHROMIUM_BINARY, CHROMEDRIVER_BINARY];
+    if wanted.iter().all(|p| Path::new(p).exists()) {
+        eprintln!("==> Chromium: {CHROMIUM_BINARY}, {CHROMEDRIVER_BINARY}");
+        return Ok(());
+    }
+    apt_install(&CHROMIUM_PACKAGES, "Chromium")?;
+    match wanted.iter().find(|p| !Path::new(p).exists()) {
+        None => {
+            eprintln!("==> Chromium: {CHROMIUM_BINARY}, {CHROMEDRIVER_BINARY}");
+            Ok(())
+        }
+        Some(missing) => bail!(
+            "{} were installed but {missing} is missing",
+            CHROMIUM_PACKAGES.join(" and ")
+        ),
+    }
+}
+
+/// `apt-get update` and `apt-get install -y ARGS`, as root or through sudo, waiting for a
+/// package manager another process is running rather than failing at once.
+fn apt_install(args: &[&str], what: &str) -> Result<()> {
+    let lock = ["-o", "DPkg::Lock::Timeout=600"];
     let privileged = |program: &str| -> Result<Command> {
         if is_root() {
             Ok(Command::new(program))
@@ -217,28 +255,24 @@ fn setup_qemu() -> Result<()> {
             Ok(cmd)
         } else {
             bail!(
-                "{QEMU_BINARY} is missing and installing it needs root; run as root:\n    \
-                 apt-get update && apt-get install -y {QEMU_PACKAGE}"
+                "{what} is missing and installing it needs root; run as root:\n    \
+                 apt-get update && apt-get install -y {}",
+                args.join(" ")
             )
         }
     };
     step(
         "refresh the Debian package lists",
-        privileged("apt-get")?.arg("update"),
+        privileged("apt-get")?.args(lock).arg("update"),
     )?;
     step(
-        &format!("install QEMU ({QEMU_PACKAGE})"),
+        &format!("install {what} ({})", args.join(" ")),
         privileged("apt-get")?
-            .args(apt_install)
+            .args(lock)
+            .args(["install", "-y"])
+            .args(args)
             .env("DEBIAN_FRONTEND", "noninteractive"),
-    )?;
-    match on_path(QEMU_BINARY) {
-        Some(path) => {
-            eprintln!("==> QEMU: {}", path.display());
-            Ok(())
-        }
-        None => bail!("{QEMU_PACKAGE} was installed but {QEMU_BINARY} is still not on PATH"),
-    }
+    )
 }
 
 fn is_root() -> bool {

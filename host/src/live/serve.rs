@@ -30,9 +30,9 @@ const POLL: Duration = Duration::from_millis(15);
 /// A browser that takes longer than this to accept a frame is dropped.
 const WRITE_TIMEOUT: Duration = Duration::from_secs(2);
 
-/// What a browser sends, as JSON text messages.
-#[derive(Debug, Deserialize)]
-#[serde(tag = "type", rename_all = "lowercase", deny_unknown_fields)]
+/// What a browser sends, as JSON text messages: `{"type": "tool", "u": [x, y, z]}`,
+/// `{"type": "pause", "paused": true}`, `{"type": "reset"}`.
+#[derive(Debug)]
 pub enum Command {
     /// Move the tool: its displacement from rest, in grid units.
     Tool { u: [f64; 3] },
@@ -40,6 +40,31 @@ pub enum Command {
     Pause { paused: bool },
     /// The tool back to rest.
     Reset,
+}
+
+/// A command's JSON as it comes. Not a serde internally tagged enum: those buffer numbers
+/// first, which fails for floats with serde_json's `arbitrary_precision` (on in this tree).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct WireCommand {
+    #[serde(rename = "type")]
+    kind: String,
+    u: Option<[f64; 3]>,
+    paused: Option<bool>,
+}
+
+impl Command {
+    pub fn parse(text: &str) -> Result<Command, String> {
+        let c: WireCommand = serde_json::from_str(text).map_err(|e| e.to_string())?;
+        match (c.kind.as_str(), c.u, c.paused) {
+            ("tool", Some(u), None) if u.iter().all(|v| v.is_finite()) => Ok(Command::Tool { u }),
+            ("pause", None, Some(paused)) => Ok(Command::Pause { paused }),
+            ("reset", None, None) => Ok(Command::Reset),
+            _ => Err(format!(
+                "not a command: {text:.80} (expected tool with u = [x, y, z], pause with paused, or reset)"
+            )),
+        }
+    }
 }
 
 /// The browsers' commands as the solver sees them: one slot for the newest tool position.
@@ -216,19 +241,24 @@ fn connection(stream: TcpStream, mailbox: &Mailbox) -> anyhow::Result<()> {
     let mut seen = 0;
     loop {
         match ws.read() {
-            Ok(Message::Text(text)) => match serde_json::from_str::<Command>(text.as_str()) {
+            Ok(Message::Text(text)) => match Command::parse(text.as_str()) {
                 Ok(command) => mailbox.post(command),
                 Err(e) => {
-                    let error = serde_json::json!({ "type": "error", "message": e.to_string() });
+                    let error = serde_json::json!({ "type": "error", "message": e });
                     ws.send(Message::text(error.to_string()))?;
                 }
             },
             Ok(Message::Close(_)) => return Ok(()),
             Ok(_) => {}
             Err(e) if is_timeout(&e) => {}
-            Err(tungstenite::Error::ConnectionClosed | tungstenite::Error::AlreadyClosed) => {
-                return Ok(())
-            }
+            // A browser that went away (closed, reloaded, crashed) ends its connection quietly.
+            Err(
+                tungstenite::Error::ConnectionClosed
+                | tungstenite::Error::AlreadyClosed
+                | tungstenite::Error::Protocol(
+                    tungstenite::error::ProtocolError::ResetWithoutClosingHandshake,
+                ),
+            ) => return Ok(()),
             Err(e) => return Err(e.into()),
         }
         if let Some((seq, json)) = mailbox.newer_than(seen) {
@@ -265,15 +295,32 @@ mod tests {
     }
 
     #[test]
-    fn malformed_commands_are_refused() {
+    fn commands_parse_and_malformed_ones_are_refused() {
+        assert!(matches!(
+            Command::parse(r#"{"type":"tool","u":[0.5,0,-1.25]}"#),
+            Ok(Command::Tool {
+                u: [0.5, 0.0, -1.25]
+            })
+        ));
+        assert!(matches!(
+            Command::parse(r#"{"type":"pause","paused":true}"#),
+            Ok(Command::Pause { paused: true })
+        ));
+        assert!(matches!(
+            Command::parse(r#"{"type":"reset"}"#),
+            Ok(Command::Reset)
+        ));
         for text in [
             "",
             "{}",
             r#"{"type":"tool"}"#,
             r#"{"type":"tool","u":[1,2]}"#,
+            r#"{"type":"tool","u":[1,2,"x"]}"#,
+            r#"{"type":"reset","u":[1,2,3]}"#,
             r#"{"type":"fly"}"#,
+            r#"{"type":"tool","u":[0,0,0],"speed":3}"#,
         ] {
-            assert!(serde_json::from_str::<Command>(text).is_err(), "{text}");
+            assert!(Command::parse(text).is_err(), "{text}");
         }
     }
 }
