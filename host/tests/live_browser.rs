@@ -135,6 +135,26 @@ impl Cdp {
         self.eval("Object.assign({}, document.getElementById('readout')?.dataset ?? {})")
     }
 
+    /// Drags with the left button from `from` by `by` CSS pixels, in a few moves.
+    fn drag(&mut self, from: [f64; 2], by: [f64; 2]) {
+        let at = |s: f64| json!({ "x": from[0] + s * by[0], "y": from[1] + s * by[1] });
+        let event = |kind: &str, s: f64, buttons: u8| {
+            let mut e = at(s);
+            e["type"] = json!(kind);
+            e["button"] = json!("left");
+            e["buttons"] = json!(buttons);
+            e["clickCount"] = json!(1);
+            e
+        };
+        self.call("Input.dispatchMouseEvent", event("mouseMoved", 0.0, 0));
+        self.call("Input.dispatchMouseEvent", event("mousePressed", 0.0, 1));
+        for step in 1..=4 {
+            let s = f64::from(step) / 4.0;
+            self.call("Input.dispatchMouseEvent", event("mouseMoved", s, 1));
+        }
+        self.call("Input.dispatchMouseEvent", event("mouseReleased", 1.0, 0));
+    }
+
     fn key(&mut self, key: &str, code: u32) {
         for kind in ["keyDown", "keyUp"] {
             self.call(
@@ -309,10 +329,50 @@ fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
     let path = Path::new(env!("CARGO_TARGET_TMPDIR")).join("live.png");
     std::fs::write(&path, &png).unwrap();
 
+    // Paused: a key press moves the tool on the page but nothing is solved until resumed.
+    cdp.key(" ", 32);
+    let paused = cdp.until(Duration::from_secs(60), "the pause", |r| {
+        r["paused"] == json!("true")
+    });
+    cdp.key("ArrowDown", 40);
+    std::thread::sleep(Duration::from_millis(500));
+    let still = cdp.readout();
+    assert_eq!(
+        still["frame"], paused["frame"],
+        "solved while paused: {still}"
+    );
+    assert_eq!(still["requested"], json!("0.2,0,-1.4"), "{still}");
+    cdp.key(" ", 32);
+    cdp.until(Duration::from_secs(60), "the resumed frame", |r| {
+        r["paused"] == json!("false") && r["tool"] == json!("0.2,0,-1.4")
+    });
+
+    // The mouse: drag the tool 80 px to the right on the screen; the tool moves and the force
+    // shown is again the host's for wherever it ended up.
+    let xy = numbers(&cdp.readout()["toolScreen"]);
+    cdp.drag([xy[0], xy[1]], [80.0, 0.0]);
+    let dragged = cdp.until(Duration::from_secs(60), "the dragged frame", |r| {
+        r["requested"] != json!("0.2,0,-1.4") && r["tool"] == r["requested"]
+    });
+    let tool = numbers(&dragged["tool"]);
+    assert!(
+        (tool[0] - 0.2).abs() > 0.3,
+        "the drag moved the tool: {tool:?}"
+    );
+    let (want, _) = reference([tool[0], tool[1], tool[2]]);
+    let shown = numbers(&dragged["force"]);
+    let scale = want.iter().fold(0f64, |m, v| m.max(v.abs()));
+    for d in 0..3 {
+        assert!(
+            (shown[d] - want[d]).abs() <= 1e-3 * scale,
+            "after the drag: force {shown:?} on the page, {want:?} from the host"
+        );
+    }
+
     // Reset puts the tool back at rest: no force.
     cdp.key("r", 82);
     let rest = cdp.until(Duration::from_secs(60), "the reset frame", |r| {
-        r["tool"] == json!("0,0,0") && r["frame"] != moved["frame"]
+        r["tool"] == json!("0,0,0")
     });
     assert!(numbers(&rest["force"])
         .iter()

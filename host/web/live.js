@@ -229,9 +229,15 @@ renderer.domElement.addEventListener('pointermove', (e) => {
 });
 renderer.domElement.addEventListener('pointerup', () => { dragging = false; controls.enabled = true; });
 
+const projected = new THREE.Vector3();
 function animate() {
   requestAnimationFrame(animate);
   controls.update();
   renderer.render(scene, camera);
+  // Where the tool is on the screen (CSS pixels), for tests that drag it.
+  projected.copy(toolGroup.position).project(camera);
+  const r = renderer.domElement.getBoundingClientRect();
+  readout.dataset.toolScreen = [r.left + (projected.x + 1) / 2 * r.width,
+    r.top + (1 - projected.y) / 2 * r.height].map((v) => v.toFixed(1)).join(',');
 }
 animate();
