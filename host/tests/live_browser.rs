@@ -256,6 +256,8 @@ fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
                 "--disable-background-networking",
                 "--disable-component-update",
                 "--disable-sync",
+                // Containers often have a small /dev/shm.
+                "--disable-dev-shm-usage",
                 // WebGL in software, since there is no GPU.
                 "--use-angle=swiftshader",
                 "--enable-unsafe-swiftshader",
@@ -318,6 +320,10 @@ fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
         "max |u| {u_max_after} on the page, {u_max} from the host"
     );
     assert!(number(&moved["iterations"]) > 0.0 && number(&moved["cycles"]) > 0.0);
+    println!(
+        "moved frame: tool {tool:?}, force {shown:?} (host {want:?}), {} iterations, {} cycles",
+        moved["iterations"], moved["cycles"]
+    );
 
     // Let the page render the frame, then keep a screenshot of it.
     std::thread::sleep(Duration::from_millis(500));
@@ -354,6 +360,10 @@ fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
     let dragged = cdp.until(Duration::from_secs(60), "the dragged frame", |r| {
         r["requested"] != json!("0.2,0,-1.4") && r["tool"] == r["requested"]
     });
+    println!(
+        "dragged: {} frames solved in all, {} tool positions dropped as stale, frames/s {}",
+        dragged["frame"], dragged["dropped"], dragged["fps"]
+    );
     let tool = numbers(&dragged["tool"]);
     assert!(
         (tool[0] - 0.2).abs() > 0.3,

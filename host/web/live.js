@@ -150,7 +150,7 @@ function show(f) {
   Object.assign(readout.dataset, {
     frame: f.frame, solver: f.solver, tool: f.tool.join(','), force: f.force.join(','),
     forceNorm: f.force_norm, uMax: f.u_max, iterations: f.iterations,
-    cycles: f.cycles ?? '', dropped: f.dropped, paused: f.paused,
+    cycles: f.cycles ?? '', dropped: f.dropped, paused: f.paused, fps: f.fps, lagMs: f.lag_ms,
   });
   paint();
 }
