@@ -47,8 +47,20 @@ shaft.rotation.x = Math.PI / 2;
 shaft.position.z = 2;
 toolGroup.add(toolTip, shaft);
 scene.add(toolGroup);
-const arrow = new THREE.ArrowHelper(new THREE.Vector3(0, 0, 1), new THREE.Vector3(), 1, '#ffb224', 0.4, 0.25);
+// The force arrow: a solid shaft and head (a line would be 1 px wide), along +y, turned to F.
+const arrowMaterial = new THREE.MeshStandardMaterial({ color: '#f76b15' });
+const arrow = new THREE.Group();
+const arrowShaft = new THREE.Mesh(new THREE.CylinderGeometry(0.07, 0.07, 1, 12), arrowMaterial);
+const arrowHead = new THREE.Mesh(new THREE.ConeGeometry(0.2, 0.45, 16), arrowMaterial);
+arrow.add(arrowShaft, arrowHead);
 scene.add(arrow);
+function pointArrow(direction, length) {
+  const shaft = Math.max(length - 0.45, 0.05);
+  arrowShaft.scale.set(1, shaft, 1);
+  arrowShaft.position.y = shaft / 2;
+  arrowHead.position.y = shaft + 0.225;
+  arrow.quaternion.setFromUnitVectors(new THREE.Vector3(0, 1, 0), direction);
+}
 
 function resize() {
   renderer.setSize(window.innerWidth, window.innerHeight);
@@ -124,10 +136,7 @@ function paint() {
     const solved = new THREE.Vector3(t[0] + last.tool[0], t[1] + last.tool[1], t[2] + last.tool[2]);
     arrow.position.copy(solved);
     arrow.visible = f.length() > 0;
-    if (arrow.visible) {
-      arrow.setDirection(f.clone().normalize());
-      arrow.setLength(Math.min(0.6 + 1.5 * Math.log1p(f.length()), 5), 0.4, 0.25);
-    }
+    if (arrow.visible) pointArrow(f.clone().normalize(), Math.min(0.8 + 1.5 * Math.log1p(f.length()), 5));
     $('colorbar-max').textContent = max.toExponential(2);
   }
 }
