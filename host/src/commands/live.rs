@@ -38,7 +38,7 @@ pub struct LiveArgs {
 
     /// Serve the live view at --addr: the tissue in 3-D, the tool moved with the mouse or
     /// keys, the force and the target's cycles per frame, updated over a WebSocket.
-    #[arg(long, conflicts_with = "headless")]
+    #[arg(long, conflicts_with_all = ["headless", "frames", "report", "frames_csv", "out", "pace"])]
     pub serve: bool,
 
     /// Where --serve listens for the page (the WebSocket gets a port of its own, printed too).
