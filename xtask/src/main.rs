@@ -48,6 +48,10 @@ const LITEX_PACKAGES: &[&str] = &[
     "socat",
     "python3-venv",
 ];
+/// The browser test of `deform live --serve` drives these (Debian's packages).
+const CHROMIUM_PACKAGES: [&str; 2] = ["chromium", "chromium-driver"];
+const CHROMIUM_BINARY: &str = "/usr/bin/chromium";
+const CHROMEDRIVER_BINARY: &str = "/usr/bin/chromedriver";
 /// The scenario `cargo xtask run` solves when given no arguments.
 const DEFAULT_RUN_ARGS: &[&str] = &["--target", "qemu"];
 
@@ -68,8 +72,8 @@ const FIRMWARE_ENV_BLOCKLIST: &[&str] = &[
 const USAGE: &str = "usage: cargo xtask <command>
 
 commands:
-  setup              install the RISC-V target, clippy, rustfmt, QEMU and the LiteX
-                     toolchain (Verilator, RISC-V GCC, socat, a Python venv) if missing
+  setup              install the RISC-V target, clippy, rustfmt, QEMU, Chromium and the
+                     LiteX toolchain (Verilator, RISC-V GCC, socat, a Python venv) if missing
   firmware [--board qemu|litex]
                      build the firmware ELF (firmware/, release): for QEMU `virt` with the
                      serial loader (default), or for the LiteX VexRiscv SoC
@@ -187,6 +191,7 @@ fn is_executable(path: &Path) -> bool {
 fn setup() -> Result<()> {
     setup_rust()?;
     setup_qemu()?;
+    setup_chromium()?;
     setup_litex()
 }
 
@@ -242,7 +247,40 @@ fn setup_qemu() -> Result<()> {
         eprintln!("==> QEMU: {}", path.display());
         return Ok(());
     }
-    let apt_install = ["install", "-y", "--no-install-recommends", QEMU_PACKAGE];
+    apt_install(&["--no-install-recommends", QEMU_PACKAGE], "QEMU")?;
+    match on_path(QEMU_BINARY) {
+        Some(path) => {
+            eprintln!("==> QEMU: {}", path.display());
+            Ok(())
+        }
+        None => bail!("{QEMU_PACKAGE} was installed but {QEMU_BINARY} is still not on PATH"),
+    }
+}
+
+/// Debian's Chromium and its WebDriver, for the browser test of `deform live --serve`.
+fn setup_chromium() -> Result<()> {
+    let wanted = [CHROMIUM_BINARY, CHROMEDRIVER_BINARY];
+    if wanted.iter().all(|p| Path::new(p).exists()) {
+        eprintln!("==> Chromium: {CHROMIUM_BINARY}, {CHROMEDRIVER_BINARY}");
+        return Ok(());
+    }
+    apt_install(&CHROMIUM_PACKAGES, "Chromium")?;
+    match wanted.iter().find(|p| !Path::new(p).exists()) {
+        None => {
+            eprintln!("==> Chromium: {CHROMIUM_BINARY}, {CHROMEDRIVER_BINARY}");
+            Ok(())
+        }
+        Some(missing) => bail!(
+            "{} were installed but {missing} is missing",
+            CHROMIUM_PACKAGES.join(" and ")
+        ),
+    }
+}
+
+/// `apt-get update` and `apt-get install -y ARGS`, as root or through sudo, waiting for a
+/// package manager another process is running rather than failing at once.
+fn apt_install(args: &[&str], what: &str) -> Result<()> {
+    let lock = ["-o", "DPkg::Lock::Timeout=600"];
     let privileged = |program: &str| -> Result<Command> {
         if is_root() {
             Ok(Command::new(program))
@@ -252,28 +290,24 @@ fn setup_qemu() -> Result<()> {
             Ok(cmd)
         } else {
             bail!(
-                "{QEMU_BINARY} is missing and installing it needs root; run as root:\n    \
-                 apt-get update && apt-get install -y {QEMU_PACKAGE}"
+                "{what} is missing and installing it needs root; run as root:\n    \
+                 apt-get update && apt-get install -y {}",
+                args.join(" ")
             )
         }
     };
     step(
         "refresh the Debian package lists",
-        privileged("apt-get")?.arg("update"),
+        privileged("apt-get")?.args(lock).arg("update"),
     )?;
     step(
-        &format!("install QEMU ({QEMU_PACKAGE})"),
+        &format!("install {what} ({})", args.join(" ")),
         privileged("apt-get")?
-            .args(apt_install)
+            .args(lock)
+            .args(["install", "-y"])
+            .args(args)
             .env("DEBIAN_FRONTEND", "noninteractive"),
-    )?;
-    match on_path(QEMU_BINARY) {
-        Some(path) => {
-            eprintln!("==> QEMU: {}", path.display());
-            Ok(())
-        }
-        None => bail!("{QEMU_PACKAGE} was installed but {QEMU_BINARY} is still not on PATH"),
-    }
+    )
 }
 
 /// The LiteX target's Debian packages, then its Python venv (`target/litex/venv`, or under
@@ -290,30 +324,9 @@ fn setup_litex() -> Result<()> {
     if missing.is_empty() {
         eprintln!("==> LiteX toolchain (Verilator, RISC-V GCC, socat): present");
     } else {
-        let apt = |args: &[&str]| -> Result<Command> {
-            let mut cmd = if is_root() {
-                Command::new("apt-get")
-            } else if on_path("sudo").is_some() {
-                let mut cmd = Command::new("sudo");
-                cmd.arg("apt-get");
-                cmd
-            } else {
-                bail!(
-                    "installing {} needs root; run as root:\n    apt-get install -y {}",
-                    missing.join(" "),
-                    missing.join(" ")
-                )
-            };
-            cmd.args(["-o", "DPkg::Lock::Timeout=600"]).args(args);
-            Ok(cmd)
-        };
-        step("refresh the Debian package lists", &mut apt(&["update"])?)?;
-        step(
-            &format!("install the LiteX toolchain ({})", missing.join(" ")),
-            apt(&["install", "-y", "--no-install-recommends"])?
-                .args(&missing)
-                .env("DEBIAN_FRONTEND", "noninteractive"),
-        )?;
+        let mut args = vec!["--no-install-recommends"];
+        args.extend(&missing);
+        apt_install(&args, "the LiteX toolchain")?;
     }
     setup_litex_venv()
 }

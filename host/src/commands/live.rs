@@ -1,10 +1,12 @@
 //! `deform live SCENARIO.toml`: the interactive real-time loop (see [`crate::live`]). With
 //! `--headless` the tool follows the scenario's keyframes for `--frames` frames and a JSON
 //! report says what the target achieved, every frame checked against a converged f64 solve.
+//! With `--serve` a person moves the tool in a browser and sees the tissue respond.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{bail, Context};
@@ -15,7 +17,9 @@ use crate::bench::board::{timeouts, BenchBoard, BenchBoardChoice};
 use crate::commands::simulate::bar;
 use crate::encode::{EncodeOptions, Partition};
 use crate::live::headless::{self, FrameRecord, Script, Session, CLOCK_HZ};
+use crate::live::interactive;
 use crate::live::link::LiveLink;
+use crate::live::serve::Mailbox;
 use crate::live::LiveSetup;
 use crate::model::Connection;
 use crate::output::node_rows;
@@ -31,6 +35,16 @@ pub struct LiveArgs {
     /// Run the scripted session without a browser (the tool follows the keyframes).
     #[arg(long)]
     pub headless: bool,
+
+    /// Serve the live view at --addr: the tissue in 3-D, the tool moved with the mouse or
+    /// keys, the force and the target's cycles per frame, updated over a WebSocket.
+    #[arg(long, conflicts_with_all = ["headless", "frames", "report", "frames_csv", "out", "pace"])]
+    pub serve: bool,
+
+    /// Where --serve listens for the page (the WebSocket gets a port of its own, printed too).
+    /// Port 0: any free port.
+    #[arg(long, value_name = "IP:PORT", default_value = "127.0.0.1:8080")]
+    pub addr: std::net::SocketAddr,
 
     /// Full frames to run, spread evenly over the scenario's time span. Default: its steps.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
@@ -110,8 +124,8 @@ pub struct LiveArgs {
 }
 
 pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
-    if !args.headless {
-        bail!("give --headless: the browser view (--serve) is not part of this build yet");
+    if !args.headless && !args.serve {
+        bail!("give --headless (the scripted session) or --serve (the browser view)");
     }
     let mut scenario = Scenario::load(&args.scenario, None)?;
     match args.model.as_deref() {
@@ -151,26 +165,14 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
             })
             .collect()
     };
+    if args.serve {
+        return serve(args, &setup);
+    }
     if args.target == "host" {
         return run_on_host(args, &setup, &times, &tool_at);
     }
-    let choice = match &args.port {
-        Some(port) => BenchBoardChoice::Port(port.clone()),
-        None => BenchBoardChoice::Qemu {
-            firmware: args.firmware.clone(),
-        },
-    };
-    let mut board = BenchBoard::open(
-        &choice,
-        args.mvus,
-        timeouts(Duration::from_secs(args.timeout)),
-    )?;
-    let params = LiveParams {
-        tolerance: args.tol as f32,
-        max_iterations: args.max_iter,
-        cycle_budget: args.cycle_budget,
-        scale: setup.scale.map(|s| s as f32),
-    };
+    let mut board = open_board(args)?;
+    let params = live_params(args, &setup);
     println!("model       {}", setup.model.spec().describe());
     println!(
         "tool        {} node(s), {frames} frames over {end} s; tolerance {:e}, budget {} cycles, {} MVU(s)",
@@ -342,6 +344,70 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         println!("wrote       {}", path.display());
     }
     Ok(())
+}
+
+/// The board (or QEMU) the session runs on.
+fn open_board(args: &LiveArgs) -> anyhow::Result<BenchBoard> {
+    let choice = match &args.port {
+        Some(port) => BenchBoardChoice::Port(port.clone()),
+        None => BenchBoardChoice::Qemu {
+            firmware: args.firmware.clone(),
+        },
+    };
+    BenchBoard::open(
+        &choice,
+        args.mvus,
+        timeouts(Duration::from_secs(args.timeout)),
+    )
+}
+
+fn live_params(args: &LiveArgs, setup: &LiveSetup) -> LiveParams {
+    LiveParams {
+        tolerance: args.tol as f32,
+        max_iterations: args.max_iter,
+        cycle_budget: args.cycle_budget,
+        scale: setup.scale.map(|s| s as f32),
+    }
+}
+
+/// `--serve`: the page and its WebSocket, the browser's tool positions solved frame by frame
+/// on the target (or the host reference) until the process is stopped.
+fn serve(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<()> {
+    let mailbox = Arc::new(Mailbox::new(interactive::mesh_json(setup)));
+    println!("model       {}", setup.model.spec().describe());
+    let mut board = None;
+    let mut link = None;
+    if args.target != "host" {
+        let b = board.insert(open_board(args)?);
+        let l = LiveLink::start(&mut b.target, setup, live_params(args, setup))
+            .context("setting the live session up on the target")?;
+        println!(
+            "force model {} CG solve(s), {} iterations, {} cycles",
+            l.model.solves, l.model.iterations, l.model.cycles
+        );
+        link = Some(l);
+    }
+    let bound = crate::live::serve::start(args.addr, mailbox.clone())?;
+    println!(
+        "serving     http://{}/ (WebSocket on port {}); Ctrl-C to stop",
+        bound.http,
+        bound.websocket.port()
+    );
+    std::io::stdout().flush()?;
+    match link.as_mut() {
+        Some(link) => {
+            let mut solver = interactive::TargetSolver {
+                link,
+                field_stride: args.field_stride,
+                n: setup.model.n(),
+            };
+            interactive::run(setup, &mut solver, &mailbox)
+        }
+        None => {
+            let mut solver = interactive::HostSolver { setup, warm: None };
+            interactive::run(setup, &mut solver, &mailbox)
+        }
+    }
 }
 
 /// `--target host`: every frame solved by the f64 reference (converged), its force printed and,

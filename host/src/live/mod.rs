@@ -9,9 +9,13 @@
 //! - [`link`]: the live requests over a [`Target`](crate::link::Target), with bytes counted on
 //!   the line and a target reset answered by uploading everything again.
 //! - [`headless`]: the scripted session behind `--headless` and its JSON report.
+//! - [`interactive`]: the session behind `--serve`, the tool where the browser puts it;
+//!   [`serve`] carries the page and the frames to the browsers.
 
 pub mod headless;
+pub mod interactive;
 pub mod link;
+pub mod serve;
 pub mod setup;
 
 pub use setup::{LiveSetup, SetupError};
