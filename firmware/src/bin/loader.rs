@@ -26,7 +26,6 @@ mod board;
 use core::sync::atomic::{AtomicU32, Ordering};
 
 use deform_shared::frame::{self, Feed, FrameAccumulator, FrameError};
-use deform_shared::loader::UNKNOWN_SEQ;
 use deform_shared::loader::{
     decode_frame, LoaderAction, LoaderEnvelope, LoaderError, LoaderInfo, LoaderRequest,
     LoaderResponse, LoaderSession, CRC32, LOADER_FRAME_LEN, LOADER_PROTOCOL_VERSION, UNKNOWN_SEQ,
