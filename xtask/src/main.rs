@@ -2,14 +2,16 @@
 //! does (the alias lives in `.cargo/config.toml`).
 //!
 //! - `setup`: installs what a fresh machine lacks: the RISC-V target, clippy and rustfmt, QEMU,
-//!   and for the LiteX target Verilator, its libraries, the RISC-V binutils and GCC (the stock
-//!   BIOS), socat, and the LiteX Python packages in a venv under `target/litex`.
+//!   Debian's Chromium and chromedriver (the browser test of `deform live --serve`), and for the
+//!   LiteX target Verilator, its libraries, the RISC-V binutils and GCC (the stock BIOS), socat,
+//!   and the LiteX Python packages in a venv under `target/litex`.
 //! - `firmware [--board qemu|litex]`: builds the firmware ELF for QEMU `virt` (and the serial
 //!   loader), or for a LiteX VexRiscv SoC.
-//! - `run [-- ARGS…]`: setup, firmware, then `deform solve ARGS…` (default: the default scenario
-//!   solved on QEMU).
-//! - `test`: the whole gate CI runs: setup, firmware, formatting and clippy of both workspaces,
-//!   then every test, the QEMU hardware-in-the-loop tests included.
+//! - `run [-- ARGS…]`: the Rust target and QEMU if missing, firmware, then `deform solve ARGS…`
+//!   (default: the default scenario solved on QEMU).
+//! - `test`: the whole gate CI runs: setup, firmware (both boards), formatting and clippy of both
+//!   workspaces, then every test: the QEMU and LiteX hardware-in-the-loop tests and the browser
+//!   test included.
 //!
 //! Every step is printed before it runs, with its duration after; the first failure ends the
 //! command with a non-zero exit code.
@@ -77,7 +79,8 @@ commands:
   firmware [--board qemu|litex]
                      build the firmware ELF (firmware/, release): for QEMU `virt` with the
                      serial loader (default), or for the LiteX VexRiscv SoC
-  run [-- ARGS...]   setup + firmware, then `deform solve ARGS...` (default: --target qemu)
+  run [-- ARGS...]   Rust target + QEMU if missing, firmware, then `deform solve ARGS...`
+                     (default: --target qemu)
   test               setup + firmware, fmt and clippy everywhere, then cargo test --workspace";
 
 fn main() -> ExitCode {
@@ -443,7 +446,10 @@ fn solve_args(args: &[String]) -> Vec<OsString> {
 
 fn run(args: &[String]) -> Result<()> {
     let solve_args = solve_args(args);
-    setup()?;
+    // The main job needs only the toolchain and QEMU: the LiteX toolchain and Chromium are for
+    // the tests (`setup` installs everything).
+    setup_rust()?;
+    setup_qemu()?;
     let elf = build_firmware()?;
     step(
         "deform solve",
