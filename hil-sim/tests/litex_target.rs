@@ -134,6 +134,48 @@ fn bad_bytes_are_answered_with_an_error_frame() {
     );
 }
 
+/// `deform live` on the soft core: the needle-push example's first frames (8³ model B, one
+/// MVU) against converged f64 solves of the same tool position, with real cycles per frame.
+#[test]
+fn live_frames_on_the_soft_core_match_converged_solves() {
+    use deform_host::encode::EncodeOptions;
+    use deform_host::live::link::LiveLink;
+    use deform_host::live::LiveSetup;
+    use deform_host::scenario::Scenario;
+    use deform_shared::live::LiveParams;
+
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/needle-push-8b.toml");
+    let scenario = Scenario::load(&path, None).expect("the example loads");
+    let simulation = scenario.simulation.as_ref().expect("a keyframed tool");
+    let spec_at = |t: f64| simulation.spec_at(&scenario.model, t);
+    let setup = LiveSetup::new(&spec_at(0.0), &EncodeOptions::default()).unwrap();
+    let sim = start();
+    let path = sim.serial_path().to_string_lossy().into_owned();
+    let port = open_serial(&path).expect("open the bridge's pty");
+    let mut target = Target::handshake(Link::new(port), timeouts())
+        .unwrap_or_else(|e| panic!("handshake: {e}; simulator:\n{}", sim.output()));
+    let params = LiveParams {
+        tolerance: 1e-6,
+        max_iterations: 500,
+        cycle_budget: 0,
+        scale: setup.scale.map(|s| s as f32),
+    };
+    let mut link = LiveLink::start(&mut target, &setup, params).unwrap();
+    for frame in 1..=3 {
+        let tool = vec![spec_at(frame as f64 * 0.05).prescribed[0].u];
+        let answer = link.frame(&tool).unwrap();
+        let (_, want) = setup.converged(&tool, None).unwrap();
+        let scale = want.iter().fold(0f64, |m, v| m.max(v.abs()));
+        let err = (0..3)
+            .map(|d| (f64::from(answer.force[d]) - want[d]).abs())
+            .fold(0.0, f64::max)
+            / scale;
+        assert!(err <= 1e-3, "frame {frame}: {answer:?} vs {want:?}");
+        assert!(answer.cycles > 0, "{answer:?}");
+    }
+}
+
 /// The stock LiteX BIOS (the litex_sim SoC with ROM, built once) boots our firmware over its
 /// serial line (SFL), as `litex_term --kernel` would; the firmware then solves.
 #[test]

@@ -97,20 +97,22 @@ pub struct LiveArgs {
     #[arg(long, value_name = "HZ")]
     pub pace: Option<f64>,
 
-    /// MVUs (harts) to boot QEMU with and split K over.
+    /// MVUs (harts) to boot QEMU with and split K over (`--target litex`: its one hart).
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u8).range(1..=8))]
     pub mvus: u8,
 
-    /// Where frames are solved: `qemu` (the firmware in QEMU, default) or `host` (the f64
-    /// reference alone: forces and fields, no target figures).
-    #[arg(long, value_name = "qemu|host", default_value = "qemu", value_parser = ["qemu", "host"])]
+    /// Where frames are solved: `qemu` (the firmware in QEMU, default), `litex` (the
+    /// `--board litex` firmware on the simulated LiteX VexRiscv SoC: real cycles, one MVU) or
+    /// `host` (the f64 reference alone: forces and fields, no target figures).
+    #[arg(long, value_name = "qemu|litex|host", default_value = "qemu", value_parser = ["qemu", "litex", "host"])]
     pub target: String,
 
     /// Serial device of a real board running the firmware. Default: boot it in QEMU.
     #[arg(long, value_name = "PATH")]
     pub port: Option<String>,
 
-    /// Firmware ELF for QEMU. Default: $DEFORM_FIRMWARE, else the release build.
+    /// Firmware ELF for QEMU or LiteX. Default: $DEFORM_FIRMWARE, else the release build (for
+    /// `--target litex`, the `--board litex` build).
     #[arg(long, value_name = "ELF")]
     pub firmware: Option<PathBuf>,
 
@@ -145,7 +147,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         .map(|i| end * f64::from(i) / f64::from(frames))
         .collect();
     let layout = EncodeOptions {
-        mvus: args.mvus,
+        mvus: args.mvu_count(),
         partition: Partition::Rows,
         use_symmetry: true,
     };
@@ -179,7 +181,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         setup.tools.len(),
         args.tol,
         args.cycle_budget,
-        args.mvus
+        args.mvu_count()
     );
     let mut link = LiveLink::start(&mut board.target, &setup, params)
         .context("setting the live session up on the target")?;
@@ -279,7 +281,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
             Connection::Axial => "a".into(),
             Connection::AxialShear => "b".into(),
         },
-        mvus: args.mvus,
+        mvus: args.mvu_count(),
         tolerance: args.tol,
         cycle_budget: args.cycle_budget,
         model_cycles: link.model.cycles,
@@ -346,17 +348,31 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+impl LiveArgs {
+    /// The MVUs K is split over: `--mvus`, except on the LiteX SoC, which has one hart.
+    fn mvu_count(&self) -> u8 {
+        if self.target == "litex" {
+            1
+        } else {
+            self.mvus
+        }
+    }
+}
+
 /// The board (or QEMU) the session runs on.
 fn open_board(args: &LiveArgs) -> anyhow::Result<BenchBoard> {
     let choice = match &args.port {
         Some(port) => BenchBoardChoice::Port(port.clone()),
+        None if args.target == "litex" => BenchBoardChoice::Litex {
+            firmware: args.firmware.clone(),
+        },
         None => BenchBoardChoice::Qemu {
             firmware: args.firmware.clone(),
         },
     };
     BenchBoard::open(
         &choice,
-        args.mvus,
+        args.mvu_count(),
         timeouts(Duration::from_secs(args.timeout)),
     )
 }
