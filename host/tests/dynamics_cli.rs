@@ -119,3 +119,27 @@ fn the_dynamics_table_is_read_and_its_errors_name_file_line_and_key() {
         );
     }
 }
+
+/// `deform live` does not step dynamics: a dynamic scenario is refused by name, before any
+/// board is opened, instead of being run as quasi-static frames.
+#[test]
+fn deform_live_refuses_a_dynamic_scenario_clearly() {
+    let example = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/needle-dynamic.toml");
+    let out = Command::new(env!("CARGO_BIN_EXE_deform"))
+        .args([
+            "live",
+            example.to_str().unwrap(),
+            "--headless",
+            "--frames",
+            "2",
+        ])
+        .env("DEFORM_FIRMWARE", "/nonexistent/firmware.elf")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("dynamic = true") && stderr.contains("deform simulate"),
+        "{stderr}"
+    );
+}

@@ -141,6 +141,17 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
             args.scenario.display()
         );
     };
+    if simulation.dynamic {
+        // The live frames solve K·u = f on the target with the tool's displacements moved into
+        // the right-hand side; a dynamic step needs S = M + h·B + h²·K and the velocities, which
+        // the frame protocol does not carry yet. Refuse rather than silently drop the dynamics.
+        bail!(
+            "{}: [simulation] dynamic = true: deform live solves quasi-static frames only; run \
+             the dynamic scenario with `deform simulate {}`",
+            args.scenario.display(),
+            args.scenario.display()
+        );
+    }
     let frames = args.frames.unwrap_or(simulation.steps);
     let end = simulation.end_time();
     let times: Vec<f64> = (1..=frames)
