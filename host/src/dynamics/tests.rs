@@ -1,6 +1,6 @@
 //! The scheme against closed forms (a single spring–mass–damper), energy behaviour, long-time
 //! limits and bad input. The target is checked against the same f64 stepper in
-//! `hil-sim/tests/dynamics.rs`.
+//! `hil-sim/tests/hil/dynamics.rs`.
 
 use super::host::host_step;
 use super::*;

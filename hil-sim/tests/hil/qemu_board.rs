@@ -3,7 +3,7 @@
 //! `$DEFORM_FIRMWARE`) and `qemu-system-riscv32` (`cargo xtask setup`); without them they fail
 //! with a message saying so.
 
-mod support;
+use crate::support;
 
 use deform_host::link::{Capacity, Link, LinkError, Target};
 use deform_shared::frame;

@@ -2,7 +2,7 @@
 //! checked against the f64 reference, warm starts against cold starts, and the values-only
 //! update of the displacement-dependent model against a fresh upload of the same matrix.
 
-mod support;
+use crate::support;
 
 use deform_host::encode::encode;
 use deform_host::model::{Grid, Model, ModelSpec};

@@ -2,7 +2,7 @@
 //! real link, and neither panics nor loses the session: afterwards it solves as usual. Needs
 //! the firmware ELF and QEMU, like `qemu_board.rs`.
 
-mod support;
+use crate::support;
 
 use deform_host::link::LinkError;
 use deform_shared::matrix::{words_crc, TileHeader};

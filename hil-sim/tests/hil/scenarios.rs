@@ -2,7 +2,7 @@
 //! (`solve_model` over the pty with `serialport`), each displacement checked against the host's
 //! f64 reference solver.
 
-mod support;
+use crate::support;
 
 use std::time::Duration;
 

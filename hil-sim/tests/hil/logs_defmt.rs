@@ -2,7 +2,7 @@
 //! the firmware ELF with their level and source location; an ELF of another build is refused.
 //! Needs the firmware (`cargo xtask firmware`) and QEMU.
 
-mod support;
+use crate::support;
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};

@@ -3,7 +3,7 @@
 //! instruction words like any K) of a tumour case. Each is compared with the same estimate
 //! solved by the host's f64 reference.
 
-mod support;
+use crate::support;
 
 use deform_host::inverse::regularise::Regularisation;
 use deform_host::inverse::synthetic::{forward, observe, Noise};

@@ -4,7 +4,7 @@
 //! clean run; at 1e-3 the bytes on the line stay within 1.5× the clean run's. Prints the
 //! figures docs/PERFORMANCE.md quotes. Needs the firmware ELF and QEMU, like `qemu_board.rs`.
 
-mod support;
+use crate::support;
 
 use std::time::{Duration, Instant};
 

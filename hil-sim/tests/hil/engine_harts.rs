@@ -4,7 +4,7 @@
 //! the firmware's assembly MVU and SVU loops equal the host's portable specification bit for
 //! bit; the per-hart costs shrink with more MVUs.
 
-mod support;
+use crate::support;
 
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_host::encode::EncodedMatrix;

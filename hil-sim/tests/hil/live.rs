@@ -3,7 +3,7 @@
 //! frames, the quantised field, bad input refused clearly, and a target reset mid-session
 //! answered by setting the session up again.
 
-mod support;
+use crate::support;
 
 use std::path::Path;
 

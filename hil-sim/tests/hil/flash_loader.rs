@@ -3,7 +3,7 @@
 //! application must then solve as a directly booted one. Needs the loader and the firmware
 //! (`cargo xtask firmware`) and QEMU.
 
-mod support;
+use crate::support;
 
 use std::io::{self, Read, Write};
 

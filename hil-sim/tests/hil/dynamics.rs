@@ -3,7 +3,7 @@
 //! of max |u|, for both schemes, anisotropic tissue (one S per direction, swapped by
 //! values-only updates) and a keyframed prescribed displacement.
 
-mod support;
+use crate::support;
 
 use deform_host::dynamics::host::host_step;
 use deform_host::dynamics::target::{simulate_dynamic, DynamicParams, DynamicRunner, DynamicStep};

@@ -3,7 +3,7 @@
 //! handshake state (`NotSynced`), shakes hands again, re-uploads the matrix and gives the same
 //! answer as before, bit for bit. Needs the firmware ELF and QEMU, like `qemu_board.rs`.
 
-mod support;
+use crate::support;
 
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_shared::protocol::{SolveParams, Start};

@@ -2,7 +2,7 @@
 //! with and without conjugate symmetry, all equal to each other and to the f64 reference; the
 //! three directions fused against one at a time; Jacobi scaling on a stiff inclusion.
 
-mod support;
+use crate::support;
 
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_host::encode::{encode_with, EncodeOptions, EncodedMatrix, Partition};

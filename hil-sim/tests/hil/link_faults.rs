@@ -3,7 +3,7 @@
 //! bit with the clean run; and the throughput of a large matrix upload through the QEMU pty.
 //! Needs the firmware ELF and QEMU, like `qemu_board.rs`.
 
-mod support;
+use crate::support;
 
 use std::time::{Duration, Instant};
 

@@ -2,7 +2,7 @@
 //! path: 16×16×16 in model A on one MVU and in model B on eight (refined to 1e-10), and a grid
 //! too large for the target refused before anything is uploaded.
 
-mod support;
+use crate::support;
 
 use std::time::Duration;
 

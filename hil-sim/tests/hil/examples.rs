@@ -2,7 +2,7 @@
 //! in QEMU through `deform solve`'s own code path and checked against the host's f64 reference;
 //! prescribed displacements must be met.
 
-mod support;
+use crate::support;
 
 use std::path::Path;
 use std::time::Duration;

@@ -6,7 +6,7 @@
 //! SoC (about 2 minutes, cached in target/litex). The simulator runs about 0.8 M cycles per
 //! second, so the systems here are small.
 
-mod support;
+use crate::support;
 
 use std::time::{Duration, Instant};
 
