@@ -104,7 +104,10 @@ pub struct SimulateArgs {
     #[command(flatten)]
     pub link: LinkFlags,
 
-    /// Write `step,t,iterations,residual,max_u` per step to this CSV file.
+    /// Write one row per step to this CSV file: `step,t,iterations,residual,max_u`; with
+    /// --dynamic `step,t,iterations,solves,fused_iterations,cycles,residual,max_u,energy,
+    /// bytes_sent,bytes_received` (iterations summed over x, y and z; fused iterations of the
+    /// target's solves; cycles on their critical path).
     #[arg(long, value_name = "FILE")]
     pub steps_csv: Option<PathBuf>,
 

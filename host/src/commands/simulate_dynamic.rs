@@ -34,6 +34,28 @@ fn fused_iterations(s: &DynamicStep) -> u32 {
     s.result.reports.iter().map(|r| r.iterations).sum()
 }
 
+/// The columns of `--steps-csv` for a dynamic series, one row per step ([`csv_row`]).
+const STEPS_CSV_HEADER: &str =
+    "step,t,iterations,solves,fused_iterations,cycles,residual,max_u,energy,bytes_sent,bytes_received";
+
+fn csv_row(s: &DynamicStep) -> String {
+    let r = &s.result;
+    format!(
+        "{},{},{},{},{},{},{:e},{:e},{:e},{},{}",
+        r.step,
+        r.t,
+        r.iterations,
+        r.reports.len(),
+        fused_iterations(s),
+        s.cycles,
+        r.residual,
+        r.max_u,
+        s.energy,
+        s.bytes_sent,
+        s.bytes_received
+    )
+}
+
 fn line(s: &DynamicStep) -> String {
     let r = &s.result;
     let mut line = format!(
@@ -76,10 +98,7 @@ pub fn run(
             let mut f = BufWriter::new(
                 File::create(path).with_context(|| format!("creating {}", path.display()))?,
             );
-            writeln!(
-                f,
-                "step,t,iterations,cycles,residual,max_u,energy,bytes_sent,bytes_received"
-            )?;
+            writeln!(f, "{STEPS_CSV_HEADER}")?;
             Some(f)
         }
         None => None,
@@ -114,21 +133,7 @@ pub fn run(
         steps_bar.inc(1);
         let mut write = || -> anyhow::Result<()> {
             if let Some(f) = csv.as_mut() {
-                writeln!(
-                    f,
-                    "{},{},{},{},{},{},{:e},{:e},{:e},{},{}",
-                    r.step,
-                    r.t,
-                    r.iterations,
-                    r.reports.len(),
-                    fused_iterations(s),
-                    s.cycles,
-                    r.residual,
-                    r.max_u,
-                    s.energy,
-                    s.bytes_sent,
-                    s.bytes_received
-                )?;
+                writeln!(f, "{}", csv_row(s))?;
             }
             if let Some(series) = series.as_mut() {
                 series.write_step(r.step, r.t, &node_rows(model, &r.u))?;
@@ -181,4 +186,42 @@ pub fn run(
         println!("wrote       {}", path.display());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::simulate::StepResult;
+
+    /// The header names every column a row has (it once lacked `solves` and
+    /// `fused_iterations`, shifting every later column's name).
+    #[test]
+    fn the_steps_csv_header_names_every_column() {
+        let step = DynamicStep {
+            result: StepResult {
+                step: 3,
+                t: 0.25,
+                iterations: 12,
+                reports: Vec::new(),
+                residual: 1e-5,
+                max_u: 2.5e-3,
+                deviation: None,
+                update: None,
+                u: [Vec::new(), Vec::new(), Vec::new()],
+            },
+            energy: 0.5,
+            bytes_sent: 700,
+            bytes_received: 800,
+            cycles: 99_000,
+        };
+        let header: Vec<&str> = STEPS_CSV_HEADER.split(',').collect();
+        let row = csv_row(&step);
+        let fields: Vec<&str> = row.split(',').collect();
+        assert_eq!(header.len(), fields.len(), "{row}");
+        let column = |name: &str| fields[header.iter().position(|h| *h == name).unwrap()];
+        assert_eq!(column("step"), "3");
+        assert_eq!(column("solves"), "0");
+        assert_eq!(column("cycles"), "99000");
+        assert_eq!(column("bytes_received"), "800");
+    }
 }
