@@ -1911,5 +1911,6 @@ fn a_solution_answer_holds_at_most_len_elements() {
     }
 }
 
+mod force_tool;
 mod live;
 mod predicted;
