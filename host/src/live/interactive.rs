@@ -47,7 +47,7 @@ impl<P: Port> FrameSolver for TargetSolver<'_, '_, P> {
             u[node] = q;
         }
         Ok(ViewFrame {
-            force: answer.force.map(f64::from),
+            force: answer.value.map(f64::from),
             u,
             iterations: u32::from(answer.iterations),
             cycles: Some(answer.cycles),
