@@ -171,3 +171,5 @@ fn a_target_reset_mid_session_is_set_up_again() {
     assert_alive(&mut qemu);
     let _ = std::fs::remove_file(&monitor);
 }
+
+mod force_tool;

@@ -26,10 +26,9 @@ use crate::live::link::LiveLink;
 use crate::live::serve::Mailbox;
 use crate::live::setup::ToolKind;
 use crate::live::LiveSetup;
-use crate::model::{Connection, ModelSpec, Node};
+use crate::model::Connection;
 use crate::output::node_rows;
 use crate::output::vtk::{write_pvd, write_vtk, VtkKind};
-use crate::scenario::simulation::Simulation;
 use crate::scenario::Scenario;
 
 #[derive(Debug, Args)]
@@ -172,25 +171,10 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         partition: Partition::Rows,
         use_symmetry: true,
     };
-    let setup = live_setup(&args.scenario, &scenario.model, &simulation, &layout)?;
+    let setup = LiveSetup::for_simulation(&scenario.model, &simulation, &layout)
+        .with_context(|| format!("{}", args.scenario.display()))?;
     let grid = setup.model.grid();
-    let tool_at = |t: f64| -> Vec<[f64; 3]> {
-        if setup.kind == ToolKind::Force {
-            return simulation.load.iter().map(|s| s.value_at(t)).collect();
-        }
-        let spec = simulation.spec_at(&scenario.model, t);
-        setup
-            .tools
-            .iter()
-            .map(|&p| {
-                let node = grid.node(p);
-                spec.prescribed
-                    .iter()
-                    .find(|d| d.node == node)
-                    .map_or([0.0; 3], |d| d.u)
-            })
-            .collect()
-    };
+    let tool_at = |t: f64| setup.tool_at(&scenario.model, &simulation, t);
     if args.serve {
         if setup.kind == ToolKind::Force {
             bail!(
@@ -396,40 +380,6 @@ fn model_label(kind: ToolKind) -> &'static str {
     match kind {
         ToolKind::Displacement => "force model",
         ToolKind::Force => "compliance",
-    }
-}
-
-/// The live set-up for the scenario's tool: prescribed-displacement schedules make a
-/// displacement tool, point-load schedules a force tool; both at once are refused.
-fn live_setup(
-    path: &std::path::Path,
-    model: &ModelSpec,
-    simulation: &Simulation,
-    layout: &EncodeOptions,
-) -> anyhow::Result<LiveSetup> {
-    let rest = simulation.spec_at(model, 0.0);
-    match (simulation.displace.is_empty(), simulation.load.is_empty()) {
-        (false, true) => Ok(LiveSetup::new(&rest, layout)?),
-        (true, false) => {
-            // The scenario appends the scheduled loads after the static ones: drop them, the
-            // frames carry them.
-            let mut rest = rest;
-            let statics = rest.loads.len() - simulation.load.len();
-            rest.loads.truncate(statics);
-            let nodes: Vec<Node> = simulation.load.iter().map(|s| s.node).collect();
-            Ok(LiveSetup::force(&rest, &nodes, layout)?)
-        }
-        (false, false) => bail!(
-            "{}: both [[simulation.displace]] and [[simulation.load]] keyframes: a live tool \
-             either moves nodes (displacement tool) or loads them (force tool), not both; \
-             keep one kind",
-            path.display()
-        ),
-        (true, true) => bail!(
-            "{}: no tool: give [[simulation.displace]] keyframes (a displacement tool) or \
-             [[simulation.load]] keyframes (a force tool)",
-            path.display()
-        ),
     }
 }
 

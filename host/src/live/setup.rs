@@ -19,11 +19,15 @@ use crate::model::assembly::assemble_laplacian;
 use crate::model::springs::{MeanOfEndNodes, Uniform};
 use crate::model::{Axis, Csr, Model, ModelError, ModelSpec, Node};
 use crate::reference;
+use crate::scenario::simulation::Simulation;
 
 /// Why a live session cannot be set up.
 #[derive(Debug, thiserror::Error)]
 pub enum SetupError {
-    #[error("the scenario moves no tool: give a [[simulation.displace]] node with keyframes")]
+    #[error(
+        "the scenario moves no tool: give [[simulation.displace]] keyframes (a displacement \
+         tool) or [[simulation.load]] keyframes (a force tool)"
+    )]
     NoTool,
     #[error("{0} tool nodes; a live session drives at most {MAX_TOOL_NODES}")]
     TooManyTools(usize),
@@ -47,6 +51,11 @@ pub enum SetupError {
     ToolOutsideGrid(Node),
     #[error("force tool node {0:?} is loaded by two schedules; give one")]
     DuplicateToolNode(Node),
+    #[error(
+        "both [[simulation.displace]] and [[simulation.load]] keyframes: a live tool either moves \
+         nodes (displacement tool) or loads them (force tool), not both; keep one kind"
+    )]
+    BothKinds,
 }
 
 /// What a live session's tool prescribes (see the module doc).
@@ -148,6 +157,49 @@ impl LiveSetup {
             static_rhs,
             scale,
         })
+    }
+
+    /// The session a scenario's `[simulation]` describes (`model` is the scenario's static
+    /// model): prescribed-displacement schedules make a displacement tool, point-load
+    /// schedules a force tool; both at once are refused.
+    pub fn for_simulation(
+        model: &ModelSpec,
+        simulation: &Simulation,
+        layout: &EncodeOptions,
+    ) -> Result<Self, SetupError> {
+        let mut rest = simulation.spec_at(model, 0.0);
+        match (simulation.displace.is_empty(), simulation.load.is_empty()) {
+            (false, true) => Self::new(&rest, layout),
+            (true, false) => {
+                // The scenario appends the scheduled loads after the static ones: drop them,
+                // the frames carry them.
+                let statics = rest.loads.len().saturating_sub(simulation.load.len());
+                rest.loads.truncate(statics);
+                let nodes: Vec<Node> = simulation.load.iter().map(|s| s.node).collect();
+                Self::force(&rest, &nodes, layout)
+            }
+            (false, false) => Err(SetupError::BothKinds),
+            (true, true) => Err(SetupError::NoTool),
+        }
+    }
+
+    /// The tool's inputs at time t: the prescribed displacements, or the loads.
+    pub fn tool_at(&self, model: &ModelSpec, simulation: &Simulation, t: f64) -> Vec<[f64; 3]> {
+        if self.kind == ToolKind::Force {
+            return simulation.load.iter().map(|s| s.value_at(t)).collect();
+        }
+        let spec = simulation.spec_at(model, t);
+        let grid = self.model.grid();
+        self.tools
+            .iter()
+            .map(|&p| {
+                let node = grid.node(p);
+                spec.prescribed
+                    .iter()
+                    .find(|d| d.node == node)
+                    .map_or([0.0; 3], |d| d.u)
+            })
+            .collect()
     }
 
     /// Sets up a force tool at `nodes` on `rest`, the model without the tool's loads.
@@ -337,6 +389,40 @@ mod tests {
                 force[d]
             );
         }
+    }
+
+    /// A force tool's frame is the model with the tool's load added: same right-hand side,
+    /// and the answer is the loaded node's displacement.
+    #[test]
+    fn a_force_tool_frame_is_the_model_with_its_load() {
+        let f = [0.5, -0.25, -1.0];
+        let probe = Node { i: 2, j: 2, k: 4 };
+        let mut rest = needle([0.0; 3]);
+        rest.prescribed.clear();
+        rest.fixed_sets = vec![crate::model::FixedNodeSet::Face {
+            axis: Axis::Z,
+            side: crate::model::Side::Low,
+        }];
+        let setup = LiveSetup::force(&rest, &[probe], &EncodeOptions::default()).unwrap();
+        let mut loaded = rest.clone();
+        loaded.loads.push(crate::model::PointLoad {
+            node: probe,
+            force: f,
+        });
+        let model = Model::build(&loaded).unwrap();
+        let (u, answer) = setup.converged(&[f], None).unwrap();
+        let t = setup.tools[0];
+        for (d, axis) in Axis::ALL.into_iter().enumerate() {
+            let err = reference::max_abs_diff(&setup.rhs(d, &[f]), &model.scaled_rhs(axis));
+            assert!(err < 1e-12, "direction {d}: {err}");
+            assert_eq!(answer[d], u[d][t]);
+        }
+        // The base is fixed: a tool there is refused.
+        let base = Node { i: 2, j: 2, k: 0 };
+        assert!(matches!(
+            LiveSetup::force(&rest, &[base], &EncodeOptions::default()),
+            Err(SetupError::FixedToolNode(_))
+        ));
     }
 
     #[test]
