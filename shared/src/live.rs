@@ -84,7 +84,8 @@ pub struct ModelReport {
     pub solves: u8,
     /// CG iterations over those solves.
     pub iterations: u32,
-    /// Hart 0's cycles for the whole model.
+    /// Hart 0's cycles for the whole model, each solve counted at its critical path (with
+    /// one MVU simply hart 0's count; see [`FrameReport::cycles`]).
     pub cycles: u64,
     /// Every column converged.
     pub converged: bool,
@@ -99,7 +100,8 @@ pub struct FrameReport {
     pub residual: f32,
     /// Iterations of the fused loop.
     pub iterations: u16,
-    /// Hart 0's cycles for the whole frame: right-hand side, prediction, solve, force.
+    /// Hart 0's cycles for the whole frame: right-hand side, prediction, solve, force; with
+    /// several MVUs the solve counted at its measured critical path.
     pub cycles: u32,
 }
 

@@ -49,7 +49,9 @@ impl<E: Executor> Session<'_, E> {
             cycles: 0,
             converged: true,
         };
-        let result = (|| {
+        // Hart 0's count over the solves and their critical paths (see `frame_cycles`).
+        let (mut counted, mut path) = (0u64, 0u64);
+        let mut result = || {
             for first in (0..tools).step_by(MAX_DIRECTIONS) {
                 let group = (tools - first).min(MAX_DIRECTIONS);
                 for g in 0..group {
@@ -69,6 +71,10 @@ impl<E: Executor> Session<'_, E> {
                     cycle_budget: 0,
                 })?;
                 if let Response::Solved(r) = solved {
+                    // Each solve counts at its critical path, as a frame's does.
+                    let (on_hart0, critical) = solve_cycles(&r);
+                    counted = counted.saturating_add(on_hart0);
+                    path = path.saturating_add(critical);
                     report.solves += 1;
                     report.iterations += r.iterations;
                     report.converged &= r.converged;
@@ -83,7 +89,8 @@ impl<E: Executor> Session<'_, E> {
                 }
             }
             Ok(())
-        })();
+        };
+        let result = result();
         // The vectors now hold the model's columns, not anything the host sent.
         self.rhs = [VectorState::Empty; MAX_DIRECTIONS];
         self.solution = [None; MAX_DIRECTIONS];
@@ -92,7 +99,8 @@ impl<E: Executor> Session<'_, E> {
             self.live.clear();
             return Err(e);
         }
-        report.cycles = self.exec.now().cycles.wrapping_sub(t0.cycles);
+        let elapsed = self.exec.now().cycles.wrapping_sub(t0.cycles);
+        report.cycles = elapsed.saturating_sub(counted).saturating_add(path);
         Ok(Response::LiveReady(report))
     }
 
@@ -274,13 +282,19 @@ impl<E: Executor> Session<'_, E> {
 /// parallel phase's slowest hart plus hart 0's serial work), and hart 0's own work around the
 /// solve (right-hand sides, prediction, reaction force) is kept as it is.
 fn frame_cycles(elapsed: u64, report: &SolveReport) -> u64 {
-    if report.mvus <= 1 {
-        return elapsed;
-    }
+    let (on_hart0, critical) = solve_cycles(report);
+    elapsed.saturating_sub(on_hart0).saturating_add(critical)
+}
+
+/// A solve's share of hart 0's cycle count and its critical path; the same with one MVU.
+fn solve_cycles(report: &SolveReport) -> (u64, u64) {
     let on_hart0 = report.mvu.cycles.saturating_add(report.svu.cycles);
+    if report.mvus <= 1 {
+        return (on_hart0, on_hart0);
+    }
     let critical = report
         .whole_solve
         .mvu_critical
         .saturating_add(report.whole_solve.svu_critical);
-    elapsed.saturating_sub(on_hart0).saturating_add(critical)
+    (on_hart0, critical)
 }
