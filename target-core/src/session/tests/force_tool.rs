@@ -1,16 +1,15 @@
 //! Force tools (version 9) on a 1-D chain against a direct f64 solve: frames, the compliance
 //! model's prediction, and every refusal.
 
-use deform_shared::live::{Coupling, LiveError, LiveParams, ToolRow};
+use deform_shared::live::{Coupling, LiveError, ToolRow};
 use deform_shared::qformat::quantize;
 
+use super::live::{params, sine_load, N, SCALE};
 use super::*;
 
-const N: usize = 21;
 /// Node 0 is fixed: its row keeps only its diagonal and no other row couples to it.
 const FIXED: usize = 0;
 const F: u8 = 18;
-const SCALE: [f32; 3] = [1.0, 2.0, 0.5];
 const F0: [f32; 3] = [0.3, -0.2, 0.05];
 
 type Tool = heapless::Vec<[f32; 3], 8>;
@@ -25,24 +24,7 @@ fn chain() -> Encoded {
 }
 
 fn static_load() -> Vec<f64> {
-    (0..N)
-        .map(|i| {
-            if i == FIXED {
-                0.0
-            } else {
-                0.1 * (i as f64).sin()
-            }
-        })
-        .collect()
-}
-
-fn params() -> LiveParams {
-    LiveParams {
-        tolerance: 1e-7,
-        max_iterations: 500,
-        cycle_budget: 0,
-        scale: SCALE,
-    }
+    sine_load(FIXED)
 }
 
 fn nodes(list: &[u32]) -> heapless::Vec<u32, 8> {
