@@ -139,3 +139,53 @@ fn bad_force_tools_are_refused_with_a_clear_error() {
     );
     assert_alive(&mut qemu);
 }
+
+/// Four tool nodes (two fused model solves of three and one unit load), each loaded
+/// differently: the mean displacement and the field against the f64 reference, and the
+/// compliance model's prediction against a full solve.
+#[test]
+fn a_four_node_force_tool_matches_the_reference() {
+    use deform_host::model::Node;
+    let s = scenario();
+    let mut rest = s.model.clone();
+    rest.loads.clear();
+    let nodes = [(3, 4), (4, 4), (5, 4), (4, 3)].map(|(i, j)| Node { i, j, k: 7 });
+    let setup = LiveSetup::force(&rest, &nodes, &EncodeOptions::default()).unwrap();
+    let mut qemu = boot();
+    let mut target = connect(&qemu);
+    let mut link = LiveLink::start(&mut target, &setup, params(&setup)).unwrap();
+    assert_eq!(link.model.solves, 2, "{:?}", link.model);
+    assert!(link.model.converged, "{:?}", link.model);
+    let load_at = |t: f64| -> Vec<[f64; 3]> {
+        (0..4)
+            .map(|j| [0.1 * j as f64 * t, -0.2 * t, -(1.0 + j as f64) * t])
+            .collect()
+    };
+    for frame in 1..=4 {
+        let t = frame as f64 * 0.25;
+        let load = load_at(t);
+        let answer = link.frame(&load).unwrap();
+        let (want, motion) = setup.converged(&load, None).unwrap();
+        let scale = want.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+        assert!(
+            err(answer.value, motion, scale) <= 1e-3,
+            "frame {frame}: {answer:?} vs {motion:?}"
+        );
+        let u = link.solution().unwrap();
+        for d in 0..3 {
+            assert!(
+                max_abs_diff(&u[d], &want[d]) <= 1e-3 * scale,
+                "frame {frame}"
+            );
+        }
+        let next = load_at(t + 0.1);
+        let model = link.force(&next).unwrap();
+        let (want_next, motion_next) = setup.converged(&next, None).unwrap();
+        let scale = want_next.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+        assert!(
+            err(model.value, motion_next, scale) <= 1e-3,
+            "frame {frame}: {model:?} vs {motion_next:?}"
+        );
+    }
+    assert_alive(&mut qemu);
+}
