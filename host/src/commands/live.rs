@@ -63,8 +63,9 @@ pub struct LiveArgs {
     #[arg(long, value_name = "FILE")]
     pub report: Option<PathBuf>,
 
-    /// Write one CSV row per frame (t, tool, force and its reference, residual, iterations,
-    /// cycles, error against a converged solve, bytes up and down).
+    /// Write one CSV row per frame (t, tool, force and its reference — for a force tool the
+    /// mean tool displacement —, residual, iterations, cycles, error against a converged solve,
+    /// bytes up and down).
     #[arg(long, value_name = "FILE")]
     pub frames_csv: Option<PathBuf>,
 
@@ -223,7 +224,12 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
             let mut f = BufWriter::new(
                 File::create(path).with_context(|| format!("creating {}", path.display()))?,
             );
-            writeln!(f, "frame,t,tool_x,tool_y,tool_z,fx,fy,fz,fx_ref,fy_ref,fz_ref,residual,iterations,cycles,error_vs_converged,bytes_up,bytes_down")?;
+            // A force tool's input is a load and its answer the mean tool displacement.
+            let answer = match setup.kind {
+                ToolKind::Displacement => "fx,fy,fz,fx_ref,fy_ref,fz_ref",
+                ToolKind::Force => "ux,uy,uz,ux_ref,uy_ref,uz_ref",
+            };
+            writeln!(f, "frame,t,tool_x,tool_y,tool_z,{answer},residual,iterations,cycles,error_vs_converged,bytes_up,bytes_down")?;
             Some(f)
         }
         None => None,
