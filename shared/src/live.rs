@@ -1,4 +1,4 @@
-//! The live loop's messages (protocol version 8): a tool pushes the tissue frame by frame, the
+//! The live loop's messages (protocol version 8; force tools version 9): a tool pushes the tissue frame by frame, the
 //! reaction force comes back at haptic rate and the field at a lower rate (`deform live`).
 //!
 //! K, the fixed set and the static loads stay resident on the target. The host sends once per

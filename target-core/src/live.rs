@@ -1,7 +1,8 @@
-//! The target's half of the live loop (`deform live`, protocol version 8; the messages and the
-//! scheme are in [`deform_shared::live`]): the tool set, the local force model, and the integer
-//! arithmetic that turns a frame's few tool displacements into right-hand sides, reaction forces
-//! and a quantised field. The session ([`crate::session`]) owns the vectors and runs the solves;
+//! The target's half of the live loop (`deform live`, protocol versions 8–9; the messages and
+//! the scheme are in [`deform_shared::live`]): the tool set of either [`ToolKind`], the local
+//! model (Schur sums, or compliance means for a force tool), and the integer arithmetic that
+//! turns a frame's few tool inputs (displacements, or loads) into right-hand sides, answers
+//! (reaction forces, or the tool's mean displacement) and a quantised field. The session ([`crate::session`]) owns the vectors and runs the solves;
 //! this module only computes on what it is lent.
 //!
 //! Everything per frame is integer work on the few rows the tool touches, never a pass of soft

@@ -96,7 +96,8 @@ pub struct LiveArgs {
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
     pub field_stride: u16,
 
-    /// Force queries from the local model between two full frames (the haptic rate).
+    /// Force queries from the local model between two full frames (the haptic rate); for a
+    /// force tool, displacement queries from the compliance model.
     #[arg(long, default_value_t = 3)]
     pub forces_per_frame: u32,
 

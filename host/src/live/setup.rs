@@ -242,7 +242,7 @@ impl LiveSetup {
         })
     }
 
-    /// The unit matrix the target holds (tool nodes eliminated).
+    /// The unit matrix the target holds (a displacement tool's nodes eliminated).
     pub fn unit_matrix(&self) -> &Csr {
         self.model.unit_matrix()
     }
