@@ -1,7 +1,8 @@
 //! Force tools (protocol version 9) on the firmware in QEMU: examples/probe-force-8b.toml's
 //! loaded probe, every frame's tool displacement and field against a converged f64 solve of
 //! the same load (to 1e-3 of max |u| at tolerance 1e-4), the compliance model's prediction
-//! against a full solve, and bad force tools refused with a clear error.
+//! against a full solve, bad force tools refused with a clear error, and a target reset
+//! mid-session answered by setting the force tool up again.
 
 use std::path::Path;
 
@@ -188,4 +189,34 @@ fn a_four_node_force_tool_matches_the_reference() {
         );
     }
     assert_alive(&mut qemu);
+}
+
+/// A target reset mid-session: the link sends the force tool again (not tool rows), rebuilds
+/// the compliance model and repeats the frame.
+#[test]
+fn a_force_tool_survives_a_target_reset() {
+    use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
+    let monitor =
+        std::env::temp_dir().join(format!("deform-force-monitor-{}.sock", std::process::id()));
+    let _ = std::fs::remove_file(&monitor);
+    let mut qemu = Qemu::start(&QemuConfig::new(firmware_elf()).monitor(&monitor))
+        .unwrap_or_else(|e| panic!("cannot boot the firmware: {e}"));
+    let mut target = connect(&qemu);
+    let s = scenario();
+    let sim = s.simulation.as_ref().unwrap();
+    let setup = setup(&s);
+    let mut link = LiveLink::start(&mut target, &setup, params(&setup)).unwrap();
+    link.frame(&setup.tool_at(&s.model, sim, 0.1)).unwrap();
+    qemu.system_reset(&monitor).unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(500));
+    let load = setup.tool_at(&s.model, sim, 0.2);
+    let answer = link
+        .frame(&load)
+        .unwrap_or_else(|e| panic!("no recovery from the reset: {e}"));
+    assert_eq!(link.resets, 1);
+    let (want, motion) = setup.converged(&load, None).unwrap();
+    let scale = want.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+    assert!(err(answer.value, motion, scale) <= 1e-3, "{answer:?}");
+    assert_alive(&mut qemu);
+    let _ = std::fs::remove_file(&monitor);
 }
