@@ -36,8 +36,8 @@ pub struct LiveArgs {
     /// Scenario file: the tissue, its fixed set and static loads, and the tool — its
     /// `[[simulation.displace]]` nodes, moved along their keyframes over steps·dt (a
     /// displacement tool: the force comes back), or its `[[simulation.load]]` nodes, loaded
-    /// along their keyframes (a force tool: the tool's mean displacement comes back; not with
-    /// --serve).
+    /// along their keyframes (a force tool: the tool's mean displacement comes back; with
+    /// --serve the browser sets the load, 1 grid unit = 1 N).
     pub scenario: PathBuf,
 
     /// Run the scripted session without a browser (the tool follows the keyframes).
@@ -45,7 +45,8 @@ pub struct LiveArgs {
     pub headless: bool,
 
     /// Serve the live view at --addr: the tissue in 3-D, the tool moved with the mouse or
-    /// keys, the force and the target's cycles per frame, updated over a WebSocket.
+    /// keys, the force and the target's cycles per frame, updated over a WebSocket. For a
+    /// force tool the mouse or keys set the load and the page shows the tool's motion.
     #[arg(long, conflicts_with_all = ["headless", "frames", "report", "frames_csv", "out", "pace"])]
     pub serve: bool,
 
@@ -178,13 +179,6 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     let grid = setup.model.grid();
     let tool_at = |t: f64| setup.tool_at(&scenario.model, &simulation, t);
     if args.serve {
-        if setup.kind == ToolKind::Force {
-            bail!(
-                "{}: a force tool ([[simulation.load]] keyframes) runs with --headless only; \
-                 the browser view moves a displacement tool ([[simulation.displace]])",
-                args.scenario.display()
-            );
-        }
         return serve(args, &setup);
     }
     if args.target == "host" {

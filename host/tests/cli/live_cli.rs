@@ -1,6 +1,6 @@
 //! `deform live` picks the tool's kind from the scenario: `[[simulation.displace]]` keyframes
-//! make a displacement tool, `[[simulation.load]]` keyframes a force tool; both at once, and a
-//! force tool in the browser view, are refused clearly before any board is opened.
+//! make a displacement tool, `[[simulation.load]]` keyframes a force tool; both at once, and
+//! neither, are refused clearly before any board is opened.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -77,7 +77,7 @@ fn load_keyframes_make_a_force_tool_and_displace_keyframes_a_displacement_tool()
 }
 
 #[test]
-fn mixed_kinds_and_a_force_tool_in_the_browser_are_refused() {
+fn mixed_kinds_and_no_tool_are_refused() {
     let both = scratch("both-kinds.toml");
     std::fs::write(
         &both,
@@ -89,13 +89,13 @@ fn mixed_kinds_and_a_force_tool_in_the_browser_are_refused() {
     let out = deform_live(&[both.to_str().unwrap(), "--headless", "--target", "host"]);
     refused(&out, &["both-kinds.toml", "not both"]);
     let _ = std::fs::remove_file(&both);
-    let out = deform_live(&[
-        &example("probe-force-8b.toml"),
-        "--serve",
-        "--target",
-        "host",
-        "--addr",
-        "127.0.0.1:0",
-    ]);
-    refused(&out, &["force tool", "--headless only"]);
+    let none = scratch("no-tool.toml");
+    std::fs::write(
+        &none,
+        "grid = [4, 4, 4]\n[simulation]\nsteps = 2\ndt = 0.5\n",
+    )
+    .unwrap();
+    let out = deform_live(&[none.to_str().unwrap(), "--headless", "--target", "host"]);
+    refused(&out, &["no-tool.toml", "[[simulation.load]]"]);
+    let _ = std::fs::remove_file(&none);
 }
