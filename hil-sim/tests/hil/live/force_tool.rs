@@ -57,31 +57,38 @@ fn force_frames_match_converged_solves_and_the_compliance_predicts_the_next() {
     for frame in 1..=6 {
         let t = frame as f64 * 0.1;
         let load = setup.tool_at(&s.model, sim, t);
-        let answer = link.frame(&load).unwrap();
-        let (want, motion) = setup.converged(&load, None).unwrap();
-        let scale = want.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
-        assert!(
-            err(answer.value, motion, scale) <= 1e-3,
-            "frame {frame}: {answer:?} vs {motion:?}"
-        );
-        let u = link.solution().unwrap();
-        for d in 0..3 {
-            assert!(
-                max_abs_diff(&u[d], &want[d]) <= 1e-3 * scale,
-                "frame {frame}"
-            );
-        }
-        // The compliance model between this frame and the next, against a full solve there.
         let next = setup.tool_at(&s.model, sim, t + 0.05);
-        let model = link.force(&next).unwrap();
-        let (want_next, motion_next) = setup.converged(&next, None).unwrap();
-        let scale = want_next.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
-        assert!(
-            err(model.value, motion_next, scale) <= 1e-3,
-            "frame {frame}: {model:?} vs {motion_next:?}"
-        );
+        check_frame(&mut link, &setup, &load, &next);
     }
     assert_alive(&mut qemu);
+}
+
+/// A full frame at `load` against a converged f64 solve (the motion and the whole field, to
+/// 1e-3 of max |u|), then the compliance model's answer at `next` against a full solve there.
+fn check_frame(
+    link: &mut LiveLink<'_, Box<dyn serialport::SerialPort>>,
+    setup: &LiveSetup,
+    load: &[[f64; 3]],
+    next: &[[f64; 3]],
+) {
+    let answer = link.frame(load).unwrap();
+    let (want, motion) = setup.converged(load, None).unwrap();
+    let scale = want.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+    assert!(
+        err(answer.value, motion, scale) <= 1e-3,
+        "{load:?}: {answer:?} vs {motion:?}"
+    );
+    let u = link.solution().unwrap();
+    for d in 0..3 {
+        assert!(max_abs_diff(&u[d], &want[d]) <= 1e-3 * scale, "{load:?}");
+    }
+    let model = link.force(next).unwrap();
+    let (want_next, motion_next) = setup.converged(next, None).unwrap();
+    let scale = want_next.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+    assert!(
+        err(model.value, motion_next, scale) <= 1e-3,
+        "{next:?}: {model:?} vs {motion_next:?}"
+    );
 }
 
 #[test]
@@ -164,29 +171,7 @@ fn a_four_node_force_tool_matches_the_reference() {
     };
     for frame in 1..=4 {
         let t = frame as f64 * 0.25;
-        let load = load_at(t);
-        let answer = link.frame(&load).unwrap();
-        let (want, motion) = setup.converged(&load, None).unwrap();
-        let scale = want.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
-        assert!(
-            err(answer.value, motion, scale) <= 1e-3,
-            "frame {frame}: {answer:?} vs {motion:?}"
-        );
-        let u = link.solution().unwrap();
-        for d in 0..3 {
-            assert!(
-                max_abs_diff(&u[d], &want[d]) <= 1e-3 * scale,
-                "frame {frame}"
-            );
-        }
-        let next = load_at(t + 0.1);
-        let model = link.force(&next).unwrap();
-        let (want_next, motion_next) = setup.converged(&next, None).unwrap();
-        let scale = want_next.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
-        assert!(
-            err(model.value, motion_next, scale) <= 1e-3,
-            "frame {frame}: {model:?} vs {motion_next:?}"
-        );
+        check_frame(&mut link, &setup, &load_at(t), &load_at(t + 0.1));
     }
     assert_alive(&mut qemu);
 }
