@@ -73,7 +73,12 @@ fn log_request(request: &Request) {
             params.cycle_budget
         ),
         // Frames are the hot path: a log line would ride down the line with every answer.
+        Request::LiveForceTool { nodes } => {
+            defmt::debug!("force tool at {=usize} node(s)", nodes.len())
+        }
         Request::LiveTool(_)
+        | Request::LiveLoad { .. }
+        | Request::LiveLoadQuery { .. }
         | Request::LiveFrame { .. }
         | Request::LiveForce { .. }
         | Request::ReadField { .. }
@@ -114,6 +119,8 @@ fn log_response(response: &Response, was_end_matrix: bool) {
         | Response::Log { .. }
         | Response::LiveFrame(_)
         | Response::LiveForce(_)
+        | Response::LiveMotion(_)
+        | Response::LiveMotionQuery(_)
         | Response::Field(_) => {}
     }
 }

@@ -1,6 +1,8 @@
 // The deform live view: the tissue grid deformed and coloured by |u|, the tool, the force.
 // Frames arrive over a WebSocket from `deform live --serve`; the tool positions go back the
 // same way. Every number shown is also put on #readout as data- attributes (for tests).
+// A force tool (mesh.kind 'force'): the handle sets the load (1 grid unit = 1 N), each frame
+// answers the tool's mean displacement, and the arrow shows the load at the moved tool.
 import * as THREE from 'three';
 import { OrbitControls } from '/vendor/OrbitControls.js';
 
@@ -78,6 +80,11 @@ function rest(p) {
 
 function buildMesh(m) {
   mesh = m;
+  const force = forceTool();
+  $('tool-label').textContent = force ? 'tool load f' : 'tool u';
+  $('force-label').textContent = force ? 'tool motion ū' : 'force F';
+  $('norm-label').textContent = force ? '|ū|' : '|F|';
+  readout.dataset.kind = force ? 'force' : 'displacement';
   if (tissue) { scene.remove(tissue.points, tissue.lines); }
   const n = m.nodes.length;
   const index = new Map(m.nodes.map(([i, j, k], p) => [`${i},${j},${k}`, p]));
@@ -132,8 +139,11 @@ function paint() {
   const t = rest(mesh.tools[0]);
   toolGroup.position.set(t[0] + toolU[0], t[1] + toolU[1], t[2] + toolU[2]);
   if (last) {
-    const f = new THREE.Vector3(...last.force);
-    const solved = new THREE.Vector3(t[0] + last.tool[0], t[1] + last.tool[1], t[2] + last.tool[2]);
+    // Displacement tool: the force at the tool. Force tool: the load at the moved tool.
+    const force = forceTool();
+    const f = new THREE.Vector3(...(force ? last.tool : last.force));
+    const at = force ? last.force : last.tool;
+    const solved = new THREE.Vector3(t[0] + at[0], t[1] + at[1], t[2] + at[2]);
     arrow.position.copy(solved);
     arrow.visible = f.length() > 0;
     if (arrow.visible) pointArrow(f.clone().normalize(), Math.min(0.8 + 1.5 * Math.log1p(f.length()), 5));
@@ -142,12 +152,14 @@ function paint() {
 }
 
 const fmt = (v) => v.map((x) => x.toFixed(3)).join(', ');
+const forceTool = () => mesh && mesh.kind === 'force';
 function show(f) {
   last = f;
+  const unit = forceTool() ? 'm' : 'N';
   $('solver').textContent = f.solver === 'host' ? 'host f64 reference' : 'target (QEMU / board)';
-  $('tool').textContent = `(${fmt(f.tool)})`;
-  $('force').textContent = `(${f.force.map((x) => x.toExponential(3)).join(', ')}) N`;
-  $('force-norm').textContent = `${f.force_norm.toExponential(4)} N`;
+  $('tool').textContent = forceTool() ? `(${fmt(f.tool)}) N` : `(${fmt(f.tool)})`;
+  $('force').textContent = `(${f.force.map((x) => x.toExponential(3)).join(', ')}) ${unit}`;
+  $('force-norm').textContent = `${f.force_norm.toExponential(4)} ${unit}`;
   $('fps').textContent = f.fps.toFixed(0);
   $('cycles').textContent = f.cycles == null ? '–' : f.cycles.toLocaleString('en');
   $('rate').textContent = f.frames_per_s_at_100mhz == null ? '–'

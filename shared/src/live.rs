@@ -1,4 +1,4 @@
-//! The live loop's messages (protocol version 8): a tool pushes the tissue frame by frame, the
+//! The live loop's messages (protocol version 8; force tools version 9): a tool pushes the tissue frame by frame, the
 //! reaction force comes back at haptic rate and the field at a lower rate (`deform live`).
 //!
 //! K, the fixed set and the static loads stay resident on the target. The host sends once per
@@ -16,6 +16,15 @@
 //! column sums s_j. The target computes them with CG solves when the tool set is given
 //! ([`ModelReport`]), and each full frame re-anchors the model: F(u) = F_frame + k_d·Σ_j s_j·
 //! (u_j − u_j,frame).
+//!
+//! A force tool (protocol version 9) is the other kind: its nodes stay free in the resident K
+//! and [`Request::LiveForceTool`](crate::protocol::Request) names them. A frame
+//! ([`Request::LiveLoad`](crate::protocol::Request)) carries the point loads at the tool nodes,
+//! which the target adds to its static loads (b_t = b_static,t + f_t/k_d); it answers the tool
+//! nodes' mean displacement ([`MotionReport`]). The local model is then the compliance, the
+//! block C = (K⁻¹)_tt of the resident matrix, one unit-load CG column per tool node; the mean
+//! displacement needs only C's column means c̄_j, and each full frame re-anchors it:
+//! ū = ū_frame + Σ_j c̄_j·(f_j − f_j,frame)/k_d ([`MotionQuery`]).
 //!
 //! The displacement field travels in its own [`FieldChunk`]s, quantised to `i16` per component
 //! with one power-of-two scale per frame, optionally every k-th node only.
@@ -75,7 +84,8 @@ pub struct ModelReport {
     pub solves: u8,
     /// CG iterations over those solves.
     pub iterations: u32,
-    /// Hart 0's cycles for the whole model.
+    /// Hart 0's cycles for the whole model, each solve counted at its critical path (with
+    /// one MVU simply hart 0's count; see [`FrameReport::cycles`]).
     pub cycles: u64,
     /// Every column converged.
     pub converged: bool,
@@ -90,7 +100,8 @@ pub struct FrameReport {
     pub residual: f32,
     /// Iterations of the fused loop.
     pub iterations: u16,
-    /// Hart 0's cycles for the whole frame: right-hand side, prediction, solve, force.
+    /// Hart 0's cycles for the whole frame: right-hand side, prediction, solve, force; with
+    /// several MVUs the solve counted at its measured critical path.
     pub cycles: u32,
 }
 
@@ -98,6 +109,30 @@ pub struct FrameReport {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ForceReport {
     pub force: [f32; 3],
+    /// Hart 0's cycles for the query.
+    pub cycles: u32,
+}
+
+/// The answer to a full frame of a force tool (version 9): the mean displacement of the tool
+/// nodes. A haptic device driven by force (admittance) displays one position, the tool's; a
+/// probe spreading its load over several nodes sits at their mean displacement.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MotionReport {
+    /// Mean displacement of the tool nodes, per direction (m).
+    pub displacement: [f32; 3],
+    /// The largest relative residual the three directions reached.
+    pub residual: f32,
+    /// Iterations of the fused loop.
+    pub iterations: u16,
+    /// Hart 0's cycles for the whole frame (on the critical path with several MVUs).
+    pub cycles: u32,
+}
+
+/// The answer to a displacement query of a force tool from the compliance model (version 9).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MotionQuery {
+    /// Mean displacement of the tool nodes, per direction (m).
+    pub displacement: [f32; 3],
     /// Hart 0's cycles for the query.
     pub cycles: u32,
 }
@@ -147,6 +182,14 @@ pub enum LiveError {
     NoFrame,
     #[error("the field stride must be at least 1")]
     BadStride,
+    /// Version 9 (force tools): the unit load at a force tool node moved no other node, so
+    /// its row couples to no free node: it is fixed (or prescribed).
+    #[error("force tool node {node} is fixed: a load there moves nothing")]
+    FixedToolNode { node: u32 },
+    #[error("a tool set mixes displacement rows (LiveTool) and force nodes (LiveForceTool)")]
+    MixedKinds,
+    #[error("the request is for the other kind of tool than the session's")]
+    WrongKind,
 }
 
 #[cfg(test)]
@@ -182,6 +225,38 @@ mod tests {
             body: Response::LiveFrame(report),
         };
         assert!(encoded_len(&down) <= 32, "{}", encoded_len(&down));
+        // A force tool's frame and its answer (version 9), and the query's.
+        let load: Vec<[f32; 3], MAX_TOOL_NODES> = [[f32::MIN, 7.5, -1e-30]].into_iter().collect();
+        for body in [
+            Request::LiveLoad { load: load.clone() },
+            Request::LiveLoadQuery { load },
+        ] {
+            let up = Envelope {
+                seq: u16::MAX,
+                body,
+            };
+            assert!(encoded_len(&up) <= 32, "{}", encoded_len(&up));
+        }
+        let motion = MotionReport {
+            displacement: [f32::MIN, -0.5, 3.25e-3],
+            residual: 1e-5,
+            iterations: 120,
+            cycles: 2_000_000,
+        };
+        let query = MotionQuery {
+            displacement: [f32::MIN, -0.5, 3.25e-3],
+            cycles: u32::MAX,
+        };
+        for body in [
+            Response::LiveMotion(motion),
+            Response::LiveMotionQuery(query),
+        ] {
+            let down = Uplink::Reply {
+                seq: u16::MAX,
+                body,
+            };
+            assert!(encoded_len(&down) <= 32, "{}", encoded_len(&down));
+        }
     }
 
     #[test]

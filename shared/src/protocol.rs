@@ -62,7 +62,9 @@ use crate::matrix::{MatrixError, TileHeader};
 /// Version 6 (engine): the whole solve's measured critical path (`SolveReport::whole_solve`).
 /// Version 7 (craft): `ReadSolution` carries the most elements its answer may hold (`len`).
 /// Version 8 (live): predicted warm starts, cycle budgets, the sparse frame messages.
-pub const PROTOCOL_VERSION: u16 = 8;
+/// Version 9 (forcetool): force tools in the live loop (`LiveForceTool`, `LiveLoad`,
+/// `LiveLoadQuery`; `LiveMotion`, `LiveMotionQuery`; three more `LiveError`s).
+pub const PROTOCOL_VERSION: u16 = 9;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -236,6 +238,21 @@ pub enum Request {
     ReadField {
         offset: u32,
         stride: u16,
+    },
+    /// Live loop, version 9: a force tool, its nodes free in the resident K; replaces the tool
+    /// set. Then [`Request::LiveStart`] computes the compliance model.
+    LiveForceTool {
+        nodes: Vec<u32, { crate::live::MAX_TOOL_NODES }>,
+    },
+    /// Live loop, version 9: a full frame of a force tool. The point loads (N) at the tool
+    /// nodes, in the order of `LiveForceTool`; answered by [`Response::LiveMotion`].
+    LiveLoad {
+        load: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
+    },
+    /// Live loop, version 9: a displacement query of a force tool between full frames,
+    /// answered from the compliance model by [`Response::LiveMotionQuery`].
+    LiveLoadQuery {
+        load: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
     },
 }
 
@@ -449,6 +466,10 @@ pub enum Response {
     LiveForce(crate::live::ForceReport),
     /// Live loop: a chunk of the quantised field (see [`crate::live::FieldChunk`]).
     Field(crate::live::FieldChunk),
+    /// Live loop, version 9: the answer to a force tool's full frame.
+    LiveMotion(crate::live::MotionReport),
+    /// Live loop, version 9: the answer to a force tool's query.
+    LiveMotionQuery(crate::live::MotionQuery),
 }
 
 #[cfg(test)]

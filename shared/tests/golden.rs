@@ -27,7 +27,8 @@ use std::path::PathBuf;
 
 use deform_shared::frame::{self, FrameError};
 use deform_shared::live::{
-    Coupling, FieldChunk, ForceReport, FrameReport, LiveError, LiveParams, ModelReport, ToolRow,
+    Coupling, FieldChunk, ForceReport, FrameReport, LiveError, LiveParams, ModelReport,
+    MotionQuery, MotionReport, ToolRow,
 };
 use deform_shared::loader::{
     ImageHeader, LoaderEnvelope, LoaderError, LoaderInfo, LoaderRequest, LoaderResponse,
@@ -202,6 +203,15 @@ impl Golden for Request {
                 offset: 80,
                 stride: 2,
             },
+            Request::LiveForceTool {
+                nodes: [10, 300].into_iter().collect(),
+            },
+            Request::LiveLoad {
+                load: [[0.0, -0.25, 1.5e-3]].into_iter().collect(),
+            },
+            Request::LiveLoadQuery {
+                load: [[1.0, 0.0, -2.0], [0.5, 0.5, 0.5]].into_iter().collect(),
+            },
         ]
     }
     fn variant(&self) -> &'static str {
@@ -223,6 +233,9 @@ impl Golden for Request {
             Request::LiveFrame { .. } => "LiveFrame",
             Request::LiveForce { .. } => "LiveForce",
             Request::ReadField { .. } => "ReadField",
+            Request::LiveForceTool { .. } => "LiveForceTool",
+            Request::LiveLoad { .. } => "LiveLoad",
+            Request::LiveLoadQuery { .. } => "LiveLoadQuery",
         }
     }
 }
@@ -266,6 +279,16 @@ impl Golden for Response {
                 exponent: -12,
                 values: [1, 0, 0xFF, 0x7F, 0, 0x80].into_iter().collect(),
             }),
+            Response::LiveMotion(MotionReport {
+                displacement: [-0.5, 0.0, 3.25e-3],
+                residual: 1e-5,
+                iterations: 23,
+                cycles: 281_000,
+            }),
+            Response::LiveMotionQuery(MotionQuery {
+                displacement: [1.0, -1.0, 0.125],
+                cycles: 900,
+            }),
         ]
     }
     fn variant(&self) -> &'static str {
@@ -280,6 +303,8 @@ impl Golden for Response {
             Response::LiveFrame(_) => "LiveFrame",
             Response::LiveForce(_) => "LiveForce",
             Response::Field(_) => "Field",
+            Response::LiveMotion(_) => "LiveMotion",
+            Response::LiveMotionQuery(_) => "LiveMotionQuery",
         }
     }
 }
@@ -571,6 +596,9 @@ impl Golden for LiveError {
             LiveError::NotFinite,
             LiveError::NoFrame,
             LiveError::BadStride,
+            LiveError::FixedToolNode { node: 7 },
+            LiveError::MixedKinds,
+            LiveError::WrongKind,
         ]
     }
     fn variant(&self) -> &'static str {
@@ -586,6 +614,9 @@ impl Golden for LiveError {
             LiveError::NotFinite => "NotFinite",
             LiveError::NoFrame => "NoFrame",
             LiveError::BadStride => "BadStride",
+            LiveError::FixedToolNode { .. } => "FixedToolNode",
+            LiveError::MixedKinds => "MixedKinds",
+            LiveError::WrongKind => "WrongKind",
         }
     }
 }

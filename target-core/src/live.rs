@@ -1,7 +1,8 @@
-//! The target's half of the live loop (`deform live`, protocol version 8; the messages and the
-//! scheme are in [`deform_shared::live`]): the tool set, the local force model, and the integer
-//! arithmetic that turns a frame's few tool displacements into right-hand sides, reaction forces
-//! and a quantised field. The session ([`crate::session`]) owns the vectors and runs the solves;
+//! The target's half of the live loop (`deform live`, protocol versions 8–9; the messages and
+//! the scheme are in [`deform_shared::live`]): the tool set of either [`ToolKind`], the local
+//! model (Schur sums, or compliance means for a force tool), and the integer arithmetic that
+//! turns a frame's few tool inputs (displacements, or loads) into right-hand sides, answers
+//! (reaction forces, or the tool's mean displacement) and a quantised field. The session ([`crate::session`]) owns the vectors and runs the solves;
 //! this module only computes on what it is lent.
 //!
 //! Everything per frame is integer work on the few rows the tool touches, never a pass of soft
@@ -26,26 +27,42 @@ const TOOL_COLUMN: u16 = u16::MAX;
 /// Largest |mantissa| written into a right-hand side: 2^29, as the SVU's vectors.
 const TOP_BITS: i32 = 29;
 
+/// What a tool prescribes, and so what a frame carries and what it answers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ToolKind {
+    /// The tool nodes are eliminated; frames carry their displacements and get the force.
+    #[default]
+    Displacement,
+    /// The tool nodes are free (version 9); frames carry point loads and get the motion.
+    Force,
+}
+
 /// The live state of a session: the tool set as it arrives, then what `LiveStart` computed.
+/// A force tool's nodes are kept as [`ToolRow`]s without couplings, so both kinds share the
+/// set's bookkeeping.
 #[derive(Default)]
 pub struct Live {
     tools: Vec<ToolRow, MAX_TOOL_NODES>,
+    kind: ToolKind,
     started: Option<Started>,
 }
 
 /// A started live session.
 pub struct Started {
     pub params: LiveParams,
+    pub kind: ToolKind,
     /// The free rows the tools couple to (node indices), each once.
     rows: Vec<u32, MAX_ROWS>,
     /// For each tool and each of its couplings, the index into `rows`, or [`TOOL_COLUMN`].
     slots: [[u16; MAX_TOOL_ROW]; MAX_TOOL_NODES],
-    /// Column sums s_j of the Schur complement K_tt − K_tf·K_ff⁻¹·K_ft of the resident
-    /// matrix (before the factor k_d).
-    pub schur: [f64; MAX_TOOL_NODES],
+    /// The local model's columns, of the resident matrix (before k_d): for a displacement
+    /// tool the column sums s_j of the Schur complement K_tt − K_tf·K_ff⁻¹·K_ft, for a force
+    /// tool the column means c̄_j of the compliance block (K⁻¹)_tt.
+    pub model: [f64; MAX_TOOL_NODES],
     /// Per direction, the static loads at the coupled rows, taken from the first frame's b.
     snapshot: [Option<Snapshot>; 3],
-    /// The last full frame: its forces and tool displacements, the local model's anchor.
+    /// The last full frame: its answer (forces, or the tool's mean displacement) and its input
+    /// (tool displacements, or loads), the local model's anchor.
     anchor: Option<([f64; 3], [[f32; 3]; MAX_TOOL_NODES])>,
     /// The field's exponent for the last frame, once a chunk asked for it.
     pub field_exponent: Option<i8>,
@@ -87,7 +104,7 @@ impl Live {
 
     /// The tool rows and the started session, borrowed together.
     pub fn parts(&mut self) -> Result<(&[ToolRow], &mut Started), LiveError> {
-        let Live { tools, started } = self;
+        let Live { tools, started, .. } = self;
         Ok((tools, started.as_mut().ok_or(LiveError::NotStarted)?))
     }
 
@@ -103,6 +120,10 @@ impl Live {
         if self.started.take().is_some() {
             self.tools.clear();
         }
+        if self.kind == ToolKind::Force && !self.tools.is_empty() {
+            return Err(LiveError::MixedKinds);
+        }
+        self.kind = ToolKind::Displacement;
         if row.node >= n {
             return Err(LiveError::NodeOutOfRange { node: row.node });
         }
@@ -121,8 +142,40 @@ impl Live {
         })
     }
 
-    /// Starts the session with the tools given so far; the Schur sums are filled in by
-    /// [`Started::schur`] afterwards.
+    /// Sets a force tool at `nodes` of an n-node matrix, replacing a force tool or a started
+    /// session's tools. Displacement rows given since the last start are refused: the kinds
+    /// do not mix. Whether a node is fixed shows only in its model column (see
+    /// [`Started::set_model_column`]).
+    pub fn set_force_tool(&mut self, nodes: &[u32], n: u32) -> Result<(), LiveError> {
+        if self.started.take().is_some() {
+            self.tools.clear();
+        }
+        if self.kind == ToolKind::Displacement && !self.tools.is_empty() {
+            return Err(LiveError::MixedKinds);
+        }
+        self.tools.clear();
+        self.kind = ToolKind::Force;
+        for &node in nodes {
+            if node >= n {
+                self.tools.clear();
+                return Err(LiveError::NodeOutOfRange { node });
+            }
+            if self.tools.iter().any(|t| t.node == node) {
+                self.tools.clear();
+                return Err(LiveError::DuplicateNode { node });
+            }
+            // At most MAX_TOOL_NODES nodes arrive: always room.
+            let _ = self.tools.push(ToolRow {
+                node,
+                diagonal: 0,
+                row: Vec::new(),
+            });
+        }
+        Ok(())
+    }
+
+    /// Starts the session with the tools given so far; the model's columns are filled in by
+    /// [`Started::set_model_column`] afterwards.
     pub fn start(&mut self, params: LiveParams) -> Result<&mut Started, LiveError> {
         if self.tools.is_empty() {
             return Err(LiveError::NoTool);
@@ -149,11 +202,18 @@ impl Live {
                 slots[t][k] = slot as u16;
             }
         }
+        if self.kind == ToolKind::Force {
+            // A force frame rewrites the tool nodes' own loads, nothing else.
+            for t in &self.tools {
+                let _ = rows.push(t.node);
+            }
+        }
         Ok(self.started.insert(Started {
             params,
+            kind: self.kind,
             rows,
             slots,
-            schur: [0.0; MAX_TOOL_NODES],
+            model: [0.0; MAX_TOOL_NODES],
             snapshot: [None, None, None],
             anchor: None,
             field_exponent: None,
@@ -161,16 +221,23 @@ impl Live {
     }
 }
 
-/// The tool displacements of direction `d` as mantissas with one exponent.
+/// The tool's inputs of direction `d` (displacements, or loads), times `factor`, as mantissas
+/// with one exponent.
 pub fn tool_mantissas(
     tool: &[[f32; 3]],
     d: usize,
+    factor: f64,
 ) -> Result<(Vec<i32, MAX_TOOL_NODES>, i32), LiveError> {
-    let max = tool.iter().fold(0f64, |m, u| m.max(f64::from(u[d]).abs()));
+    let max = tool
+        .iter()
+        .fold(0f64, |m, u| m.max((f64::from(u[d]) * factor).abs()));
+    if !max.is_finite() {
+        return Err(LiveError::NotFinite);
+    }
     let e = block_exponent(max);
     let mut out = Vec::new();
     for u in tool {
-        let m = to_mantissa(f64::from(u[d]), e).ok_or(LiveError::NotFinite)?;
+        let m = to_mantissa(f64::from(u[d]) * factor, e).ok_or(LiveError::NotFinite)?;
         let _ = out.push(m);
     }
     Ok((out, e))
@@ -259,7 +326,46 @@ impl Started {
             }
         }
         let e_tool = e_u - f;
-        let tool_max = sums.iter().chain(&diag).map(|v| v.unsigned_abs()).max();
+        let nodes = tools.iter().map(|t| t.node);
+        self.write_rows(
+            snap,
+            b,
+            e_b,
+            &sums[..self.rows.len()],
+            nodes.zip(diag),
+            e_tool,
+        )
+    }
+
+    /// Adds the point loads `load` (mantissas of f/k_d, exponent `e_l`) of direction `d` to
+    /// the static loads at a force tool's nodes in b (exponent `e_b`). Returns b's new exponent.
+    pub fn patch_load(&self, d: usize, b: &mut [i32], e_b: i32, load: &[i32], e_l: i32) -> i32 {
+        let Some(Some(snap)) = self.snapshot.get(d) else {
+            return e_b;
+        };
+        // `rows` are the tool nodes in the tool's order: b_t = static_t − (−f_t).
+        let mut minus = [0i64; MAX_TOOL_NODES];
+        for (m, &l) in minus.iter_mut().zip(load) {
+            *m = -i64::from(l);
+        }
+        let n = self.rows.len().min(MAX_TOOL_NODES);
+        self.write_rows(snap, b, e_b, &minus[..n], core::iter::empty(), e_l)
+    }
+
+    /// Writes a frame's rows into b (exponent `e_b`): b_r = static_r − sums_r on `rows`,
+    /// b_node = own on each (node, own) of `own_rows`, the terms at exponent `e_tool`. Picks
+    /// the exponent that holds them all and returns it.
+    fn write_rows(
+        &self,
+        snap: &Snapshot,
+        b: &mut [i32],
+        e_b: i32,
+        sums: &[i64],
+        own_rows: impl Iterator<Item = (u32, i64)> + Clone,
+        e_tool: i32,
+    ) -> i32 {
+        let own_max = own_rows.clone().map(|(_, v)| v.unsigned_abs()).max();
+        let tool_max = sums.iter().map(|v| v.unsigned_abs()).max().max(own_max);
         let static_max = snap.at_rows.iter().map(|v| v.unsigned_abs()).max();
         let tops = [
             tool_max.filter(|&m| m != 0).map(|m| bits(m) + e_tool),
@@ -287,17 +393,70 @@ impl Started {
         }
         for (i, &r) in self.rows.iter().enumerate() {
             let s = snap.at_rows.get(i).copied().unwrap_or(0);
-            let v = scale(i64::from(s), e - snap.exponent) - scale(sums[i], e - e_tool);
+            let t = sums.get(i).copied().unwrap_or(0);
+            let v = scale(i64::from(s), e - snap.exponent) - scale(t, e - e_tool);
             if let Some(slot) = b.get_mut(r as usize) {
                 *slot = v as i32;
             }
         }
-        for (t, tool) in tools.iter().enumerate() {
-            if let Some(slot) = b.get_mut(tool.node as usize) {
-                *slot = scale(diag[t], e - e_tool) as i32;
+        for (node, v) in own_rows {
+            if let Some(slot) = b.get_mut(node as usize) {
+                *slot = scale(v, e - e_tool) as i32;
             }
         }
         e
+    }
+
+    /// Builds direction `d`'s right-hand side of a frame whose tool inputs are `input`
+    /// (displacements or loads, by the tool's kind). Returns b's new exponent.
+    #[allow(clippy::too_many_arguments)]
+    pub fn patch(
+        &self,
+        d: usize,
+        tools: &[ToolRow],
+        b: &mut [i32],
+        e_b: i32,
+        input: &[[f32; 3]],
+        f: i32,
+    ) -> Result<i32, LiveError> {
+        Ok(match self.kind {
+            ToolKind::Displacement => {
+                let (u, e_u) = tool_mantissas(input, d, 1.0)?;
+                self.patch_rhs(d, tools, b, e_b, &u, e_u, f)
+            }
+            ToolKind::Force => {
+                let k = f64::from(self.params.scale.get(d).copied().unwrap_or(1.0));
+                let (l, e_l) = tool_mantissas(input, d, 1.0 / k)?;
+                self.patch_load(d, b, e_b, &l, e_l)
+            }
+        })
+    }
+
+    /// A frame's answer in direction `d` from the solution `x` (exponent `e_x`): the reaction
+    /// force (displacement tool) or the tool nodes' mean displacement (force tool).
+    pub fn answer(
+        &self,
+        d: usize,
+        tools: &[ToolRow],
+        x: &[i32],
+        e_x: i32,
+        input: &[[f32; 3]],
+        f: i32,
+    ) -> Result<f64, LiveError> {
+        Ok(match self.kind {
+            ToolKind::Displacement => {
+                let (u, e_u) = tool_mantissas(input, d, 1.0)?;
+                let k = f64::from(self.params.scale.get(d).copied().unwrap_or(1.0));
+                k * self.reaction(tools, x, e_x, &u, e_u, f)
+            }
+            ToolKind::Force => {
+                let sum: i64 = tools
+                    .iter()
+                    .map(|t| i64::from(x.get(t.node as usize).copied().unwrap_or(0)))
+                    .sum();
+                ldexp(sum as f64, e_x) / tools.len().max(1) as f64
+            }
+        })
     }
 
     /// Reaction force of direction `d` before the factor k_d: Σ_t (K·u)_t with the free
@@ -327,9 +486,62 @@ impl Started {
         ldexp(free as f64, e_x - f) + ldexp(tool as f64, e_u - f)
     }
 
+    /// The right-hand side whose solution z_j gives the model's column j: K_f,t_j for a
+    /// displacement tool (exponent −f), the unit load at tool node j for a force tool.
+    /// Returns its exponent.
+    pub fn model_rhs(&self, tools: &[ToolRow], j: usize, b: &mut [i32], f: i32) -> i32 {
+        match self.kind {
+            ToolKind::Displacement => {
+                self.schur_rhs(tools, j, b);
+                -f
+            }
+            ToolKind::Force => {
+                b.fill(0);
+                let node = tools.get(j).map_or(usize::MAX, |t| t.node as usize);
+                if let Some(v) = b.get_mut(node) {
+                    *v = 1 << TOP_BITS;
+                }
+                -TOP_BITS
+            }
+        }
+    }
+
+    /// Column j of the model from its solution z_j (exponent `e_z`). A force tool node whose
+    /// unit load moved no other node couples to nothing: it is fixed (or prescribed), and a
+    /// load there would vanish into the support.
+    pub fn set_model_column(
+        &mut self,
+        tools: &[ToolRow],
+        j: usize,
+        z: &[i32],
+        e_z: i32,
+        f: i32,
+    ) -> Result<(), LiveError> {
+        if self.kind == ToolKind::Displacement {
+            self.set_schur(tools, j, z, e_z, f);
+            return Ok(());
+        }
+        let node = tools.get(j).map_or(u32::MAX, |t| t.node);
+        let moved_others = z
+            .iter()
+            .enumerate()
+            .any(|(i, &v)| v != 0 && i != node as usize);
+        if !moved_others {
+            return Err(LiveError::FixedToolNode { node });
+        }
+        let sum: i64 = tools
+            .iter()
+            .map(|t| i64::from(z.get(t.node as usize).copied().unwrap_or(0)))
+            .sum();
+        if let Some(c) = self.model.get_mut(j) {
+            *c = ldexp(sum as f64, e_z) / tools.len().max(1) as f64;
+        }
+        Ok(())
+    }
+
     /// b = K_f,t_j (column j's couplings to the free nodes), exponent −f: the right-hand side
     /// whose solution z_j gives the Schur column j.
-    pub fn schur_rhs(&self, tools: &[ToolRow], j: usize, b: &mut [i32]) {
+    fn schur_rhs(&self, tools: &[ToolRow], j: usize, b: &mut [i32]) {
         b.fill(0);
         for (c, slot) in couplings(tools, self, j) {
             if slot != TOOL_COLUMN {
@@ -341,7 +553,7 @@ impl Started {
     }
 
     /// s_j = Σ_i [K_t_i,t_j − K_t_i,f·z_j] from the solution z_j (exponent `e_z`).
-    pub fn set_schur(&mut self, tools: &[ToolRow], j: usize, z: &[i32], e_z: i32, f: i32) {
+    fn set_schur(&mut self, tools: &[ToolRow], j: usize, z: &[i32], e_z: i32, f: i32) {
         let Some(node_j) = tools.get(j).map(|t| t.node) else {
             return;
         };
@@ -359,7 +571,7 @@ impl Started {
                 }
             }
         }
-        if let Some(s) = self.schur.get_mut(j) {
+        if let Some(s) = self.model.get_mut(j) {
             *s = ldexp(tt as f64, -f) - ldexp(tf as f64, e_z - f);
         }
     }
@@ -374,17 +586,22 @@ impl Started {
         self.field_exponent = None;
     }
 
-    /// The local model's force at tool displacements `tool`: F_frame + k_d·Σ_j s_j·Δu_j.
-    pub fn model_force(&self, tool: &[[f32; 3]]) -> Result<[f64; 3], LiveError> {
-        let (force, at) = self.anchor.as_ref().ok_or(LiveError::NoFrame)?;
-        let mut out = *force;
+    /// The local model's answer at tool inputs `tool`: the force F_frame + k_d·Σ_j s_j·Δu_j
+    /// of a displacement tool, the mean displacement ū_frame + Σ_j c̄_j·Δf_j/k_d of a force tool.
+    pub fn model_answer(&self, tool: &[[f32; 3]]) -> Result<[f64; 3], LiveError> {
+        let (answer, at) = self.anchor.as_ref().ok_or(LiveError::NoFrame)?;
+        let mut out = *answer;
         for (d, o) in out.iter_mut().enumerate() {
             let mut sum = 0f64;
             for (j, (now, then)) in tool.iter().zip(at).enumerate() {
                 let du = f64::from(now[d]) - f64::from(then[d]);
-                sum += self.schur.get(j).copied().unwrap_or(0.0) * du;
+                sum += self.model.get(j).copied().unwrap_or(0.0) * du;
             }
-            *o += f64::from(self.params.scale[d]) * sum;
+            let k = f64::from(self.params.scale[d]);
+            *o += match self.kind {
+                ToolKind::Displacement => k * sum,
+                ToolKind::Force => sum / k,
+            };
         }
         if out.iter().all(|v| v.is_finite()) {
             Ok(out)

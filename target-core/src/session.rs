@@ -46,7 +46,8 @@
 //!   before it, which it keeps in `x0` (so it consumes an uploaded guess); with fewer solutions
 //!   it starts from u(t−1) or 0, never refused. Any other start, a new guess or a new matrix
 //!   restarts the prediction.
-//! - **Live loop** (`LiveTool`, `LiveStart`, `LiveFrame`, `LiveForce`, `ReadField`): see
+//! - **Live loop** (`LiveTool`, `LiveStart`, `LiveFrame`, `LiveForce`, `ReadField`; force
+//!   tools: `LiveForceTool`, `LiveLoad`, `LiveLoadQuery`): see
 //!   [`crate::live`] and `live_glue.rs`; `BeginMatrix` and `Hello` forget the tool set.
 //! - **ReadSolution** at `offset ≥ n` is `ChunkTooLong`.
 //! - **Values-only update** (`BeginUpdate`, `UpdateValues`…, `EndUpdate`): needs a loaded
@@ -312,6 +313,9 @@ impl<'a, E: Executor> Session<'a, E> {
             Request::LiveFrame { tool } => self.live_frame(&tool),
             Request::LiveForce { tool } => self.live_force(&tool),
             Request::ReadField { offset, stride } => self.read_field(offset, stride),
+            Request::LiveForceTool { nodes } => self.live_force_tool(&nodes),
+            Request::LiveLoad { load } => self.live_load(&load),
+            Request::LiveLoadQuery { load } => self.live_load_query(&load),
         }
     }
 

@@ -66,7 +66,7 @@ fn frames_match_converged_solves_and_the_force_model_and_field_follow() {
         let answer = link.frame(&tool).unwrap();
         let (want, force) = setup.converged(&tool, None).unwrap();
         assert!(
-            force_err(answer.force, force) <= 1e-3,
+            force_err(answer.value, force) <= 1e-3,
             "{answer:?} vs {force:?}"
         );
         let u = link.solution().unwrap();
@@ -83,7 +83,7 @@ fn frames_match_converged_solves_and_the_force_model_and_field_follow() {
         let model = link.force(&next).unwrap();
         let (_, want_next) = setup.converged(&next, None).unwrap();
         assert!(
-            force_err(model.force, want_next) <= 1e-3,
+            force_err(model.value, want_next) <= 1e-3,
             "{model:?} vs {want_next:?}"
         );
         if frame == 4 {
@@ -167,7 +167,9 @@ fn a_target_reset_mid_session_is_set_up_again() {
         .unwrap_or_else(|e| panic!("no recovery from the reset: {e}"));
     assert_eq!(link.resets, 1);
     let (_, force) = setup.converged(&tool, None).unwrap();
-    assert!(force_err(answer.force, force) <= 1e-3, "{answer:?}");
+    assert!(force_err(answer.value, force) <= 1e-3, "{answer:?}");
     assert_alive(&mut qemu);
     let _ = std::fs::remove_file(&monitor);
 }
+
+mod force_tool;

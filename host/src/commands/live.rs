@@ -2,6 +2,10 @@
 //! `--headless` the tool follows the scenario's keyframes for `--frames` frames and a JSON
 //! report says what the target achieved, every frame checked against a converged f64 solve.
 //! With `--serve` a person moves the tool in a browser and sees the tissue respond.
+//!
+//! The scenario picks the tool's kind: `[[simulation.displace]]` keyframes make a displacement
+//! tool (the force comes back), `[[simulation.load]]` keyframes a force tool (protocol 9: the
+//! tool's motion comes back, its local model the compliance). A scenario with both is refused.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -20,6 +24,7 @@ use crate::live::headless::{self, FrameRecord, Script, Session, CLOCK_HZ};
 use crate::live::interactive;
 use crate::live::link::LiveLink;
 use crate::live::serve::Mailbox;
+use crate::live::setup::ToolKind;
 use crate::live::LiveSetup;
 use crate::model::Connection;
 use crate::output::node_rows;
@@ -29,7 +34,10 @@ use crate::scenario::Scenario;
 #[derive(Debug, Args)]
 pub struct LiveArgs {
     /// Scenario file: the tissue, its fixed set and static loads, and the tool — its
-    /// `[[simulation.displace]]` nodes, moved along their keyframes over steps·dt.
+    /// `[[simulation.displace]]` nodes, moved along their keyframes over steps·dt (a
+    /// displacement tool: the force comes back), or its `[[simulation.load]]` nodes, loaded
+    /// along their keyframes (a force tool: the tool's mean displacement comes back; with
+    /// --serve the browser sets the load, 1 grid unit = 1 N).
     pub scenario: PathBuf,
 
     /// Run the scripted session without a browser (the tool follows the keyframes).
@@ -37,7 +45,8 @@ pub struct LiveArgs {
     pub headless: bool,
 
     /// Serve the live view at --addr: the tissue in 3-D, the tool moved with the mouse or
-    /// keys, the force and the target's cycles per frame, updated over a WebSocket.
+    /// keys, the force and the target's cycles per frame, updated over a WebSocket. For a
+    /// force tool the mouse or keys set the load and the page shows the tool's motion.
     #[arg(long, conflicts_with_all = ["headless", "frames", "report", "frames_csv", "out", "pace"])]
     pub serve: bool,
 
@@ -55,8 +64,9 @@ pub struct LiveArgs {
     #[arg(long, value_name = "FILE")]
     pub report: Option<PathBuf>,
 
-    /// Write one CSV row per frame (t, tool, force and its reference, residual, iterations,
-    /// cycles, error against a converged solve, bytes up and down).
+    /// Write one CSV row per frame (t, tool, force and its reference — for a force tool the
+    /// mean tool displacement —, residual, iterations, cycles, error against a converged solve,
+    /// bytes up and down).
     #[arg(long, value_name = "FILE")]
     pub frames_csv: Option<PathBuf>,
 
@@ -87,7 +97,8 @@ pub struct LiveArgs {
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
     pub field_stride: u16,
 
-    /// Force queries from the local model between two full frames (the haptic rate).
+    /// Force queries from the local model between two full frames (the haptic rate); for a
+    /// force tool, displacement queries from the compliance model.
     #[arg(long, default_value_t = 3)]
     pub forces_per_frame: u32,
 
@@ -137,7 +148,8 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     }
     let Some(simulation) = scenario.simulation.clone() else {
         bail!(
-            "{}: no [simulation] table, so no tool path: give [[simulation.displace]] keyframes",
+            "{}: no [simulation] table, so no tool path: give [[simulation.displace]] or \
+             [[simulation.load]] keyframes",
             args.scenario.display()
         );
     };
@@ -162,22 +174,10 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         partition: Partition::Rows,
         use_symmetry: true,
     };
-    let setup = LiveSetup::new(&simulation.spec_at(&scenario.model, 0.0), &layout)?;
+    let setup = LiveSetup::for_simulation(&scenario.model, &simulation, &layout)
+        .with_context(|| format!("{}", args.scenario.display()))?;
     let grid = setup.model.grid();
-    let tool_at = |t: f64| -> Vec<[f64; 3]> {
-        let spec = simulation.spec_at(&scenario.model, t);
-        setup
-            .tools
-            .iter()
-            .map(|&p| {
-                let node = grid.node(p);
-                spec.prescribed
-                    .iter()
-                    .find(|d| d.node == node)
-                    .map_or([0.0; 3], |d| d.u)
-            })
-            .collect()
-    };
+    let tool_at = |t: f64| setup.tool_at(&scenario.model, &simulation, t);
     if args.serve {
         return serve(args, &setup);
     }
@@ -188,8 +188,9 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     let params = live_params(args, &setup);
     println!("model       {}", setup.model.spec().describe());
     println!(
-        "tool        {} node(s), {frames} frames over {end} s; tolerance {:e}, budget {} cycles, {} MVU(s)",
+        "tool        {} {} node(s), {frames} frames over {end} s; tolerance {:e}, budget {} cycles, {} MVU(s)",
         setup.tools.len(),
+        setup.kind.name(),
         args.tol,
         args.cycle_budget,
         args.mvu_count()
@@ -197,8 +198,11 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     let mut link = LiveLink::start(&mut board.target, &setup, params)
         .context("setting the live session up on the target")?;
     println!(
-        "force model {} CG solve(s), {} iterations, {} cycles",
-        link.model.solves, link.model.iterations, link.model.cycles
+        "{} {} CG solve(s), {} iterations, {} cycles",
+        model_label(setup.kind),
+        link.model.solves,
+        link.model.iterations,
+        link.model.cycles
     );
     let script = Script {
         frames,
@@ -215,7 +219,12 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
             let mut f = BufWriter::new(
                 File::create(path).with_context(|| format!("creating {}", path.display()))?,
             );
-            writeln!(f, "frame,t,tool_x,tool_y,tool_z,fx,fy,fz,fx_ref,fy_ref,fz_ref,residual,iterations,cycles,error_vs_converged,bytes_up,bytes_down")?;
+            // A force tool's input is a load and its answer the mean tool displacement.
+            let answer = match setup.kind {
+                ToolKind::Displacement => "fx,fy,fz,fx_ref,fy_ref,fz_ref",
+                ToolKind::Force => "ux,uy,uz,ux_ref,uy_ref,uz_ref",
+            };
+            writeln!(f, "frame,t,tool_x,tool_y,tool_z,{answer},residual,iterations,cycles,error_vs_converged,bytes_up,bytes_down")?;
             Some(f)
         }
         None => None,
@@ -299,6 +308,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         model_iterations: link.model.iterations,
         resets: link.resets,
         paced: args.pace.is_some(),
+        kind: setup.kind,
     };
     let report = headless::report(session, &records, &summary);
     println!(
@@ -310,8 +320,12 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         report.frames_per_s_at_100mhz.p50,
         report.frames_per_s_at_100mhz.worst
     );
+    let (answer, unit) = match setup.kind {
+        ToolKind::Displacement => ("force", "F"),
+        ToolKind::Force => ("tool motion", "ū"),
+    };
     println!(
-        "accuracy    error vs converged ≤ {:.2e} of max |u|, force ≤ {:.2e}, residual ≤ {:.2e}, iterations p50 {} max {}",
+        "accuracy    error vs converged ≤ {:.2e} of max |u|, {answer} ≤ {:.2e}, residual ≤ {:.2e}, iterations p50 {} max {}",
         report.error_vs_converged_max,
         report.force_error_max,
         report.residual_max,
@@ -319,8 +333,11 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         report.iterations.max
     );
     println!(
-        "force model {:.0} updates/s at 100 MHz ({} cycles per query), error ≤ {:.2e} of max |F|",
-        report.force_updates_per_s, report.force_query_cycles_max, report.model_force_error_max
+        "{} {:.0} updates/s at 100 MHz ({} cycles per query), error ≤ {:.2e} of max |{unit}|",
+        model_label(setup.kind),
+        report.force_updates_per_s,
+        report.force_query_cycles_max,
+        report.model_force_error_max
     );
     println!(
         "line        {} B up / {} B down per frame (median; max {} / {}), field frame {} B ({:.3} B per component, quantisation ≤ {:.1e})",
@@ -357,6 +374,14 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         println!("wrote       {}", path.display());
     }
     Ok(())
+}
+
+/// The local model's name in the summary (ten columns, as the other labels).
+fn model_label(kind: ToolKind) -> &'static str {
+    match kind {
+        ToolKind::Displacement => "force model",
+        ToolKind::Force => "compliance",
+    }
 }
 
 impl LiveArgs {
@@ -449,7 +474,12 @@ fn run_on_host(
     struct HostFrame {
         t: f64,
         tool: Vec<[f64; 3]>,
-        force: [f64; 3],
+        /// Displacement tools: the reaction force.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        force: Option<[f64; 3]>,
+        /// Force tools: the tool nodes' mean displacement.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        displacement: Option<[f64; 3]>,
         max_u: f64,
     }
     let progress = bar(times.len() as u64, "frames");
@@ -457,7 +487,8 @@ fn run_on_host(
     let mut frames = Vec::new();
     for &t in times {
         let tool = tool_at(t);
-        let (u, force) = setup.converged(&tool, warm.as_ref())?;
+        let (u, answer) = setup.converged(&tool, warm.as_ref())?;
+        let force_tool = setup.kind == ToolKind::Force;
         let max_u = u
             .iter()
             .map(|v| crate::reference::max_abs(v))
@@ -465,7 +496,8 @@ fn run_on_host(
         frames.push(HostFrame {
             t,
             tool,
-            force,
+            force: (!force_tool).then_some(answer),
+            displacement: force_tool.then_some(answer),
             max_u,
         });
         warm = Some(u);
@@ -473,12 +505,17 @@ fn run_on_host(
     }
     progress.finish_and_clear();
     if let Some(last) = frames.last() {
+        let (what, v, unit) = match (last.force, last.displacement) {
+            (Some(f), _) => ("force", f, "N"),
+            (None, Some(u)) => ("tool displacement", u, "m"),
+            (None, None) => ("force", [0.0; 3], "N"),
+        };
         println!(
-            "host        {} frames solved by the f64 reference; last force ({:.6e}, {:.6e}, {:.6e}) N, max |u| {:.4e}",
+            "host        {} frames solved by the f64 reference; last {what} ({:.6e}, {:.6e}, {:.6e}) {unit}, max |u| {:.4e}",
             frames.len(),
-            last.force[0],
-            last.force[1],
-            last.force[2],
+            v[0],
+            v[1],
+            v[2],
             last.max_u
         );
     }
@@ -486,7 +523,12 @@ fn run_on_host(
         let f = File::create(path).with_context(|| format!("creating {}", path.display()))?;
         serde_json::to_writer_pretty(
             BufWriter::new(f),
-            &serde_json::json!({ "frames": frames.len(), "target": "host", "per_frame": frames }),
+            &serde_json::json!({
+                "frames": frames.len(),
+                "target": "host",
+                "tool": setup.kind.name(),
+                "per_frame": frames,
+            }),
         )?;
         println!("wrote       {}", path.display());
     }

@@ -718,6 +718,9 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::LiveFrame { .. } => "LiveFrame",
         Request::LiveForce { .. } => "LiveForce",
         Request::ReadField { .. } => "ReadField",
+        Request::LiveForceTool { .. } => "LiveForceTool",
+        Request::LiveLoad { .. } => "LiveLoad",
+        Request::LiveLoadQuery { .. } => "LiveLoadQuery",
     }
 }
 

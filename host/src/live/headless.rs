@@ -2,11 +2,14 @@
 //! keyframes, one full frame per time step with force queries between frames and the field
 //! every few frames, every frame checked against a converged f64 solve of the same tool
 //! position. [`Report`] is the JSON the issue asks for.
+//!
+//! Both kinds of tool run the same script: for a force tool the "force" keys hold its answer,
+//! the tool nodes' mean displacement, and the queries are displacement queries from the
+//! compliance model (`tool` and `answer` in the report say which).
 
-use deform_shared::live::FrameReport;
 use serde::Serialize;
 
-use super::link::LiveLink;
+use super::link::{FrameAnswer, LiveLink};
 use super::LiveSetup;
 use crate::bench::board::{WireBytes, WireCounter};
 use crate::link::Port;
@@ -45,8 +48,11 @@ pub struct Lag {
 pub struct FrameRecord {
     pub frame: u32,
     pub t: f64,
+    /// The tool's input: displacements, or loads for a force tool.
     pub tool: Vec<[f64; 3]>,
+    /// The target's answer: the reaction force, or the mean tool displacement.
     pub force: [f64; 3],
+    /// The same from the converged f64 solve.
     pub force_reference: [f64; 3],
     pub residual: f64,
     pub iterations: u32,
@@ -139,6 +145,10 @@ pub struct Report {
     pub target_resets: u32,
     /// Paced sessions only.
     pub lag: Option<Lag>,
+    /// The tool's kind: "displacement" or "force".
+    pub tool: &'static str,
+    /// What the "force" keys measure for this kind of tool.
+    pub answer: &'static str,
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -222,7 +232,7 @@ pub fn run<P: Port>(
                 let answer = link.force(&tool)?;
                 let bytes = meter.lap();
                 let (_, want) = setup.converged(&tool, warm.as_ref())?;
-                let got = answer.force.map(f64::from);
+                let got = answer.value.map(f64::from);
                 let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
                 summary.model_force_error =
                     summary
@@ -234,7 +244,7 @@ pub fn run<P: Port>(
         }
         let tool = tool_at(t);
         meter.lap();
-        let answer: FrameReport = link.frame(&tool)?;
+        let answer: FrameAnswer = link.frame(&tool)?;
         let bytes = meter.lap();
         if script.pace.is_some() {
             // From the moment the tool was sampled at its position to the answer for it.
@@ -265,7 +275,7 @@ pub fn run<P: Port>(
             frame,
             t,
             tool,
-            force: answer.force.map(f64::from),
+            force: answer.value.map(f64::from),
             force_reference: force_ref,
             residual: f64::from(answer.residual),
             iterations: u32::from(answer.iterations),
@@ -305,6 +315,7 @@ pub struct Session {
     pub model_iterations: u32,
     pub resets: u32,
     pub paced: bool,
+    pub kind: super::setup::ToolKind,
 }
 
 /// The report over `records`.
@@ -393,5 +404,10 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
         link_rates,
         target_resets: session.resets,
         lag: session.paced.then_some(summary.lag),
+        tool: session.kind.name(),
+        answer: match session.kind {
+            super::setup::ToolKind::Displacement => "reaction force summed over the tool nodes (N)",
+            super::setup::ToolKind::Force => "mean displacement of the tool nodes (m)",
+        },
     }
 }

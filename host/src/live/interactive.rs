@@ -3,6 +3,10 @@
 //! position from the [`Mailbox`], solves one full frame for it over the same [`LiveLink`] the
 //! headless session uses (`LiveFrame`, then the quantised field with `ReadField`) and
 //! publishes the frame for the browsers.
+//!
+//! With a force tool the browser's position is the load instead (1 grid unit = 1 N, every tool
+//! node loaded alike) and a frame's `force` is the answer, the tool's mean displacement; the
+//! mesh message's `kind` tells the page.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -47,7 +51,7 @@ impl<P: Port> FrameSolver for TargetSolver<'_, '_, P> {
             u[node] = q;
         }
         Ok(ViewFrame {
-            force: answer.force.map(f64::from),
+            force: answer.value.map(f64::from),
             u,
             iterations: u32::from(answer.iterations),
             cycles: Some(answer.cycles),
@@ -100,6 +104,7 @@ pub fn mesh_json(setup: &LiveSetup) -> String {
         "nodes": nodes,
         "fixed": setup.model.fixed_mask(),
         "tools": setup.tools,
+        "kind": setup.kind.name(),
     })
     .to_string()
 }

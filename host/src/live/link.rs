@@ -7,11 +7,10 @@
 
 use std::time::Duration;
 
-use deform_shared::live::{
-    FieldChunk, ForceReport, FrameReport, LiveParams, ModelReport, MAX_TOOL_NODES,
-};
+use deform_shared::live::{FieldChunk, LiveParams, ModelReport, MAX_TOOL_NODES};
 use deform_shared::protocol::{Request, Response, VectorSlot};
 
+use super::setup::ToolKind;
 use super::LiveSetup;
 use crate::link::{LinkError, Port, Target};
 
@@ -34,7 +33,24 @@ fn unexpected(request: &'static str, expected: &'static str, got: Response) -> L
     }
 }
 
-/// The tool displacements as a frame carries them.
+/// A full frame's answer, of either kind of tool: the reaction force (N) of a displacement
+/// tool (`LiveFrame`) or the mean tool displacement (m) of a force tool (`LiveMotion`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameAnswer {
+    pub value: [f32; 3],
+    pub residual: f32,
+    pub iterations: u16,
+    pub cycles: u32,
+}
+
+/// A query's answer from the local model (`LiveForce` or `LiveMotionQuery`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct QueryAnswer {
+    pub value: [f32; 3],
+    pub cycles: u32,
+}
+
+/// The tool displacements (or loads) as a frame carries them.
 fn tool_vec(tool: &[[f64; 3]]) -> heapless::Vec<[f32; 3], MAX_TOOL_NODES> {
     tool.iter().map(|u| u.map(|v| v as f32)).collect()
 }
@@ -64,6 +80,17 @@ impl<'a, P: Port> LiveLink<'a, P> {
 
     fn begin(&mut self) -> Result<(), LinkError> {
         self.target.upload_matrix(&self.setup.matrix)?;
+        if self.setup.kind == ToolKind::Force {
+            let nodes = self.setup.tools.iter().map(|&t| t as u32).collect();
+            match self
+                .target
+                .link_mut()
+                .request(&Request::LiveForceTool { nodes })?
+            {
+                Response::Ack => {}
+                other => return Err(unexpected("LiveForceTool", "Ack", other)),
+            }
+        }
         for row in &self.setup.rows {
             match self
                 .target
@@ -105,23 +132,66 @@ impl<'a, P: Port> LiveLink<'a, P> {
         }
     }
 
-    /// A full frame with the tool nodes at `tool`.
-    pub fn frame(&mut self, tool: &[[f64; 3]]) -> Result<FrameReport, LinkError> {
-        match self.request(&Request::LiveFrame {
-            tool: tool_vec(tool),
-        })? {
-            Response::LiveFrame(r) => Ok(r),
-            other => Err(unexpected("LiveFrame", "LiveFrame", other)),
+    /// A full frame with the tool nodes at `tool` (displacements, or loads for a force tool).
+    pub fn frame(&mut self, tool: &[[f64; 3]]) -> Result<FrameAnswer, LinkError> {
+        let (request, name) = match self.setup.kind {
+            ToolKind::Displacement => (
+                Request::LiveFrame {
+                    tool: tool_vec(tool),
+                },
+                "LiveFrame",
+            ),
+            ToolKind::Force => (
+                Request::LiveLoad {
+                    load: tool_vec(tool),
+                },
+                "LiveMotion",
+            ),
+        };
+        match self.request(&request)? {
+            Response::LiveFrame(r) => Ok(FrameAnswer {
+                value: r.force,
+                residual: r.residual,
+                iterations: r.iterations,
+                cycles: r.cycles,
+            }),
+            Response::LiveMotion(r) => Ok(FrameAnswer {
+                value: r.displacement,
+                residual: r.residual,
+                iterations: r.iterations,
+                cycles: r.cycles,
+            }),
+            other => Err(unexpected(name, name, other)),
         }
     }
 
-    /// A force query from the local model.
-    pub fn force(&mut self, tool: &[[f64; 3]]) -> Result<ForceReport, LinkError> {
-        match self.request(&Request::LiveForce {
-            tool: tool_vec(tool),
-        })? {
-            Response::LiveForce(r) => Ok(r),
-            other => Err(unexpected("LiveForce", "LiveForce", other)),
+    /// A query from the local model: the force at tool displacements, or the motion under
+    /// loads for a force tool.
+    pub fn force(&mut self, tool: &[[f64; 3]]) -> Result<QueryAnswer, LinkError> {
+        let (request, name) = match self.setup.kind {
+            ToolKind::Displacement => (
+                Request::LiveForce {
+                    tool: tool_vec(tool),
+                },
+                "LiveForce",
+            ),
+            ToolKind::Force => (
+                Request::LiveLoadQuery {
+                    load: tool_vec(tool),
+                },
+                "LiveMotionQuery",
+            ),
+        };
+        match self.request(&request)? {
+            Response::LiveForce(r) => Ok(QueryAnswer {
+                value: r.force,
+                cycles: r.cycles,
+            }),
+            Response::LiveMotionQuery(r) => Ok(QueryAnswer {
+                value: r.displacement,
+                cycles: r.cycles,
+            }),
+            other => Err(unexpected(name, name, other)),
         }
     }
 

@@ -2,7 +2,9 @@
 //! nodes, moved along their keyframes — pushes the tissue frame by frame; the target answers
 //! each frame with the reaction force, answers force queries between frames from a local
 //! linear model, and sends the field quantised at a lower rate. The messages are in
-//! [`deform_shared::live`]; the target's half is `target-core/src/live.rs`.
+//! [`deform_shared::live`]; the target's half is `target-core/src/live.rs`. A scenario whose
+//! tool is scheduled point loads instead drives a force tool (protocol 9): loads in, the tool
+//! nodes' mean displacement out, the compliance as the local model ([`setup::ToolKind`]).
 //!
 //! - [`setup`]: what the target needs once: the matrix, each tool node's row of the
 //!   unconstrained K, the static loads, and the f64 pieces the host checks against.

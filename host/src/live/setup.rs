@@ -5,6 +5,11 @@
 //! sides with the tool held at zero; each tool node's row of the *unconstrained* K (its springs
 //! to non-fixed nodes) lets the target move the tool's displacement into the right-hand side
 //! and sum the reaction force.
+//!
+//! A force tool ([`LiveSetup::force`], protocol version 9) is the scenario's scheduled point
+//! loads instead: its nodes stay free, the matrix is the model's own, the static loads leave
+//! the tool's loads out (frames carry them), and the answer checked is the tool nodes' mean
+//! displacement.
 
 use deform_shared::live::{Coupling, ToolRow, MAX_TOOL_NODES, MAX_TOOL_ROW};
 use deform_shared::qformat::quantize;
@@ -14,11 +19,15 @@ use crate::model::assembly::assemble_laplacian;
 use crate::model::springs::{MeanOfEndNodes, Uniform};
 use crate::model::{Axis, Csr, Model, ModelError, ModelSpec, Node};
 use crate::reference;
+use crate::scenario::simulation::Simulation;
 
 /// Why a live session cannot be set up.
 #[derive(Debug, thiserror::Error)]
 pub enum SetupError {
-    #[error("the scenario moves no tool: give a [[simulation.displace]] node with keyframes")]
+    #[error(
+        "the scenario moves no tool: give [[simulation.displace]] keyframes (a displacement \
+         tool) or [[simulation.load]] keyframes (a force tool)"
+    )]
     NoTool,
     #[error("{0} tool nodes; a live session drives at most {MAX_TOOL_NODES}")]
     TooManyTools(usize),
@@ -36,6 +45,36 @@ pub enum SetupError {
     Quantize(#[from] deform_shared::qformat::QFormatError),
     #[error("f64 reference: {0}")]
     Reference(#[from] reference::SolveError),
+    #[error("force tool node {0:?} is fixed or prescribed: a load there moves nothing")]
+    FixedToolNode(Node),
+    #[error("force tool node {0:?} is outside the grid")]
+    ToolOutsideGrid(Node),
+    #[error("force tool node {0:?} is loaded by two schedules; give one")]
+    DuplicateToolNode(Node),
+    #[error(
+        "both [[simulation.displace]] and [[simulation.load]] keyframes: a live tool either moves \
+         nodes (displacement tool) or loads them (force tool), not both; keep one kind"
+    )]
+    BothKinds,
+}
+
+/// What a live session's tool prescribes (see the module doc).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ToolKind {
+    /// Prescribed displacements in, reaction force out.
+    Displacement,
+    /// Point loads in, the tool nodes' mean displacement out.
+    Force,
+}
+
+impl ToolKind {
+    /// The name the report and the CLI use.
+    pub fn name(self) -> &'static str {
+        match self {
+            ToolKind::Displacement => "displacement",
+            ToolKind::Force => "force",
+        }
+    }
 }
 
 /// One tool node's row of the unconstrained K in f64: (column, value), diagonal included.
@@ -43,11 +82,13 @@ pub type RowF64 = Vec<(usize, f64)>;
 
 /// Everything a live session uploads once, and its f64 twin.
 pub struct LiveSetup {
-    /// The model with the tool at rest (its prescribed displacements zero).
+    pub kind: ToolKind,
+    /// The model with the tool at rest (its prescribed displacements, or loads, zero).
     pub model: Model,
     /// Tool node indices, in the order frames give their displacements.
     pub tools: Vec<usize>,
-    /// The rows as the target gets them (raw values in the matrix's Q-format).
+    /// The rows as the target gets them (raw values in the matrix's Q-format; none for a
+    /// force tool).
     pub rows: Vec<ToolRow>,
     /// The same rows in f64, diagonal included.
     pub rows_f64: Vec<RowF64>,
@@ -107,6 +148,7 @@ impl LiveSetup {
         let static_rhs = Axis::ALL.map(|d| model.scaled_rhs(d));
         let scale = Axis::ALL.map(|d| model.direction_scale(d));
         Ok(LiveSetup {
+            kind: ToolKind::Displacement,
             model,
             tools,
             rows,
@@ -117,15 +159,105 @@ impl LiveSetup {
         })
     }
 
-    /// The unit matrix the target holds (tool nodes eliminated).
+    /// The session a scenario's `[simulation]` describes (`model` is the scenario's static
+    /// model): prescribed-displacement schedules make a displacement tool, point-load
+    /// schedules a force tool; both at once are refused.
+    pub fn for_simulation(
+        model: &ModelSpec,
+        simulation: &Simulation,
+        layout: &EncodeOptions,
+    ) -> Result<Self, SetupError> {
+        let mut rest = simulation.spec_at(model, 0.0);
+        match (simulation.displace.is_empty(), simulation.load.is_empty()) {
+            (false, true) => Self::new(&rest, layout),
+            (true, false) => {
+                // The scenario appends the scheduled loads after the static ones: drop them,
+                // the frames carry them.
+                let statics = rest.loads.len().saturating_sub(simulation.load.len());
+                rest.loads.truncate(statics);
+                let nodes: Vec<Node> = simulation.load.iter().map(|s| s.node).collect();
+                Self::force(&rest, &nodes, layout)
+            }
+            (false, false) => Err(SetupError::BothKinds),
+            (true, true) => Err(SetupError::NoTool),
+        }
+    }
+
+    /// The tool's inputs at time t: the prescribed displacements, or the loads.
+    pub fn tool_at(&self, model: &ModelSpec, simulation: &Simulation, t: f64) -> Vec<[f64; 3]> {
+        if self.kind == ToolKind::Force {
+            return simulation.load.iter().map(|s| s.value_at(t)).collect();
+        }
+        let spec = simulation.spec_at(model, t);
+        let grid = self.model.grid();
+        self.tools
+            .iter()
+            .map(|&p| {
+                let node = grid.node(p);
+                spec.prescribed
+                    .iter()
+                    .find(|d| d.node == node)
+                    .map_or([0.0; 3], |d| d.u)
+            })
+            .collect()
+    }
+
+    /// Sets up a force tool at `nodes` on `rest`, the model without the tool's loads.
+    pub fn force(
+        rest: &ModelSpec,
+        nodes: &[Node],
+        layout: &EncodeOptions,
+    ) -> Result<Self, SetupError> {
+        if nodes.is_empty() {
+            return Err(SetupError::NoTool);
+        }
+        if nodes.len() > MAX_TOOL_NODES {
+            return Err(SetupError::TooManyTools(nodes.len()));
+        }
+        let model = Model::build(rest)?;
+        let grid = model.grid();
+        let mut tools = Vec::new();
+        for &node in nodes {
+            let p = grid.index(node).ok_or(SetupError::ToolOutsideGrid(node))?;
+            let constrained =
+                model.fixed_mask()[p] || rest.prescribed.iter().any(|d| d.node == node);
+            if constrained {
+                return Err(SetupError::FixedToolNode(node));
+            }
+            if tools.contains(&p) {
+                return Err(SetupError::DuplicateToolNode(node));
+            }
+            tools.push(p);
+        }
+        let matrix = encode_with(model.unit_matrix(), layout)?.matrix;
+        Ok(LiveSetup {
+            kind: ToolKind::Force,
+            static_rhs: Axis::ALL.map(|d| model.scaled_rhs(d)),
+            scale: Axis::ALL.map(|d| model.direction_scale(d)),
+            model,
+            tools,
+            rows: Vec::new(),
+            rows_f64: Vec::new(),
+            matrix,
+        })
+    }
+
+    /// The unit matrix the target holds (a displacement tool's nodes eliminated).
     pub fn unit_matrix(&self) -> &Csr {
         self.model.unit_matrix()
     }
 
     /// The right-hand side of direction d with the tool at `tool`: the tool's displacement
-    /// moved over as [`Model::build`] does (b_i −= A_it·u_t, b_t = A_tt·u_t).
+    /// moved over as [`Model::build`] does (b_i −= A_it·u_t, b_t = A_tt·u_t), or for a force
+    /// tool its loads added (b_t += f_t/k_d).
     pub fn rhs(&self, d: usize, tool: &[[f64; 3]]) -> Vec<f64> {
         let mut b = self.static_rhs[d].clone();
+        if self.kind == ToolKind::Force {
+            for (&t, f) in self.tools.iter().zip(tool) {
+                b[t] += f[d] / self.scale[d];
+            }
+            return b;
+        }
         for ((&t, row), u) in self.tools.iter().zip(&self.rows_f64).zip(tool) {
             for &(c, v) in row {
                 if c == t {
@@ -155,8 +287,21 @@ impl LiveSetup {
         })
     }
 
-    /// The converged f64 solution of one frame (relative residual 1e-12) and its reaction
-    /// force: what every target frame is checked against. `warm` starts the CG.
+    /// A frame's answer from the solution `u` with the tool at `tool`: the reaction force, or
+    /// for a force tool the tool nodes' mean displacement.
+    pub fn answer(&self, u: &[Vec<f64>; 3], tool: &[[f64; 3]]) -> [f64; 3] {
+        match self.kind {
+            ToolKind::Displacement => self.reaction(u, tool),
+            ToolKind::Force => [0, 1, 2].map(|d| {
+                let sum: f64 = self.tools.iter().map(|&t| u[d][t]).sum();
+                sum / self.tools.len().max(1) as f64
+            }),
+        }
+    }
+
+    /// The converged f64 solution of one frame (relative residual 1e-12) and its answer
+    /// (reaction force, or mean tool displacement): what every target frame is checked
+    /// against. `warm` starts the CG.
     pub fn converged(
         &self,
         tool: &[[f64; 3]],
@@ -170,8 +315,8 @@ impl LiveSetup {
             let x0 = warm.map(|w| w[d].as_slice());
             *ud = reference::solve(k, &b, x0, 1e-12, 20 * n.max(100))?.x;
         }
-        let force = self.reaction(&u, tool);
-        Ok((u, force))
+        let answer = self.answer(&u, tool);
+        Ok((u, answer))
     }
 }
 
@@ -244,6 +389,40 @@ mod tests {
                 force[d]
             );
         }
+    }
+
+    /// A force tool's frame is the model with the tool's load added: same right-hand side,
+    /// and the answer is the loaded node's displacement.
+    #[test]
+    fn a_force_tool_frame_is_the_model_with_its_load() {
+        let f = [0.5, -0.25, -1.0];
+        let probe = Node { i: 2, j: 2, k: 4 };
+        let mut rest = needle([0.0; 3]);
+        rest.prescribed.clear();
+        rest.fixed_sets = vec![crate::model::FixedNodeSet::Face {
+            axis: Axis::Z,
+            side: crate::model::Side::Low,
+        }];
+        let setup = LiveSetup::force(&rest, &[probe], &EncodeOptions::default()).unwrap();
+        let mut loaded = rest.clone();
+        loaded.loads.push(crate::model::PointLoad {
+            node: probe,
+            force: f,
+        });
+        let model = Model::build(&loaded).unwrap();
+        let (u, answer) = setup.converged(&[f], None).unwrap();
+        let t = setup.tools[0];
+        for (d, axis) in Axis::ALL.into_iter().enumerate() {
+            let err = reference::max_abs_diff(&setup.rhs(d, &[f]), &model.scaled_rhs(axis));
+            assert!(err < 1e-12, "direction {d}: {err}");
+            assert_eq!(answer[d], u[d][t]);
+        }
+        // The base is fixed: a tool there is refused.
+        let base = Node { i: 2, j: 2, k: 0 };
+        assert!(matches!(
+            LiveSetup::force(&rest, &[base], &EncodeOptions::default()),
+            Err(SetupError::FixedToolNode(_))
+        ));
     }
 
     #[test]

@@ -2,7 +2,8 @@
 //! headless Chromium (installed by `cargo xtask setup`) shows the page, driven over the Chrome
 //! DevTools Protocol with the tungstenite WebSocket the server already builds (no WebDriver
 //! client crate to compile). Synthetic key presses move the tool; the force on the page must
-//! equal the host's converged f64 reaction force for the tool position the page shows.
+//! equal the host's converged f64 reaction force for the tool position the page shows. With a
+//! force tool the keys set the load and the page's motion must equal the host's.
 
 use std::io::{BufRead, BufReader, Read};
 use std::net::TcpStream;
@@ -21,6 +22,7 @@ use tungstenite::stream::MaybeTlsStream;
 use tungstenite::{Message, WebSocket};
 
 const SCENARIO: &str = "../examples/needle-insertion.toml";
+const FORCE_SCENARIO: &str = "../examples/probe-force-8b.toml";
 
 /// A process and the process group it leads (QEMU and Chromium's helpers), killed on drop.
 struct Group(Child);
@@ -200,10 +202,9 @@ fn reference(u: [f64; 3]) -> ([f64; 3], f64) {
     (force, field.iter().map(|v| max_abs(v)).fold(0.0, f64::max))
 }
 
-#[test]
-fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
-    let started = Instant::now();
-    let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join(SCENARIO);
+/// `deform live SCENARIO --serve` on QEMU: the server, the page's address, the WebSocket port.
+fn serve(scenario: &str) -> (Group, String, u16) {
+    let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join(scenario);
     let mut server = spawn_group(
         Command::new(env!("CARGO_BIN_EXE_deform"))
             .arg("live")
@@ -226,23 +227,13 @@ fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
         .and_then(|s| s.split(')').next())
         .and_then(|p| p.parse().ok())
         .unwrap_or_else(|| panic!("no WebSocket port in {serving:?}"));
+    (server, page, ws_port)
+}
 
-    // A misbehaving client first: garbage gets an error message, then it vanishes mid-session.
-    {
-        let (mut rogue, _) =
-            tungstenite::connect(format!("ws://127.0.0.1:{ws_port}/")).expect("the WebSocket");
-        let mesh = rogue.read().unwrap();
-        assert!(mesh.to_text().unwrap().contains("\"mesh\""), "{mesh:?}");
-        rogue.send(Message::text("{\"type\":\"fly\"}")).unwrap();
-        loop {
-            let m = rogue.read().unwrap();
-            if m.to_text().unwrap().contains("\"error\"") {
-                break;
-            }
-        }
-    }
-
-    let profile = Path::new(env!("CARGO_TARGET_TMPDIR")).join("chromium-profile");
+/// Headless Chromium (profile directory `profile` under the test's scratch directory) with
+/// `page` open, and a DevTools session on it.
+fn open(page: &str, profile: &str) -> (Group, Cdp) {
+    let profile = Path::new(env!("CARGO_TARGET_TMPDIR")).join(profile);
     let _ = std::fs::remove_dir_all(&profile);
     std::fs::create_dir_all(&profile).unwrap();
     let mut browser = spawn_group(
@@ -278,6 +269,30 @@ fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
         json!({ "targetId": target["targetId"], "flatten": true }),
     );
     cdp.session = Some(attached["sessionId"].as_str().unwrap().to_string());
+    (browser, cdp)
+}
+
+#[test]
+fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
+    let started = Instant::now();
+    let (mut server, page, ws_port) = serve(SCENARIO);
+
+    // A misbehaving client first: garbage gets an error message, then it vanishes mid-session.
+    {
+        let (mut rogue, _) =
+            tungstenite::connect(format!("ws://127.0.0.1:{ws_port}/")).expect("the WebSocket");
+        let mesh = rogue.read().unwrap();
+        assert!(mesh.to_text().unwrap().contains("\"mesh\""), "{mesh:?}");
+        rogue.send(Message::text("{\"type\":\"fly\"}")).unwrap();
+        loop {
+            let m = rogue.read().unwrap();
+            if m.to_text().unwrap().contains("\"error\"") {
+                break;
+            }
+        }
+    }
+
+    let (browser, mut cdp) = open(&page, "chromium-profile");
 
     let first = cdp.until(Duration::from_secs(60), "a first frame", |r| {
         r["frame"].is_string() && r["connected"] == json!("true")
@@ -408,4 +423,45 @@ fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
         png.len(),
         started.elapsed().as_secs_f64()
     );
+}
+
+/// A force tool in the browser (examples/probe-force-8b.toml): the keys set the load, and the
+/// page shows the target's mean tool displacement, equal to the host's converged one.
+#[test]
+fn the_page_shows_the_targets_motion_for_the_load_the_keys_set() {
+    let (_server, page, _) = serve(FORCE_SCENARIO);
+    let (browser, mut cdp) = open(&page, "chromium-profile-force");
+    let first = cdp.until(Duration::from_secs(60), "a first frame", |r| {
+        r["frame"].is_string() && r["connected"] == json!("true")
+    });
+    assert_eq!(first["kind"], json!("force"), "{first}");
+    // Five presses of ↓ and two of →: a load of (0.4, 0, −1) N.
+    for _ in 0..5 {
+        cdp.key("ArrowDown", 40);
+    }
+    cdp.key("ArrowRight", 39);
+    cdp.key("ArrowRight", 39);
+    let moved = cdp.until(Duration::from_secs(60), "the frame for the load", |r| {
+        r["tool"] == json!("0.4,0,-1")
+    });
+    assert!(moved.get("error").is_none(), "{moved}");
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(FORCE_SCENARIO);
+    let s = Scenario::load(&path, None).unwrap();
+    let sim = s.simulation.as_ref().unwrap();
+    let setup = LiveSetup::for_simulation(&s.model, sim, &EncodeOptions::default()).unwrap();
+    let (field, want) = setup.converged(&[[0.4, 0.0, -1.0]], None).unwrap();
+    let u_max = field.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+    let shown = numbers(&moved["force"]);
+    assert!(
+        want[2] < -0.01 && want[0] > 0.0,
+        "the load moves the probe: {want:?}"
+    );
+    for d in 0..3 {
+        assert!(
+            (shown[d] - want[d]).abs() <= 1e-3 * u_max,
+            "motion {shown:?} on the page, {want:?} from the host"
+        );
+    }
+    println!("force tool: load (0.4, 0, -1) N, motion {shown:?} m (host {want:?})");
+    drop(browser);
 }

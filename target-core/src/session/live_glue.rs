@@ -1,13 +1,15 @@
-//! The session's live-loop requests (protocol version 8, [`deform_shared::live`]): the tool
-//! set, the local force model, full frames, force queries and the quantised field. The
+//! The session's live-loop requests (protocol versions 8 and 9, [`deform_shared::live`]): the
+//! tool set (displacement rows or force nodes), the local model (Schur sums or compliance),
+//! full frames, queries between them and the quantised field. The
 //! arithmetic is in [`crate::live`]; this is where it meets the session's vectors and solves.
 
 use deform_shared::live::{
-    FieldChunk, ForceReport, FrameReport, LiveError, LiveParams, ModelReport, ToolRow, FIELD_NODES,
+    FieldChunk, ForceReport, FrameReport, LiveError, LiveParams, ModelReport, MotionQuery,
+    MotionReport, ToolRow, FIELD_NODES,
 };
 
 use super::*;
-use crate::live::{field_exponent, pack_field, tool_mantissas};
+use crate::live::{field_exponent, pack_field, ToolKind};
 use deform_shared::protocol::SolveReport;
 
 /// The Schur columns' tolerance: the fixed-point CG's floor, which the host's refinement
@@ -25,8 +27,16 @@ impl<E: Executor> Session<'_, E> {
         Ok(Response::Ack)
     }
 
-    /// Starts the live session: one fused CG solve per three tool nodes gives the Schur
-    /// complement's column sums. The right-hand sides, solutions and predictions are spent.
+    /// A force tool at `nodes` (version 9).
+    pub(super) fn live_force_tool(&mut self, nodes: &[u32]) -> Result<Response, ErrorCode> {
+        let shape = self.loaded()?;
+        self.live.set_force_tool(nodes, shape.n).map_err(live)?;
+        Ok(Response::Ack)
+    }
+
+    /// Starts the live session: one fused CG solve per three tool nodes gives the local
+    /// model's columns (Schur sums, or compliance means for a force tool). The right-hand
+    /// sides, solutions and predictions are spent.
     pub(super) fn live_start(&mut self, params: LiveParams) -> Result<Response, ErrorCode> {
         let shape = self.loaded()?;
         let (n, f) = (to_usize(shape.n), i32::from(shape.frac_bits));
@@ -39,7 +49,9 @@ impl<E: Executor> Session<'_, E> {
             cycles: 0,
             converged: true,
         };
-        let result = (|| {
+        // Hart 0's count over the solves and their critical paths (see `frame_cycles`).
+        let (mut counted, mut path) = (0u64, 0u64);
+        let mut result = || {
             for first in (0..tools).step_by(MAX_DIRECTIONS) {
                 let group = (tools - first).min(MAX_DIRECTIONS);
                 for g in 0..group {
@@ -48,8 +60,8 @@ impl<E: Executor> Session<'_, E> {
                         .b
                         .get_mut(..n)
                         .ok_or(ErrorCode::ChunkTooLong)?;
-                    started.schur_rhs(tools, first + g, b);
-                    self.rhs[g] = VectorState::Complete { exponent: -f };
+                    let exponent = started.model_rhs(tools, first + g, b, f);
+                    self.rhs[g] = VectorState::Complete { exponent };
                 }
                 let solved = self.solve(&SolveParams {
                     max_iterations: shape.n.saturating_mul(10),
@@ -59,6 +71,10 @@ impl<E: Executor> Session<'_, E> {
                     cycle_budget: 0,
                 })?;
                 if let Response::Solved(r) = solved {
+                    // Each solve counts at its critical path, as a frame's does.
+                    let (on_hart0, critical) = solve_cycles(&r);
+                    counted = counted.saturating_add(on_hart0);
+                    path = path.saturating_add(critical);
                     report.solves += 1;
                     report.iterations += r.iterations;
                     report.converged &= r.converged;
@@ -67,11 +83,14 @@ impl<E: Executor> Session<'_, E> {
                     let e_z = self.solution[g].unwrap_or(0);
                     let (tools, started) = self.live.parts().map_err(live)?;
                     let z = self.store.directions[g].x.get(..n).unwrap_or(&[]);
-                    started.set_schur(tools, first + g, z, e_z, f);
+                    started
+                        .set_model_column(tools, first + g, z, e_z, f)
+                        .map_err(live)?;
                 }
             }
             Ok(())
-        })();
+        };
+        let result = result();
         // The vectors now hold the model's columns, not anything the host sent.
         self.rhs = [VectorState::Empty; MAX_DIRECTIONS];
         self.solution = [None; MAX_DIRECTIONS];
@@ -80,13 +99,17 @@ impl<E: Executor> Session<'_, E> {
             self.live.clear();
             return Err(e);
         }
-        report.cycles = self.exec.now().cycles.wrapping_sub(t0.cycles);
+        let elapsed = self.exec.now().cycles.wrapping_sub(t0.cycles);
+        report.cycles = elapsed.saturating_sub(counted).saturating_add(path);
         Ok(Response::LiveReady(report))
     }
 
-    /// Checks a frame's or query's tool displacements against the tool set.
-    fn check_tool(&mut self, tool: &[[f32; 3]]) -> Result<(), ErrorCode> {
-        let (tools, _) = self.live.parts().map_err(live)?;
+    /// Checks a frame's or query's tool inputs against the tool set and its kind.
+    fn check_tool(&mut self, tool: &[[f32; 3]], kind: ToolKind) -> Result<(), ErrorCode> {
+        let (tools, started) = self.live.parts().map_err(live)?;
+        if started.kind != kind {
+            return Err(live(LiveError::WrongKind));
+        }
         if tool.len() != tools.len() {
             return Err(live(LiveError::ToolCount {
                 expected: tools.len() as u8,
@@ -99,13 +122,42 @@ impl<E: Executor> Session<'_, E> {
         Ok(())
     }
 
-    /// A full frame: right-hand sides from the tool displacements, a fused predicted solve
-    /// within the budget, the reaction force, and the local model re-anchored.
+    /// A displacement tool's full frame.
     pub(super) fn live_frame(&mut self, tool: &[[f32; 3]]) -> Result<Response, ErrorCode> {
+        let (force, residual, iterations, cycles) =
+            self.live_solve(tool, ToolKind::Displacement)?;
+        Ok(Response::LiveFrame(FrameReport {
+            force,
+            residual,
+            iterations,
+            cycles,
+        }))
+    }
+
+    /// A force tool's full frame (version 9).
+    pub(super) fn live_load(&mut self, load: &[[f32; 3]]) -> Result<Response, ErrorCode> {
+        let (displacement, residual, iterations, cycles) =
+            self.live_solve(load, ToolKind::Force)?;
+        Ok(Response::LiveMotion(MotionReport {
+            displacement,
+            residual,
+            iterations,
+            cycles,
+        }))
+    }
+
+    /// A full frame: right-hand sides from the tool inputs, a fused predicted solve within
+    /// the budget, the answer (force or motion), and the local model re-anchored. Returns the
+    /// answer, the residual, the iterations and the cycles.
+    fn live_solve(
+        &mut self,
+        tool: &[[f32; 3]],
+        kind: ToolKind,
+    ) -> Result<([f32; 3], f32, u16, u32), ErrorCode> {
         let shape = self.loaded()?;
         let (n, f) = (to_usize(shape.n), i32::from(shape.frac_bits));
         let t0 = self.exec.now();
-        self.check_tool(tool)?;
+        self.check_tool(tool, kind)?;
         let mut exponents = [0i32; MAX_DIRECTIONS];
         for (d, e) in exponents.iter_mut().enumerate() {
             *e = self.rhs[d].exponent(SessionStep::NoRhs)?;
@@ -118,8 +170,7 @@ impl<E: Executor> Session<'_, E> {
                     .get_mut(..n)
                     .ok_or(ErrorCode::ChunkTooLong)?;
                 started.take_snapshot(d, tools, b, e_b);
-                let (u, e_u) = tool_mantissas(tool, d).map_err(live)?;
-                let e = started.patch_rhs(d, tools, b, e_b, &u, e_u, f);
+                let e = started.patch(d, tools, b, e_b, tool, f).map_err(live)?;
                 self.rhs[d] = VectorState::Complete { exponent: e };
             }
             started.params
@@ -135,34 +186,56 @@ impl<E: Executor> Session<'_, E> {
             return Err(out_of_order(SessionStep::NoSolution));
         };
         let (tools, started) = self.live.parts().map_err(live)?;
-        let mut force = [0f64; 3];
-        for (d, out) in force.iter_mut().enumerate() {
-            let (u, e_u) = tool_mantissas(tool, d).map_err(live)?;
+        let mut answer = [0f64; 3];
+        for (d, out) in answer.iter_mut().enumerate() {
             let x = self.store.directions[d].x.get(..n).unwrap_or(&[]);
             let e_x = self.solution[d].unwrap_or(0);
-            *out = f64::from(params.scale[d]) * started.reaction(tools, x, e_x, &u, e_u, f);
+            *out = started.answer(d, tools, x, e_x, tool, f).map_err(live)?;
         }
-        started.anchor(force, tool);
+        if !answer.iter().all(|&v| (v as f32).is_finite()) {
+            // An answer no f32 holds is refused, and it anchors nothing.
+            return Err(live(LiveError::NotFinite));
+        }
+        started.anchor(answer, tool);
         let cycles = frame_cycles(self.exec.now().cycles.wrapping_sub(t0.cycles), &report);
-        Ok(Response::LiveFrame(FrameReport {
-            force: force.map(|v| v as f32),
-            residual: report.residual as f32,
-            iterations: report.iterations.min(u32::from(u16::MAX)) as u16,
-            cycles: cycles.min(u64::from(u32::MAX)) as u32,
+        Ok((
+            answer.map(|v| v as f32),
+            report.residual as f32,
+            report.iterations.min(u32::from(u16::MAX)) as u16,
+            cycles.min(u64::from(u32::MAX)) as u32,
+        ))
+    }
+
+    /// A force query between a displacement tool's frames, from the local linear model.
+    pub(super) fn live_force(&mut self, tool: &[[f32; 3]]) -> Result<Response, ErrorCode> {
+        let (force, cycles) = self.live_query(tool, ToolKind::Displacement)?;
+        Ok(Response::LiveForce(ForceReport { force, cycles }))
+    }
+
+    /// A displacement query between a force tool's frames, from the compliance model.
+    pub(super) fn live_load_query(&mut self, load: &[[f32; 3]]) -> Result<Response, ErrorCode> {
+        let (displacement, cycles) = self.live_query(load, ToolKind::Force)?;
+        Ok(Response::LiveMotionQuery(MotionQuery {
+            displacement,
+            cycles,
         }))
     }
 
-    /// A force query between frames, from the local linear model.
-    pub(super) fn live_force(&mut self, tool: &[[f32; 3]]) -> Result<Response, ErrorCode> {
+    /// The local model's answer at `tool` and the cycles it took.
+    fn live_query(
+        &mut self,
+        tool: &[[f32; 3]],
+        kind: ToolKind,
+    ) -> Result<([f32; 3], u32), ErrorCode> {
         let t0 = self.exec.now();
-        self.check_tool(tool)?;
+        self.check_tool(tool, kind)?;
         let (_, started) = self.live.parts().map_err(live)?;
-        let force = started.model_force(tool).map_err(live)?;
+        let answer = started.model_answer(tool).map_err(live)?;
         let cycles = self.exec.now().cycles.wrapping_sub(t0.cycles);
-        Ok(Response::LiveForce(ForceReport {
-            force: force.map(|v| v as f32),
-            cycles: cycles.min(u64::from(u32::MAX)) as u32,
-        }))
+        Ok((
+            answer.map(|v| v as f32),
+            cycles.min(u64::from(u32::MAX)) as u32,
+        ))
     }
 
     /// A chunk of the last frame's field, quantised (see [`FieldChunk`]).
@@ -209,13 +282,19 @@ impl<E: Executor> Session<'_, E> {
 /// parallel phase's slowest hart plus hart 0's serial work), and hart 0's own work around the
 /// solve (right-hand sides, prediction, reaction force) is kept as it is.
 fn frame_cycles(elapsed: u64, report: &SolveReport) -> u64 {
-    if report.mvus <= 1 {
-        return elapsed;
-    }
+    let (on_hart0, critical) = solve_cycles(report);
+    elapsed.saturating_sub(on_hart0).saturating_add(critical)
+}
+
+/// A solve's share of hart 0's cycle count and its critical path; the same with one MVU.
+fn solve_cycles(report: &SolveReport) -> (u64, u64) {
     let on_hart0 = report.mvu.cycles.saturating_add(report.svu.cycles);
+    if report.mvus <= 1 {
+        return (on_hart0, on_hart0);
+    }
     let critical = report
         .whole_solve
         .mvu_critical
         .saturating_add(report.whole_solve.svu_critical);
-    elapsed.saturating_sub(on_hart0).saturating_add(critical)
+    (on_hart0, critical)
 }

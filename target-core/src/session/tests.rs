@@ -1284,6 +1284,23 @@ fn raw_request() -> impl Strategy<Value = Request> {
                 values: chunk(&v)
             }),
         any::<u32>().prop_map(|crc32| Request::EndUpdate { crc32 }),
+        prop::collection::vec(num(12), 0..=3).prop_map(|n| Request::LiveForceTool {
+            nodes: n.into_iter().collect()
+        }),
+        (prop_oneof![Just(1e-4f32), any::<f32>()], 0u32..40).prop_map(
+            |(tolerance, max_iterations)| Request::LiveStart(deform_shared::live::LiveParams {
+                tolerance,
+                max_iterations,
+                cycle_budget: 0,
+                scale: [1.0, 2.0, 0.5],
+            })
+        ),
+        prop::collection::vec(any::<[f32; 3]>(), 0..=3).prop_map(|l| Request::LiveLoad {
+            load: l.into_iter().collect()
+        }),
+        prop::collection::vec(any::<[f32; 3]>(), 0..=3).prop_map(|l| Request::LiveLoadQuery {
+            load: l.into_iter().collect()
+        }),
     ]
 }
 
@@ -1911,5 +1928,6 @@ fn a_solution_answer_holds_at_most_len_elements() {
     }
 }
 
+mod force_tool;
 mod live;
 mod predicted;

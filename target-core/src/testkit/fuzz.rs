@@ -207,6 +207,45 @@ pub fn loader(data: &[u8]) {
 
 /// A whole session in request order, sequence numbers from 0: handshake, an 8×8 Laplacian in
 /// one tile, a right-hand side, a solve, the solution.
+/// A force tool (protocol 9) on the seed session's matrix: the tool, its compliance model,
+/// the static loads of the three directions, a frame, a query and the field.
+fn force_tool_requests() -> Vec<Request> {
+    use deform_shared::live::LiveParams;
+    use deform_shared::protocol::VectorSlot;
+    let mut out = vec![
+        Request::LiveForceTool {
+            nodes: [3].into_iter().collect(),
+        },
+        Request::LiveStart(LiveParams {
+            tolerance: 1e-4,
+            max_iterations: 50,
+            cycle_budget: 0,
+            scale: [1.0, 2.0, 0.5],
+        }),
+    ];
+    for direction in 0..3 {
+        let slot = VectorSlot::Rhs { direction };
+        out.push(Request::BeginVector {
+            slot,
+            exponent: 0,
+            len: 8,
+        });
+        out.push(Request::VectorData {
+            slot,
+            offset: 0,
+            mantissas: (0..8).map(|i| (i - 4) << 18).collect(),
+        });
+    }
+    let load: heapless::Vec<[f32; 3], 8> = [[0.5, 0.0, -2.0]].into_iter().collect();
+    out.push(Request::LiveLoad { load: load.clone() });
+    out.push(Request::LiveLoadQuery { load });
+    out.push(Request::ReadField {
+        offset: 0,
+        stride: 1,
+    });
+    out
+}
+
 fn session_requests() -> Vec<Envelope<Request>> {
     use deform_shared::matrix::words_crc;
     use deform_shared::protocol::{SolveParams, Start, VectorSlot};
@@ -254,6 +293,7 @@ fn session_requests() -> Vec<Envelope<Request>> {
     ];
     requests
         .into_iter()
+        .chain(force_tool_requests())
         .enumerate()
         .map(|(seq, body)| Envelope {
             seq: seq as u16,
@@ -327,4 +367,27 @@ fn postcard_vec<T: serde::Serialize>(value: &T) -> Vec<u8> {
     let mut buf = [0u8; 2 * MAX_FRAME_LEN];
     let bytes = postcard::to_slice(value, &mut buf).expect("seeds encode");
     bytes.to_vec()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use deform_shared::protocol::Response;
+
+    /// The seed session reaches the force tool's answers (not refusals), so the fuzzer starts
+    /// from inside the live state machine.
+    #[test]
+    fn the_seed_session_reaches_the_force_tools_answers() {
+        let info = small_target();
+        let mut storage = OwnedStorage::for_info(&info);
+        let mut session = storage.session(info, 2);
+        let answers: std::vec::Vec<Response> = session_requests()
+            .into_iter()
+            .map(|e| session.handle(e.body))
+            .collect();
+        let tail = &answers[answers.len() - 3..];
+        assert!(matches!(tail[0], Response::LiveMotion(_)), "{answers:?}");
+        assert!(matches!(tail[1], Response::LiveMotionQuery(_)), "{tail:?}");
+        assert!(matches!(tail[2], Response::Field(_)), "{tail:?}");
+    }
 }

@@ -6,10 +6,10 @@ use deform_shared::qformat::quantize;
 
 use super::*;
 
-const N: usize = 21;
+pub(super) const N: usize = 21;
 const TOOL: usize = 10;
 const F: u8 = 18;
-const SCALE: [f32; 3] = [1.0, 2.0, 0.5];
+pub(super) const SCALE: [f32; 3] = [1.0, 2.0, 0.5];
 const U0: [f32; 3] = [0.3, -0.2, 0.05];
 
 /// tridiag(−1, 2, −1) with the tool node's row and column eliminated (its row keeps 2).
@@ -41,9 +41,14 @@ fn tool_row(node: u32) -> ToolRow {
 }
 
 fn static_load() -> Vec<f64> {
+    sine_load(TOOL)
+}
+
+/// 0.1·sin(i) on the chain's nodes, 0 at `held` (the tool, or a fixed node).
+pub(super) fn sine_load(held: usize) -> Vec<f64> {
     (0..N)
         .map(|i| {
-            if i == TOOL {
+            if i == held {
                 0.0
             } else {
                 0.1 * (i as f64).sin()
@@ -52,7 +57,7 @@ fn static_load() -> Vec<f64> {
         .collect()
 }
 
-fn params() -> LiveParams {
+pub(super) fn params() -> LiveParams {
     LiveParams {
         tolerance: 1e-7,
         max_iterations: 500,
