@@ -144,7 +144,8 @@ function paint() {
 const fmt = (v) => v.map((x) => x.toFixed(3)).join(', ');
 function show(f) {
   last = f;
-  $('solver').textContent = f.solver === 'host' ? 'host f64 reference' : 'target (QEMU / board)';
+  $('solver').textContent = (f.solver.startsWith('host') ? 'host f64 reference' : 'target (QEMU / board)')
+    + (f.solver.endsWith('(dynamic)') ? ', dynamic: one time step per frame' : '');
   $('tool').textContent = `(${fmt(f.tool)})`;
   $('force').textContent = `(${f.force.map((x) => x.toExponential(3)).join(', ')}) N`;
   $('force-norm').textContent = `${f.force_norm.toExponential(4)} N`;

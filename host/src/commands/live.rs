@@ -14,6 +14,7 @@ use clap::Args;
 use deform_shared::live::LiveParams;
 
 use crate::bench::board::{timeouts, BenchBoard, BenchBoardChoice};
+use crate::cli_dynamics::DynamicFlags;
 use crate::commands::simulate::bar;
 use crate::encode::{EncodeOptions, Partition};
 use crate::live::headless::{self, FrameRecord, Script, Session, CLOCK_HZ};
@@ -123,6 +124,13 @@ pub struct LiveArgs {
     /// Seconds to wait for one frame's answer.
     #[arg(long, default_value_t = 60)]
     pub timeout: u64,
+
+    /// A dynamic scenario (or `--dynamic`) runs dynamic frames: each frame is one time step
+    /// h = the scenario's dt, the tissue has inertia and damping and keeps moving after the
+    /// tool stops. --cycle-budget and --pace are refused then; --field-every, --field-stride
+    /// and --forces-per-frame do not apply (the whole field comes back every frame).
+    #[command(flatten)]
+    pub dynamics: DynamicFlags,
 }
 
 pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
@@ -141,17 +149,6 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
             args.scenario.display()
         );
     };
-    if simulation.dynamic {
-        // The live frames solve K·u = f on the target with the tool's displacements moved into
-        // the right-hand side; a dynamic step needs S = M + h·B + h²·K and the velocities, which
-        // the frame protocol does not carry yet. Refuse rather than silently drop the dynamics.
-        bail!(
-            "{}: [simulation] dynamic = true: deform live solves quasi-static frames only; run \
-             the dynamic scenario with `deform simulate {}`",
-            args.scenario.display(),
-            args.scenario.display()
-        );
-    }
     let frames = args.frames.unwrap_or(simulation.steps);
     let end = simulation.end_time();
     let times: Vec<f64> = (1..=frames)
@@ -178,6 +175,13 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
             })
             .collect()
     };
+    let dynamics = args
+        .dynamics
+        .resolve(simulation.dynamic, scenario.dynamics.as_ref())?;
+    if let Some(spec) = dynamics {
+        let steps = (simulation.dt, simulation.steps);
+        return super::live_dynamic::run(args, &setup, &spec, steps, &tool_at);
+    }
     if args.serve {
         return serve(args, &setup);
     }
@@ -361,7 +365,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
 
 impl LiveArgs {
     /// The MVUs K is split over: `--mvus`, except on the LiteX SoC, which has one hart.
-    fn mvu_count(&self) -> u8 {
+    pub(crate) fn mvu_count(&self) -> u8 {
         if self.target == "litex" {
             1
         } else {
@@ -371,7 +375,7 @@ impl LiveArgs {
 }
 
 /// The board (or QEMU) the session runs on.
-fn open_board(args: &LiveArgs) -> anyhow::Result<BenchBoard> {
+pub(crate) fn open_board(args: &LiveArgs) -> anyhow::Result<BenchBoard> {
     let choice = match &args.port {
         Some(port) => BenchBoardChoice::Port(port.clone()),
         None if args.target == "litex" => BenchBoardChoice::Litex {
