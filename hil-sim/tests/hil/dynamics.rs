@@ -215,3 +215,107 @@ fn the_dynamic_needle_example_on_the_target() {
     check(&steps, "needle-dynamic");
     assert_alive(&mut qemu);
 }
+
+/// `deform live` on a dynamic scenario (examples/needle-dynamic-8b.toml: 8³ model B, 4 MVUs):
+/// every frame one step of h on the target, equal to the host's f64 stepper run separately
+/// over the same tool path; and after the needle is withdrawn (frame 55) the tissue is still
+/// displaced and moving, losing energy every frame, where a quasi-static frame for the tool at
+/// rest would be the undeformed tissue at once.
+#[test]
+fn a_dynamic_live_session_follows_the_f64_stepper_and_relaxes_after_the_tool_leaves() {
+    use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
+    use deform_host::cli_dynamics::DynamicFlags;
+    use deform_host::encode::{EncodeOptions, Partition};
+    use deform_host::live::dynamic::DynamicLive;
+    use deform_host::live::LiveSetup;
+    use deform_host::reference::{max_abs, max_abs_diff};
+    use deform_host::scenario::Scenario;
+
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/needle-dynamic-8b.toml"
+    );
+    let scenario = Scenario::load(std::path::Path::new(path), None).unwrap();
+    let simulation = scenario.simulation.clone().unwrap();
+    let flags = DynamicFlags {
+        dynamic: false,
+        mass: None,
+        damping: None,
+        rayleigh: None,
+        scheme: None,
+        max_solves: 8,
+    };
+    let spec = flags
+        .resolve(simulation.dynamic, scenario.dynamics.as_ref())
+        .unwrap()
+        .expect("the example is dynamic");
+    let layout = EncodeOptions {
+        mvus: 4,
+        partition: Partition::Rows,
+        use_symmetry: true,
+    };
+    let setup = LiveSetup::new(&simulation.spec_at(&scenario.model, 0.0), &layout).unwrap();
+    let tol = 1e-7;
+    let params = DynamicParams {
+        tol,
+        max_solves: 8,
+        max_iterations: 500,
+        check_reference: true,
+        layout,
+    };
+    let h = simulation.dt;
+    let mut qemu = Qemu::start(&QemuConfig::new(firmware_elf()).harts(4)).unwrap();
+    let mut target = connect(&qemu);
+    let (model, tools) = (&setup.model, &setup.tools);
+    let mut live = DynamicLive::on_target(model, tools, &spec, h, params, &mut target).unwrap();
+    let mut host = <DynamicLive>::host(model, tools, &spec, h).unwrap();
+    let mut frames = Vec::new();
+    for i in 1..=70 {
+        let tool = vec![
+            simulation
+                .spec_at(&scenario.model, f64::from(i) * h)
+                .prescribed[0]
+                .u,
+        ];
+        let got = live.frame(&tool).unwrap();
+        let want = host.frame(&tool).unwrap();
+        let scale = want.u.iter().map(|u| max_abs(u)).fold(0.0, f64::max);
+        let err = (0..3)
+            .map(|d| max_abs_diff(&got.u[d], &want.u[d]))
+            .fold(0.0, f64::max)
+            / scale;
+        println!(
+            "frame {i}: tool z {:+.3}, {} iterations, {:?} cycles, {} B up / {} B down, error {err:.2e}, max |v| {:.3e}, energy {:.4e}",
+            tool[0][2], got.iterations, got.cycles, got.bytes_up, got.bytes_down, want.max_v, want.energy
+        );
+        // Refined to 1e-7 a step; 70 steps of accumulated rounding stay far below 1e-5.
+        assert!(err <= 1e-5, "frame {i}: {err:e} of max |u|");
+        assert!(got.error_vs_reference.unwrap() <= 1e-5);
+        assert!(got.residual <= tol, "frame {i}: residual {}", got.residual);
+        frames.push(want);
+    }
+    let peak = frames.iter().map(|f| f.max_u).fold(0.0, f64::max);
+    let (withdrawn, last) = (&frames[55], &frames[69]);
+    assert_eq!(last.tool[0], [0.0; 3], "the needle is out");
+    // The quasi-static frame for the tool at rest (no loads) is the undeformed tissue.
+    let (rest, _) = setup.converged(&last.tool, None).unwrap();
+    assert!(rest.iter().all(|u| max_abs(u) == 0.0));
+    // The dynamic tissue is still displaced and moving 15 frames after the withdrawal.
+    assert!(last.max_u > 1e-2 * peak, "max |u| {} of {peak}", last.max_u);
+    assert!(last.max_v > 1e-2, "max |v| {}", last.max_v);
+    let moved = (0..3)
+        .map(|d| max_abs_diff(&frames[68].u[d], &last.u[d]))
+        .fold(0.0, f64::max);
+    assert!(moved > 1e-4, "the tissue stopped: {moved:e}");
+    // With dampers and the tool at rest nothing feeds the motion: the energy only falls.
+    for w in frames[56..].windows(2) {
+        assert!(
+            w[1].energy <= w[0].energy,
+            "{} then {}",
+            w[0].energy,
+            w[1].energy
+        );
+    }
+    assert!(last.energy < withdrawn.energy);
+    assert_alive(&mut qemu);
+}

@@ -77,7 +77,6 @@ pub fn run(
         dt,
         params(args),
         &mut board.target,
-        &board.wire,
     )?;
     match args.serve {
         true => serve(setup, DynamicViewSolver::new(live), args),

@@ -15,7 +15,6 @@
 use std::time::{Duration, Instant};
 
 use super::interactive::{FrameSolver, ViewFrame};
-use crate::bench::board::WireCounter;
 use crate::dynamics::host::host_step;
 use crate::dynamics::target::{DynamicParams, DynamicRunner};
 use crate::dynamics::{DynamicSystem, DynamicsSpec, Loads, State, StepMatrices};
@@ -52,7 +51,9 @@ pub struct DynamicFrame {
     /// max |u − u_ref| / max |u_ref| against the f64 stepper run alongside from rest with the
     /// same tool positions (`None` on the host, which *is* the f64 stepper).
     pub error_vs_reference: Option<f64>,
-    /// Bytes on the line for the step, framing included (the first frame's include S).
+    /// Bytes written to / read from the port for the step, framing and retransmissions
+    /// included (the link's own count, as the quasi-static frames' wire counter; the first
+    /// frame's include S).
     pub bytes_up: u64,
     pub bytes_down: u64,
 }
@@ -61,11 +62,12 @@ pub struct DynamicFrame {
 struct OnTarget<'t, P: Port> {
     runner: DynamicRunner,
     target: &'t mut Target<P>,
-    wire: &'t WireCounter,
 }
 
-/// A dynamic live session: the tissue at rest at t = 0, stepped one h per frame.
-pub struct DynamicLive<'t, P: Port> {
+/// A dynamic live session: the tissue at rest at t = 0, stepped one h per frame. (`P`, the
+/// target's port, defaults to a serial port so that a host-only session can be named
+/// `<DynamicLive>::host`.)
+pub struct DynamicLive<'t, P: Port = Box<dyn serialport::SerialPort>> {
     system: DynamicSystem,
     matrices: StepMatrices,
     on_target: Option<OnTarget<'t, P>>,
@@ -103,7 +105,7 @@ impl<'t, P: Port> DynamicLive<'t, P> {
     }
 
     /// Steps on `target`, which is sent S at the first frame and keeps it; the f64 stepper
-    /// runs alongside. `wire` counts the line's bytes.
+    /// runs alongside.
     pub fn on_target(
         model: &Model,
         tools: &[usize],
@@ -111,7 +113,6 @@ impl<'t, P: Port> DynamicLive<'t, P> {
         h: f64,
         params: DynamicParams,
         target: &'t mut Target<P>,
-        wire: &'t WireCounter,
     ) -> anyhow::Result<Self> {
         let mut live = Self::host(model, tools, spec, h)?;
         let params = DynamicParams {
@@ -121,7 +122,6 @@ impl<'t, P: Port> DynamicLive<'t, P> {
         live.on_target = Some(OnTarget {
             runner: DynamicRunner::new(model, spec, h, params)?,
             target,
-            wire,
         });
         Ok(live)
     }
@@ -165,11 +165,9 @@ impl<'t, P: Port> DynamicLive<'t, P> {
             }
             Some(t) => {
                 let (start, start_ref) = (t.runner.state.clone(), t.runner.reference.clone());
-                let mark = t.wire.read();
                 let step = t
                     .runner
                     .step(t.target, frame, &self.loads, &loads1, |_| {})?;
-                let bytes = t.wire.read().since(mark);
                 let (s, r) = (&t.runner.state, &t.runner.reference);
                 let force = tool_force(&self.system, h, &self.tools, &start, s, &loads1);
                 DynamicFrame {
@@ -186,8 +184,8 @@ impl<'t, P: Port> DynamicLive<'t, P> {
                     cycles: Some(step.cycles),
                     residual: step.result.residual,
                     error_vs_reference: step.result.deviation,
-                    bytes_up: bytes.sent,
-                    bytes_down: bytes.received,
+                    bytes_up: step.bytes_sent,
+                    bytes_down: step.bytes_received,
                     ..describe(&self.system, frame, tool, s, force)
                 }
             }
