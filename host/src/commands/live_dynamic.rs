@@ -273,8 +273,9 @@ fn print(report: &DynamicReport) {
             report.frames, c.p50, c.p99, c.max, r.p50, r.worst
         );
         println!(
-            "accuracy    error vs the f64 stepper ≤ {:.2e} of max |u|, force ≤ {:.2e}, residual ≤ {:.2e}, iterations p50 {} max {}, ≤ {} solve(s) per frame",
+            "accuracy    error vs the f64 stepper ≤ {:.2e} of the frame's max |u| ({:.2e} of the session's), force ≤ {:.2e}, residual ≤ {:.2e}, iterations p50 {} max {}, ≤ {} solve(s) per frame",
             report.error_vs_converged_max.unwrap_or(0.0),
+            report.error_vs_converged_of_peak_max.unwrap_or(0.0),
             report.force_error_max.unwrap_or(0.0),
             report.residual_max,
             report.iterations.p50,

@@ -20,7 +20,7 @@ use crate::dynamics::target::{DynamicParams, DynamicRunner};
 use crate::dynamics::{DynamicSystem, DynamicsSpec, Loads, State, StepMatrices};
 use crate::link::{Port, Target};
 use crate::model::{Axis, Model};
-use crate::reference::max_abs;
+use crate::reference::{max_abs, max_abs_diff};
 
 /// One dynamic frame: the state after the step, its checks and what it cost.
 #[derive(Debug, Clone)]
@@ -51,6 +51,8 @@ pub struct DynamicFrame {
     /// max |u − u_ref| / max |u_ref| against the f64 stepper run alongside from rest with the
     /// same tool positions (`None` on the host, which *is* the f64 stepper).
     pub error_vs_reference: Option<f64>,
+    /// max |u − u_ref| itself: near rest max |u_ref| is small and the relative error large.
+    pub error_abs: Option<f64>,
     /// Bytes written to / read from the port for the step, framing and retransmissions
     /// included (the link's own count, as the quasi-static frames' wire counter; the first
     /// frame's include S).
@@ -184,6 +186,11 @@ impl<'t, P: Port> DynamicLive<'t, P> {
                     cycles: Some(step.cycles),
                     residual: step.result.residual,
                     error_vs_reference: step.result.deviation,
+                    error_abs: Some(
+                        (0..3)
+                            .map(|d| max_abs_diff(&s.u[d], &r.u[d]))
+                            .fold(0.0, f64::max),
+                    ),
                     bytes_up: step.bytes_sent,
                     bytes_down: step.bytes_received,
                     ..describe(&self.system, frame, tool, s, force)
@@ -218,6 +225,7 @@ fn describe(
         cycles: None,
         residual: 0.0,
         error_vs_reference: None,
+        error_abs: None,
         bytes_up: 0,
         bytes_down: 0,
     }

@@ -89,6 +89,9 @@ pub struct DynamicReport {
     pub residual_max: f64,
     /// max |u − u_ref| / max |u_ref| against the f64 stepper run alongside (same tool path).
     pub error_vs_converged_max: Option<f64>,
+    /// max |u − u_ref| over the session / the session's largest max |u_ref|: the same error
+    /// on one scale (the per-frame figure above grows as the tissue passes through rest).
+    pub error_vs_converged_of_peak_max: Option<f64>,
     /// max |F − F_ref| / max |F_ref| over the frames.
     pub force_error_max: Option<f64>,
     /// Median over the frames after the first (whole vectors: a residual up, a correction down).
@@ -165,6 +168,14 @@ pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
                 .iter()
                 .filter_map(|r| r.error_vs_reference)
                 .fold(0.0, f64::max)
+        }),
+        error_vs_converged_of_peak_max: on_target.then(|| {
+            let peak = records.iter().map(|r| r.max_u).fold(0.0, f64::max);
+            records
+                .iter()
+                .filter_map(|r| r.error_abs)
+                .fold(0.0, f64::max)
+                / peak.max(f64::MIN_POSITIVE)
         }),
         force_error_max: on_target.then(|| force_errors(records)),
         bytes_up_per_frame: up,
