@@ -244,3 +244,97 @@ fn deform_live_refuses_bad_dynamic_input_clearly() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The next frame message on the live view's WebSocket.
+fn next_frame<S: std::io::Read + std::io::Write>(
+    ws: &mut tungstenite::WebSocket<S>,
+) -> serde_json::Value {
+    loop {
+        let m = ws.read().unwrap();
+        let v: serde_json::Value = serde_json::from_str(m.to_text().unwrap()).unwrap();
+        if v["type"] == "frame" {
+            return v;
+        }
+    }
+}
+
+/// `deform live --serve` on a dynamic scenario (the host's f64 stepper): frames come one time
+/// step apart for a tool position the page sent, and go on after it, the tissue still moving
+/// with the tool at rest, where the quasi-static view waits for the next position.
+#[test]
+fn deform_live_serve_keeps_stepping_a_dynamic_scenario_while_the_tool_rests() {
+    use std::io::{BufRead, BufReader};
+    use std::process::Stdio;
+    use tungstenite::Message;
+
+    let example = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/needle-dynamic-8b.toml");
+    /// Stops the server however the test ends.
+    struct Server(std::process::Child);
+    impl Drop for Server {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    let mut server = Server(
+        Command::new(env!("CARGO_BIN_EXE_deform"))
+            .arg("live")
+            .arg(&example)
+            .args(["--serve", "--target", "host", "--addr", "127.0.0.1:0"])
+            .stdout(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    );
+    let mut out = BufReader::new(server.0.stdout.take().unwrap());
+    let mut serving = String::new();
+    while !serving.contains("WebSocket on port ") {
+        serving.clear();
+        assert!(
+            out.read_line(&mut serving).unwrap() > 0,
+            "no 'serving' line"
+        );
+    }
+    let port: u16 = serving
+        .split("WebSocket on port ")
+        .nth(1)
+        .and_then(|s| s.split(')').next())
+        .and_then(|p| p.parse().ok())
+        .unwrap();
+    let (mut ws, _) = tungstenite::connect(format!("ws://127.0.0.1:{port}/")).unwrap();
+    let first = next_frame(&mut ws);
+    assert_eq!(first["solver"], "host (dynamic)", "{first}");
+    ws.send(Message::text(r#"{"type":"tool","u":[0,0,-1]}"#))
+        .unwrap();
+    let mut frames = Vec::new();
+    while frames.len() < 40 {
+        let v = next_frame(&mut ws);
+        if v["tool"] == serde_json::json!([0.0, 0.0, -1.0]) {
+            frames.push(v);
+        }
+    }
+    drop(server);
+    // 40 frames for one position: the tissue moved between them (inertia, then relaxation).
+    let u = |v: &serde_json::Value| -> Vec<f64> {
+        v["u"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect()
+    };
+    let (a, b) = (u(&frames[0]), u(&frames[39]));
+    let moved = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        moved > 1e-3,
+        "the tissue did not move between the frames: {moved:e}"
+    );
+    let numbers: Vec<u64> = frames
+        .iter()
+        .map(|v| v["frame"].as_u64().unwrap())
+        .collect();
+    assert!(numbers.windows(2).all(|w| w[1] > w[0]), "{numbers:?}");
+}
