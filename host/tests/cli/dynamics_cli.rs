@@ -258,11 +258,18 @@ fn next_frame<S: std::io::Read + std::io::Write>(
     }
 }
 
-/// `deform live --serve` on a dynamic scenario (the host's f64 stepper): frames come one time
-/// step apart for a tool position the page sent, and go on after it, the tissue still moving
-/// with the tool at rest, where the quasi-static view waits for the next position.
+/// `deform live --serve` on a dynamic scenario, on the host's f64 stepper and on the firmware
+/// in QEMU: frames come one time step apart for a tool position the page sent, and go on after
+/// it, the tissue still moving with the tool at rest, where the quasi-static view waits for
+/// the next position.
 #[test]
 fn deform_live_serve_keeps_stepping_a_dynamic_scenario_while_the_tool_rests() {
+    for (target, solver) in [("host", "host (dynamic)"), ("qemu", "target (dynamic)")] {
+        serve_dynamic(target, solver);
+    }
+}
+
+fn serve_dynamic(target: &str, solver: &str) {
     use std::io::{BufRead, BufReader};
     use std::process::Stdio;
     use tungstenite::Message;
@@ -280,7 +287,7 @@ fn deform_live_serve_keeps_stepping_a_dynamic_scenario_while_the_tool_rests() {
         Command::new(env!("CARGO_BIN_EXE_deform"))
             .arg("live")
             .arg(&example)
-            .args(["--serve", "--target", "host", "--addr", "127.0.0.1:0"])
+            .args(["--serve", "--target", target, "--addr", "127.0.0.1:0"])
             .stdout(Stdio::piped())
             .spawn()
             .unwrap(),
@@ -302,7 +309,7 @@ fn deform_live_serve_keeps_stepping_a_dynamic_scenario_while_the_tool_rests() {
         .unwrap();
     let (mut ws, _) = tungstenite::connect(format!("ws://127.0.0.1:{port}/")).unwrap();
     let first = next_frame(&mut ws);
-    assert_eq!(first["solver"], "host (dynamic)", "{first}");
+    assert_eq!(first["solver"], solver, "{first}");
     ws.send(Message::text(r#"{"type":"tool","u":[0,0,-1]}"#))
         .unwrap();
     let mut frames = Vec::new();
