@@ -319,3 +319,51 @@ fn a_dynamic_live_session_follows_the_f64_stepper_and_relaxes_after_the_tool_lea
     assert!(last.energy < withdrawn.energy);
     assert_alive(&mut qemu);
 }
+
+/// `deform live --port` on a dynamic scenario: the command's own path (scenario, flags, board
+/// over a serial device, report) against the firmware in QEMU as if it were a board; the
+/// report's keys and figures are those of a target session.
+#[test]
+fn deform_live_runs_dynamic_frames_over_a_port() {
+    use clap::Parser;
+    use deform_host::commands::live::{run, LiveArgs};
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: LiveArgs,
+    }
+    let mut qemu = boot();
+    let pty = qemu.pty_path().to_str().unwrap().to_string();
+    let example = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/needle-dynamic-8b.toml"
+    );
+    let report = std::env::temp_dir().join(format!("deform-dynlive-{}.json", std::process::id()));
+    let report_arg = report.to_str().unwrap();
+    let cli = Cli::try_parse_from([
+        "deform",
+        example,
+        "--headless",
+        "--frames",
+        "12",
+        "--mvus",
+        "1",
+        "--port",
+        &pty,
+        "--report",
+        report_arg,
+    ])
+    .unwrap();
+    run(&cli.args).expect("deform live over the port");
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    std::fs::remove_file(&report).unwrap();
+    assert_eq!(r["frames"], 12);
+    assert_eq!(r["target"], "port");
+    assert!(r["frame_cycles"]["p50"].as_f64().unwrap() > 0.0, "{r}");
+    assert!(r["bytes_up_per_frame"].as_f64().unwrap() > 0.0, "{r}");
+    assert!(r["error_vs_converged_max"].as_f64().unwrap() <= 1e-3, "{r}");
+    assert!(r["force_updates_per_s"].is_null());
+    assert_eq!(r["dynamic"]["h"], 0.01);
+    assert_alive(&mut qemu);
+}
