@@ -311,3 +311,65 @@ impl<P: Port> FrameSolver for DynamicViewSolver<'_, P> {
         true
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::encode::EncodeOptions;
+    use crate::live::LiveSetup;
+    use crate::model::prescribed::PrescribedDisplacement;
+    use crate::model::{Connection, Elasticity, Grid, ModelSpec, Node};
+
+    /// A 5³ model-B block on a fixed base, the tip at the centre of the top face.
+    fn needle() -> ModelSpec {
+        ModelSpec {
+            grid: Grid::new(5, 5, 5).unwrap(),
+            connection: Connection::AxialShear,
+            fixed_sets: vec!["z-".parse().unwrap()],
+            elasticity: Elasticity::isotropic(2.0).unwrap(),
+            prescribed: vec![PrescribedDisplacement {
+                node: Node { i: 2, j: 2, k: 4 },
+                u: [0.0; 3],
+            }],
+            loads: Vec::new(),
+            ..ModelSpec::thesis_example()
+        }
+    }
+
+    /// Held long enough, a damped dynamic frame comes to the quasi-static one: the same field
+    /// and the same reaction force at the tool (inertia and damper forces gone with v).
+    #[test]
+    fn a_held_tool_settles_to_the_quasi_static_frame() {
+        let setup = LiveSetup::new(&needle(), &EncodeOptions::default()).unwrap();
+        let spec = DynamicsSpec {
+            rayleigh: Some([20.0, 0.0]),
+            ..DynamicsSpec::uniform(0.01, [0.5; 3])
+        };
+        let mut live = <DynamicLive>::host(&setup.model, &setup.tools, &spec, 0.05).unwrap();
+        let tool = [[0.1, 0.0, -0.5]];
+        let first = live.frame(&tool).unwrap();
+        let (want, force) = setup.converged(&tool, None).unwrap();
+        // The first step lags the tool: the tissue has not followed yet.
+        assert!(first.u[2]
+            .iter()
+            .zip(&want[2])
+            .any(|(a, b)| (a - b).abs() > 1e-2));
+        let mut last = first;
+        for _ in 0..400 {
+            last = live.frame(&tool).unwrap();
+        }
+        let scale = want.iter().map(|u| max_abs(u)).fold(0.0, f64::max);
+        for d in 0..3 {
+            assert!(
+                max_abs_diff(&last.u[d], &want[d]) <= 1e-6 * scale,
+                "direction {d}"
+            );
+            assert!(
+                (last.force[d] - force[d]).abs() <= 1e-6 * force[2].abs(),
+                "{d}"
+            );
+        }
+        assert!(last.max_v < 1e-6, "{}", last.max_v);
+        assert!((last.t - 401.0 * 0.05).abs() < 1e-9);
+    }
+}
