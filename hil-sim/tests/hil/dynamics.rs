@@ -237,15 +237,7 @@ fn a_dynamic_live_session_follows_the_f64_stepper_and_relaxes_after_the_tool_lea
     );
     let scenario = Scenario::load(std::path::Path::new(path), None).unwrap();
     let simulation = scenario.simulation.clone().unwrap();
-    let flags = DynamicFlags {
-        dynamic: false,
-        mass: None,
-        damping: None,
-        rayleigh: None,
-        scheme: None,
-        max_solves: 8,
-    };
-    let spec = flags
+    let spec = DynamicFlags::default()
         .resolve(simulation.dynamic, scenario.dynamics.as_ref())
         .unwrap()
         .expect("the example is dynamic");

@@ -214,19 +214,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     if args.pace.is_some_and(|hz| !(hz.is_finite() && hz > 0.0)) {
         bail!("--pace must be a positive frame rate");
     }
-    let mut csv = match &args.frames_csv {
-        Some(path) => {
-            let mut f = BufWriter::new(
-                File::create(path).with_context(|| format!("creating {}", path.display()))?,
-            );
-            writeln!(f, "frame,t,tool_x,tool_y,tool_z,fx,fy,fz,fx_ref,fy_ref,fz_ref,residual,iterations,cycles,error_vs_converged,bytes_up,bytes_down")?;
-            Some(f)
-        }
-        None => None,
-    };
-    if let Some(dir) = &args.out {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
+    let mut csv = open_outputs(args, "frame,t,tool_x,tool_y,tool_z,fx,fy,fz,fx_ref,fy_ref,fz_ref,residual,iterations,cycles,error_vs_converged,bytes_up,bytes_down")?;
     let mut pvd = Vec::new();
     let progress = bar(u64::from(frames), "frames");
     let mut written: std::io::Result<()> = Ok(());
@@ -374,6 +362,24 @@ impl LiveArgs {
     }
 }
 
+/// Creates `--out`'s directory and opens `--frames-csv` with its `header` line: what the
+/// quasi-static and the dynamic sessions both write.
+pub(crate) fn open_outputs(
+    args: &LiveArgs,
+    header: &str,
+) -> anyhow::Result<Option<BufWriter<File>>> {
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let Some(path) = &args.frames_csv else {
+        return Ok(None);
+    };
+    let mut f =
+        BufWriter::new(File::create(path).with_context(|| format!("creating {}", path.display()))?);
+    writeln!(f, "{header}")?;
+    Ok(Some(f))
+}
+
 /// The board (or QEMU) the session runs on.
 pub(crate) fn open_board(args: &LiveArgs) -> anyhow::Result<BenchBoard> {
     let choice = match &args.port {
@@ -401,10 +407,22 @@ fn live_params(args: &LiveArgs, setup: &LiveSetup) -> LiveParams {
     }
 }
 
+/// Starts the page's server at `--addr` and says where: the mailbox the frames go through.
+pub(crate) fn serve_page(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<Arc<Mailbox>> {
+    let mailbox = Arc::new(Mailbox::new(interactive::mesh_json(setup)));
+    let bound = crate::live::serve::start(args.addr, mailbox.clone())?;
+    println!(
+        "serving     http://{}/ (WebSocket on port {}); Ctrl-C to stop",
+        bound.http,
+        bound.websocket.port()
+    );
+    std::io::stdout().flush()?;
+    Ok(mailbox)
+}
+
 /// `--serve`: the page and its WebSocket, the browser's tool positions solved frame by frame
 /// on the target (or the host reference) until the process is stopped.
 fn serve(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<()> {
-    let mailbox = Arc::new(Mailbox::new(interactive::mesh_json(setup)));
     println!("model       {}", setup.model.spec().describe());
     let mut board = None;
     let mut link = None;
@@ -418,13 +436,7 @@ fn serve(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<()> {
         );
         link = Some(l);
     }
-    let bound = crate::live::serve::start(args.addr, mailbox.clone())?;
-    println!(
-        "serving     http://{}/ (WebSocket on port {}); Ctrl-C to stop",
-        bound.http,
-        bound.websocket.port()
-    );
-    std::io::stdout().flush()?;
+    let mailbox = serve_page(args, setup)?;
     match link.as_mut() {
         Some(link) => {
             let mut solver = interactive::TargetSolver {

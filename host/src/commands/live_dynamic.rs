@@ -7,11 +7,10 @@
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::PathBuf;
-use std::sync::Arc;
 
 use anyhow::{bail, Context};
 
-use super::live::{open_board, LiveArgs};
+use super::live::{open_board, open_outputs, serve_page, LiveArgs};
 use super::simulate::bar;
 use crate::bench::board::CountingPort;
 use crate::dynamics::target::{preflight, DynamicParams};
@@ -20,7 +19,6 @@ use crate::encode::{EncodeOptions, Partition};
 use crate::link::Port;
 use crate::live::dynamic::{DynamicFrame, DynamicLive, DynamicViewSolver};
 use crate::live::dynamic_report::{report, DynamicInfo, DynamicReport, Header};
-use crate::live::serve::Mailbox;
 use crate::live::{interactive, LiveSetup};
 use crate::model::Connection;
 use crate::output::node_rows;
@@ -127,14 +125,7 @@ fn serve<P: Port>(
     mut solver: DynamicViewSolver<'_, P>,
     args: &LiveArgs,
 ) -> anyhow::Result<()> {
-    let mailbox = Arc::new(Mailbox::new(interactive::mesh_json(setup)));
-    let bound = crate::live::serve::start(args.addr, mailbox.clone())?;
-    println!(
-        "serving     http://{}/ (WebSocket on port {}); Ctrl-C to stop",
-        bound.http,
-        bound.websocket.port()
-    );
-    std::io::stdout().flush()?;
+    let mailbox = serve_page(args, setup)?;
     interactive::run(setup, &mut solver, &mailbox)
 }
 
@@ -147,19 +138,7 @@ struct FrameSink {
 
 impl FrameSink {
     fn new(args: &LiveArgs) -> anyhow::Result<Self> {
-        let csv = match &args.frames_csv {
-            Some(path) => {
-                let mut f = BufWriter::new(
-                    File::create(path).with_context(|| format!("creating {}", path.display()))?,
-                );
-                writeln!(f, "frame,t,tool_x,tool_y,tool_z,fx,fy,fz,fx_ref,fy_ref,fz_ref,residual,iterations,cycles,error_vs_converged,bytes_up,bytes_down,max_u,max_v,energy")?;
-                Some(f)
-            }
-            None => None,
-        };
-        if let Some(dir) = &args.out {
-            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        }
+        let csv = open_outputs(args, "frame,t,tool_x,tool_y,tool_z,fx,fy,fz,fx_ref,fy_ref,fz_ref,residual,iterations,cycles,error_vs_converged,bytes_up,bytes_down,max_u,max_v,energy")?;
         Ok(Self {
             csv,
             out: args.out.clone(),
