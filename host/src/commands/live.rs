@@ -47,7 +47,9 @@ pub struct LiveArgs {
     #[arg(long, value_name = "IP:PORT", default_value = "127.0.0.1:8080")]
     pub addr: std::net::SocketAddr,
 
-    /// Full frames to run, spread evenly over the scenario's time span. Default: its steps.
+    /// Full frames to run, spread evenly over the scenario's time span (dynamic frames: one
+    /// step of dt each, N·dt seconds, the keyframes holding their last value after their end).
+    /// Default: its steps.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
     pub frames: Option<u32>,
 
