@@ -246,6 +246,12 @@ fn print(report: &DynamicReport) {
             "frames      {}: critical-path cycles p50 {:.0}, p99 {:.0}, max {:.0} → {:.0} frames/s at 100 MHz (worst {:.0})",
             report.frames, c.p50, c.p99, c.max, r.p50, r.worst
         );
+        if let Some(h) = report.frame_hart0_cycles {
+            println!(
+                "hart 0      mcycle over the MVU and SVU phases p50 {:.0}, p99 {:.0}, max {:.0} (real cycles on LiteX; the harts' sum under QEMU)",
+                h.p50, h.p99, h.max
+            );
+        }
         println!(
             "accuracy    error vs the f64 stepper ≤ {:.2e} of the frame's max |u| ({:.2e} of the session's), force ≤ {:.2e}, residual ≤ {:.2e}, iterations p50 {} max {}, ≤ {} solve(s) per frame",
             report.error_vs_converged_max.unwrap_or(0.0),

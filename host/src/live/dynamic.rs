@@ -44,8 +44,13 @@ pub struct DynamicFrame {
     pub iterations: u32,
     /// Target solves (mixed-precision refinement rounds) of the step (0 on the host).
     pub solves: u32,
-    /// Critical-path cycles of the step's target solves (`None` on the host).
+    /// Critical-path cycles of the step's target solves (`None` on the host): the target's
+    /// `whole_solve` counts, which are instructions retired (`minstret`) on every board, so
+    /// cycles only at CPI 1 (QEMU `-icount`), not on the LiteX SoC.
     pub cycles: Option<u64>,
+    /// Hart 0's `mcycle` over the solves' MVU and SVU phases: the RTL's cycles on the LiteX
+    /// SoC (one hart); under QEMU with several harts the machine-wide count (their sum).
+    pub hart0_cycles: Option<u64>,
     /// True relative residual ‖b − S·v₁‖/‖b‖ of the step's solve (0 on the host).
     pub residual: f64,
     /// max |u − u_ref| / max |u_ref| against the f64 stepper run alongside from rest with the
@@ -184,6 +189,13 @@ impl<'t, P: Port> DynamicLive<'t, P> {
                     iterations: step.result.reports.iter().map(|r| r.iterations).sum(),
                     solves: step.result.reports.len() as u32,
                     cycles: Some(step.cycles),
+                    hart0_cycles: Some(
+                        step.result
+                            .reports
+                            .iter()
+                            .map(|r| r.mvu.cycles + r.svu.cycles)
+                            .sum(),
+                    ),
                     residual: step.result.residual,
                     error_vs_reference: step.result.deviation,
                     error_abs: Some(
@@ -223,6 +235,7 @@ fn describe(
         iterations: 0,
         solves: 0,
         cycles: None,
+        hart0_cycles: None,
         residual: 0.0,
         error_vs_reference: None,
         error_abs: None,
