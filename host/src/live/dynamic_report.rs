@@ -77,9 +77,10 @@ pub struct DynamicReport {
     /// `qemu`, `litex`, `port` or `host` (the f64 stepper alone: no target figures).
     pub target: String,
     pub tolerance: f64,
-    /// Critical-path cycles of each frame's target solves (every phase's slowest hart plus
-    /// hart 0's serial work), counted in instructions retired: exact cycles under QEMU
-    /// `-icount` (CPI 1); on the LiteX SoC see `frame_hart0_cycles`.
+    /// Cycles of each frame's target solves. Under QEMU (or a board): the critical path
+    /// (every phase's slowest hart plus hart 0's serial work), which the target counts in
+    /// instructions retired, exact cycles under `-icount` (CPI 1). On the LiteX SoC (one
+    /// hart): hart 0's `mcycle` over the MVU and SVU phases, the RTL's real cycles.
     pub frame_cycles: Option<Spread>,
     /// Hart 0's `mcycle` over the solves' MVU and SVU phases: the RTL's real cycles on the
     /// LiteX SoC (one hart); under QEMU with several harts the harts' summed work.
@@ -118,6 +119,8 @@ pub struct Header {
     pub target: String,
     pub tolerance: f64,
     pub dynamic: DynamicInfo,
+    /// Frame cycles from hart 0's `mcycle` (the LiteX SoC, where instructions are not cycles).
+    pub cycles_from_mcycle: bool,
 }
 
 /// Relative error of a force against its reference, on the scale of the largest reference.
