@@ -140,12 +140,15 @@ fn force_errors(records: &[DynamicFrame]) -> f64 {
 /// The report over `records` (every frame of the session, in order).
 pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
     let on_target = records.iter().any(|r| r.cycles.is_some());
-    let cycles = sorted(records.iter().filter_map(|r| r.cycles.map(|c| c as f64)));
     let hart0 = sorted(
         records
             .iter()
             .filter_map(|r| r.hart0_cycles.map(|c| c as f64)),
     );
+    let cycles = match header.cycles_from_mcycle {
+        true => hart0.clone(),
+        false => sorted(records.iter().filter_map(|r| r.cycles.map(|c| c as f64))),
+    };
     let iterations = sorted(records.iter().map(|r| f64::from(r.iterations)));
     let later = records.get(1..).unwrap_or_default();
     let up = percentile(&sorted(later.iter().map(|r| r.bytes_up as f64)), 0.5);
@@ -222,5 +225,84 @@ pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
             last_energy: last.map_or(0.0, |r| r.energy),
         },
         dynamic: header.dynamic,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dynamics::DynamicsSpec;
+
+    fn frame(i: u32, cycles: Option<u64>, hart0: Option<u64>, bytes: u64) -> DynamicFrame {
+        DynamicFrame {
+            frame: i,
+            t: f64::from(i) * 0.01,
+            tool: vec![[0.0; 3]],
+            u: Default::default(),
+            force: [0.0, 0.0, 2.0],
+            force_reference: [0.0, 0.0, 2.0],
+            max_u: 1.0,
+            energy: 1.0,
+            max_v: 0.5,
+            iterations: i,
+            solves: 1,
+            cycles,
+            hart0_cycles: hart0,
+            residual: 1e-5,
+            error_vs_reference: cycles.map(|_| 1e-6),
+            error_abs: cycles.map(|_| 1e-6),
+            bytes_up: bytes,
+            bytes_down: bytes,
+        }
+    }
+
+    fn header(cycles_from_mcycle: bool) -> Header {
+        Header {
+            grid: [8, 8, 8],
+            model: "b".into(),
+            mvus: 1,
+            target: "litex".into(),
+            tolerance: 1e-4,
+            dynamic: DynamicInfo::new(&DynamicsSpec::uniform(0.005, [0.05; 3]), 0.01),
+            cycles_from_mcycle,
+        }
+    }
+
+    /// Frame rates come from the critical path, or from hart 0's mcycle on the LiteX SoC; the
+    /// first frame (S's upload) stays out of the bytes per frame.
+    #[test]
+    fn cycles_and_bytes_are_taken_from_the_right_counts() {
+        let frames: Vec<_> = (1..=3)
+            .map(|i| {
+                frame(
+                    i,
+                    Some(1_000_000),
+                    Some(2_000_000),
+                    [40_000, 2_000, 2_000][i as usize - 1],
+                )
+            })
+            .collect();
+        let r = report(header(false), &frames);
+        assert_eq!(r.frame_cycles.unwrap().p50, 1e6);
+        assert_eq!(r.frames_per_s_at_100mhz.unwrap().p50, 100.0);
+        assert_eq!(
+            (r.bytes_up_per_frame, r.first_frame.bytes_up),
+            (2_000.0, 40_000)
+        );
+        assert_eq!(r.link_rates[0].frames_per_s, 11_520.0 / 4_000.0);
+        let r = report(header(true), &frames);
+        assert_eq!(r.frame_cycles.unwrap().p50, 2e6);
+        assert_eq!(r.frames_per_s_at_100mhz.unwrap().p50, 50.0);
+        assert!(r.force_updates_per_s.is_none());
+    }
+
+    /// On the host (no target) the target's figures are null, not zero.
+    #[test]
+    fn a_host_session_has_no_target_figures() {
+        let frames: Vec<_> = (1..=3).map(|i| frame(i, None, None, 0)).collect();
+        let r = report(header(false), &frames);
+        assert!(r.frame_cycles.is_none() && r.frames_per_s_at_100mhz.is_none());
+        assert!(r.error_vs_converged_max.is_none() && r.force_error_max.is_none());
+        assert_eq!(r.motion.last_max_v, 0.5);
     }
 }
