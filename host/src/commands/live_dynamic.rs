@@ -12,7 +12,6 @@ use anyhow::{bail, Context};
 
 use super::live::{open_board, open_outputs, serve_page, LiveArgs};
 use super::simulate::bar;
-use crate::bench::board::CountingPort;
 use crate::dynamics::target::{preflight, DynamicParams};
 use crate::dynamics::DynamicsSpec;
 use crate::encode::{EncodeOptions, Partition};
@@ -24,9 +23,6 @@ use crate::model::Connection;
 use crate::output::node_rows;
 use crate::output::vtk::{write_pvd, write_vtk, VtkKind};
 
-/// The port type of a board or QEMU; the host-only session names it without using it.
-type BenchPort = CountingPort<Box<dyn serialport::SerialPort>>;
-
 /// Runs the dynamic session `args` asks for: h = `dt`, `steps` frames by default.
 pub fn run(
     args: &LiveArgs,
@@ -35,7 +31,7 @@ pub fn run(
     (dt, steps): (f64, u32),
     tool_at: &dyn Fn(f64) -> Vec<[f64; 3]>,
 ) -> anyhow::Result<()> {
-    refuse_quasi_static_flags(args)?;
+    check_flags(args)?;
     if args.target != "host" {
         // Before a board is opened: can the target's fixed point hold S?
         preflight(&setup.model, spec, dt).context("the dynamic model")?;
@@ -46,26 +42,9 @@ pub fn run(
         spec.describe()
     );
     let frames = args.frames.unwrap_or(steps);
-    let header = Header {
-        grid: {
-            let g = setup.model.grid();
-            [g.nx(), g.ny(), g.nz()]
-        },
-        model: match setup.model.spec().connection {
-            Connection::Axial => "a".into(),
-            Connection::AxialShear => "b".into(),
-        },
-        mvus: args.mvu_count(),
-        target: match (&args.port, args.target.as_str()) {
-            (Some(_), t) if t != "host" => "port".into(),
-            (_, t) => t.into(),
-        },
-        tolerance: args.tol,
-        dynamic: DynamicInfo::new(spec, dt),
-        cycles_from_mcycle: args.target == "litex" && args.port.is_none(),
-    };
+    let header = header(args, setup, spec, dt);
     if args.target == "host" {
-        let live = DynamicLive::<BenchPort>::host(&setup.model, &setup.tools, spec, dt)?;
+        let live = <DynamicLive>::host(&setup.model, &setup.tools, spec, dt)?;
         return match args.serve {
             true => serve(setup, DynamicViewSolver::new(live), args),
             false => headless(args, setup, live, frames, tool_at, header),
@@ -86,8 +65,35 @@ pub fn run(
     }
 }
 
-/// Flags whose machinery dynamic frames do not use are refused rather than ignored.
-fn refuse_quasi_static_flags(args: &LiveArgs) -> anyhow::Result<()> {
+/// What the report says about the session before any frame.
+fn header(args: &LiveArgs, setup: &LiveSetup, spec: &DynamicsSpec, dt: f64) -> Header {
+    let g = setup.model.grid();
+    Header {
+        grid: [g.nx(), g.ny(), g.nz()],
+        model: match setup.model.spec().connection {
+            Connection::Axial => "a".into(),
+            Connection::AxialShear => "b".into(),
+        },
+        mvus: args.mvu_count(),
+        target: match (&args.port, args.target.as_str()) {
+            (Some(_), t) if t != "host" => "port".into(),
+            (_, t) => t.into(),
+        },
+        tolerance: args.tol,
+        dynamic: DynamicInfo::new(spec, dt),
+        cycles_from_mcycle: args.target == "litex" && args.port.is_none(),
+    }
+}
+
+/// A tolerance refinement can reach, and no flag whose machinery dynamic frames do not use
+/// (refused rather than ignored).
+fn check_flags(args: &LiveArgs) -> anyhow::Result<()> {
+    if !(args.tol.is_finite() && args.tol > 0.0) {
+        bail!(
+            "--tol {}: a dynamic frame is refined to this true relative residual; give one              greater than 0 (e.g. 1e-4)",
+            args.tol
+        );
+    }
     if args.cycle_budget != 0 {
         bail!(
             "--cycle-budget applies to quasi-static frames; a dynamic frame is refined to --tol \

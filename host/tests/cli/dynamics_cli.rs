@@ -235,6 +235,8 @@ fn deform_live_refuses_bad_dynamic_input_clearly() {
             &[example, "--headless", "--cycle-budget", "1000"],
             "--cycle-budget",
         ),
+        (&[example, "--headless", "--tol", "0"], "greater than 0"),
+        (&[example, "--headless", "--tol", "nan"], "greater than 0"),
         // S with 1 µg nodes at h = 0.01 s: beyond the target's 21-bit values.
         (&[example, "--headless", "--mass=1e-9"], "fixed point"),
     ];
