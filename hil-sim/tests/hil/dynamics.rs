@@ -224,51 +224,27 @@ fn the_dynamic_needle_example_on_the_target() {
 #[test]
 fn a_dynamic_live_session_follows_the_f64_stepper_and_relaxes_after_the_tool_leaves() {
     use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
-    use deform_host::cli_dynamics::DynamicFlags;
     use deform_host::encode::{EncodeOptions, Partition};
     use deform_host::live::dynamic::DynamicLive;
-    use deform_host::live::LiveSetup;
     use deform_host::reference::{max_abs, max_abs_diff};
-    use deform_host::scenario::Scenario;
 
-    let path = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../examples/needle-dynamic-8b.toml"
-    );
-    let scenario = Scenario::load(std::path::Path::new(path), None).unwrap();
-    let simulation = scenario.simulation.clone().unwrap();
-    let spec = DynamicFlags::default()
-        .resolve(simulation.dynamic, scenario.dynamics.as_ref())
-        .unwrap()
-        .expect("the example is dynamic");
     let layout = EncodeOptions {
         mvus: 4,
         partition: Partition::Rows,
         use_symmetry: true,
     };
-    let setup = LiveSetup::new(&simulation.spec_at(&scenario.model, 0.0), &layout).unwrap();
+    let needle = DynamicNeedle::load(&layout);
     let tol = 1e-7;
-    let params = DynamicParams {
-        tol,
-        max_solves: 8,
-        max_iterations: 500,
-        check_reference: true,
-        layout,
-    };
-    let h = simulation.dt;
+    let (h, spec, setup) = (needle.h, &needle.spec, &needle.setup);
     let mut qemu = Qemu::start(&QemuConfig::new(firmware_elf()).harts(4)).unwrap();
     let mut target = connect(&qemu);
     let (model, tools) = (&setup.model, &setup.tools);
-    let mut live = DynamicLive::on_target(model, tools, &spec, h, params, &mut target).unwrap();
-    let mut host = <DynamicLive>::host(model, tools, &spec, h).unwrap();
+    let params = needle.params(tol, layout);
+    let mut live = DynamicLive::on_target(model, tools, spec, h, params, &mut target).unwrap();
+    let mut host = <DynamicLive>::host(model, tools, spec, h).unwrap();
     let mut frames = Vec::new();
     for i in 1..=70 {
-        let tool = vec![
-            simulation
-                .spec_at(&scenario.model, f64::from(i) * h)
-                .prescribed[0]
-                .u,
-        ];
+        let tool = needle.tool(i);
         let got = live.frame(&tool).unwrap();
         let want = host.frame(&tool).unwrap();
         let scale = want.u.iter().map(|u| max_abs(u)).fold(0.0, f64::max);

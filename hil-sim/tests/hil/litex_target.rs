@@ -189,47 +189,20 @@ fn live_frames_on_the_soft_core_match_converged_solves() {
 /// tolerance's order, with real cycles.
 #[test]
 fn dynamic_live_frames_on_the_soft_core_follow_the_f64_stepper() {
-    use deform_host::cli_dynamics::DynamicFlags;
-    use deform_host::dynamics::target::DynamicParams;
     use deform_host::encode::EncodeOptions;
     use deform_host::live::dynamic::DynamicLive;
-    use deform_host::live::LiveSetup;
-    use deform_host::scenario::Scenario;
 
-    let path =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/needle-dynamic-8b.toml");
-    let scenario = Scenario::load(&path, None).expect("the example loads");
-    let simulation = scenario.simulation.clone().unwrap();
-    let spec = DynamicFlags::default()
-        .resolve(simulation.dynamic, scenario.dynamics.as_ref())
-        .unwrap()
-        .expect("the example is dynamic");
-    let setup = LiveSetup::new(
-        &simulation.spec_at(&scenario.model, 0.0),
-        &EncodeOptions::default(),
-    )
-    .unwrap();
+    let needle = support::DynamicNeedle::load(&EncodeOptions::default());
     let sim = start();
     let port = open_serial(&sim.serial_path().to_string_lossy()).expect("open the bridge's pty");
     let mut target = Target::handshake(Link::new(port), timeouts())
         .unwrap_or_else(|e| panic!("handshake: {e}; simulator:\n{}", sim.output()));
-    let params = DynamicParams {
-        tol: 1e-4,
-        max_solves: 8,
-        max_iterations: 500,
-        check_reference: true,
-        layout: EncodeOptions::default(),
-    };
-    let h = simulation.dt;
-    let (model, tools) = (&setup.model, &setup.tools);
-    let mut live = DynamicLive::on_target(model, tools, &spec, h, params, &mut target).unwrap();
+    let params = needle.params(1e-4, EncodeOptions::default());
+    let (model, tools) = (&needle.setup.model, &needle.setup.tools);
+    let (h, spec) = (needle.h, &needle.spec);
+    let mut live = DynamicLive::on_target(model, tools, spec, h, params, &mut target).unwrap();
     for frame in 1..=2 {
-        let tool = vec![
-            simulation
-                .spec_at(&scenario.model, f64::from(frame) * h)
-                .prescribed[0]
-                .u,
-        ];
+        let tool = needle.tool(frame);
         let f = live.frame(&tool).unwrap();
         let err = f
             .error_vs_reference
