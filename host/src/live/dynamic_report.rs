@@ -137,6 +137,15 @@ fn force_errors(records: &[DynamicFrame]) -> f64 {
         / scale
 }
 
+/// p50, p99 and max of `sorted`.
+fn spread(sorted: &[f64]) -> Spread {
+    Spread {
+        p50: percentile(sorted, 0.5),
+        p99: percentile(sorted, 0.99),
+        max: sorted.last().copied().unwrap_or(0.0),
+    }
+}
+
 /// The report over `records` (every frame of the session, in order).
 pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
     let on_target = records.iter().any(|r| r.cycles.is_some());
@@ -162,16 +171,8 @@ pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
         mvus: header.mvus,
         target: header.target,
         tolerance: header.tolerance,
-        frame_cycles: on_target.then(|| Spread {
-            p50: percentile(&cycles, 0.5),
-            p99: percentile(&cycles, 0.99),
-            max: max_cycles,
-        }),
-        frame_hart0_cycles: on_target.then(|| Spread {
-            p50: percentile(&hart0, 0.5),
-            p99: percentile(&hart0, 0.99),
-            max: hart0.last().copied().unwrap_or(0.0),
-        }),
+        frame_cycles: on_target.then(|| spread(&cycles)),
+        frame_hart0_cycles: on_target.then(|| spread(&hart0)),
         frames_per_s_at_100mhz: on_target.then(|| Rate {
             p50: CLOCK_HZ / percentile(&cycles, 0.5).max(1.0),
             worst: CLOCK_HZ / max_cycles.max(1.0),
