@@ -45,6 +45,20 @@ pub struct DynamicFlags {
     pub max_solves: u32,
 }
 
+impl Default for DynamicFlags {
+    /// No flag given: what the scenario's `[dynamics]` says, else the defaults.
+    fn default() -> Self {
+        Self {
+            dynamic: false,
+            mass: None,
+            damping: None,
+            rayleigh: None,
+            scheme: None,
+            max_solves: 8,
+        }
+    }
+}
+
 fn parse_positive(s: &str) -> Result<f64, String> {
     let v: f64 = s.trim().parse().map_err(|e| format!("{s:?}: {e}"))?;
     if v.is_finite() && v > 0.0 {

@@ -156,7 +156,8 @@ const forceTool = () => mesh && mesh.kind === 'force';
 function show(f) {
   last = f;
   const unit = forceTool() ? 'm' : 'N';
-  $('solver').textContent = f.solver === 'host' ? 'host f64 reference' : 'target (QEMU / board)';
+  $('solver').textContent = (f.solver.startsWith('host') ? 'host f64 reference' : 'target (QEMU / board)')
+    + (f.solver.endsWith('(dynamic)') ? ', dynamic: one time step per frame' : '');
   $('tool').textContent = forceTool() ? `(${fmt(f.tool)}) N` : `(${fmt(f.tool)})`;
   $('force').textContent = `(${f.force.map((x) => x.toExponential(3)).join(', ')}) ${unit}`;
   $('force-norm').textContent = `${f.force_norm.toExponential(4)} ${unit}`;

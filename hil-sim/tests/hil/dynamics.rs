@@ -215,3 +215,123 @@ fn the_dynamic_needle_example_on_the_target() {
     check(&steps, "needle-dynamic");
     assert_alive(&mut qemu);
 }
+
+/// `deform live` on a dynamic scenario (examples/needle-dynamic-8b.toml: 8³ model B, 4 MVUs):
+/// every frame one step of h on the target, equal to the host's f64 stepper run separately
+/// over the same tool path; and after the needle is withdrawn (frame 55) the tissue is still
+/// displaced and moving, losing energy every frame, where a quasi-static frame for the tool at
+/// rest would be the undeformed tissue at once.
+#[test]
+fn a_dynamic_live_session_follows_the_f64_stepper_and_relaxes_after_the_tool_leaves() {
+    use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
+    use deform_host::encode::{EncodeOptions, Partition};
+    use deform_host::live::dynamic::DynamicLive;
+    use deform_host::reference::{max_abs, max_abs_diff};
+
+    let layout = EncodeOptions {
+        mvus: 4,
+        partition: Partition::Rows,
+        use_symmetry: true,
+    };
+    let needle = DynamicNeedle::load(&layout);
+    let tol = 1e-7;
+    let (h, spec, setup) = (needle.h, &needle.spec, &needle.setup);
+    let mut qemu = Qemu::start(&QemuConfig::new(firmware_elf()).harts(4)).unwrap();
+    let mut target = connect(&qemu);
+    let (model, tools) = (&setup.model, &setup.tools);
+    let params = needle.params(tol, layout);
+    let mut live = DynamicLive::on_target(model, tools, spec, h, params, &mut target).unwrap();
+    let mut host = <DynamicLive>::host(model, tools, spec, h).unwrap();
+    let mut frames = Vec::new();
+    for i in 1..=70 {
+        let tool = needle.tool(i);
+        let got = live.frame(&tool).unwrap();
+        let want = host.frame(&tool).unwrap();
+        let scale = want.u.iter().map(|u| max_abs(u)).fold(0.0, f64::max);
+        let err = (0..3)
+            .map(|d| max_abs_diff(&got.u[d], &want.u[d]))
+            .fold(0.0, f64::max)
+            / scale;
+        println!(
+            "frame {i}: tool z {:+.3}, {} iterations, {:?} cycles, {} B up / {} B down, error {err:.2e}, max |v| {:.3e}, energy {:.4e}",
+            tool[0][2], got.iterations, got.cycles, got.bytes_up, got.bytes_down, want.max_v, want.energy
+        );
+        // Refined to 1e-7 a step; 70 steps of accumulated rounding stay far below 1e-5.
+        assert!(err <= 1e-5, "frame {i}: {err:e} of max |u|");
+        assert!(got.error_vs_reference.unwrap() <= 1e-5);
+        assert!(got.residual <= tol, "frame {i}: residual {}", got.residual);
+        frames.push(want);
+    }
+    let peak = frames.iter().map(|f| f.max_u).fold(0.0, f64::max);
+    let (withdrawn, last) = (&frames[55], &frames[69]);
+    assert_eq!(last.tool[0], [0.0; 3], "the needle is out");
+    // The quasi-static frame for the tool at rest (no loads) is the undeformed tissue.
+    let (rest, _) = setup.converged(&last.tool, None).unwrap();
+    assert!(rest.iter().all(|u| max_abs(u) == 0.0));
+    // The dynamic tissue is still displaced and moving 15 frames after the withdrawal.
+    assert!(last.max_u > 1e-2 * peak, "max |u| {} of {peak}", last.max_u);
+    assert!(last.max_v > 1e-2, "max |v| {}", last.max_v);
+    let moved = (0..3)
+        .map(|d| max_abs_diff(&frames[68].u[d], &last.u[d]))
+        .fold(0.0, f64::max);
+    assert!(moved > 1e-4, "the tissue stopped: {moved:e}");
+    // With dampers and the tool at rest nothing feeds the motion: the energy only falls.
+    for w in frames[56..].windows(2) {
+        assert!(
+            w[1].energy <= w[0].energy,
+            "{} then {}",
+            w[0].energy,
+            w[1].energy
+        );
+    }
+    assert!(last.energy < withdrawn.energy);
+    assert_alive(&mut qemu);
+}
+
+/// `deform live --port` on a dynamic scenario: the command's own path (scenario, flags, board
+/// over a serial device, report) against the firmware in QEMU as if it were a board; the
+/// report's keys and figures are those of a target session.
+#[test]
+fn deform_live_runs_dynamic_frames_over_a_port() {
+    use clap::Parser;
+    use deform_host::commands::live::{run, LiveArgs};
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: LiveArgs,
+    }
+    let mut qemu = boot();
+    let pty = qemu.pty_path().to_str().unwrap().to_string();
+    let example = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/needle-dynamic-8b.toml"
+    );
+    let report = std::env::temp_dir().join(format!("deform-dynlive-{}.json", std::process::id()));
+    let report_arg = report.to_str().unwrap();
+    let cli = Cli::try_parse_from([
+        "deform",
+        example,
+        "--headless",
+        "--frames",
+        "12",
+        "--mvus",
+        "1",
+        "--port",
+        &pty,
+        "--report",
+        report_arg,
+    ])
+    .unwrap();
+    run(&cli.args).expect("deform live over the port");
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    std::fs::remove_file(&report).unwrap();
+    assert_eq!(r["frames"], 12);
+    assert_eq!(r["target"], "port");
+    assert!(r["frame_cycles"]["p50"].as_f64().unwrap() > 0.0, "{r}");
+    assert!(r["bytes_up_per_frame"].as_f64().unwrap() > 0.0, "{r}");
+    assert!(r["error_vs_converged_max"].as_f64().unwrap() <= 1e-3, "{r}");
+    assert!(r["force_updates_per_s"].is_null());
+    assert_eq!(r["dynamic"]["h"], 0.01);
+    assert_alive(&mut qemu);
+}

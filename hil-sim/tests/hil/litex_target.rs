@@ -184,6 +184,38 @@ fn live_frames_on_the_soft_core_match_converged_solves() {
     }
 }
 
+/// Dynamic frames (`deform live` on a dynamic scenario) on the soft core: S resident on the
+/// one hart, two steps of examples/needle-dynamic-8b.toml equal the host's f64 stepper to the
+/// tolerance's order, with real cycles.
+#[test]
+fn dynamic_live_frames_on_the_soft_core_follow_the_f64_stepper() {
+    use deform_host::encode::EncodeOptions;
+    use deform_host::live::dynamic::DynamicLive;
+
+    let needle = support::DynamicNeedle::load(&EncodeOptions::default());
+    let sim = start();
+    let port = open_serial(&sim.serial_path().to_string_lossy()).expect("open the bridge's pty");
+    let mut target = Target::handshake(Link::new(port), timeouts())
+        .unwrap_or_else(|e| panic!("handshake: {e}; simulator:\n{}", sim.output()));
+    let params = needle.params(1e-4, EncodeOptions::default());
+    let (model, tools) = (&needle.setup.model, &needle.setup.tools);
+    let (h, spec) = (needle.h, &needle.spec);
+    let mut live = DynamicLive::on_target(model, tools, spec, h, params, &mut target).unwrap();
+    for frame in 1..=2 {
+        let tool = needle.tool(frame);
+        let f = live.frame(&tool).unwrap();
+        let err = f
+            .error_vs_reference
+            .expect("checked against the f64 stepper");
+        println!(
+            "LiteX dynamic frame {frame}: {} iterations, {:?} cycles, error {err:.2e}",
+            f.iterations, f.cycles
+        );
+        assert!(err <= 1e-3, "frame {frame}: {err:e}");
+        assert!(f.cycles.unwrap() > 0);
+    }
+}
+
 /// The stock LiteX BIOS (the litex_sim SoC with ROM, built once) boots our firmware over its
 /// serial line (SFL), as `litex_term --kernel` would; the firmware then solves.
 #[test]

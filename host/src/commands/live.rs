@@ -18,6 +18,7 @@ use clap::Args;
 use deform_shared::live::LiveParams;
 
 use crate::bench::board::{timeouts, BenchBoard, BenchBoardChoice};
+use crate::cli_dynamics::DynamicFlags;
 use crate::commands::simulate::bar;
 use crate::encode::{EncodeOptions, Partition};
 use crate::live::headless::{self, FrameRecord, Script, Session, CLOCK_HZ};
@@ -55,7 +56,9 @@ pub struct LiveArgs {
     #[arg(long, value_name = "IP:PORT", default_value = "127.0.0.1:8080")]
     pub addr: std::net::SocketAddr,
 
-    /// Full frames to run, spread evenly over the scenario's time span. Default: its steps.
+    /// Full frames to run, spread evenly over the scenario's time span (dynamic frames: one
+    /// step of dt each, N·dt seconds, the keyframes holding their last value after their end).
+    /// Default: its steps.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
     pub frames: Option<u32>,
 
@@ -134,6 +137,13 @@ pub struct LiveArgs {
     /// Seconds to wait for one frame's answer.
     #[arg(long, default_value_t = 60)]
     pub timeout: u64,
+
+    /// A dynamic scenario (or `--dynamic`) runs dynamic frames: each frame is one time step
+    /// h = the scenario's dt, the tissue has inertia and damping and keeps moving after the
+    /// tool stops. --cycle-budget and --pace are refused then; --field-every, --field-stride
+    /// and --forces-per-frame do not apply (the whole field comes back every frame).
+    #[command(flatten)]
+    pub dynamics: DynamicFlags,
 }
 
 pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
@@ -153,17 +163,6 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
             args.scenario.display()
         );
     };
-    if simulation.dynamic {
-        // The live frames solve K·u = f on the target with the tool's displacements moved into
-        // the right-hand side; a dynamic step needs S = M + h·B + h²·K and the velocities, which
-        // the frame protocol does not carry yet. Refuse rather than silently drop the dynamics.
-        bail!(
-            "{}: [simulation] dynamic = true: deform live solves quasi-static frames only; run \
-             the dynamic scenario with `deform simulate {}`",
-            args.scenario.display(),
-            args.scenario.display()
-        );
-    }
     let frames = args.frames.unwrap_or(simulation.steps);
     let end = simulation.end_time();
     let times: Vec<f64> = (1..=frames)
@@ -178,6 +177,20 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         .with_context(|| format!("{}", args.scenario.display()))?;
     let grid = setup.model.grid();
     let tool_at = |t: f64| setup.tool_at(&scenario.model, &simulation, t);
+    let dynamics = args
+        .dynamics
+        .resolve(simulation.dynamic, scenario.dynamics.as_ref())?;
+    if let Some(spec) = dynamics {
+        if setup.kind == ToolKind::Force {
+            bail!(
+                "{}: dynamic frames drive a displacement tool ([[simulation.displace]] \
+                 keyframes); a force tool runs quasi-static frames only",
+                args.scenario.display()
+            );
+        }
+        let steps = (simulation.dt, simulation.steps);
+        return super::live_dynamic::run(args, &setup, &spec, steps, &tool_at);
+    }
     if args.serve {
         return serve(args, &setup);
     }
@@ -214,24 +227,15 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     if args.pace.is_some_and(|hz| !(hz.is_finite() && hz > 0.0)) {
         bail!("--pace must be a positive frame rate");
     }
-    let mut csv = match &args.frames_csv {
-        Some(path) => {
-            let mut f = BufWriter::new(
-                File::create(path).with_context(|| format!("creating {}", path.display()))?,
-            );
-            // A force tool's input is a load and its answer the mean tool displacement.
-            let answer = match setup.kind {
-                ToolKind::Displacement => "fx,fy,fz,fx_ref,fy_ref,fz_ref",
-                ToolKind::Force => "ux,uy,uz,ux_ref,uy_ref,uz_ref",
-            };
-            writeln!(f, "frame,t,tool_x,tool_y,tool_z,{answer},residual,iterations,cycles,error_vs_converged,bytes_up,bytes_down")?;
-            Some(f)
-        }
-        None => None,
+    // A force tool's input is a load and its answer the mean tool displacement.
+    let answer = match setup.kind {
+        ToolKind::Displacement => "fx,fy,fz,fx_ref,fy_ref,fz_ref",
+        ToolKind::Force => "ux,uy,uz,ux_ref,uy_ref,uz_ref",
     };
-    if let Some(dir) = &args.out {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
+    let mut csv = open_outputs(
+        args,
+        &format!("frame,t,tool_x,tool_y,tool_z,{answer},residual,iterations,cycles,error_vs_converged,bytes_up,bytes_down"),
+    )?;
     let mut pvd = Vec::new();
     let progress = bar(u64::from(frames), "frames");
     let mut written: std::io::Result<()> = Ok(());
@@ -386,7 +390,7 @@ fn model_label(kind: ToolKind) -> &'static str {
 
 impl LiveArgs {
     /// The MVUs K is split over: `--mvus`, except on the LiteX SoC, which has one hart.
-    fn mvu_count(&self) -> u8 {
+    pub(crate) fn mvu_count(&self) -> u8 {
         if self.target == "litex" {
             1
         } else {
@@ -395,8 +399,26 @@ impl LiveArgs {
     }
 }
 
+/// Creates `--out`'s directory and opens `--frames-csv` with its `header` line: what the
+/// quasi-static and the dynamic sessions both write.
+pub(crate) fn open_outputs(
+    args: &LiveArgs,
+    header: &str,
+) -> anyhow::Result<Option<BufWriter<File>>> {
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let Some(path) = &args.frames_csv else {
+        return Ok(None);
+    };
+    let mut f =
+        BufWriter::new(File::create(path).with_context(|| format!("creating {}", path.display()))?);
+    writeln!(f, "{header}")?;
+    Ok(Some(f))
+}
+
 /// The board (or QEMU) the session runs on.
-fn open_board(args: &LiveArgs) -> anyhow::Result<BenchBoard> {
+pub(crate) fn open_board(args: &LiveArgs) -> anyhow::Result<BenchBoard> {
     let choice = match &args.port {
         Some(port) => BenchBoardChoice::Port(port.clone()),
         None if args.target == "litex" => BenchBoardChoice::Litex {
@@ -422,10 +444,22 @@ fn live_params(args: &LiveArgs, setup: &LiveSetup) -> LiveParams {
     }
 }
 
+/// Starts the page's server at `--addr` and says where: the mailbox the frames go through.
+pub(crate) fn serve_page(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<Arc<Mailbox>> {
+    let mailbox = Arc::new(Mailbox::new(interactive::mesh_json(setup)));
+    let bound = crate::live::serve::start(args.addr, mailbox.clone())?;
+    println!(
+        "serving     http://{}/ (WebSocket on port {}); Ctrl-C to stop",
+        bound.http,
+        bound.websocket.port()
+    );
+    std::io::stdout().flush()?;
+    Ok(mailbox)
+}
+
 /// `--serve`: the page and its WebSocket, the browser's tool positions solved frame by frame
 /// on the target (or the host reference) until the process is stopped.
 fn serve(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<()> {
-    let mailbox = Arc::new(Mailbox::new(interactive::mesh_json(setup)));
     println!("model       {}", setup.model.spec().describe());
     let mut board = None;
     let mut link = None;
@@ -439,13 +473,7 @@ fn serve(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<()> {
         );
         link = Some(l);
     }
-    let bound = crate::live::serve::start(args.addr, mailbox.clone())?;
-    println!(
-        "serving     http://{}/ (WebSocket on port {}); Ctrl-C to stop",
-        bound.http,
-        bound.websocket.port()
-    );
-    std::io::stdout().flush()?;
+    let mailbox = serve_page(args, setup)?;
     match link.as_mut() {
         Some(link) => {
             let mut solver = interactive::TargetSolver {

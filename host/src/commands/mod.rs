@@ -6,6 +6,7 @@ pub mod bench;
 pub mod estimate;
 pub mod flash;
 pub mod live;
+pub mod live_dynamic;
 pub mod model;
 pub mod observe;
 pub mod simulate;

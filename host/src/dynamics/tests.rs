@@ -365,14 +365,7 @@ fn the_dynamic_needle_example_lags_overshoots_and_relaxes() {
     let scenario = crate::scenario::Scenario::load(path, None).unwrap();
     let sim = scenario.simulation.clone().unwrap();
     assert!(sim.dynamic);
-    let cli = crate::cli_dynamics::DynamicFlags {
-        dynamic: false,
-        mass: None,
-        damping: None,
-        rayleigh: None,
-        scheme: None,
-        max_solves: 8,
-    };
+    let cli = crate::cli_dynamics::DynamicFlags::default();
     let spec = cli
         .resolve(true, scenario.dynamics.as_ref())
         .unwrap()

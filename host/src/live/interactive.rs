@@ -34,6 +34,11 @@ pub struct ViewFrame {
 pub trait FrameSolver {
     fn solve(&mut self, tool: &[[f64; 3]]) -> anyhow::Result<ViewFrame>;
     fn name(&self) -> &'static str;
+    /// Whether frames go on while the tool rests: a dynamic tissue keeps moving (it relaxes
+    /// after the tool stops), a quasi-static one is solved only for a new tool position.
+    fn keeps_moving(&self) -> bool {
+        false
+    }
 }
 
 /// The target: a full frame (`LiveFrame`), then its field frame (`ReadField`).
@@ -155,11 +160,13 @@ pub fn run(
     let mut arrived = Instant::now();
     let mut paused = false;
     loop {
+        let moving = solver.keeps_moving() && !paused;
         let (dropped, solve) = {
-            let mut inbox = mailbox.wait(Duration::from_millis(250));
+            let idle = if moving { 0 } else { 250 };
+            let mut inbox = mailbox.wait(Duration::from_millis(idle));
             let was_paused = paused;
             paused = inbox.paused;
-            let mut solve = frame == 0 || was_paused != paused;
+            let mut solve = frame == 0 || was_paused != paused || (moving && !paused);
             if solve {
                 arrived = Instant::now();
             }

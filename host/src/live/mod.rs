@@ -11,9 +11,14 @@
 //! - [`link`]: the live requests over a [`Target`](crate::link::Target), with bytes counted on
 //!   the line and a target reset answered by uploading everything again.
 //! - [`headless`]: the scripted session behind `--headless` and its JSON report.
+//! - [`dynamic`]: dynamic frames (a dynamic scenario): one time step h of
+//!   [`crate::dynamics`] per frame, S resident on the target, u and v held on the host;
+//!   [`dynamic_report`] is their JSON report.
 //! - [`interactive`]: the session behind `--serve`, the tool where the browser puts it;
 //!   [`serve`] carries the page and the frames to the browsers.
 
+pub mod dynamic;
+pub mod dynamic_report;
 pub mod headless;
 pub mod interactive;
 pub mod link;

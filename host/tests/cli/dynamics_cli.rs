@@ -1,5 +1,6 @@
-//! `deform simulate --dynamic` refuses bad input with a clear message and a non-zero exit,
-//! before any board is opened; `[dynamics]` errors name file, line and key.
+//! `deform simulate --dynamic` and `deform live` on a dynamic scenario refuse bad input with a
+//! clear message and a non-zero exit, before any board is opened; `[dynamics]` errors name
+//! file, line and key. `deform live` runs the dynamic needle example on the host.
 
 use std::path::Path;
 use std::process::Command;
@@ -8,8 +9,13 @@ use deform_host::dynamics::{Damping, Scheme};
 use deform_host::scenario::Scenario;
 
 fn refused(args: &[&str], needle: &str) {
+    refused_by("simulate", args, needle);
+}
+
+/// `deform COMMAND ARGS` fails with `needle` in its message, without a panic.
+fn refused_by(command: &str, args: &[&str], needle: &str) {
     let out = Command::new(env!("CARGO_BIN_EXE_deform"))
-        .arg("simulate")
+        .arg(command)
         .args(args)
         // No QEMU may be needed: a board would only be opened after these checks.
         .env("DEFORM_FIRMWARE", "/nonexistent/firmware.elf")
@@ -120,26 +126,223 @@ fn the_dynamics_table_is_read_and_its_errors_name_file_line_and_key() {
     }
 }
 
-/// `deform live` does not step dynamics: a dynamic scenario is refused by name, before any
-/// board is opened, instead of being run as quasi-static frames.
-#[test]
-fn deform_live_refuses_a_dynamic_scenario_clearly() {
-    let example = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/needle-dynamic.toml");
-    let out = Command::new(env!("CARGO_BIN_EXE_deform"))
-        .args([
-            "live",
-            example.to_str().unwrap(),
-            "--headless",
-            "--frames",
-            "2",
-        ])
+fn deform_live(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_deform"))
+        .arg("live")
+        .args(args)
+        // No QEMU may be needed: `--target host`, or a refusal before any board is opened.
         .env("DEFORM_FIRMWARE", "/nonexistent/firmware.elf")
         .output()
-        .unwrap();
+        .unwrap()
+}
+
+/// `deform live` on the dynamic needle example steps the dynamics frame by frame on the host's
+/// f64 stepper: the report has the quasi-static report's keys plus `dynamic`, and the tissue
+/// is still moving and displaced after the needle has been withdrawn (t = 1.6 s, frame 80).
+#[test]
+fn deform_live_runs_a_dynamic_scenario_on_the_host() {
+    let example = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/needle-dynamic.toml");
+    let dir = std::env::temp_dir().join(format!("deform-live-dynamic-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (report, csv) = (dir.join("r.json"), dir.join("f.csv"));
+    let out = deform_live(&[
+        example.to_str().unwrap(),
+        "--target",
+        "host",
+        "--headless",
+        "--frames",
+        "100",
+        "--report",
+        report.to_str().unwrap(),
+        "--frames-csv",
+        csv.to_str().unwrap(),
+    ]);
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(out.status.success(), "{stderr}");
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    for key in [
+        "frames",
+        "grid",
+        "model",
+        "mvus",
+        "frame_cycles",
+        "frames_per_s_at_100mhz",
+        "force_updates_per_s",
+        "iterations",
+        "residual_max",
+        "error_vs_converged_max",
+        "bytes_up_per_frame",
+        "bytes_down_per_frame",
+        "dynamic",
+    ] {
+        assert!(r.get(key).is_some(), "no '{key}' in {r}");
+    }
+    assert_eq!(r["frames"], 100);
+    assert_eq!(r["grid"], serde_json::json!([10, 10, 10]));
+    assert_eq!(r["target"], "host");
+    assert_eq!(r["dynamic"]["h"], 0.02);
+    assert_eq!(r["dynamic"]["scheme"], "backward-euler");
+    assert_eq!(r["dynamic"]["mass"], 0.005);
+    // No local force model for dynamic frames: null, with the reason beside it.
+    assert!(r["force_updates_per_s"].is_null());
+    assert!(r["force_updates_note"]
+        .as_str()
+        .unwrap()
+        .contains("frame rate"));
+    // Frame 100 is 0.4 s after the withdrawal: the tool is at rest, the tissue is not.
+    let rows: Vec<Vec<f64>> = std::fs::read_to_string(&csv)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| {
+            l.split(',')
+                .map(|v| v.parse().unwrap_or(f64::NAN))
+                .collect()
+        })
+        .collect();
+    assert_eq!(rows.len(), 100);
+    let last = &rows[99];
+    assert_eq!(&last[2..5], &[0.0, 0.0, 0.0], "the tool is withdrawn");
+    let (max_u, max_v) = (last[17], last[18]);
     assert!(
-        stderr.contains("dynamic = true") && stderr.contains("deform simulate"),
-        "{stderr}"
+        max_u > 1e-2 && max_v > 1e-2,
+        "max |u| {max_u}, max |v| {max_v}"
     );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Bad dynamic input to `deform live` gets a clear message and a non-zero exit, no panic.
+#[test]
+fn deform_live_refuses_bad_dynamic_input_clearly() {
+    let example = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/needle-dynamic.toml");
+    let example = example.to_str().unwrap();
+    let dir = std::env::temp_dir().join(format!("deform-live-dyn-bad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let text = std::fs::read_to_string(example).unwrap();
+    let zero_dt = dir.join("zero-dt.toml");
+    std::fs::write(&zero_dt, text.replace("dt = 0.02", "dt = 0.0")).unwrap();
+    let zero_dt = zero_dt.to_str().unwrap();
+    let cases: &[(&[&str], &str)] = &[
+        (
+            &[zero_dt, "--headless", "--target", "host"],
+            "simulation.dt",
+        ),
+        (&[example, "--headless", "--mass=0"], "greater than 0"),
+        (&[example, "--headless", "--mass=-1"], "greater than 0"),
+        (&[example, "--headless", "--damping=nan"], "finite"),
+        (
+            &[example, "--headless", "--cycle-budget", "1000"],
+            "--cycle-budget",
+        ),
+        (&[example, "--headless", "--tol", "0"], "greater than 0"),
+        (&[example, "--headless", "--tol", "nan"], "greater than 0"),
+        // S with 1 µg nodes at h = 0.01 s: beyond the target's 21-bit values.
+        (&[example, "--headless", "--mass=1e-9"], "fixed point"),
+    ];
+    for (args, needle) in cases {
+        refused_by("live", args, needle);
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The next frame message on the live view's WebSocket.
+fn next_frame<S: std::io::Read + std::io::Write>(
+    ws: &mut tungstenite::WebSocket<S>,
+) -> serde_json::Value {
+    loop {
+        let m = ws.read().unwrap();
+        let v: serde_json::Value = serde_json::from_str(m.to_text().unwrap()).unwrap();
+        if v["type"] == "frame" {
+            return v;
+        }
+    }
+}
+
+/// `deform live --serve` on a dynamic scenario, on the host's f64 stepper and on the firmware
+/// in QEMU: frames come one time step apart for a tool position the page sent, and go on after
+/// it, the tissue still moving with the tool at rest, where the quasi-static view waits for
+/// the next position.
+#[test]
+fn deform_live_serve_keeps_stepping_a_dynamic_scenario_while_the_tool_rests() {
+    for (target, solver) in [("host", "host (dynamic)"), ("qemu", "target (dynamic)")] {
+        serve_dynamic(target, solver);
+    }
+}
+
+fn serve_dynamic(target: &str, solver: &str) {
+    use std::io::{BufRead, BufReader};
+    use std::process::Stdio;
+    use tungstenite::Message;
+
+    let example = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/needle-dynamic-8b.toml");
+    /// Stops the server however the test ends.
+    struct Server(std::process::Child);
+    impl Drop for Server {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    let mut server = Server(
+        Command::new(env!("CARGO_BIN_EXE_deform"))
+            .arg("live")
+            .arg(&example)
+            .args(["--serve", "--target", target, "--addr", "127.0.0.1:0"])
+            .stdout(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    );
+    let mut out = BufReader::new(server.0.stdout.take().unwrap());
+    let mut serving = String::new();
+    while !serving.contains("WebSocket on port ") {
+        serving.clear();
+        assert!(
+            out.read_line(&mut serving).unwrap() > 0,
+            "no 'serving' line"
+        );
+    }
+    let port: u16 = serving
+        .split("WebSocket on port ")
+        .nth(1)
+        .and_then(|s| s.split(')').next())
+        .and_then(|p| p.parse().ok())
+        .unwrap();
+    let (mut ws, _) = tungstenite::connect(format!("ws://127.0.0.1:{port}/")).unwrap();
+    let first = next_frame(&mut ws);
+    assert_eq!(first["solver"], solver, "{first}");
+    ws.send(Message::text(r#"{"type":"tool","u":[0,0,-1]}"#))
+        .unwrap();
+    let mut frames = Vec::new();
+    while frames.len() < 40 {
+        let v = next_frame(&mut ws);
+        if v["tool"] == serde_json::json!([0.0, 0.0, -1.0]) {
+            frames.push(v);
+        }
+    }
+    drop(server);
+    // 40 frames for one position: the tissue moved between them (inertia, then relaxation).
+    let u = |v: &serde_json::Value| -> Vec<f64> {
+        v["u"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect()
+    };
+    let (a, b) = (u(&frames[0]), u(&frames[39]));
+    let moved = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        moved > 1e-3,
+        "the tissue did not move between the frames: {moved:e}"
+    );
+    let numbers: Vec<u64> = frames
+        .iter()
+        .map(|v| v["frame"].as_u64().unwrap())
+        .collect();
+    assert!(numbers.windows(2).all(|w| w[1] > w[0]), "{numbers:?}");
 }

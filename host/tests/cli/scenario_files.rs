@@ -21,6 +21,8 @@ fn shipped_examples_load_and_build() {
         "tumour-palpation",
         "needle-insertion",
         "needle-dynamic",
+        "needle-dynamic-8b",
+        "needle-push-8b",
     ] {
         let s = Scenario::load(&examples().join(format!("{name}.toml")), None).unwrap();
         Model::build(&s.model).unwrap();
