@@ -62,7 +62,9 @@ use crate::matrix::{MatrixError, TileHeader};
 /// Version 6 (engine): the whole solve's measured critical path (`SolveReport::whole_solve`).
 /// Version 7 (craft): `ReadSolution` carries the most elements its answer may hold (`len`).
 /// Version 8 (live): predicted warm starts, cycle budgets, the sparse frame messages.
-pub const PROTOCOL_VERSION: u16 = 8;
+/// Version 9 (field): compact field frames: `ReadField::surface`, difference-coded
+/// `FieldChunk` values and their build cycles ([`crate::field`]).
+pub const PROTOCOL_VERSION: u16 = 9;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -232,10 +234,13 @@ pub enum Request {
         tool: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
     },
     /// Live loop: a chunk of the quantised displacement field of the last frame: every
-    /// `stride`-th node from `offset` on.
+    /// `stride`-th node of the selection from its `offset`-th on ([`crate::field`]).
     ReadField {
         offset: u32,
         stride: u16,
+        /// Protocol version 9: `Some([nx, ny, nz])` selects only the nodes on the surface of
+        /// that box grid (its node count must be the resident matrix's n); `None` all nodes.
+        surface: Option<[u16; 3]>,
     },
 }
 

@@ -201,6 +201,12 @@ impl Golden for Request {
             Request::ReadField {
                 offset: 80,
                 stride: 2,
+                surface: None,
+            },
+            Request::ReadField {
+                offset: 56,
+                stride: 1,
+                surface: Some([9, 9, 9]),
             },
         ]
     }
@@ -264,7 +270,8 @@ impl Golden for Response {
             Response::Field(FieldChunk {
                 offset: 6,
                 exponent: -12,
-                values: [1, 0, 0xFF, 0x7F, 0, 0x80].into_iter().collect(),
+                cycles: 21_000,
+                values: [1, 0, -255, 3, i16::MIN, i16::MAX].into_iter().collect(),
             }),
         ]
     }
@@ -571,6 +578,14 @@ impl Golden for LiveError {
             LiveError::NotFinite,
             LiveError::NoFrame,
             LiveError::BadStride,
+            LiveError::BadGrid {
+                grid: [9, 9, 8],
+                nodes: 729,
+            },
+            LiveError::FieldOffset {
+                offset: 800,
+                selected: 729,
+            },
         ]
     }
     fn variant(&self) -> &'static str {
@@ -586,6 +601,8 @@ impl Golden for LiveError {
             LiveError::NotFinite => "NotFinite",
             LiveError::NoFrame => "NoFrame",
             LiveError::BadStride => "BadStride",
+            LiveError::BadGrid { .. } => "BadGrid",
+            LiveError::FieldOffset { .. } => "FieldOffset",
         }
     }
 }

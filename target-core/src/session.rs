@@ -311,7 +311,11 @@ impl<'a, E: Executor> Session<'a, E> {
             Request::LiveStart(params) => self.live_start(params),
             Request::LiveFrame { tool } => self.live_frame(&tool),
             Request::LiveForce { tool } => self.live_force(&tool),
-            Request::ReadField { offset, stride } => self.read_field(offset, stride),
+            Request::ReadField {
+                offset,
+                stride,
+                surface,
+            } => self.read_field(offset, stride, surface),
         }
     }
 

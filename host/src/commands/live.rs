@@ -16,6 +16,7 @@ use deform_shared::live::LiveParams;
 use crate::bench::board::{timeouts, BenchBoard, BenchBoardChoice};
 use crate::commands::simulate::bar;
 use crate::encode::{EncodeOptions, Partition};
+use crate::live::field::FieldChoice;
 use crate::live::headless::{self, FrameRecord, Script, Session, CLOCK_HZ};
 use crate::live::interactive;
 use crate::live::link::LiveLink;
@@ -83,9 +84,13 @@ pub struct LiveArgs {
     #[arg(long, default_value_t = 10)]
     pub field_every: u32,
 
-    /// Send every k-th node in a field frame.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
-    pub field_stride: u16,
+    /// Which nodes a field frame carries: `all`, `surface` (the nodes on the outside of the
+    /// box grid: 386 of 729 on an 8³ grid) or `stride:K` (every K-th node in node order).
+    /// Fewer nodes, fewer bytes: the frame's components travel as differences from the
+    /// previous node's, 1–2 bytes each for a smooth field. The browser view draws the nodes
+    /// not sent at rest.
+    #[arg(long, value_name = "all|surface|stride:K", default_value = "all")]
+    pub field: FieldChoice,
 
     /// Force queries from the local model between two full frames (the haptic rate).
     #[arg(long, default_value_t = 3)]
@@ -203,7 +208,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     let script = Script {
         frames,
         field_every: args.field_every,
-        field_stride: args.field_stride,
+        field: args.field,
         forces_per_frame: args.forces_per_frame,
         pace: args.pace,
     };
@@ -299,6 +304,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         model_iterations: link.model.iterations,
         resets: link.resets,
         paced: args.pace.is_some(),
+        field: args.field,
     };
     let report = headless::report(session, &records, &summary);
     println!(
@@ -323,14 +329,21 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         report.force_updates_per_s, report.force_query_cycles_max, report.model_force_error_max
     );
     println!(
-        "line        {} B up / {} B down per frame (median; max {} / {}), field frame {} B ({:.3} B per component, quantisation ≤ {:.1e})",
+        "line        {} B up / {} B down per frame (median; max {} / {})",
         report.bytes_up_per_frame,
         report.bytes_down_per_frame.force,
         report.bytes_up_per_frame_max,
         report.bytes_down_per_frame_max,
-        report.bytes_down_per_frame.field,
-        report.bytes_down_per_frame.field_per_component,
-        report.field_quantisation_error_max
+    );
+    let field = &report.bytes_down_per_frame;
+    println!(
+        "field       {} ({} nodes): {} B per frame, {:.3} B per component, quantisation ≤ {:.1e}, built in {} cycles",
+        field.field_selection,
+        field.field_nodes,
+        field.field,
+        field.field_per_component,
+        report.field_quantisation_error_max,
+        field.field_build_cycles
     );
     for r in &report.link_rates {
         println!(
@@ -425,7 +438,7 @@ fn serve(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<()> {
         Some(link) => {
             let mut solver = interactive::TargetSolver {
                 link,
-                field_stride: args.field_stride,
+                field: args.field,
                 n: setup.model.n(),
             };
             interactive::run(setup, &mut solver, &mailbox)

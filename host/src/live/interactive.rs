@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
+use super::field::FieldChoice;
 use super::headless::CLOCK_HZ;
 use super::link::LiveLink;
 use super::serve::Mailbox;
@@ -35,7 +36,8 @@ pub trait FrameSolver {
 /// The target: a full frame (`LiveFrame`), then its field frame (`ReadField`).
 pub struct TargetSolver<'l, 'a, P: Port> {
     pub link: &'l mut LiveLink<'a, P>,
-    pub field_stride: u16,
+    /// The nodes the field frames carry; the others are drawn at rest.
+    pub field: FieldChoice,
     pub n: usize,
 }
 
@@ -43,7 +45,7 @@ impl<P: Port> FrameSolver for TargetSolver<'_, '_, P> {
     fn solve(&mut self, tool: &[[f64; 3]]) -> anyhow::Result<ViewFrame> {
         let answer = self.link.frame(tool)?;
         let mut u = vec![[0.0; 3]; self.n];
-        for (node, q) in self.link.field(self.field_stride)? {
+        for (node, q) in self.link.field(self.field)?.nodes {
             u[node] = q;
         }
         Ok(ViewFrame {

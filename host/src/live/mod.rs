@@ -8,10 +8,12 @@
 //!   unconstrained K, the static loads, and the f64 pieces the host checks against.
 //! - [`link`]: the live requests over a [`Target`](crate::link::Target), with bytes counted on
 //!   the line and a target reset answered by uploading everything again.
+//! - [`field`]: which nodes a field frame carries (`--field all|surface|stride:K`).
 //! - [`headless`]: the scripted session behind `--headless` and its JSON report.
 //! - [`interactive`]: the session behind `--serve`, the tool where the browser puts it;
 //!   [`serve`] carries the page and the frames to the browsers.
 
+pub mod field;
 pub mod headless;
 pub mod interactive;
 pub mod link;

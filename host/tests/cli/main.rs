@@ -7,5 +7,6 @@ mod flash_cli;
 mod inverse_cli;
 mod link_target_loss;
 mod live_browser;
+mod live_field;
 mod model_cli;
 mod scenario_files;

@@ -206,7 +206,7 @@ pub fn loader(data: &[u8]) {
 }
 
 /// A whole session in request order, sequence numbers from 0: handshake, an 8×8 Laplacian in
-/// one tile, a right-hand side, a solve, the solution.
+/// one tile, a right-hand side, a solve, the solution, a surface field request.
 fn session_requests() -> Vec<Envelope<Request>> {
     use deform_shared::matrix::words_crc;
     use deform_shared::protocol::{SolveParams, Start, VectorSlot};
@@ -250,6 +250,12 @@ fn session_requests() -> Vec<Envelope<Request>> {
             direction: 0,
             offset: 0,
             len: CHUNK_LEN as u16,
+        },
+        // The 8 nodes as a 2 × 2 × 2 box: the field path's checks (refused: no live frame).
+        Request::ReadField {
+            offset: 0,
+            stride: 1,
+            surface: Some([2, 2, 2]),
         },
     ];
     requests
