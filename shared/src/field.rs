@@ -199,6 +199,24 @@ impl FieldSelection {
             Some(p)
         }
     }
+
+    /// For a node `p` of S: where its row of the grid ends (all nodes are one row) and how
+    /// many nodes of S lie from `p` to there.
+    fn rest_of_row(&self, p: u32) -> (u32, u32) {
+        let Some([nx, ny, nz]) = self.surface else {
+            return (self.n, self.n - p);
+        };
+        let (i, row) = (p % nx, p / nx);
+        let (j, k) = (row % ny, row / ny);
+        let inner = |c: u32, len: u32| c > 0 && c + 1 < len;
+        let end = p - i + nx;
+        if inner(j, ny) && inner(k, nz) && nx > 2 {
+            // An inner row: only its two ends are on the surface.
+            (end, if i == 0 { 2 } else { 1 })
+        } else {
+            (end, end - p)
+        }
+    }
 }
 
 /// S in node order.
@@ -214,6 +232,25 @@ impl Iterator for SelectedNodes {
         let p = self.selection.next_from(self.cursor)?;
         self.cursor = p + 1;
         Some(p)
+    }
+
+    /// Skips whole rows of the grid at a time: a chunk's start costs the rows before it, not
+    /// the nodes (each chunk of a frame skips to its offset).
+    fn nth(&mut self, mut skip: usize) -> Option<u32> {
+        loop {
+            let p = self.selection.next_from(self.cursor)?;
+            let (end, in_row) = self.selection.rest_of_row(p);
+            if skip < in_row as usize {
+                self.cursor = p;
+                break;
+            }
+            skip -= in_row as usize;
+            self.cursor = end;
+        }
+        for _ in 0..skip {
+            self.next()?;
+        }
+        self.next()
     }
 }
 
@@ -329,6 +366,14 @@ mod tests {
         assert_eq!(s.len() as usize, want.len());
         assert_eq!(s.len(), 60 - 2 * 3);
         assert_eq!(s.chunk(0).collect::<std::vec::Vec<_>>(), want);
+        for skip in 0..want.len() + 2 {
+            let mut nodes = SelectedNodes {
+                selection: s,
+                cursor: 0,
+            };
+            assert_eq!(nodes.nth(skip), want.get(skip).copied(), "{skip}");
+            assert_eq!(nodes.next(), want.get(skip + 1).copied(), "{skip}");
+        }
         let every_third = FieldSelection::new(60, 3, Some([4, 3, 5])).unwrap();
         let got: std::vec::Vec<u32> = every_third.chunk(2).collect();
         let want3: std::vec::Vec<u32> = want.iter().copied().skip(2).step_by(3).collect();
