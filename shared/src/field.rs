@@ -241,16 +241,21 @@ impl Iterator for SelectedNodes {
             let p = self.selection.next_from(self.cursor)?;
             let (end, in_row) = self.selection.rest_of_row(p);
             if skip < in_row as usize {
-                self.cursor = p;
-                break;
+                if in_row == end - p {
+                    // A run of consecutive nodes (every node, or a boundary row): jump.
+                    self.cursor = p + skip as u32;
+                } else {
+                    // An inner row: its two ends are stepped.
+                    self.cursor = p;
+                    for _ in 0..skip {
+                        self.next()?;
+                    }
+                }
+                return self.next();
             }
             skip -= in_row as usize;
             self.cursor = end;
         }
-        for _ in 0..skip {
-            self.next()?;
-        }
-        self.next()
     }
 }
 
