@@ -8,7 +8,7 @@
 use std::time::Duration;
 
 use deform_shared::live::{
-    FieldChunk, FieldSelection, ForceReport, FrameReport, LiveParams, ModelReport, MAX_TOOL_NODES,
+    FieldSelection, ForceReport, FrameReport, LiveParams, ModelReport, MAX_TOOL_NODES,
 };
 use deform_shared::protocol::{ErrorCode, Request, Response, VectorSlot};
 
@@ -149,7 +149,7 @@ impl<'a, P: Port> LiveLink<'a, P> {
                 return Err(unexpected("ReadField", "Field", reply));
             };
             match reply {
-                Response::Field(chunk @ FieldChunk { .. })
+                Response::Field(chunk)
                     if chunk.offset == offset
                         && *exponent.get_or_insert(chunk.exponent) == chunk.exponent
                         && chunk.values.len() == 3 * selection.chunk(offset).count() =>

@@ -314,3 +314,59 @@ fn bad_live_requests_are_refused_clearly() {
         live(LiveError::NotStarted)
     );
 }
+
+/// Random field requests after a frame: each is a chunk of exactly the nodes its selection
+/// names, or a clear refusal; none panics.
+#[test]
+fn any_field_request_is_answered_or_refused() {
+    let mut bufs = OwnedStorage::new(4 * N, 8, N);
+    let mut s = bufs.session(info(), HARTS.harts);
+    started(&mut s);
+    assert!(matches!(
+        s.handle(Request::LiveFrame { tool: tool_at(1.0) }),
+        Response::LiveFrame(_)
+    ));
+    let mut state = 0x9E37_79B9_7F4A_7C15u64;
+    let mut next = |bound: u64| {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1);
+        (state >> 33) % bound
+    };
+    let grids = [
+        [1, 3, 7],
+        [7, 3, 1],
+        [21, 1, 1],
+        [3, 3, 3],
+        [0, 0, 0],
+        [u16::MAX, 2, 1],
+    ];
+    for _ in 0..2000 {
+        let offset = [next(25), u64::from(u32::MAX)][usize::from(next(8) == 0)] as u32;
+        let stride = [next(25), u64::from(u16::MAX)][usize::from(next(8) == 0)] as u16;
+        let surface = (next(2) == 0).then(|| grids[next(grids.len() as u64) as usize]);
+        let answer = s.handle(Request::ReadField {
+            offset,
+            stride,
+            surface,
+        });
+        let fits =
+            surface.is_none_or(|g| g.iter().map(|&d| u64::from(d)).product::<u64>() == N as u64);
+        if stride == 0 || !fits || offset >= N as u32 {
+            assert!(
+                matches!(answer, Response::Error(ErrorCode::Live(_))),
+                "{answer:?}"
+            );
+            continue;
+        }
+        // Every grid of 21 nodes has a side below 3: its surface is every node.
+        let nodes = (offset as usize..N)
+            .step_by(usize::from(stride))
+            .count()
+            .min(56);
+        match answer {
+            Response::Field(c) => assert_eq!(c.values.len(), 3 * nodes, "{offset} {stride}"),
+            other => panic!("{other:?}"),
+        }
+    }
+}
