@@ -87,8 +87,8 @@ pub struct LiveArgs {
     /// Which nodes a field frame carries: `all`, `surface` (the nodes on the outside of the
     /// box grid: 386 of 729 on an 8³ grid) or `stride:K` (every K-th node in node order).
     /// Fewer nodes, fewer bytes: the frame's components travel as differences from the
-    /// previous node's, 1–2 bytes each for a smooth field. The browser view draws the nodes
-    /// not sent at rest.
+    /// previous node's, 1–2 bytes each for a smooth field. The browser view draws only the
+    /// nodes sent.
     #[arg(long, value_name = "all|surface|stride:K", default_value = "all")]
     pub field: FieldChoice,
 
@@ -413,7 +413,12 @@ fn live_params(args: &LiveArgs, setup: &LiveSetup) -> LiveParams {
 /// `--serve`: the page and its WebSocket, the browser's tool positions solved frame by frame
 /// on the target (or the host reference) until the process is stopped.
 fn serve(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<()> {
-    let mailbox = Arc::new(Mailbox::new(interactive::mesh_json(setup)));
+    let shown = match args.target.as_str() {
+        // The host reference has every node's displacement.
+        "host" => vec![true; setup.model.n()],
+        _ => args.field.carried(&setup.model.grid(), setup.model.n()),
+    };
+    let mailbox = Arc::new(Mailbox::new(interactive::mesh_json(setup, &shown)));
     println!("model       {}", setup.model.spec().describe());
     let mut board = None;
     let mut link = None;

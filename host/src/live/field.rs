@@ -4,6 +4,8 @@
 use std::fmt;
 use std::str::FromStr;
 
+use deform_shared::field::FieldSelection;
+
 use crate::model::Grid;
 
 /// `--field`: every node, the surface of the box grid, or every k-th node.
@@ -26,6 +28,23 @@ impl FieldChoice {
             FieldChoice::Stride(k) => (k, None),
             FieldChoice::Surface => (1, Some([grid.nx(), grid.ny(), grid.nz()].map(side))),
         }
+    }
+}
+
+impl FieldChoice {
+    /// Per node of an n-node model on `grid`, whether a field frame carries it (all false if
+    /// the selection does not fit: the target refuses it too).
+    pub fn carried(self, grid: &Grid, n: usize) -> Vec<bool> {
+        let mut carried = vec![false; n];
+        let (stride, surface) = self.request(grid);
+        if let Ok(selection) = FieldSelection::new(n as u32, stride, surface) {
+            for offset in selection.chunk_offsets() {
+                for p in selection.chunk(offset) {
+                    carried[p as usize] = true;
+                }
+            }
+        }
+        carried
     }
 }
 
@@ -64,6 +83,24 @@ impl fmt::Display for FieldChoice {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_surface_of_a_cube_is_carried_and_its_inside_not() {
+        let grid = Grid::new(4, 4, 4).unwrap();
+        let carried = FieldChoice::Surface.carried(&grid, 64);
+        assert_eq!(carried.iter().filter(|&&c| c).count(), 64 - 8);
+        for (p, &c) in carried.iter().enumerate() {
+            let n = grid.node(p);
+            let inside = [n.i, n.j, n.k].iter().all(|&c| c == 1 || c == 2);
+            assert_eq!(c, !inside, "{n:?}");
+        }
+        let every_third = FieldChoice::Stride(3).carried(&grid, 64);
+        assert!(every_third
+            .iter()
+            .enumerate()
+            .all(|(p, &c)| c == (p % 3 == 0)));
+        assert!(FieldChoice::All.carried(&grid, 64).iter().all(|&c| c));
+    }
 
     #[test]
     fn choices_parse_and_print_back() {

@@ -87,8 +87,10 @@ impl FrameSolver for HostSolver<'_> {
     }
 }
 
-/// Sent once on every connection: what the page draws the frames on.
-pub fn mesh_json(setup: &LiveSetup) -> String {
+/// Sent once on every connection: what the page draws the frames on. `shown`: per node,
+/// whether its displacement arrives (`--field`); the page draws only those nodes and the
+/// springs between them, so a surface field shows the box's outside, not an inside at rest.
+pub fn mesh_json(setup: &LiveSetup, shown: &[bool]) -> String {
     let grid = setup.model.grid();
     let nodes: Vec<[usize; 3]> = (0..setup.model.n())
         .map(|p| {
@@ -102,6 +104,7 @@ pub fn mesh_json(setup: &LiveSetup) -> String {
         "nodes": nodes,
         "fixed": setup.model.fixed_mask(),
         "tools": setup.tools,
+        "shown": shown,
     })
     .to_string()
 }

@@ -23,7 +23,7 @@ use tungstenite::{Message, WebSocket};
 const SCENARIO: &str = "../examples/needle-insertion.toml";
 
 /// A process and the process group it leads (QEMU and Chromium's helpers), killed on drop.
-struct Group(Child);
+pub(crate) struct Group(pub(crate) Child);
 
 impl Drop for Group {
     fn drop(&mut self) {
@@ -33,7 +33,7 @@ impl Drop for Group {
     }
 }
 
-fn spawn_group(cmd: &mut Command) -> Group {
+pub(crate) fn spawn_group(cmd: &mut Command) -> Group {
     use std::os::unix::process::CommandExt;
     let program = format!("{:?}", cmd.get_program());
     Group(
@@ -44,7 +44,7 @@ fn spawn_group(cmd: &mut Command) -> Group {
 }
 
 /// Lines of `pipe`, read on a thread (so the pipe never fills up) and handed over a channel.
-fn lines(pipe: impl Read + Send + 'static) -> mpsc::Receiver<String> {
+pub(crate) fn lines(pipe: impl Read + Send + 'static) -> mpsc::Receiver<String> {
     let (tx, rx) = mpsc::channel();
     std::thread::spawn(move || {
         for line in BufReader::new(pipe).lines().map_while(Result::ok) {
@@ -55,7 +55,12 @@ fn lines(pipe: impl Read + Send + 'static) -> mpsc::Receiver<String> {
 }
 
 /// The first line with `marker`, its text from the marker on.
-fn wait_for(rx: &mpsc::Receiver<String>, marker: &str, within: Duration, what: &str) -> String {
+pub(crate) fn wait_for(
+    rx: &mpsc::Receiver<String>,
+    marker: &str,
+    within: Duration,
+    what: &str,
+) -> String {
     let deadline = Instant::now() + within;
     let mut seen = Vec::new();
     while let Some(left) = deadline.checked_duration_since(Instant::now()) {

@@ -1,9 +1,13 @@
 //! `deform live --field`: which nodes a field frame carries. Bad selections are refused by
 //! the argument parser with the accepted forms named; a headless session on QEMU reports the
-//! selection it used, its node count and its bytes per component on the line.
+//! selection it used, its node count and its bytes per component on the line; `--serve` tells
+//! the page which nodes arrive.
 
 use std::path::Path;
-use std::process::Command;
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+use super::live_browser::{lines, spawn_group, wait_for};
 
 const SCENARIO: &str = "../examples/needle-push-8b.toml";
 
@@ -72,4 +76,58 @@ fn a_surface_session_reports_its_selection_and_bytes() {
         "{stdout}"
     );
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_surface_view_tells_the_page_which_nodes_arrive() {
+    let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join(SCENARIO);
+    let mut server = spawn_group(
+        Command::new(env!("CARGO_BIN_EXE_deform"))
+            .arg("live")
+            .arg(&scenario)
+            .args(["--serve", "--addr", "127.0.0.1:0", "--field", "surface"])
+            .args(["--mvus", "2"])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit()),
+    );
+    let out = lines(server.0.stdout.take().unwrap());
+    let serving = wait_for(
+        &out,
+        "http://",
+        Duration::from_secs(180),
+        "deform live --serve",
+    );
+    let port: u16 = serving
+        .split("WebSocket on port ")
+        .nth(1)
+        .and_then(|s| s.split(')').next())
+        .and_then(|p| p.parse().ok())
+        .unwrap_or_else(|| panic!("no WebSocket port in {serving:?}"));
+    let (mut ws, _) = tungstenite::connect(format!("ws://127.0.0.1:{port}/")).unwrap();
+    let text = |m: tungstenite::Message| -> serde_json::Value {
+        serde_json::from_str(m.to_text().unwrap()).unwrap()
+    };
+    let mesh = text(ws.read().unwrap());
+    let shown: Vec<bool> = serde_json::from_value(mesh["shown"].clone()).unwrap();
+    let nodes = mesh["nodes"].as_array().unwrap();
+    assert_eq!(shown.len(), 512);
+    for (node, &on) in nodes.iter().zip(&shown) {
+        let c: Vec<u64> = serde_json::from_value(node.clone()).unwrap();
+        let inside = c.iter().all(|&c| (1..=6).contains(&c));
+        assert_eq!(on, !inside, "{c:?}");
+    }
+    // The first frame: the inside, not sent, at rest.
+    let frame = loop {
+        let m = text(ws.read().unwrap());
+        if m["type"] == "frame" {
+            break m;
+        }
+    };
+    let u: Vec<f64> = serde_json::from_value(frame["u"].clone()).unwrap();
+    assert_eq!(u.len(), 3 * 512);
+    for (p, &on) in shown.iter().enumerate() {
+        if !on {
+            assert_eq!(&u[3 * p..3 * p + 3], [0.0; 3], "node {p}");
+        }
+    }
 }
