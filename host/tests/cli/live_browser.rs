@@ -23,7 +23,7 @@ use tungstenite::{Message, WebSocket};
 const SCENARIO: &str = "../examples/needle-insertion.toml";
 
 /// A process and the process group it leads (QEMU and Chromium's helpers), killed on drop.
-pub(crate) struct Group(pub(crate) Child);
+pub(crate) struct Group(Child);
 
 impl Drop for Group {
     fn drop(&mut self) {
@@ -33,7 +33,7 @@ impl Drop for Group {
     }
 }
 
-pub(crate) fn spawn_group(cmd: &mut Command) -> Group {
+fn spawn_group(cmd: &mut Command) -> Group {
     use std::os::unix::process::CommandExt;
     let program = format!("{:?}", cmd.get_program());
     Group(
@@ -44,7 +44,7 @@ pub(crate) fn spawn_group(cmd: &mut Command) -> Group {
 }
 
 /// Lines of `pipe`, read on a thread (so the pipe never fills up) and handed over a channel.
-pub(crate) fn lines(pipe: impl Read + Send + 'static) -> mpsc::Receiver<String> {
+fn lines(pipe: impl Read + Send + 'static) -> mpsc::Receiver<String> {
     let (tx, rx) = mpsc::channel();
     std::thread::spawn(move || {
         for line in BufReader::new(pipe).lines().map_while(Result::ok) {
@@ -55,12 +55,7 @@ pub(crate) fn lines(pipe: impl Read + Send + 'static) -> mpsc::Receiver<String> 
 }
 
 /// The first line with `marker`, its text from the marker on.
-pub(crate) fn wait_for(
-    rx: &mpsc::Receiver<String>,
-    marker: &str,
-    within: Duration,
-    what: &str,
-) -> String {
+fn wait_for(rx: &mpsc::Receiver<String>, marker: &str, within: Duration, what: &str) -> String {
     let deadline = Instant::now() + within;
     let mut seen = Vec::new();
     while let Some(left) = deadline.checked_duration_since(Instant::now()) {
@@ -84,6 +79,35 @@ fn chromium() -> PathBuf {
         .map(PathBuf::from)
         .find(|p| p.exists())
         .expect("Chromium is missing: `cargo xtask setup` installs Debian's chromium")
+}
+
+/// `deform live SCENARIO --serve` on a free port with `args` added: the server (killed on
+/// drop), the page's address and the WebSocket's port, once it serves.
+pub(crate) fn serve(scenario: &Path, args: &[&str]) -> (Group, String, u16) {
+    let mut server = spawn_group(
+        Command::new(env!("CARGO_BIN_EXE_deform"))
+            .arg("live")
+            .arg(scenario)
+            .args(["--serve", "--addr", "127.0.0.1:0"])
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit()),
+    );
+    let out = lines(server.0.stdout.take().unwrap());
+    let serving = wait_for(
+        &out,
+        "http://",
+        Duration::from_secs(180),
+        "deform live --serve",
+    );
+    let page = serving.split_whitespace().next().unwrap().to_string();
+    let ws_port: u16 = serving
+        .split("WebSocket on port ")
+        .nth(1)
+        .and_then(|s| s.split(')').next())
+        .and_then(|p| p.parse().ok())
+        .unwrap_or_else(|| panic!("no WebSocket port in {serving:?}"));
+    (server, page, ws_port)
 }
 
 /// A Chrome DevTools Protocol session on one page.
@@ -209,28 +233,7 @@ fn reference(u: [f64; 3]) -> ([f64; 3], f64) {
 fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
     let started = Instant::now();
     let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join(SCENARIO);
-    let mut server = spawn_group(
-        Command::new(env!("CARGO_BIN_EXE_deform"))
-            .arg("live")
-            .arg(&scenario)
-            .args(["--serve", "--addr", "127.0.0.1:0", "--tol", "1e-6"])
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit()),
-    );
-    let out = lines(server.0.stdout.take().unwrap());
-    let serving = wait_for(
-        &out,
-        "http://",
-        Duration::from_secs(180),
-        "deform live --serve",
-    );
-    let page = serving.split_whitespace().next().unwrap().to_string();
-    let ws_port: u16 = serving
-        .split("WebSocket on port ")
-        .nth(1)
-        .and_then(|s| s.split(')').next())
-        .and_then(|p| p.parse().ok())
-        .unwrap_or_else(|| panic!("no WebSocket port in {serving:?}"));
+    let (mut server, page, ws_port) = serve(&scenario, &["--tol", "1e-6"]);
 
     // A misbehaving client first: garbage gets an error message, then it vanishes mid-session.
     {

@@ -4,10 +4,9 @@
 //! the page which nodes arrive.
 
 use std::path::Path;
-use std::process::{Command, Stdio};
-use std::time::Duration;
+use std::process::Command;
 
-use super::live_browser::{lines, spawn_group, wait_for};
+use super::live_browser::serve;
 
 const SCENARIO: &str = "../examples/needle-push-8b.toml";
 
@@ -81,28 +80,7 @@ fn a_surface_session_reports_its_selection_and_bytes() {
 #[test]
 fn a_surface_view_tells_the_page_which_nodes_arrive() {
     let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join(SCENARIO);
-    let mut server = spawn_group(
-        Command::new(env!("CARGO_BIN_EXE_deform"))
-            .arg("live")
-            .arg(&scenario)
-            .args(["--serve", "--addr", "127.0.0.1:0", "--field", "surface"])
-            .args(["--mvus", "2"])
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit()),
-    );
-    let out = lines(server.0.stdout.take().unwrap());
-    let serving = wait_for(
-        &out,
-        "http://",
-        Duration::from_secs(180),
-        "deform live --serve",
-    );
-    let port: u16 = serving
-        .split("WebSocket on port ")
-        .nth(1)
-        .and_then(|s| s.split(')').next())
-        .and_then(|p| p.parse().ok())
-        .unwrap_or_else(|| panic!("no WebSocket port in {serving:?}"));
+    let (_server, _, port) = serve(&scenario, &["--field", "surface", "--mvus", "2"]);
     let (mut ws, _) = tungstenite::connect(format!("ws://127.0.0.1:{port}/")).unwrap();
     let text = |m: tungstenite::Message| -> serde_json::Value {
         serde_json::from_str(m.to_text().unwrap()).unwrap()

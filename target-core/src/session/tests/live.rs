@@ -132,6 +132,15 @@ fn frames_match_a_direct_solve_and_the_local_model_predicts_the_next_force() {
     assert!(iterations[3] * 2 < iterations[0], "{iterations:?}");
 }
 
+/// A started session after one frame at tool position 1.
+fn framed(s: &mut Session<'_, Sequential>) {
+    started(s);
+    assert!(matches!(
+        s.handle(Request::LiveFrame { tool: tool_at(1.0) }),
+        Response::LiveFrame(_)
+    ));
+}
+
 fn field_chunk(
     s: &mut Session<'_, Sequential>,
     offset: u32,
@@ -152,11 +161,7 @@ fn field_chunk(
 fn the_field_arrives_quantised_to_its_scale() {
     let mut bufs = OwnedStorage::new(4 * N, 8, N);
     let mut s = bufs.session(info(), HARTS.harts);
-    started(&mut s);
-    assert!(matches!(
-        s.handle(Request::LiveFrame { tool: tool_at(1.0) }),
-        Response::LiveFrame(_)
-    ));
+    framed(&mut s);
     let want: Vec<Vec<f64>> = (0..3).map(|d| reference(d, f64::from(U0[d])).0).collect();
     let own: Vec<Vec<f64>> = (0..3).map(|d| read_direction(&mut s, d, N)).collect();
     let max = want.iter().flatten().fold(0f64, |m, v| m.max(v.abs()));
@@ -321,11 +326,7 @@ fn bad_live_requests_are_refused_clearly() {
 fn any_field_request_is_answered_or_refused() {
     let mut bufs = OwnedStorage::new(4 * N, 8, N);
     let mut s = bufs.session(info(), HARTS.harts);
-    started(&mut s);
-    assert!(matches!(
-        s.handle(Request::LiveFrame { tool: tool_at(1.0) }),
-        Response::LiveFrame(_)
-    ));
+    framed(&mut s);
     let mut state = 0x9E37_79B9_7F4A_7C15u64;
     let mut next = |bound: u64| {
         state = state
