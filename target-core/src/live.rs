@@ -427,14 +427,15 @@ pub fn pack_field(
     out
 }
 
-/// m·2^−s rounded half up and clamped to ±32767. The usual shift (1..=31) is done in 32 bits:
-/// rv32 has no 64-bit shift, and [`scale`]'s took most of a field chunk's cycles.
-/// ((m >> (s−1)) + 1) >> 1 equals (m + 2^(s−1)) >> s, without the overflow.
+/// m·2^−s rounded half up and clamped to ±32767, in 32 bits where it can be (rv32 has no
+/// 64-bit shift): ((m >> (s−1)) + 1) >> 1 equals (m + 2^(s−1)) >> s without the overflow, and
+/// from s = 32 on every i32 rounds to 0 (the small directions of a field, whose own exponents
+/// are far below the frame's, are all in that case).
 fn quantise(m: i32, s: i32) -> i16 {
-    let q = if (1..=31).contains(&s) {
-        (m >> (s - 1)).saturating_add(1) >> 1
-    } else {
-        scale(i64::from(m), s).clamp(-32767, 32767) as i32
+    let q = match s {
+        1..=31 => (m >> (s - 1)).saturating_add(1) >> 1,
+        32.. => 0,
+        _ => scale(i64::from(m), s).clamp(-32767, 32767) as i32,
     };
     q.clamp(-32767, 32767) as i16
 }
