@@ -88,11 +88,15 @@ function buildMesh(m) {
   if (tissue) { scene.remove(tissue.points, tissue.lines); }
   const n = m.nodes.length;
   const index = new Map(m.nodes.map(([i, j, k], p) => [`${i},${j},${k}`, p]));
+  // Only the nodes whose displacement arrives (`--field surface|stride:K`), and the springs
+  // between two of them: a surface field draws the box's outside, not an inside at rest.
+  const shown = m.shown || m.nodes.map(() => true);
   const springs = [];
   m.nodes.forEach(([i, j, k], p) => {
+    if (!shown[p]) return;
     for (const [di, dj, dk] of [[1, 0, 0], [0, 1, 0], [0, 0, 1]]) {
       const q = index.get(`${i + di},${j + dj},${k + dk}`);
-      if (q !== undefined) springs.push(p, q);
+      if (q !== undefined && shown[q]) springs.push(p, q);
     }
   });
   const positions = new Float32Array(3 * n);
@@ -103,6 +107,7 @@ function buildMesh(m) {
   geometry.setAttribute('color', new THREE.BufferAttribute(colours, 3));
   const lineGeometry = geometry.clone();
   lineGeometry.setIndex(springs);
+  geometry.setIndex(m.nodes.map((_, p) => p).filter((p) => shown[p]));
   const lines = new THREE.LineSegments(lineGeometry,
     new THREE.LineBasicMaterial({ vertexColors: true, transparent: true, opacity: 0.8 }));
   const points = new THREE.Points(geometry, new THREE.PointsMaterial({ size: 0.2, vertexColors: true }));

@@ -10,12 +10,14 @@
 //! - [`frame`]: how a message travels on the wire (postcard, CRC-32, COBS, `0x00` delimiter);
 //! - [`transport`]: sequence numbers, window, ACK/NAK and the target's uplink frames;
 //! - [`chunk`]: the fixed-width encoding of chunk payloads;
+//! - [`field`]: the live loop's compact field frames (node selection, difference coding);
 //! - [`loader`]: the serial loader's protocol (flashing an application over the UART);
 //! - [`matrix`]: the tiled layout of a matrix as instruction words, and its validation.
 #![cfg_attr(not(any(feature = "std", test)), no_std)]
 #![forbid(unsafe_code)]
 
 pub mod chunk;
+pub mod field;
 pub mod frame;
 pub mod live;
 pub mod loader;

@@ -1,4 +1,4 @@
-//! The live loop's messages (protocol version 8; force tools version 9): a tool pushes the tissue frame by frame, the
+//! The live loop's messages (protocol version 8; force tools version 9, compact fields version 10): a tool pushes the tissue frame by frame, the
 //! reaction force comes back at haptic rate and the field at a lower rate (`deform live`).
 //!
 //! K, the fixed set and the static loads stay resident on the target. The host sends once per
@@ -27,7 +27,8 @@
 //! ū = ū_frame + Σ_j c̄_j·(f_j − f_j,frame)/k_d ([`MotionQuery`]).
 //!
 //! The displacement field travels in its own [`FieldChunk`]s, quantised to `i16` per component
-//! with one power-of-two scale per frame, optionally every k-th node only.
+//! with one power-of-two scale per frame, every k-th node or only the surface nodes, and
+//! difference-coded on the wire ([`crate::field`], protocol version 10).
 
 use heapless::Vec;
 use serde::{Deserialize, Serialize};
@@ -38,11 +39,7 @@ pub const MAX_TOOL_NODES: usize = 8;
 /// Most off-diagonal entries of a tool node's row (model B has 26 neighbours).
 pub const MAX_TOOL_ROW: usize = 32;
 
-/// Bytes of packed `i16` components one [`FieldChunk`] carries: 80 nodes of three components.
-pub const FIELD_BYTES: usize = 480;
-
-/// Nodes per [`FieldChunk`].
-pub const FIELD_NODES: usize = FIELD_BYTES / 6;
+pub use crate::field::{FieldChunk, FieldSelection, FIELD_COMPONENTS, FIELD_NODES};
 
 /// One entry of a tool node's row of K: the column (a node index) and its raw value in the
 /// resident matrix's Q-format.
@@ -137,26 +134,6 @@ pub struct MotionQuery {
     pub cycles: u32,
 }
 
-/// A chunk of the last frame's displacement field: nodes `offset`, `offset + stride`, … (at
-/// most [`FIELD_NODES`]), three components each as little-endian `i16` q, the displacement
-/// being q·2^`exponent`. The exponent is the same for every chunk of a frame.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct FieldChunk {
-    pub offset: u32,
-    pub exponent: i8,
-    pub values: Vec<u8, FIELD_BYTES>,
-}
-
-impl FieldChunk {
-    /// The displacements it carries, node by node.
-    pub fn displacements(&self) -> impl Iterator<Item = [f64; 3]> + '_ {
-        let scale = crate::qformat::pow2(i32::from(self.exponent));
-        self.values.chunks_exact(6).map(move |c| {
-            [0, 1, 2].map(|d| f64::from(i16::from_le_bytes([c[2 * d], c[2 * d + 1]])) * scale)
-        })
-    }
-}
-
 /// Why the target refused a live request.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, thiserror::Error)]
 pub enum LiveError {
@@ -190,6 +167,12 @@ pub enum LiveError {
     MixedKinds,
     #[error("the request is for the other kind of tool than the session's")]
     WrongKind,
+    /// Protocol version 10: a surface field's grid is not the resident matrix's.
+    #[error("a {}×{}×{} grid does not have the resident matrix's {nodes} nodes", grid[0], grid[1], grid[2])]
+    BadGrid { grid: [u16; 3], nodes: u32 },
+    /// Protocol version 10: a field chunk's offset is past its selection.
+    #[error("field offset {offset} is past the {selected} nodes selected")]
+    FieldOffset { offset: u32, selected: u32 },
 }
 
 #[cfg(test)]
@@ -276,49 +259,5 @@ mod tests {
             body: Request::LiveTool(row),
         };
         assert!(encoded_len(&up) + 16 <= MAX_FRAME_LEN);
-        let chunk = FieldChunk {
-            offset: u32::MAX,
-            exponent: i8::MIN,
-            values: (0..FIELD_BYTES).map(|_| 0).collect(),
-        };
-        let down = Uplink::Reply {
-            seq: u16::MAX,
-            body: Response::Field(chunk.clone()),
-        };
-        let n = encoded_len(&down);
-        assert!(n + 16 <= MAX_FRAME_LEN, "{n}");
-        // 2 bytes per component and the frame's overhead.
-        assert!(n as f64 / (FIELD_BYTES as f64 / 2.0) < 2.1, "{n}");
-        let mut buf = [0u8; MAX_FRAME_LEN];
-        let n = frame::encode(&down, &mut buf).unwrap();
-        let back: Uplink = frame::decode(&mut buf[..n - 1]).unwrap();
-        assert_eq!(
-            back,
-            Uplink::Reply {
-                seq: u16::MAX,
-                body: Response::Field(chunk)
-            }
-        );
-    }
-
-    #[test]
-    fn field_values_decode_with_their_scale() {
-        let mut values = Vec::new();
-        for q in [1i16, -2, i16::MAX, i16::MIN, 0, 300] {
-            values.extend_from_slice(&q.to_le_bytes()).unwrap();
-        }
-        let chunk = FieldChunk {
-            offset: 0,
-            exponent: -4,
-            values,
-        };
-        let got: std::vec::Vec<[f64; 3]> = chunk.displacements().collect();
-        assert_eq!(
-            got,
-            [
-                [0.0625, -0.125, 32767.0 / 16.0],
-                [-2048.0, 0.0, 300.0 / 16.0]
-            ]
-        );
     }
 }

@@ -64,7 +64,9 @@ use crate::matrix::{MatrixError, TileHeader};
 /// Version 8 (live): predicted warm starts, cycle budgets, the sparse frame messages.
 /// Version 9 (forcetool): force tools in the live loop (`LiveForceTool`, `LiveLoad`,
 /// `LiveLoadQuery`; `LiveMotion`, `LiveMotionQuery`; three more `LiveError`s).
-pub const PROTOCOL_VERSION: u16 = 9;
+/// Version 10 (field): compact field frames: `ReadField::surface`, difference-coded
+/// `FieldChunk` values and their build cycles ([`crate::field`]).
+pub const PROTOCOL_VERSION: u16 = 10;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -234,10 +236,13 @@ pub enum Request {
         tool: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
     },
     /// Live loop: a chunk of the quantised displacement field of the last frame: every
-    /// `stride`-th node from `offset` on.
+    /// `stride`-th node of the selection from its `offset`-th on ([`crate::field`]).
     ReadField {
         offset: u32,
         stride: u16,
+        /// Protocol version 10: `Some([nx, ny, nz])` selects only the nodes on the surface of
+        /// that box grid (its node count must be the resident matrix's n); `None` all nodes.
+        surface: Option<[u16; 3]>,
     },
     /// Live loop, version 9: a force tool, its nodes free in the resident K; replaces the tool
     /// set. Then [`Request::LiveStart`] computes the compliance model.

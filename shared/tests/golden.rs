@@ -202,6 +202,12 @@ impl Golden for Request {
             Request::ReadField {
                 offset: 80,
                 stride: 2,
+                surface: None,
+            },
+            Request::ReadField {
+                offset: 56,
+                stride: 1,
+                surface: Some([9, 9, 9]),
             },
             Request::LiveForceTool {
                 nodes: [10, 300].into_iter().collect(),
@@ -277,7 +283,8 @@ impl Golden for Response {
             Response::Field(FieldChunk {
                 offset: 6,
                 exponent: -12,
-                values: [1, 0, 0xFF, 0x7F, 0, 0x80].into_iter().collect(),
+                cycles: 21_000,
+                values: [1, 0, -255, 3, i16::MIN, i16::MAX].into_iter().collect(),
             }),
             Response::LiveMotion(MotionReport {
                 displacement: [-0.5, 0.0, 3.25e-3],
@@ -599,6 +606,14 @@ impl Golden for LiveError {
             LiveError::FixedToolNode { node: 7 },
             LiveError::MixedKinds,
             LiveError::WrongKind,
+            LiveError::BadGrid {
+                grid: [9, 9, 8],
+                nodes: 729,
+            },
+            LiveError::FieldOffset {
+                offset: 800,
+                selected: 729,
+            },
         ]
     }
     fn variant(&self) -> &'static str {
@@ -617,6 +632,8 @@ impl Golden for LiveError {
             LiveError::FixedToolNode { .. } => "FixedToolNode",
             LiveError::MixedKinds => "MixedKinds",
             LiveError::WrongKind => "WrongKind",
+            LiveError::BadGrid { .. } => "BadGrid",
+            LiveError::FieldOffset { .. } => "FieldOffset",
         }
     }
 }

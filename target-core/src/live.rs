@@ -10,7 +10,7 @@
 //! free neighbours and the tool rows themselves.
 
 use deform_shared::live::{
-    Coupling, LiveError, LiveParams, ToolRow, FIELD_BYTES, MAX_TOOL_NODES, MAX_TOOL_ROW,
+    Coupling, LiveError, LiveParams, ToolRow, FIELD_COMPONENTS, MAX_TOOL_NODES, MAX_TOOL_ROW,
 };
 use deform_shared::qformat::{block_exponent, ldexp, to_mantissa};
 use deform_shared::word::{VALUE_MAX, VALUE_MIN};
@@ -627,26 +627,34 @@ pub fn field_exponent(solutions: &[(&[i32], i32)]) -> i8 {
     })
 }
 
-/// Packs nodes `offset, offset + stride, …` of the three solutions as `i16` triples at
-/// exponent `e`, as many as one chunk holds. Returns the packed bytes.
+/// Quantises the three solutions at `nodes` to `i16` q at exponent `e`, node by node, as
+/// many as one chunk holds (the wire's difference coding is [`deform_shared::field`]'s).
 pub fn pack_field(
     solutions: &[(&[i32], i32)],
-    n: usize,
-    offset: usize,
-    stride: usize,
+    nodes: impl Iterator<Item = u32>,
     e: i8,
-) -> Vec<u8, FIELD_BYTES> {
+) -> Vec<i16, FIELD_COMPONENTS> {
     let mut out = Vec::new();
-    let mut node = offset;
-    while node < n && out.len() + 6 <= FIELD_BYTES {
+    for node in nodes.take(FIELD_COMPONENTS / 3) {
         for (x, ex) in solutions {
-            let m = x.get(node).copied().unwrap_or(0);
-            let q = scale(i64::from(m), i32::from(e) - ex).clamp(-32767, 32767) as i16;
-            let _ = out.extend_from_slice(&q.to_le_bytes());
+            let m = x.get(node as usize).copied().unwrap_or(0);
+            let _ = out.push(quantise(m, i32::from(e) - ex));
         }
-        node = node.saturating_add(stride);
     }
     out
+}
+
+/// m·2^−s rounded half up and clamped to ±32767, in 32 bits where it can be (rv32 has no
+/// 64-bit shift): ((m >> (s−1)) + 1) >> 1 equals (m + 2^(s−1)) >> s without the overflow, and
+/// from s = 32 on every i32 rounds to 0 (the small directions of a field, whose own exponents
+/// are far below the frame's, are all in that case).
+fn quantise(m: i32, s: i32) -> i16 {
+    let q = match s {
+        1..=31 => (m >> (s - 1)).saturating_add(1) >> 1,
+        32.. => 0,
+        _ => scale(i64::from(m), s).clamp(-32767, 32767) as i32,
+    };
+    q.clamp(-32767, 32767) as i16
 }
 
 #[cfg(test)]
@@ -660,11 +668,37 @@ mod tests {
         let e = field_exponent(&solutions);
         // max |u| = 2^−11 (x[0]) and 2^−20·2^20 = 1 (y[2]): the top is 1.
         assert_eq!(e, -14);
-        let packed = pack_field(&solutions, 3, 0, 2, e);
-        assert_eq!(packed.len(), 12, "nodes 0 and 2");
-        let q = |i: usize| i16::from_le_bytes([packed[2 * i], packed[2 * i + 1]]);
-        assert_eq!([q(0), q(1), q(2)], [8, 0, 0]);
-        assert_eq!([q(3), q(4), q(5)], [0, -16384, 0]);
+        let packed = pack_field(&solutions, [0, 2].into_iter(), e);
+        assert_eq!(packed, [8, 0, 0, 0, -16384, 0], "nodes 0 and 2");
         assert_eq!(field_exponent(&[(&[0][..], 5)]), 0);
+    }
+
+    #[test]
+    fn the_32_bit_quantiser_rounds_as_the_64_bit_one() {
+        let slow = |m: i32, s: i32| scale(i64::from(m), s).clamp(-32767, 32767) as i16;
+        let mut m = 0x1234_5678i32;
+        for s in -3..=40 {
+            for edge in [
+                0,
+                1,
+                -1,
+                2,
+                -2,
+                3,
+                i32::MAX,
+                i32::MIN,
+                1 << 29,
+                -(1 << 29),
+                32767,
+                -32768,
+            ] {
+                assert_eq!(quantise(edge, s), slow(edge, s), "{edge} >> {s}");
+            }
+            for _ in 0..2000 {
+                m = m.wrapping_mul(1_103_515_245).wrapping_add(12_345);
+                assert_eq!(quantise(m, s), slow(m, s), "{m} >> {s}");
+                assert_eq!(quantise(m >> 3, s), slow(m >> 3, s), "{m} >> {s}");
+            }
+        }
     }
 }

@@ -312,7 +312,11 @@ impl<'a, E: Executor> Session<'a, E> {
             Request::LiveStart(params) => self.live_start(params),
             Request::LiveFrame { tool } => self.live_frame(&tool),
             Request::LiveForce { tool } => self.live_force(&tool),
-            Request::ReadField { offset, stride } => self.read_field(offset, stride),
+            Request::ReadField {
+                offset,
+                stride,
+                surface,
+            } => self.read_field(offset, stride, surface),
             Request::LiveForceTool { nodes } => self.live_force_tool(&nodes),
             Request::LiveLoad { load } => self.live_load(&load),
             Request::LiveLoadQuery { load } => self.live_load_query(&load),

@@ -8,8 +8,10 @@ use crate::support;
 use std::path::Path;
 
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
+use deform_host::bench::board::{BenchBoard, BenchBoardChoice};
 use deform_host::encode::EncodeOptions;
 use deform_host::link::LinkError;
+use deform_host::live::field::FieldChoice;
 use deform_host::live::link::LiveLink;
 use deform_host::live::LiveSetup;
 use deform_host::model::{ModelSpec, Node};
@@ -87,7 +89,7 @@ fn frames_match_converged_solves_and_the_force_model_and_field_follow() {
             "{model:?} vs {want_next:?}"
         );
         if frame == 4 {
-            let field = link.field(2).unwrap();
+            let field = link.field(FieldChoice::Stride(2)).unwrap().nodes;
             assert_eq!(field.len(), (setup.matrix.n as usize).div_ceil(2));
             let umax = u.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
             for (node, q) in field {
@@ -100,6 +102,69 @@ fn frames_match_converged_solves_and_the_force_model_and_field_follow() {
     // A steady push: from the third frame on the prediction is nearly exact.
     assert!(iterations[5] * 2 < iterations[0], "{iterations:?}");
     assert_alive(&mut qemu);
+}
+
+/// Field frames for every node, every third and the surface, on the 8³ model B push with 8
+/// MVUs: each node's decoded components equal the target's own solution to the
+/// quantisation (within 1/32767 of max |u|) and a converged f64 solve to 1e-3 of max |u|; the bytes
+/// per transmitted component on the line (framing included) are printed and held to the
+/// issue's 2.
+#[test]
+fn field_frames_are_exact_to_the_quantisation_and_compact() {
+    let s = scenario();
+    let layout = EncodeOptions {
+        mvus: 8,
+        ..EncodeOptions::default()
+    };
+    let setup = LiveSetup::new(&spec_at(&s, 0.0), &layout).unwrap();
+    let choice = BenchBoardChoice::Qemu { firmware: None };
+    let mut board = BenchBoard::open(&choice, 8, timeouts()).unwrap();
+    let wire = board.wire.clone();
+    let mut link = LiveLink::start(&mut board.target, &setup, params(&setup)).unwrap();
+    let tool = tool_at(&s, 0.5);
+    link.frame(&tool).unwrap();
+    let u = link.solution().unwrap();
+    let (want, _) = setup.converged(&tool, None).unwrap();
+    let umax = u.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+    let n = setup.matrix.n as usize;
+    let grid = setup.model.grid();
+    let inside = (grid.nx() - 2) * (grid.ny() - 2) * (grid.nz() - 2);
+    for (choice, nodes) in [
+        (FieldChoice::All, n),
+        (FieldChoice::Stride(3), n.div_ceil(3)),
+        (FieldChoice::Surface, n - inside),
+    ] {
+        let before = wire.read();
+        let field = link.field(choice).unwrap();
+        let bytes = wire.read().since(before);
+        assert_eq!(field.nodes.len(), nodes, "{choice}");
+        for &(node, q) in &field.nodes {
+            let p = setup.model.node(node);
+            if choice == FieldChoice::Surface {
+                let on = |c: usize, len: usize| c == 0 || c + 1 == len;
+                assert!(
+                    on(p.i, grid.nx()) || on(p.j, grid.ny()) || on(p.k, grid.nz()),
+                    "{p:?}"
+                );
+            }
+            for d in 0..3 {
+                // Half a step 2^e (umax ≥ 2^(e+14)), or under a step where the largest
+                // component was clamped to 32767 (umax ≥ 32767.5·2^e).
+                assert!(
+                    (q[d] - u[d][node]).abs() <= umax / 32767.0,
+                    "{choice} node {node}"
+                );
+                assert!((q[d] - want[d][node]).abs() <= 1e-3 * umax, "{choice}");
+            }
+        }
+        assert!(field.cycles > 0);
+        let per_component = bytes.received as f64 / (3 * nodes) as f64;
+        println!(
+            "field {choice}: {nodes} nodes, {} B down, {} B up, {per_component:.3} B per component, {} cycles to build",
+            bytes.received, bytes.sent, field.cycles
+        );
+        assert!(per_component <= 2.0, "{choice}: {per_component}");
+    }
 }
 
 #[test]
@@ -144,6 +209,42 @@ fn bad_tools_are_refused_with_a_clear_error() {
         .request(&Request::LiveFrame { tool })
         .unwrap_err();
     assert!(err.to_string().contains("no live session"), "{err}");
+    // Field requests whose selection does not fit the resident matrix.
+    let n = setup.matrix.n;
+    for (offset, stride, surface, want) in [
+        (0, 0, None, LiveError::BadStride),
+        (
+            0,
+            1,
+            Some([9, 9, 8]),
+            LiveError::BadGrid {
+                grid: [9, 9, 8],
+                nodes: n,
+            },
+        ),
+        (
+            n,
+            1,
+            None,
+            LiveError::FieldOffset {
+                offset: n,
+                selected: n,
+            },
+        ),
+    ] {
+        let err = target
+            .link_mut()
+            .request(&Request::ReadField {
+                offset,
+                stride,
+                surface,
+            })
+            .unwrap_err();
+        assert!(
+            matches!(err, LinkError::Target { code: ErrorCode::Live(e), .. } if e == want),
+            "{err}"
+        );
+    }
     assert_alive(&mut qemu);
 }
 

@@ -21,6 +21,7 @@ use crate::bench::board::{timeouts, BenchBoard, BenchBoardChoice};
 use crate::cli_dynamics::DynamicFlags;
 use crate::commands::simulate::bar;
 use crate::encode::{EncodeOptions, Partition};
+use crate::live::field::FieldChoice;
 use crate::live::headless::{self, FrameRecord, Script, Session, CLOCK_HZ};
 use crate::live::interactive;
 use crate::live::link::LiveLink;
@@ -96,9 +97,13 @@ pub struct LiveArgs {
     #[arg(long, default_value_t = 10)]
     pub field_every: u32,
 
-    /// Send every k-th node in a field frame.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
-    pub field_stride: u16,
+    /// Which nodes a field frame carries: `all`, `surface` (the nodes on the outside of the
+    /// box grid: 386 of 729 on an 8³ grid) or `stride:K` (every K-th node in node order).
+    /// Fewer nodes, fewer bytes: the frame's components travel as differences from the
+    /// previous node's, 1–2 bytes each for a smooth field. The browser view draws only the
+    /// nodes sent.
+    #[arg(long, value_name = "all|surface|stride:K", default_value = "all")]
+    pub field: FieldChoice,
 
     /// Force queries from the local model between two full frames (the haptic rate); for a
     /// force tool, displacement queries from the compliance model.
@@ -220,7 +225,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     let script = Script {
         frames,
         field_every: args.field_every,
-        field_stride: args.field_stride,
+        field: args.field,
         forces_per_frame: args.forces_per_frame,
         pace: args.pace,
     };
@@ -313,6 +318,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         resets: link.resets,
         paced: args.pace.is_some(),
         kind: setup.kind,
+        field: args.field,
     };
     let report = headless::report(session, &records, &summary);
     println!(
@@ -344,14 +350,21 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         report.model_force_error_max
     );
     println!(
-        "line        {} B up / {} B down per frame (median; max {} / {}), field frame {} B ({:.3} B per component, quantisation ≤ {:.1e})",
+        "line        {} B up / {} B down per frame (median; max {} / {})",
         report.bytes_up_per_frame,
         report.bytes_down_per_frame.force,
         report.bytes_up_per_frame_max,
         report.bytes_down_per_frame_max,
-        report.bytes_down_per_frame.field,
-        report.bytes_down_per_frame.field_per_component,
-        report.field_quantisation_error_max
+    );
+    let field = &report.bytes_down_per_frame;
+    println!(
+        "field       {} ({} nodes): {} B per frame, {:.3} B per component, quantisation ≤ {:.1e}, built in {} cycles",
+        field.field_selection,
+        field.field_nodes,
+        field.field,
+        field.field_per_component,
+        report.field_quantisation_error_max,
+        field.field_build_cycles
     );
     for r in &report.link_rates {
         println!(
@@ -445,8 +458,13 @@ fn live_params(args: &LiveArgs, setup: &LiveSetup) -> LiveParams {
 }
 
 /// Starts the page's server at `--addr` and says where: the mailbox the frames go through.
-pub(crate) fn serve_page(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<Arc<Mailbox>> {
-    let mailbox = Arc::new(Mailbox::new(interactive::mesh_json(setup)));
+/// `shown`: the nodes whose displacement the page gets (the field selection's).
+pub(crate) fn serve_page(
+    args: &LiveArgs,
+    setup: &LiveSetup,
+    shown: &[bool],
+) -> anyhow::Result<Arc<Mailbox>> {
+    let mailbox = Arc::new(Mailbox::new(interactive::mesh_json(setup, shown)));
     let bound = crate::live::serve::start(args.addr, mailbox.clone())?;
     println!(
         "serving     http://{}/ (WebSocket on port {}); Ctrl-C to stop",
@@ -460,6 +478,11 @@ pub(crate) fn serve_page(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<A
 /// `--serve`: the page and its WebSocket, the browser's tool positions solved frame by frame
 /// on the target (or the host reference) until the process is stopped.
 fn serve(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<()> {
+    let shown = match args.target.as_str() {
+        // The host reference has every node's displacement.
+        "host" => vec![true; setup.model.n()],
+        _ => args.field.carried(&setup.model.grid(), setup.model.n()),
+    };
     println!("model       {}", setup.model.spec().describe());
     let mut board = None;
     let mut link = None;
@@ -473,12 +496,12 @@ fn serve(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<()> {
         );
         link = Some(l);
     }
-    let mailbox = serve_page(args, setup)?;
+    let mailbox = serve_page(args, setup, &shown)?;
     match link.as_mut() {
         Some(link) => {
             let mut solver = interactive::TargetSolver {
                 link,
-                field_stride: args.field_stride,
+                field: args.field,
                 n: setup.model.n(),
             };
             interactive::run(setup, &mut solver, &mailbox)

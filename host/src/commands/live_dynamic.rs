@@ -127,7 +127,7 @@ fn serve<P: Port>(
     mut solver: DynamicViewSolver<'_, P>,
     args: &LiveArgs,
 ) -> anyhow::Result<()> {
-    let mailbox = serve_page(args, setup)?;
+    let mailbox = serve_page(args, setup, &vec![true; setup.model.n()])?;
     interactive::run(setup, &mut solver, &mailbox)
 }
 

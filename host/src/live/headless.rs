@@ -9,6 +9,7 @@
 
 use serde::Serialize;
 
+use super::field::FieldChoice;
 use super::link::{FrameAnswer, LiveLink};
 use super::LiveSetup;
 use crate::bench::board::{WireBytes, WireCounter};
@@ -24,8 +25,8 @@ pub struct Script {
     pub frames: u32,
     /// Read the quantised field every this many frames (0: never).
     pub field_every: u32,
-    /// Every k-th node in a field frame.
-    pub field_stride: u16,
+    /// Which nodes a field frame carries.
+    pub field: FieldChoice,
     /// Force queries from the local model between two frames.
     pub forces_per_frame: u32,
     /// Run the tool in real time at this frame rate (Hz): each frame takes the tool where the
@@ -83,7 +84,7 @@ pub struct IterationSpread {
     pub max: f64,
 }
 
-#[derive(Debug, Clone, Copy, Serialize)]
+#[derive(Debug, Clone, Serialize)]
 pub struct DownBytes {
     /// One full frame's answer, on the line.
     pub force: f64,
@@ -91,6 +92,13 @@ pub struct DownBytes {
     pub field: f64,
     /// The field frame per transmitted component.
     pub field_per_component: f64,
+    /// Which nodes the field frames carried (`all`, `surface` or `stride:K`).
+    pub field_selection: String,
+    /// Nodes one field frame carried.
+    pub field_nodes: usize,
+    /// The target's cycles for building one field frame (all its chunks; the largest over
+    /// the session).
+    pub field_build_cycles: u64,
 }
 
 /// Frames per second the serial line itself allows at a baud rate (8N1: 10 bits per byte).
@@ -260,16 +268,17 @@ pub fn run<P: Port>(
             .fold(0.0, f64::max)
             / scale.max(f64::MIN_POSITIVE);
         if script.field_every > 0 && frame.is_multiple_of(script.field_every) {
-            let field = link.field(script.field_stride)?;
+            let field = link.field(script.field)?;
             let field_bytes = meter.lap();
             let umax = u.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
-            for (node, q) in &field {
+            for (node, q) in &field.nodes {
                 for d in 0..3 {
                     let e = (q[d] - u[d][*node]).abs() / umax.max(f64::MIN_POSITIVE);
                     summary.field_error = summary.field_error.max(e);
                 }
             }
-            summary.field = Some((field_bytes, 3 * field.len()));
+            summary.field = Some((field_bytes, 3 * field.nodes.len()));
+            summary.field_cycles = summary.field_cycles.max(field.cycles);
         }
         let record = FrameRecord {
             frame,
@@ -301,6 +310,7 @@ pub struct Summary {
     pub force_bytes: Option<WireBytes>,
     pub field: Option<(WireBytes, usize)>,
     pub field_error: f64,
+    pub field_cycles: u64,
     pub lag: Lag,
 }
 
@@ -316,6 +326,8 @@ pub struct Session {
     pub resets: u32,
     pub paced: bool,
     pub kind: super::setup::ToolKind,
+    /// The field frames' node selection.
+    pub field: FieldChoice,
 }
 
 /// The report over `records`.
@@ -398,6 +410,9 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
             } else {
                 0.0
             },
+            field_selection: session.field.to_string(),
+            field_nodes: field_components / 3,
+            field_build_cycles: summary.field_cycles,
         },
         bytes_up_per_force_query: force_bytes.sent as f64,
         bytes_down_per_force_query: force_bytes.received as f64,

@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
+use super::field::FieldChoice;
 use super::headless::CLOCK_HZ;
 use super::link::LiveLink;
 use super::serve::Mailbox;
@@ -44,7 +45,8 @@ pub trait FrameSolver {
 /// The target: a full frame (`LiveFrame`), then its field frame (`ReadField`).
 pub struct TargetSolver<'l, 'a, P: Port> {
     pub link: &'l mut LiveLink<'a, P>,
-    pub field_stride: u16,
+    /// The nodes the field frames carry; the others are drawn at rest.
+    pub field: FieldChoice,
     pub n: usize,
 }
 
@@ -52,7 +54,7 @@ impl<P: Port> FrameSolver for TargetSolver<'_, '_, P> {
     fn solve(&mut self, tool: &[[f64; 3]]) -> anyhow::Result<ViewFrame> {
         let answer = self.link.frame(tool)?;
         let mut u = vec![[0.0; 3]; self.n];
-        for (node, q) in self.link.field(self.field_stride)? {
+        for (node, q) in self.link.field(self.field)?.nodes {
             u[node] = q;
         }
         Ok(ViewFrame {
@@ -94,8 +96,10 @@ impl FrameSolver for HostSolver<'_> {
     }
 }
 
-/// Sent once on every connection: what the page draws the frames on.
-pub fn mesh_json(setup: &LiveSetup) -> String {
+/// Sent once on every connection: what the page draws the frames on. `shown`: per node,
+/// whether its displacement arrives (`--field`); the page draws only those nodes and the
+/// springs between them, so a surface field shows the box's outside, not an inside at rest.
+pub fn mesh_json(setup: &LiveSetup, shown: &[bool]) -> String {
     let grid = setup.model.grid();
     let nodes: Vec<[usize; 3]> = (0..setup.model.n())
         .map(|p| {
@@ -110,6 +114,7 @@ pub fn mesh_json(setup: &LiveSetup) -> String {
         "fixed": setup.model.fixed_mask(),
         "tools": setup.tools,
         "kind": setup.kind.name(),
+        "shown": shown,
     })
     .to_string()
 }

@@ -7,9 +7,10 @@
 
 use std::time::Duration;
 
-use deform_shared::live::{FieldChunk, LiveParams, ModelReport, MAX_TOOL_NODES};
-use deform_shared::protocol::{Request, Response, VectorSlot};
+use deform_shared::live::{FieldSelection, LiveParams, ModelReport, MAX_TOOL_NODES};
+use deform_shared::protocol::{ErrorCode, Request, Response, VectorSlot};
 
+use super::field::FieldChoice;
 use super::setup::ToolKind;
 use super::LiveSetup;
 use crate::link::{LinkError, Port, Target};
@@ -195,44 +196,47 @@ impl<'a, P: Port> LiveLink<'a, P> {
         }
     }
 
-    /// The last frame's quantised field: every `stride`-th node, as (node, u).
-    pub fn field(&mut self, stride: u16) -> Result<Vec<(usize, [f64; 3])>, LinkError> {
-        let n = self.setup.matrix.n as usize;
-        let step = usize::from(stride.max(1));
-        let per_chunk = deform_shared::live::FIELD_NODES * step;
-        let mut out = Vec::new();
+    /// The last frame's quantised field at the nodes `choice` selects, as (node, u), and the
+    /// target's cycles for building it (all chunks together).
+    pub fn field(&mut self, choice: FieldChoice) -> Result<FieldFrame, LinkError> {
+        let (stride, surface) = choice.request(&self.setup.model.grid());
+        // The target runs the same check on the same numbers and would refuse alike.
+        let selection = FieldSelection::new(self.setup.matrix.n, stride, surface).map_err(|e| {
+            LinkError::Target {
+                request: "ReadField",
+                code: ErrorCode::Live(e),
+            }
+        })?;
+        let mut frame = FieldFrame::default();
         let mut exponent = None;
-        let requests = (0..n).step_by(per_chunk).map(|offset| Request::ReadField {
-            offset: offset as u32,
-            stride: stride.max(1),
+        let requests = selection.chunk_offsets().map(|offset| Request::ReadField {
+            offset,
+            stride,
+            surface,
         });
         self.target.link_mut().run(requests, |request, reply| {
             let Request::ReadField { offset, .. } = *request else {
                 return Err(unexpected("ReadField", "Field", reply));
             };
             match reply {
-                Response::Field(FieldChunk {
-                    offset: got,
-                    exponent: e,
-                    ref values,
-                }) if got == offset && *exponent.get_or_insert(e) == e => {
-                    let chunk = FieldChunk {
-                        offset: got,
-                        exponent: e,
-                        values: values.clone(),
-                    };
-                    let nodes = (offset as usize..n).step_by(step);
-                    out.extend(nodes.zip(chunk.displacements()));
+                Response::Field(chunk)
+                    if chunk.offset == offset
+                        && *exponent.get_or_insert(chunk.exponent) == chunk.exponent
+                        && chunk.values.len() == 3 * selection.chunk(offset).count() =>
+                {
+                    let nodes = selection.chunk(offset).map(|p| p as usize);
+                    frame.nodes.extend(nodes.zip(chunk.displacements()));
+                    frame.cycles += u64::from(chunk.cycles);
                     Ok(())
                 }
                 other => Err(unexpected(
                     "ReadField",
-                    "a Field chunk at the offset asked, with the frame's exponent",
+                    "a Field chunk at the offset asked, with the frame's exponent and every node asked",
                     other,
                 )),
             }
         })?;
-        Ok(out)
+        Ok(frame)
     }
 
     /// The last frame's full-precision solution (for checking, not the live path).
@@ -244,4 +248,13 @@ impl<'a, P: Port> LiveLink<'a, P> {
         }
         Ok(u)
     }
+}
+
+/// One field frame as the host received it.
+#[derive(Debug, Clone, Default)]
+pub struct FieldFrame {
+    /// (node, u) for every node transmitted, in the order they travelled.
+    pub nodes: Vec<(usize, [f64; 3])>,
+    /// The target's cycles for building the frame: its chunks' together.
+    pub cycles: u64,
 }

@@ -10,6 +10,7 @@
 //!   unconstrained K, the static loads, and the f64 pieces the host checks against.
 //! - [`link`]: the live requests over a [`Target`](crate::link::Target), with bytes counted on
 //!   the line and a target reset answered by uploading everything again.
+//! - [`field`]: which nodes a field frame carries (`--field all|surface|stride:K`).
 //! - [`headless`]: the scripted session behind `--headless` and its JSON report.
 //! - [`dynamic`]: dynamic frames (a dynamic scenario): one time step h of
 //!   [`crate::dynamics`] per frame, S resident on the target, u and v held on the host;
@@ -19,6 +20,7 @@
 
 pub mod dynamic;
 pub mod dynamic_report;
+pub mod field;
 pub mod headless;
 pub mod interactive;
 pub mod link;

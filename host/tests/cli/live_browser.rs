@@ -25,7 +25,7 @@ const SCENARIO: &str = "../examples/needle-insertion.toml";
 const FORCE_SCENARIO: &str = "../examples/probe-force-8b.toml";
 
 /// A process and the process group it leads (QEMU and Chromium's helpers), killed on drop.
-struct Group(Child);
+pub(crate) struct Group(Child);
 
 impl Drop for Group {
     fn drop(&mut self) {
@@ -202,14 +202,15 @@ fn reference(u: [f64; 3]) -> ([f64; 3], f64) {
     (force, field.iter().map(|v| max_abs(v)).fold(0.0, f64::max))
 }
 
-/// `deform live SCENARIO --serve` on QEMU: the server, the page's address, the WebSocket port.
-fn serve(scenario: &str) -> (Group, String, u16) {
-    let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join(scenario);
+/// `deform live SCENARIO --serve` on a free port with `args` added: the server (killed on
+/// drop), the page's address and the WebSocket's port, once it serves.
+pub(crate) fn serve(scenario: &Path, args: &[&str]) -> (Group, String, u16) {
     let mut server = spawn_group(
         Command::new(env!("CARGO_BIN_EXE_deform"))
             .arg("live")
-            .arg(&scenario)
-            .args(["--serve", "--addr", "127.0.0.1:0", "--tol", "1e-6"])
+            .arg(scenario)
+            .args(["--serve", "--addr", "127.0.0.1:0"])
+            .args(args)
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit()),
     );
@@ -275,7 +276,10 @@ fn open(page: &str, profile: &str) -> (Group, Cdp) {
 #[test]
 fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
     let started = Instant::now();
-    let (mut server, page, ws_port) = serve(SCENARIO);
+    let (mut server, page, ws_port) = serve(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join(SCENARIO),
+        &["--tol", "1e-6"],
+    );
 
     // A misbehaving client first: garbage gets an error message, then it vanishes mid-session.
     {
@@ -429,7 +433,10 @@ fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
 /// page shows the target's mean tool displacement, equal to the host's converged one.
 #[test]
 fn the_page_shows_the_targets_motion_for_the_load_the_keys_set() {
-    let (_server, page, _) = serve(FORCE_SCENARIO);
+    let (_server, page, _) = serve(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join(FORCE_SCENARIO),
+        &["--tol", "1e-6"],
+    );
     let (browser, mut cdp) = open(&page, "chromium-profile-force");
     let first = cdp.until(Duration::from_secs(60), "a first frame", |r| {
         r["frame"].is_string() && r["connected"] == json!("true")

@@ -8,5 +8,6 @@ mod inverse_cli;
 mod link_target_loss;
 mod live_browser;
 mod live_cli;
+mod live_field;
 mod model_cli;
 mod scenario_files;

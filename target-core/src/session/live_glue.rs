@@ -4,8 +4,8 @@
 //! arithmetic is in [`crate::live`]; this is where it meets the session's vectors and solves.
 
 use deform_shared::live::{
-    FieldChunk, ForceReport, FrameReport, LiveError, LiveParams, ModelReport, MotionQuery,
-    MotionReport, ToolRow, FIELD_NODES,
+    FieldChunk, FieldSelection, ForceReport, FrameReport, LiveError, LiveParams, ModelReport,
+    MotionQuery, MotionReport, ToolRow,
 };
 
 use super::*;
@@ -238,15 +238,23 @@ impl<E: Executor> Session<'_, E> {
         ))
     }
 
-    /// A chunk of the last frame's field, quantised (see [`FieldChunk`]).
-    pub(super) fn read_field(&mut self, offset: u32, stride: u16) -> Result<Response, ErrorCode> {
+    /// A chunk of the last frame's field, quantised (see [`FieldChunk`]): the selection's
+    /// nodes `offset`, `offset + stride`, …, checked against the resident matrix first.
+    pub(super) fn read_field(
+        &mut self,
+        offset: u32,
+        stride: u16,
+        surface: Option<[u16; 3]>,
+    ) -> Result<Response, ErrorCode> {
+        let t0 = self.exec.now();
         let shape = self.resident()?;
         let n = to_usize(shape.n);
-        if stride == 0 {
-            return Err(live(LiveError::BadStride));
-        }
-        if offset >= shape.n {
-            return Err(ErrorCode::ChunkTooLong);
+        let selection = FieldSelection::new(shape.n, stride, surface).map_err(live)?;
+        if offset >= selection.len() {
+            return Err(live(LiveError::FieldOffset {
+                offset,
+                selected: selection.len(),
+            }));
         }
         let mut exponents = [0i32; MAX_DIRECTIONS];
         for (d, e) in exponents.iter_mut().enumerate() {
@@ -259,17 +267,12 @@ impl<E: Executor> Session<'_, E> {
         let exponent = *started
             .field_exponent
             .get_or_insert_with(|| field_exponent(&solutions));
-        let values = pack_field(
-            &solutions,
-            n,
-            to_usize(offset),
-            usize::from(stride),
-            exponent,
-        );
-        debug_assert!(values.len() <= FIELD_NODES * 6);
+        let values = pack_field(&solutions, selection.chunk(offset), exponent);
+        let cycles = self.exec.now().cycles.wrapping_sub(t0.cycles);
         Ok(Response::Field(FieldChunk {
             offset,
             exponent,
+            cycles: cycles.min(u64::from(u32::MAX)) as u32,
             values,
         }))
     }

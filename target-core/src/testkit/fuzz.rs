@@ -205,8 +205,6 @@ pub fn loader(data: &[u8]) {
     }
 }
 
-/// A whole session in request order, sequence numbers from 0: handshake, an 8×8 Laplacian in
-/// one tile, a right-hand side, a solve, the solution.
 /// A force tool (protocol 9) on the seed session's matrix: the tool, its compliance model,
 /// the static loads of the three directions, a frame, a query and the field.
 fn force_tool_requests() -> Vec<Request> {
@@ -242,10 +240,13 @@ fn force_tool_requests() -> Vec<Request> {
     out.push(Request::ReadField {
         offset: 0,
         stride: 1,
+        surface: None,
     });
     out
 }
 
+/// A whole session in request order, sequence numbers from 0: handshake, an 8×8 Laplacian in
+/// one tile, a right-hand side, a solve, the solution, a surface field request.
 fn session_requests() -> Vec<Envelope<Request>> {
     use deform_shared::matrix::words_crc;
     use deform_shared::protocol::{SolveParams, Start, VectorSlot};
@@ -289,6 +290,12 @@ fn session_requests() -> Vec<Envelope<Request>> {
             direction: 0,
             offset: 0,
             len: CHUNK_LEN as u16,
+        },
+        // The 8 nodes as a 2 × 2 × 2 box: the field path's checks (refused: no live frame).
+        Request::ReadField {
+            offset: 0,
+            stride: 1,
+            surface: Some([2, 2, 2]),
         },
     ];
     requests

@@ -137,38 +137,103 @@ fn frames_match_a_direct_solve_and_the_local_model_predicts_the_next_force() {
     assert!(iterations[3] * 2 < iterations[0], "{iterations:?}");
 }
 
-#[test]
-fn the_field_arrives_quantised_to_its_scale() {
-    let mut bufs = OwnedStorage::new(4 * N, 8, N);
-    let mut s = bufs.session(info(), HARTS.harts);
-    started(&mut s);
+/// A started session after one frame at tool position 1.
+fn framed(s: &mut Session<'_, Sequential>) {
+    started(s);
     assert!(matches!(
         s.handle(Request::LiveFrame { tool: tool_at(1.0) }),
         Response::LiveFrame(_)
     ));
+}
+
+fn field_chunk(
+    s: &mut Session<'_, Sequential>,
+    offset: u32,
+    stride: u16,
+    surface: Option<[u16; 3]>,
+) -> deform_shared::live::FieldChunk {
+    match s.handle(Request::ReadField {
+        offset,
+        stride,
+        surface,
+    }) {
+        Response::Field(c) => c,
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn the_field_arrives_quantised_to_its_scale() {
+    let mut bufs = OwnedStorage::new(4 * N, 8, N);
+    let mut s = bufs.session(info(), HARTS.harts);
+    framed(&mut s);
     let want: Vec<Vec<f64>> = (0..3).map(|d| reference(d, f64::from(U0[d])).0).collect();
+    let own: Vec<Vec<f64>> = (0..3).map(|d| read_direction(&mut s, d, N)).collect();
     let max = want.iter().flatten().fold(0f64, |m, v| m.max(v.abs()));
     for stride in [1u16, 3] {
-        let chunk = match s.handle(Request::ReadField { offset: 1, stride }) {
-            Response::Field(c) => c,
-            other => panic!("{other:?}"),
-        };
+        let chunk = field_chunk(&mut s, 1, stride, None);
+        assert_eq!(chunk.offset, 1);
+        // Rounded to the step 2^e, the largest component being at least 2^(e+14).
+        let step = 2f64.powi(i32::from(chunk.exponent));
+        assert!(step <= max * 2f64.powi(-14), "{step:e} for max {max:e}");
         let nodes: Vec<usize> = (1..N).step_by(usize::from(stride)).collect();
         let got: Vec<[f64; 3]> = chunk.displacements().collect();
         assert_eq!(got.len(), nodes.len());
         for (g, &node) in got.iter().zip(&nodes) {
             for d in 0..3 {
+                assert!((g[d] - own[d][node]).abs() <= step / 2.0, "{node} {d}");
                 assert!((g[d] - want[d][node]).abs() <= max * 1e-4, "{node} {d}");
             }
         }
     }
-    assert_eq!(
+    // A 1 × 3 × 7 grid is all surface: the same chunk as every node.
+    let all = field_chunk(&mut s, 2, 2, None);
+    let surface = field_chunk(&mut s, 2, 2, Some([1, 3, 7]));
+    assert_eq!(surface.values, all.values);
+    assert_eq!(surface.exponent, all.exponent);
+}
+
+#[test]
+fn bad_field_requests_are_refused_clearly() {
+    let mut bufs = OwnedStorage::new(4 * N, 8, N);
+    let mut s = bufs.session(info(), HARTS.harts);
+    started(&mut s);
+    let read = |s: &mut Session<'_, Sequential>, offset, stride, surface| {
         s.handle(Request::ReadField {
-            offset: 0,
-            stride: 0
-        }),
-        err(ErrorCode::Live(LiveError::BadStride))
-    );
+            offset,
+            stride,
+            surface,
+        })
+    };
+    let live = |e| err(ErrorCode::Live(e));
+    // Before any frame there is no field.
+    assert_eq!(read(&mut s, 0, 1, None), ooo(SessionStep::NoSolution));
+    assert!(matches!(
+        s.handle(Request::LiveFrame { tool: tool_at(1.0) }),
+        Response::LiveFrame(_)
+    ));
+    assert_eq!(read(&mut s, 0, 0, None), live(LiveError::BadStride));
+    for grid in [[3, 3, 3], [0, 3, 7], [u16::MAX, u16::MAX, u16::MAX]] {
+        assert_eq!(
+            read(&mut s, 0, 1, Some(grid)),
+            live(LiveError::BadGrid {
+                grid,
+                nodes: N as u32
+            })
+        );
+    }
+    for (offset, stride) in [(N as u32, 1), (u32::MAX, u16::MAX)] {
+        assert_eq!(
+            read(&mut s, offset, stride, None),
+            live(LiveError::FieldOffset {
+                offset,
+                selected: N as u32
+            })
+        );
+    }
+    // The last node alone, with the largest stride.
+    let last = field_chunk(&mut s, N as u32 - 1, u16::MAX, Some([7, 3, 1]));
+    assert_eq!(last.values.len(), 3);
 }
 
 #[test]
@@ -258,4 +323,56 @@ fn bad_live_requests_are_refused_clearly() {
         s.handle(Request::LiveForce { tool: tool_at(1.0) }),
         live(LiveError::NotStarted)
     );
+}
+
+/// Random field requests after a frame: each is a chunk of exactly the nodes its selection
+/// names, or a clear refusal; none panics.
+#[test]
+fn any_field_request_is_answered_or_refused() {
+    let mut bufs = OwnedStorage::new(4 * N, 8, N);
+    let mut s = bufs.session(info(), HARTS.harts);
+    framed(&mut s);
+    let mut state = 0x9E37_79B9_7F4A_7C15u64;
+    let mut next = |bound: u64| {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1);
+        (state >> 33) % bound
+    };
+    let grids = [
+        [1, 3, 7],
+        [7, 3, 1],
+        [21, 1, 1],
+        [3, 3, 3],
+        [0, 0, 0],
+        [u16::MAX, 2, 1],
+    ];
+    for _ in 0..2000 {
+        let offset = [next(25), u64::from(u32::MAX)][usize::from(next(8) == 0)] as u32;
+        let stride = [next(25), u64::from(u16::MAX)][usize::from(next(8) == 0)] as u16;
+        let surface = (next(2) == 0).then(|| grids[next(grids.len() as u64) as usize]);
+        let answer = s.handle(Request::ReadField {
+            offset,
+            stride,
+            surface,
+        });
+        let fits =
+            surface.is_none_or(|g| g.iter().map(|&d| u64::from(d)).product::<u64>() == N as u64);
+        if stride == 0 || !fits || offset >= N as u32 {
+            assert!(
+                matches!(answer, Response::Error(ErrorCode::Live(_))),
+                "{answer:?}"
+            );
+            continue;
+        }
+        // Every grid of 21 nodes has a side below 3: its surface is every node.
+        let nodes = (offset as usize..N)
+            .step_by(usize::from(stride))
+            .count()
+            .min(56);
+        match answer {
+            Response::Field(c) => assert_eq!(c.values.len(), 3 * nodes, "{offset} {stride}"),
+            other => panic!("{other:?}"),
+        }
+    }
 }
