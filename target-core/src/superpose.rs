@@ -99,6 +99,13 @@ pub fn superpose(
     }
     let own_max = own.iter().map(|(_, v)| mant(*v).unsigned_abs()).max();
     bound += own_max.unwrap_or(0);
+    if bound == 0 {
+        // Nothing moved (a direction the tool does not act in): x stays as it is.
+        if e_x.is_none() {
+            x.fill(0);
+        }
+        return Some(e_x.unwrap_or(0));
+    }
     let x_top = match e_x {
         Some(e) => {
             let max = x.iter().map(|v| v.unsigned_abs()).max().unwrap_or(0);
@@ -200,5 +207,12 @@ mod tests {
             Some(0)
         );
         assert_eq!(x, [0, 0]);
+        // No change: x and its exponent stay.
+        let mut x = [5, -7];
+        assert_eq!(
+            superpose(&mut x, Some(-9), &g, &columns, &[0.0, 0.0], &[]),
+            Some(-9)
+        );
+        assert_eq!(x, [5, -7]);
     }
 }
