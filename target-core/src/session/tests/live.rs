@@ -1,7 +1,7 @@
 //! The live loop on a 1-D chain against a direct f64 solve: frames, the local force model, the
 //! quantised field, and every refusal.
 
-use deform_shared::live::{Coupling, LiveError, LiveParams, ToolRow};
+use deform_shared::live::{Coupling, FrameReport, LiveError, LiveParams, ToolRow};
 use deform_shared::qformat::quantize;
 
 use super::*;
@@ -109,10 +109,7 @@ fn frames_match_a_direct_solve_and_the_local_model_predicts_the_next_force() {
     let mut iterations = Vec::new();
     for step in 1..=5 {
         let t = step as f32 * 0.7;
-        let report = match s.handle(Request::LiveFrame { tool: tool_at(t) }) {
-            Response::LiveFrame(r) => r,
-            other => panic!("{other:?}"),
-        };
+        let report = frame_at(&mut s, t);
         iterations.push(report.iterations);
         assert!(report.residual <= 1e-7, "{report:?}");
         for d in 0..3 {
@@ -133,11 +130,18 @@ fn frames_match_a_direct_solve_and_the_local_model_predicts_the_next_force() {
             other => panic!("{other:?}"),
         };
     }
-    // From the third frame on the start is predicted: a straight push costs little.
     // The first frame starts from the tool's response alone (the static part is unknown);
     // every later one from the superposition, exact for the linear chain.
     assert!(iterations[0] > 2, "{iterations:?}");
     assert!(iterations[1..].iter().all(|&i| i <= 1), "{iterations:?}");
+}
+
+/// The full frame at tool position `t`.
+fn frame_at(s: &mut Session<'_, Sequential>, t: f32) -> FrameReport {
+    match s.handle(Request::LiveFrame { tool: tool_at(t) }) {
+        Response::LiveFrame(r) => r,
+        other => panic!("{other:?}"),
+    }
 }
 
 /// The frames' iterations at tool positions 0.7, 1.4, … with `bufs`'s response storage, the
@@ -155,10 +159,7 @@ fn frame_iterations(bufs: &mut OwnedStorage, load: &[f64]) -> Vec<u32> {
     let mut iterations = Vec::new();
     for step in 1..=5 {
         let t = step as f32 * 0.7;
-        let report = match s.handle(Request::LiveFrame { tool: tool_at(t) }) {
-            Response::LiveFrame(r) => r,
-            other => panic!("{other:?}"),
-        };
+        let report = frame_at(&mut s, t);
         assert!(report.residual <= 1e-7, "{report:?}");
         for (d, u0) in U0.iter().enumerate() {
             let mut b = load.to_vec();
