@@ -48,7 +48,10 @@
 //!   restarts the prediction.
 //! - **Live loop** (`LiveTool`, `LiveStart`, `LiveFrame`, `LiveForce`, `ReadField`; force
 //!   tools: `LiveForceTool`, `LiveLoad`, `LiveLoadQuery`): see
-//!   [`crate::live`] and `live_glue.rs`; `BeginMatrix` and `Hello` forget the tool set.
+//!   [`crate::live`] and `live_glue.rs`; `BeginMatrix` and `Hello` forget the tool set. A
+//!   live frame starts from the superposition of the response columns `LiveStart` kept in
+//!   [`Storage::responses`] ([`crate::superpose`]) and solves with `Start::Previous`; without
+//!   room for them, with `Start::Predicted`.
 //! - **ReadSolution** at `offset ≥ n` is `ChunkTooLong`.
 //! - **Values-only update** (`BeginUpdate`, `UpdateValues`…, `EndUpdate`): needs a loaded
 //!   matrix (`OutOfOrder(NoMatrix)`; a `BeginUpdate` during an update starts it over) whose
