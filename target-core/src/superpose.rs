@@ -64,7 +64,7 @@ pub fn superpose(
     own: &[(u32, f64)],
 ) -> Option<i32> {
     let n = x.len();
-    // The terms' real sizes, then one exponent that puts them all within COEFF_BITS.
+    // The terms' real sizes, then one exponent that puts them all within TERM_BITS.
     let mut scaled = [0f64; MAX_TOOL_NODES];
     for ((s, c), col) in scaled.iter_mut().zip(coeffs).zip(columns) {
         *s = ldexp(*c, col.exponent);
@@ -113,12 +113,8 @@ pub fn superpose(
         }
         None => None,
     };
-    let acc_top = (bound != 0).then(|| bits(bound) + e_c);
-    let Some(top) = x_top.max(acc_top) else {
-        // Both parts are zero.
-        x.fill(0);
-        return Some(0);
-    };
+    let acc_top = bits(bound) + e_c;
+    let top = x_top.map_or(acc_top, |t| t.max(acc_top));
     // Two terms below 2^top each: the sum stays below 2^(top + 1) = 2^(e + 29).
     let e = top + 1 - TOP_BITS;
     let (sx, sa) = (e - e_x.unwrap_or(e), e - e_c);
