@@ -20,6 +20,9 @@ pub const MAX_N: usize = Board::MAX_N;
 /// overlapping scheme (thesis 4.1.1) may use up to n of them beyond the rows themselves.
 pub const PARTIAL_ROWS: usize = MAX_N;
 
+/// Values of the live loop's response columns (the board's [`Bsp::RESPONSE_VALUES`]).
+pub const RESPONSE_VALUES: usize = Board::RESPONSE_VALUES;
+
 /// Everything the session works in. All zero at boot, so it lands in `.bss`.
 pub struct Buffers {
     words: [u32; WORD_CAPACITY],
@@ -28,6 +31,7 @@ pub struct Buffers {
     p: [Lanes; MAX_N],
     kp: [Sums; MAX_N],
     partial: [Sums; PARTIAL_ROWS],
+    responses: [i32; RESPONSE_VALUES],
 }
 
 /// The vectors of one direction of a fused solve.
@@ -73,6 +77,7 @@ impl Buffers {
         p: [[0; 4]; MAX_N],
         kp: [[0; MAX_DIRECTIONS]; MAX_N],
         partial: [[0; MAX_DIRECTIONS]; PARTIAL_ROWS],
+        responses: [0; RESPONSE_VALUES],
     };
 
     /// Lends all buffers to a session.
@@ -85,6 +90,7 @@ impl Buffers {
             p: &mut self.p,
             kp: &mut self.kp,
             partial: &mut self.partial,
+            responses: &mut self.responses,
         }
     }
 }

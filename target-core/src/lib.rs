@@ -27,6 +27,7 @@ pub mod live;
 pub mod log_buffer;
 pub mod predict;
 pub mod session;
+pub mod superpose;
 pub mod svu;
 #[cfg(any(test, feature = "testkit"))]
 pub mod testkit;

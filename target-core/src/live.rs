@@ -17,6 +17,7 @@ use deform_shared::word::{VALUE_MAX, VALUE_MIN};
 use heapless::Vec;
 
 use crate::predict::scale;
+use crate::superpose::Column;
 
 /// Most distinct free rows the tool nodes couple to.
 pub const MAX_ROWS: usize = MAX_TOOL_NODES * MAX_TOOL_ROW;
@@ -66,6 +67,12 @@ pub struct Started {
     anchor: Option<([f64; 3], [[f32; 3]; MAX_TOOL_NODES])>,
     /// The field's exponent for the last frame, once a chunk asked for it.
     pub field_exponent: Option<i8>,
+    /// The model's solved columns held in the session's response storage, in tool order
+    /// ([`crate::superpose`]); `None` if they did not all fit.
+    pub columns: Option<Vec<Column, MAX_TOOL_NODES>>,
+    /// The tool input the solutions in x belong to, while they are a live frame's: the
+    /// superposition predictor's anchor. Any other solve clears it.
+    pub base: Option<[[f32; 3]; MAX_TOOL_NODES]>,
 }
 
 /// The static right-hand side of one direction, as far as frames need it.
@@ -217,6 +224,8 @@ impl Live {
             snapshot: [None, None, None],
             anchor: None,
             field_exponent: None,
+            columns: None,
+            base: None,
         }))
     }
 }
@@ -574,6 +583,36 @@ impl Started {
         if let Some(s) = self.model.get_mut(j) {
             *s = ldexp(tt as f64, -f) - ldexp(tf as f64, e_z - f);
         }
+    }
+
+    /// The superposition predictor's terms of direction `d` for a frame at tool inputs `now`
+    /// after one at `then` (see [`crate::superpose`]): per column the coefficient a_j, and
+    /// the tool nodes' own displacement changes. A displacement tool's free nodes move by
+    /// −z_j·Δu_j (b_f = static − Σ_j K_f,t_j·u_j) and its nodes by Δu_j; a force tool's by
+    /// K⁻¹e_j·Δf_j/k_d.
+    pub fn superpose_terms(
+        &self,
+        d: usize,
+        tools: &[ToolRow],
+        now: &[[f32; 3]],
+        then: &[[f32; 3]],
+    ) -> ([f64; MAX_TOOL_NODES], Vec<(u32, f64), MAX_TOOL_NODES>) {
+        let mut coeffs = [0f64; MAX_TOOL_NODES];
+        let mut own = Vec::new();
+        let k = f64::from(self.params.scale.get(d).copied().unwrap_or(1.0));
+        for (j, ((c, a), b)) in coeffs.iter_mut().zip(now).zip(then).enumerate() {
+            let du = f64::from(a[d]) - f64::from(b[d]);
+            match self.kind {
+                ToolKind::Displacement => {
+                    *c = -du;
+                    if let Some(t) = tools.get(j) {
+                        let _ = own.push((t.node, du));
+                    }
+                }
+                ToolKind::Force => *c = du / k,
+            }
+        }
+        (coeffs, own)
     }
 
     /// Re-anchors the local model at a full frame.

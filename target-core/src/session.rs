@@ -48,7 +48,10 @@
 //!   restarts the prediction.
 //! - **Live loop** (`LiveTool`, `LiveStart`, `LiveFrame`, `LiveForce`, `ReadField`; force
 //!   tools: `LiveForceTool`, `LiveLoad`, `LiveLoadQuery`): see
-//!   [`crate::live`] and `live_glue.rs`; `BeginMatrix` and `Hello` forget the tool set.
+//!   [`crate::live`] and `live_glue.rs`; `BeginMatrix` and `Hello` forget the tool set. A
+//!   live frame starts from the superposition of the response columns `LiveStart` kept in
+//!   [`Storage::responses`] ([`crate::superpose`]) and solves with `Start::Previous`; without
+//!   room for them, with `Start::Predicted`.
 //! - **ReadSolution** at `offset ≥ n` is `ChunkTooLong`.
 //! - **Values-only update** (`BeginUpdate`, `UpdateValues`…, `EndUpdate`): needs a loaded
 //!   matrix (`OutOfOrder(NoMatrix)`; a `BeginUpdate` during an update starts it over) whose
@@ -93,6 +96,10 @@ pub struct Storage<'a> {
     /// Private partial sums of MVUs whose rows overlap (thesis 4.1.1); its length limits how
     /// much they may overlap.
     pub partial: &'a mut [Sums],
+    /// The live loop's response columns, one of n per tool node back to back
+    /// ([`crate::superpose`]); held only if all of a tool set's fit, else (or if empty) live
+    /// frames fall back to the extrapolation of [`Start::Predicted`].
+    pub responses: &'a mut [i32],
 }
 
 /// The vectors of one direction.
@@ -734,6 +741,7 @@ impl<'a, E: Executor> Session<'a, E> {
             p,
             kp,
             partial,
+            ..
         } = &mut self.store;
         let (Some(tiles), Some(words)) = (
             tiles.get(..to_usize(shape.tiles)),
@@ -788,6 +796,7 @@ impl<'a, E: Executor> Session<'a, E> {
         let work = Work { p, kp, partial };
         if let Ok(started) = self.live.started_mut() {
             started.field_exponent = None;
+            started.base = None;
         }
         let report = cg::solve(&matrix, &mut systems, work, params, &self.exec).map_err(|e| {
             self.kept = [None; MAX_DIRECTIONS];

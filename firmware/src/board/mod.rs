@@ -51,6 +51,10 @@ pub trait Bsp {
     const WORD_CAPACITY: usize;
     const TILE_CAPACITY: usize;
     const MAX_N: usize;
+    /// Values of the live loop's response columns (one of n per tool node, see
+    /// `deform_target_core::superpose`); a tool set whose columns do not fit falls back to
+    /// extrapolated starts.
+    const RESPONSE_VALUES: usize;
     /// Ticks per second of [`Bsp::ticks`].
     const TICK_HZ: u64;
 

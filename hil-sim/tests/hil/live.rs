@@ -99,8 +99,9 @@ fn frames_match_converged_solves_and_the_force_model_and_field_follow() {
             }
         }
     }
-    // A steady push: from the third frame on the prediction is nearly exact.
-    assert!(iterations[5] * 2 < iterations[0], "{iterations:?}");
+    // The superposition of the tool's response columns is exact for the linear springs: even
+    // the first, cold frame has (almost) nothing left to iterate.
+    assert!(iterations.iter().all(|&i| i <= 2), "{iterations:?}");
     assert_alive(&mut qemu);
 }
 

@@ -338,7 +338,9 @@ fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
         (u_max_after - u_max).abs() <= 1e-3 * u_max,
         "max |u| {u_max_after} on the page, {u_max} from the host"
     );
-    assert!(number(&moved["iterations"]) > 0.0 && number(&moved["cycles"]) > 0.0);
+    // The superposed start (target-core/src/superpose.rs) is exact for the linear springs:
+    // the frame may need no iteration at all, but it always costs the target cycles.
+    assert!(number(&moved["iterations"]) >= 0.0 && number(&moved["cycles"]) > 0.0);
     println!(
         "moved frame: tool {tool:?}, force {shown:?} (host {want:?}), {} iterations, {} cycles",
         moved["iterations"], moved["cycles"]

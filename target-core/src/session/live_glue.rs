@@ -9,7 +9,9 @@ use deform_shared::live::{
 };
 
 use super::*;
-use crate::live::{field_exponent, pack_field, ToolKind};
+use crate::live::{field_exponent, pack_field, Started, ToolKind};
+use crate::superpose::{superpose, Column};
+use deform_shared::live::MAX_TOOL_NODES;
 use deform_shared::protocol::SolveReport;
 
 /// The Schur columns' tolerance: the fixed-point CG's floor, which the host's refinement
@@ -35,8 +37,9 @@ impl<E: Executor> Session<'_, E> {
     }
 
     /// Starts the live session: one fused CG solve per three tool nodes gives the local
-    /// model's columns (Schur sums, or compliance means for a force tool). The right-hand
-    /// sides, solutions and predictions are spent.
+    /// model's columns (Schur sums, or compliance means for a force tool), and the solved
+    /// columns themselves are kept as the frames' predictor where they fit
+    /// ([`crate::superpose`]). The right-hand sides, solutions and predictions are spent.
     pub(super) fn live_start(&mut self, params: LiveParams) -> Result<Response, ErrorCode> {
         let shape = self.loaded()?;
         let (n, f) = (to_usize(shape.n), i32::from(shape.frac_bits));
@@ -86,6 +89,8 @@ impl<E: Executor> Session<'_, E> {
                     started
                         .set_model_column(tools, first + g, z, e_z, f)
                         .map_err(live)?;
+                    let held = &mut self.store.responses;
+                    hold_column(started, held, tools.len(), first + g, z, e_z);
                 }
             }
             Ok(())
@@ -175,10 +180,11 @@ impl<E: Executor> Session<'_, E> {
             }
             started.params
         };
+        let start = self.superpose_start(tool, n)?;
         let Response::Solved(report) = self.solve(&SolveParams {
             max_iterations: params.max_iterations,
             tolerance: f64::from(params.tolerance),
-            start: Start::Predicted,
+            start,
             directions: MAX_DIRECTIONS as u8,
             cycle_budget: params.cycle_budget,
         })?
@@ -197,6 +203,11 @@ impl<E: Executor> Session<'_, E> {
             return Err(live(LiveError::NotFinite));
         }
         started.anchor(answer, tool);
+        let mut base = [[0f32; 3]; MAX_TOOL_NODES];
+        for (b, u) in base.iter_mut().zip(tool) {
+            *b = *u;
+        }
+        started.base = Some(base);
         let cycles = frame_cycles(self.exec.now().cycles.wrapping_sub(t0.cycles), &report);
         Ok((
             answer.map(|v| v as f32),
@@ -204,6 +215,41 @@ impl<E: Executor> Session<'_, E> {
             report.iterations.min(u32::from(u16::MAX)) as u16,
             cycles.min(u64::from(u32::MAX)) as u32,
         ))
+    }
+
+    /// Puts the superposition predictor's start for a frame at tool inputs `tool` into each
+    /// direction's x and returns [`Start::Previous`] to solve from it; without held columns
+    /// returns [`Start::Predicted`] (the extrapolation) and changes nothing. The previous
+    /// frame's solution is the base where there is one, else zero at tool inputs zero.
+    fn superpose_start(&mut self, tool: &[[f32; 3]], n: usize) -> Result<Start, ErrorCode> {
+        let (tools, started) = self.live.parts().map_err(live)?;
+        let Some(columns) = started.columns.clone() else {
+            return Ok(Start::Predicted);
+        };
+        let base = started
+            .base
+            .filter(|_| self.solution.iter().all(Option::is_some));
+        let then = base.unwrap_or([[0.0; 3]; MAX_TOOL_NODES]);
+        let g = self
+            .store
+            .responses
+            .get(..tools.len() * n)
+            .ok_or(ErrorCode::ChunkTooLong)?;
+        for d in 0..MAX_DIRECTIONS {
+            let (coeffs, own) = started.superpose_terms(d, tools, tool, &then);
+            let e_x = base.and(self.solution[d]);
+            let x = self.store.directions[d]
+                .x
+                .get_mut(..n)
+                .ok_or(ErrorCode::ChunkTooLong)?;
+            let Some(e) = superpose(x, e_x, g, &columns, &coeffs[..tools.len()], &own) else {
+                // x may hold a mix of predictions: no solution is left.
+                self.solution = [None; MAX_DIRECTIONS];
+                return Err(live(LiveError::NotFinite));
+            };
+            self.solution[d] = Some(e);
+        }
+        Ok(Start::Previous)
     }
 
     /// A force query between a displacement tool's frames, from the local linear model.
@@ -275,6 +321,30 @@ impl<E: Executor> Session<'_, E> {
             cycles: cycles.min(u64::from(u32::MAX)) as u32,
             values,
         }))
+    }
+}
+
+/// Keeps the solved column `z` (exponent `e_z`) of tool node `j` in `responses` if every
+/// tool node's column fits there; the first column decides, the others follow it.
+fn hold_column(
+    started: &mut Started,
+    responses: &mut [i32],
+    tools: usize,
+    j: usize,
+    z: &[i32],
+    e_z: i32,
+) {
+    let n = z.len();
+    if j == 0 {
+        let room = responses.len() / n.max(1);
+        started.columns = (tools <= room).then(heapless::Vec::new);
+    }
+    let Some(columns) = started.columns.as_mut() else {
+        return;
+    };
+    if let Some(dst) = responses.get_mut(j * n..(j + 1) * n) {
+        dst.copy_from_slice(z);
+        let _ = columns.push(Column::of(z, e_z));
     }
 }
 

@@ -8,6 +8,7 @@ extern crate std;
 use std::vec;
 use std::vec::Vec;
 
+use deform_shared::live::MAX_TOOL_NODES;
 use deform_shared::matrix::TileHeader;
 use deform_shared::protocol::{TargetInfo, MAX_DIRECTIONS};
 use deform_shared::qformat::quantize;
@@ -28,6 +29,8 @@ pub struct OwnedStorage {
     pub p: Vec<Lanes>,
     pub kp: Vec<Sums>,
     pub partial: Vec<Sums>,
+    /// The live loop's response columns: room for every tool node's at `max_n`.
+    pub responses: Vec<i32>,
 }
 
 impl OwnedStorage {
@@ -40,6 +43,7 @@ impl OwnedStorage {
             p: vec![[0; 4]; max_n],
             kp: vec![[0; MAX_DIRECTIONS]; max_n],
             partial: vec![[0; MAX_DIRECTIONS]; 2 * max_n],
+            responses: vec![0; MAX_TOOL_NODES * max_n],
         }
     }
 
@@ -62,6 +66,7 @@ impl OwnedStorage {
             p: &mut self.p,
             kp: &mut self.kp,
             partial: &mut self.partial,
+            responses: &mut self.responses,
         }
     }
 

@@ -84,6 +84,7 @@ fn frames_and_model_match(tools: &[u32]) {
     let mut s = bufs.session(info(), HARTS.harts);
     started(&mut s, tools);
     let mut predicted: Option<[f32; 3]> = None;
+    let mut iterations = Vec::new();
     for step in 1..=4 {
         let load = load_at(step as f32 * 0.7, tools.len());
         let report = match s.handle(Request::LiveLoad { load: load.clone() }) {
@@ -91,6 +92,7 @@ fn frames_and_model_match(tools: &[u32]) {
             other => panic!("{other:?}"),
         };
         assert!(report.residual <= 1e-7, "{report:?}");
+        iterations.push(report.iterations);
         for d in 0..3 {
             let x = reference(d, tools, &load);
             let got = read_direction(&mut s, d as u8, N);
@@ -110,6 +112,12 @@ fn frames_and_model_match(tools: &[u32]) {
             other => panic!("{other:?}"),
         };
     }
+    // After the first frame (whose static part is unknown) the compliance columns'
+    // superposition, scaled by 1/k_d per direction, leaves (almost) nothing to iterate: the
+    // columns are solved to 1e-7, this test's frame tolerance too, so with four of them
+    // adding their errors a few iterations remain.
+    assert!(iterations[0] > 10, "{iterations:?}");
+    assert!(iterations[1..].iter().all(|&i| i <= 3), "{iterations:?}");
 }
 
 #[test]

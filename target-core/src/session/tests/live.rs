@@ -1,7 +1,7 @@
 //! The live loop on a 1-D chain against a direct f64 solve: frames, the local force model, the
 //! quantised field, and every refusal.
 
-use deform_shared::live::{Coupling, LiveError, LiveParams, ToolRow};
+use deform_shared::live::{Coupling, FrameReport, LiveError, LiveParams, ToolRow};
 use deform_shared::qformat::quantize;
 
 use super::*;
@@ -109,10 +109,7 @@ fn frames_match_a_direct_solve_and_the_local_model_predicts_the_next_force() {
     let mut iterations = Vec::new();
     for step in 1..=5 {
         let t = step as f32 * 0.7;
-        let report = match s.handle(Request::LiveFrame { tool: tool_at(t) }) {
-            Response::LiveFrame(r) => r,
-            other => panic!("{other:?}"),
-        };
+        let report = frame_at(&mut s, t);
         iterations.push(report.iterations);
         assert!(report.residual <= 1e-7, "{report:?}");
         for d in 0..3 {
@@ -133,8 +130,80 @@ fn frames_match_a_direct_solve_and_the_local_model_predicts_the_next_force() {
             other => panic!("{other:?}"),
         };
     }
-    // From the third frame on the start is predicted: a straight push costs little.
+    // The first frame starts from the tool's response alone (the static part is unknown);
+    // every later one from the superposition, exact for the linear chain.
+    assert!(iterations[0] > 2, "{iterations:?}");
+    assert!(iterations[1..].iter().all(|&i| i <= 1), "{iterations:?}");
+}
+
+/// The full frame at tool position `t`.
+fn frame_at(s: &mut Session<'_, Sequential>, t: f32) -> FrameReport {
+    match s.handle(Request::LiveFrame { tool: tool_at(t) }) {
+        Response::LiveFrame(r) => r,
+        other => panic!("{other:?}"),
+    }
+}
+
+/// The frames' iterations at tool positions 0.7, 1.4, … with `bufs`'s response storage, the
+/// static load `load`, and each frame's solution checked against the direct solve.
+fn frame_iterations(bufs: &mut OwnedStorage, load: &[f64]) -> Vec<u32> {
+    let mut s = bufs.session(info(), HARTS.harts);
+    load_matrix_and_tool(&mut s);
+    let (e, m) = to_block(load);
+    for d in 0..3 {
+        all_ack(
+            &mut s,
+            vector_requests(VectorSlot::Rhs { direction: d }, e, &m, CHUNK_LEN),
+        );
+    }
+    let mut iterations = Vec::new();
+    for step in 1..=5 {
+        let t = step as f32 * 0.7;
+        let report = frame_at(&mut s, t);
+        assert!(report.residual <= 1e-7, "{report:?}");
+        for (d, u0) in U0.iter().enumerate() {
+            let mut b = load.to_vec();
+            let u = f64::from(u0 * t);
+            b[TOOL - 1] += u;
+            b[TOOL + 1] += u;
+            b[TOOL] = 2.0 * u;
+            let x = direct_solve(dense(&chain()), b);
+            let got = read_direction(&mut s, d as u8, N);
+            assert!(max_rel_err(&got, &x) < 1e-5, "step {step} d {d}");
+        }
+        iterations.push(u32::from(report.iterations));
+    }
+    iterations
+}
+
+fn load_matrix_and_tool(s: &mut Session<'_, Sequential>) {
+    load(s, &chain());
+    assert_eq!(
+        s.handle(Request::LiveTool(tool_row(TOOL as u32))),
+        Response::Ack
+    );
+    assert!(matches!(
+        s.handle(Request::LiveStart(params())),
+        Response::LiveReady(_)
+    ));
+}
+
+#[test]
+fn without_a_static_load_even_the_first_frame_is_superposed() {
+    let mut bufs = OwnedStorage::new(4 * N, 8, N);
+    let iterations = frame_iterations(&mut bufs, &[0.0; N]);
+    assert!(iterations.iter().all(|&i| i <= 1), "{iterations:?}");
+}
+
+#[test]
+fn without_room_for_the_columns_frames_fall_back_to_extrapolation() {
+    let mut bufs = OwnedStorage::new(4 * N, 8, N);
+    bufs.responses.truncate(N - 1);
+    let iterations = frame_iterations(&mut bufs, &static_load());
+    // From the third frame on the start is extrapolated: a straight push costs little, but
+    // more than the superposition's nothing.
     assert!(iterations[3] * 2 < iterations[0], "{iterations:?}");
+    assert!(iterations[1] > 1, "{iterations:?}");
 }
 
 /// A started session after one frame at tool position 1.
