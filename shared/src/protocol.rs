@@ -261,6 +261,35 @@ pub enum Request {
     },
 }
 
+impl Request {
+    /// The variant's name, for messages and logs. An exhaustive `match`: a new variant does
+    /// not compile until it is named here (the golden test uses it too).
+    pub fn name(&self) -> &'static str {
+        match self {
+            Request::Hello { .. } => "Hello",
+            Request::BeginMatrix { .. } => "BeginMatrix",
+            Request::Tile(_) => "Tile",
+            Request::Words { .. } => "Words",
+            Request::EndMatrix { .. } => "EndMatrix",
+            Request::BeginVector { .. } => "BeginVector",
+            Request::VectorData { .. } => "VectorData",
+            Request::Solve(_) => "Solve",
+            Request::ReadSolution { .. } => "ReadSolution",
+            Request::BeginUpdate { .. } => "BeginUpdate",
+            Request::UpdateValues { .. } => "UpdateValues",
+            Request::EndUpdate { .. } => "EndUpdate",
+            Request::LiveTool(_) => "LiveTool",
+            Request::LiveStart(_) => "LiveStart",
+            Request::LiveFrame { .. } => "LiveFrame",
+            Request::LiveForce { .. } => "LiveForce",
+            Request::ReadField { .. } => "ReadField",
+            Request::LiveForceTool { .. } => "LiveForceTool",
+            Request::LiveLoad { .. } => "LiveLoad",
+            Request::LiveLoadQuery { .. } => "LiveLoadQuery",
+        }
+    }
+}
+
 /// What the target is and what it can hold.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TargetInfo {

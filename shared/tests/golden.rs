@@ -5,8 +5,8 @@
 //! silently changes what every later variant means on the wire; so does changing a field. This
 //! test catches all of them:
 //!
-//! - every enum has a `Golden` impl whose `variant` is an exhaustive `match`: a new variant does
-//!   not compile until it is named here;
+//! - every enum has a `Golden` impl whose `variant` is an exhaustive `match` (for `Request`, its
+//!   own `Request::name`): a new variant does not compile until it is named;
 //! - the samples must cover every variant serde's derive knows of (read from the derive itself,
 //!   see [`serde_variants`]), so a named variant without a sample fails the test;
 //! - the encoded bytes must equal the committed ones, and a missing or extra entry fails.
@@ -221,28 +221,8 @@ impl Golden for Request {
         ]
     }
     fn variant(&self) -> &'static str {
-        match self {
-            Request::Hello { .. } => "Hello",
-            Request::BeginMatrix { .. } => "BeginMatrix",
-            Request::Tile(_) => "Tile",
-            Request::Words { .. } => "Words",
-            Request::EndMatrix { .. } => "EndMatrix",
-            Request::BeginVector { .. } => "BeginVector",
-            Request::VectorData { .. } => "VectorData",
-            Request::Solve(_) => "Solve",
-            Request::ReadSolution { .. } => "ReadSolution",
-            Request::BeginUpdate { .. } => "BeginUpdate",
-            Request::UpdateValues { .. } => "UpdateValues",
-            Request::EndUpdate { .. } => "EndUpdate",
-            Request::LiveTool(_) => "LiveTool",
-            Request::LiveStart(_) => "LiveStart",
-            Request::LiveFrame { .. } => "LiveFrame",
-            Request::LiveForce { .. } => "LiveForce",
-            Request::ReadField { .. } => "ReadField",
-            Request::LiveForceTool { .. } => "LiveForceTool",
-            Request::LiveLoad { .. } => "LiveLoad",
-            Request::LiveLoadQuery { .. } => "LiveLoadQuery",
-        }
+        // `Request::name` is the exhaustive match (shared/src/protocol.rs).
+        self.name()
     }
 }
 

@@ -38,6 +38,4 @@ pub use target::{
     full_upload_bytes, update_bytes, Target, Timeouts, UpdateError, UpdateReport, UploadProgress,
     DEFAULT_SOLVE_TIMEOUT,
 };
-pub use transport::{
-    request_name, Link, LinkConfig, LinkStats, NoticeHandler, DEFAULT_REQUEST_TIMEOUT,
-};
+pub use transport::{Link, LinkConfig, LinkStats, NoticeHandler, DEFAULT_REQUEST_TIMEOUT};

@@ -13,7 +13,7 @@ use serialport::SerialPort;
 
 use super::adapt::ChunkSize;
 use super::transport::{Exchange, LinkConfig, DEFAULT_REQUEST_TIMEOUT};
-use super::{open_serial, request_name, Capacity, Link, LinkError, LinkStats, Port};
+use super::{open_serial, Capacity, Link, LinkError, LinkStats, Port};
 use crate::encode::EncodedMatrix;
 
 /// How long each kind of exchange may take.
@@ -124,7 +124,7 @@ fn frame_bytes(request: &Request) -> Result<u64, LinkError> {
     frame::encode(&envelope, &mut buf)
         .map(|n| n as u64)
         .map_err(|source| LinkError::Encode {
-            request: request_name(request),
+            request: request.name(),
             source,
         })
 }
@@ -620,7 +620,7 @@ fn validate_matrix(matrix: &EncodedMatrix) -> Result<(), MatrixError> {
 
 fn unexpected(request: &Request, expected: &'static str, got: &Response) -> LinkError {
     LinkError::Protocol {
-        request: request_name(request),
+        request: request.name(),
         expected,
         got: format!("{got:?}"),
     }

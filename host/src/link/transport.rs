@@ -237,7 +237,7 @@ impl<P: Port> Link<P> {
             Ok(())
         })?;
         answer.ok_or(LinkError::Timeout {
-            request: request_name(request),
+            request: request.name(),
             after: timeout,
             retries: 0,
         })
@@ -300,7 +300,7 @@ impl<P: Port> Link<P> {
                 if failure.is_some() {
                     continue;
                 }
-                let name = request_name(&done.request);
+                let name = done.request.name();
                 let result = match reply {
                     Response::Error(code) => Err(LinkError::Target {
                         request: name,
@@ -329,7 +329,7 @@ impl<P: Port> Link<P> {
                 let deadline = self.deadline(entry, long_timeout);
                 if now >= deadline {
                     return Err(LinkError::Timeout {
-                        request: request_name(&entry.request),
+                        request: entry.request.name(),
                         after: deadline - entry.first_sent,
                         retries: entry.retries,
                     });
@@ -361,7 +361,7 @@ impl<P: Port> Link<P> {
                     let entry = &window[i];
                     if entry.accepted.is_none() && entry.retries >= self.config.retries {
                         return Err(LinkError::Timeout {
-                            request: request_name(&entry.request),
+                            request: entry.request.name(),
                             after: now - entry.first_sent,
                             retries: entry.retries,
                         });
@@ -465,7 +465,7 @@ impl<P: Port> Link<P> {
                     if entry.reply.is_none() && !resent_lately {
                         if entry.retries >= self.config.retries {
                             return Err(LinkError::Timeout {
-                                request: request_name(&entry.request),
+                                request: entry.request.name(),
                                 after: entry.first_sent.elapsed(),
                                 retries: entry.retries,
                             });
@@ -560,7 +560,7 @@ impl<P: Port> Link<P> {
         if kind == Exchange::Request {
             return self.request_within(request, timeout);
         }
-        let name = request_name(request);
+        let name = request.name();
         let seq = self.take_seq();
         let frame = self.encode(seq, request)?;
         self.write(&frame)?;
@@ -607,7 +607,7 @@ impl<P: Port> Link<P> {
         out[0] = DELIMITER;
         let len = frame::encode(&Envelope { seq, body: request }, &mut out[start..]).map_err(
             |source| LinkError::Encode {
-                request: request_name(request),
+                request: request.name(),
                 source,
             },
         )?;
@@ -696,32 +696,6 @@ fn initial_seq() -> u16 {
         .unwrap_or(0);
     let mixed = nanos ^ std::process::id().rotate_left(16);
     (mixed ^ (mixed >> 16)) as u16
-}
-
-/// The request's variant name, for messages.
-pub fn request_name(request: &Request) -> &'static str {
-    match request {
-        Request::Hello { .. } => "Hello",
-        Request::BeginMatrix { .. } => "BeginMatrix",
-        Request::Tile(_) => "Tile",
-        Request::Words { .. } => "Words",
-        Request::EndMatrix { .. } => "EndMatrix",
-        Request::BeginVector { .. } => "BeginVector",
-        Request::VectorData { .. } => "VectorData",
-        Request::Solve(_) => "Solve",
-        Request::ReadSolution { .. } => "ReadSolution",
-        Request::BeginUpdate { .. } => "BeginUpdate",
-        Request::UpdateValues { .. } => "UpdateValues",
-        Request::EndUpdate { .. } => "EndUpdate",
-        Request::LiveTool(_) => "LiveTool",
-        Request::LiveStart(_) => "LiveStart",
-        Request::LiveFrame { .. } => "LiveFrame",
-        Request::LiveForce { .. } => "LiveForce",
-        Request::ReadField { .. } => "ReadField",
-        Request::LiveForceTool { .. } => "LiveForceTool",
-        Request::LiveLoad { .. } => "LiveLoad",
-        Request::LiveLoadQuery { .. } => "LiveLoadQuery",
-    }
 }
 
 #[cfg(test)]
