@@ -22,7 +22,7 @@ use crate::cli_dynamics::DynamicFlags;
 use crate::commands::simulate::bar;
 use crate::encode::{EncodeOptions, Partition};
 use crate::live::field::FieldChoice;
-use crate::live::headless::{self, FrameRecord, Script, Session, CLOCK_HZ};
+use crate::live::headless::{self, FrameRecord, Script, Session};
 use crate::live::interactive;
 use crate::live::link::LiveLink;
 use crate::live::serve::Mailbox;
@@ -145,8 +145,8 @@ pub struct LiveArgs {
 
     /// A dynamic scenario (or `--dynamic`) runs dynamic frames: each frame is one time step
     /// h = the scenario's dt, the tissue has inertia and damping and keeps moving after the
-    /// tool stops. --cycle-budget and --pace are refused then; --field-every, --field-stride
-    /// and --forces-per-frame do not apply (the whole field comes back every frame).
+    /// tool stops. --cycle-budget and --pace are refused then; --field-every, --field and
+    /// --forces-per-frame do not apply (the whole field comes back every frame).
     #[command(flatten)]
     pub dynamics: DynamicFlags,
 }
@@ -154,6 +154,9 @@ pub struct LiveArgs {
 pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
     if !args.headless && !args.serve {
         bail!("give --headless (the scripted session) or --serve (the browser view)");
+    }
+    if args.pace.is_some_and(|hz| !(hz.is_finite() && hz > 0.0)) {
+        bail!("--pace must be a positive frame rate");
     }
     let mut scenario = Scenario::load(&args.scenario, None)?;
     match args.model.as_deref() {
@@ -223,15 +226,11 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         link.model.cycles
     );
     let script = Script {
-        frames,
         field_every: args.field_every,
         field: args.field,
         forces_per_frame: args.forces_per_frame,
         pace: args.pace,
     };
-    if args.pace.is_some_and(|hz| !(hz.is_finite() && hz > 0.0)) {
-        bail!("--pace must be a positive frame rate");
-    }
     // A force tool's input is a load and its answer the mean tool displacement.
     let answer = match setup.kind {
         ToolKind::Displacement => "fx,fy,fz,fx_ref,fy_ref,fz_ref",
@@ -384,7 +383,6 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
             report.target_resets
         );
     }
-    let _ = CLOCK_HZ;
     if let Some(path) = &args.report {
         let f = File::create(path).with_context(|| format!("creating {}", path.display()))?;
         serde_json::to_writer_pretty(BufWriter::new(f), &report)?;
@@ -491,8 +489,11 @@ fn serve(args: &LiveArgs, setup: &LiveSetup) -> anyhow::Result<()> {
         let l = LiveLink::start(&mut b.target, setup, live_params(args, setup))
             .context("setting the live session up on the target")?;
         println!(
-            "force model {} CG solve(s), {} iterations, {} cycles",
-            l.model.solves, l.model.iterations, l.model.cycles
+            "{} {} CG solve(s), {} iterations, {} cycles",
+            model_label(setup.kind),
+            l.model.solves,
+            l.model.iterations,
+            l.model.cycles
         );
         link = Some(l);
     }

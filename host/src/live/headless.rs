@@ -22,7 +22,6 @@ pub const CLOCK_HZ: f64 = 100e6;
 /// How the scripted session runs.
 #[derive(Debug, Clone, Copy)]
 pub struct Script {
-    pub frames: u32,
     /// Read the quantised field every this many frames (0: never).
     pub field_every: u32,
     /// Which nodes a field frame carries.
