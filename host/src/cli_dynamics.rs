@@ -3,6 +3,7 @@
 
 use clap::Args;
 
+use crate::commands::solve::DEFAULT_MAX_SOLVES;
 use crate::dynamics::{Damping, DynamicsSpec, Scheme};
 use crate::model::StiffnessField;
 use crate::scenario::DynamicsSettings;
@@ -41,7 +42,7 @@ pub struct DynamicFlags {
     pub scheme: Option<Scheme>,
 
     /// Dynamic mode: target solves per step at most (mixed-precision refinement to --tol).
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..))]
+    #[arg(long, default_value_t = DEFAULT_MAX_SOLVES, value_parser = clap::value_parser!(u32).range(1..))]
     pub max_solves: u32,
 }
 
@@ -54,7 +55,7 @@ impl Default for DynamicFlags {
             damping: None,
             rayleigh: None,
             scheme: None,
-            max_solves: 8,
+            max_solves: DEFAULT_MAX_SOLVES,
         }
     }
 }

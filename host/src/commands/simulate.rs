@@ -237,6 +237,12 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     let resolved = args.resolve()?;
     let model = Model::build(&resolved.spec).context("building the model")?;
     if let Some(dynamics) = &resolved.dynamics {
+        // Refused before any board is opened or file created.
+        if resolved.nonlinear.is_some() {
+            anyhow::bail!(
+                "the displacement-dependent springs (--alpha) are not supported with --dynamic yet"
+            );
+        }
         crate::dynamics::target::preflight(&model, dynamics, resolved.schedule.dt)?;
     }
     let n = model.n();

@@ -86,11 +86,6 @@ pub fn run(
     layout: EncodeOptions,
     mut series: Option<SeriesWriter>,
 ) -> anyhow::Result<()> {
-    if resolved.nonlinear.is_some() {
-        anyhow::bail!(
-            "the displacement-dependent springs (--alpha) are not supported with --dynamic yet"
-        );
-    }
     let schedule = resolved.schedule;
     println!("dynamics    {}, h = {} s", spec.describe(), schedule.dt);
     let mut csv = match &args.steps_csv {

@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use crc::{Crc, CRC_16_XMODEM};
 
 use super::FlashImage;
-use crate::link::Port;
+use crate::link::{is_timeout, Port};
 
 /// What the BIOS sends when it is ready for a serial boot.
 pub const MAGIC_REQUEST: &[u8] = b"sL5DdSMmkekro\n";
@@ -254,13 +254,6 @@ pub fn detect_bios<P: Port>(port: &mut P, listen: Duration) -> Result<bool, io::
 
 fn contains(haystack: &[u8], needle: &[u8]) -> bool {
     haystack.windows(needle.len()).any(|w| w == needle)
-}
-
-fn is_timeout(e: &io::Error) -> bool {
-    matches!(
-        e.kind(),
-        io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock | io::ErrorKind::Interrupted
-    )
 }
 
 #[cfg(test)]

@@ -3,7 +3,7 @@
 //! port has, feed it byte by byte to a [`FrameAccumulator`] and stop at the first delimited frame
 //! or when the deadline passes; what they make of a frame differs, so the caller decodes it.
 
-use std::io::{self, ErrorKind};
+use std::io;
 use std::time::Instant;
 
 use deform_shared::frame::{Feed, FrameAccumulator};
@@ -78,11 +78,7 @@ impl<const N: usize> FrameReader<N> {
                     self.inbox.extend_from_slice(&buf[..n]);
                     self.inbox_read = 0;
                 }
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        ErrorKind::TimedOut | ErrorKind::WouldBlock | ErrorKind::Interrupted
-                    ) => {}
+                Err(e) if super::is_timeout(&e) => {}
                 Err(e) => return Err(e),
             }
         }

@@ -33,7 +33,7 @@ pub use adapt::{best_chunk, Adaptive, ChunkSize, MIN_CHUNK};
 pub use error::{Capacity, LinkError};
 pub use flags::LinkFlags;
 pub use frame_reader::{FrameEvent, FrameReader};
-pub use port::{open_serial, Port, BAUD_RATE};
+pub use port::{is_timeout, open_serial, Port, BAUD_RATE};
 pub use target::{
     full_upload_bytes, update_bytes, Target, Timeouts, UpdateError, UpdateReport, UploadProgress,
     DEFAULT_SOLVE_TIMEOUT,

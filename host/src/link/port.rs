@@ -8,6 +8,15 @@ use super::LinkError;
 /// The target's UART speed. A pty ignores it; a USB-serial board needs it.
 pub const BAUD_RATE: u32 = 115_200;
 
+/// A read that only ran out of time (or was interrupted): no data yet, not a failure of the
+/// port. The frame reader and the LiteX BIOS client both wait on.
+pub fn is_timeout(e: &io::Error) -> bool {
+    matches!(
+        e.kind(),
+        io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock | io::ErrorKind::Interrupted
+    )
+}
+
 /// A byte stream to a target whose reads and writes can be bounded in time.
 ///
 /// [`Link`](super::Link) sets the timeout before every read and write so that the overall
