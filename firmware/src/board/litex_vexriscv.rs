@@ -10,8 +10,6 @@
 //! Main RAM is cached (reads and writes through the 4 KiB data cache); addresses with bit 31
 //! set are uncached I/O on this VexRiscv, which is where LiteX puts the CSRs.
 
-use deform_shared::live::MAX_TOOL_NODES;
-
 use super::{Bsp, Serial};
 
 /// The CSR register addresses, main RAM and clock of the SoC (generated from csr.json).
@@ -127,9 +125,6 @@ impl Bsp for LitexVexriscv {
     const WORD_CAPACITY: usize = 64 * 1024;
     const TILE_CAPACITY: usize = 1024;
     const MAX_N: usize = 8192;
-    /// 256 KiB: every tool node's column at `MAX_N`, which leaves about 0.7 MiB of the 2 MiB
-    /// for code and stack.
-    const RESPONSE_VALUES: usize = MAX_TOOL_NODES * 8192;
     const TICK_HZ: u64 = csr::CLOCK_FREQUENCY;
 
     type Uart = Uart;

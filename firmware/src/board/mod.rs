@@ -53,8 +53,10 @@ pub trait Bsp {
     const MAX_N: usize;
     /// Values of the live loop's response columns (one of n per tool node, see
     /// `deform_target_core::superpose`); a tool set whose columns do not fit falls back to
-    /// extrapolated starts.
-    const RESPONSE_VALUES: usize;
+    /// extrapolated starts. By default every tool node's column at `MAX_N` (QEMU: 2 MiB, 13 MiB
+    /// of its 16 MiB in all; LiteX: 256 KiB, leaving about 0.7 MiB of its 2 MiB for code and
+    /// stack); a board short of RAM sets less.
+    const RESPONSE_VALUES: usize = deform_shared::live::MAX_TOOL_NODES * Self::MAX_N;
     /// Ticks per second of [`Bsp::ticks`].
     const TICK_HZ: u64;
 

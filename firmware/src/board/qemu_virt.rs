@@ -5,7 +5,6 @@
 //! `mtimecmp`), up to [`MAX_HARTS`] harts, and the SiFive test device to exit QEMU with a
 //! status. The multi-hart boot hook (`_mp_hook`) is here too: it waits on the CLINT.
 
-use deform_shared::live::MAX_TOOL_NODES;
 use deform_shared::protocol::MAX_HARTS;
 
 use super::{Bsp, Serial};
@@ -190,8 +189,6 @@ impl Bsp for QemuVirt {
     const WORD_CAPACITY: usize = 512 * 1024;
     const TILE_CAPACITY: usize = 4096;
     const MAX_N: usize = 65536;
-    /// 2 MiB: every tool node's column at `MAX_N` (13 MiB of the 16 MiB in all).
-    const RESPONSE_VALUES: usize = MAX_TOOL_NODES * 65536;
     const TICK_HZ: u64 = MTIME_HZ;
 
     type Uart = Uart;
