@@ -5,7 +5,9 @@
 use serde::Serialize;
 
 use super::dynamic::DynamicFrame;
-use super::headless::{percentile, sorted, IterationSpread, Rate, Spread, CLOCK_HZ};
+use super::headless::{
+    force_error, per_second, percentile, sorted, IterationSpread, Rate, Spread, BAUDS,
+};
 use crate::dynamics::{Damping, DynamicsSpec};
 
 /// Why `force_updates_per_s` is null for dynamic frames.
@@ -123,27 +125,16 @@ pub struct Header {
     pub cycles_from_mcycle: bool,
 }
 
-/// Relative error of a force against its reference, on the scale of the largest reference.
+/// The largest force error of the frames, on the scale of the largest reference force.
 fn force_errors(records: &[DynamicFrame]) -> f64 {
     let scale = records
         .iter()
         .flat_map(|r| r.force_reference)
-        .fold(0.0f64, |m, v| m.max(v.abs()))
-        .max(f64::MIN_POSITIVE);
+        .fold(0.0f64, |m, v| m.max(v.abs()));
     records
         .iter()
-        .flat_map(|r| (0..3).map(move |d| (r.force[d] - r.force_reference[d]).abs()))
+        .map(|r| force_error(&r.force, &r.force_reference, scale))
         .fold(0.0, f64::max)
-        / scale
-}
-
-/// p50, p99 and max of `sorted`.
-fn spread(sorted: &[f64]) -> Spread {
-    Spread {
-        p50: percentile(sorted, 0.5),
-        p99: percentile(sorted, 0.99),
-        max: sorted.last().copied().unwrap_or(0.0),
-    }
 }
 
 /// The report over `records` (every frame of the session, in order).
@@ -163,7 +154,6 @@ pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
     let up = percentile(&sorted(later.iter().map(|r| r.bytes_up as f64)), 0.5);
     let down = percentile(&sorted(later.iter().map(|r| r.bytes_down as f64)), 0.5);
     let last = records.last();
-    let max_cycles = cycles.last().copied().unwrap_or(0.0);
     DynamicReport {
         frames: records.len() as u32,
         grid: header.grid,
@@ -171,18 +161,12 @@ pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
         mvus: header.mvus,
         target: header.target,
         tolerance: header.tolerance,
-        frame_cycles: on_target.then(|| spread(&cycles)),
-        frame_hart0_cycles: on_target.then(|| spread(&hart0)),
-        frames_per_s_at_100mhz: on_target.then(|| Rate {
-            p50: CLOCK_HZ / percentile(&cycles, 0.5).max(1.0),
-            worst: CLOCK_HZ / max_cycles.max(1.0),
-        }),
+        frame_cycles: on_target.then(|| Spread::of(&cycles)),
+        frame_hart0_cycles: on_target.then(|| Spread::of(&hart0)),
+        frames_per_s_at_100mhz: on_target.then(|| Rate::of(&cycles)),
         force_updates_per_s: None,
         force_updates_note: NO_FORCE_MODEL,
-        iterations: IterationSpread {
-            p50: percentile(&iterations, 0.5),
-            max: iterations.last().copied().unwrap_or(0.0),
-        },
+        iterations: IterationSpread::of(&iterations),
         solves_max: records.iter().map(|r| r.solves).max().unwrap_or(0),
         residual_max: records.iter().map(|r| r.residual).fold(0.0, f64::max),
         error_vs_converged_max: on_target.then(|| {
@@ -208,15 +192,11 @@ pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
             bytes_up: records.first().map_or(0, |r| r.bytes_up),
             bytes_down: records.first().map_or(0, |r| r.bytes_down),
         },
-        link_rates: [115_200u32, 921_600, 3_000_000]
+        link_rates: BAUDS
             .into_iter()
             .map(|baud| LineRate {
                 baud,
-                frames_per_s: if up + down > 0.0 {
-                    f64::from(baud) / 10.0 / (up + down)
-                } else {
-                    0.0
-                },
+                frames_per_s: per_second(baud, up + down),
             })
             .collect(),
         motion: Motion {

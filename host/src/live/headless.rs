@@ -172,8 +172,51 @@ pub(crate) fn sorted(v: impl Iterator<Item = f64>) -> Vec<f64> {
     v
 }
 
+impl Spread {
+    /// p50, p99 and max of `sorted`.
+    pub(crate) fn of(sorted: &[f64]) -> Spread {
+        Spread {
+            p50: percentile(sorted, 0.5),
+            p99: percentile(sorted, 0.99),
+            max: sorted.last().copied().unwrap_or(0.0),
+        }
+    }
+}
+
+impl Rate {
+    /// Frames per second at [`CLOCK_HZ`] for the median and the largest of `sorted` cycles.
+    pub(crate) fn of(sorted: &[f64]) -> Rate {
+        Rate {
+            p50: CLOCK_HZ / percentile(sorted, 0.5).max(1.0),
+            worst: CLOCK_HZ / sorted.last().copied().unwrap_or(0.0).max(1.0),
+        }
+    }
+}
+
+impl IterationSpread {
+    pub(crate) fn of(sorted: &[f64]) -> IterationSpread {
+        IterationSpread {
+            p50: percentile(sorted, 0.5),
+            max: sorted.last().copied().unwrap_or(0.0),
+        }
+    }
+}
+
+/// The baud rates the reports state the line's own frame rate for.
+pub(crate) const BAUDS: [u32; 3] = [115_200, 921_600, 3_000_000];
+
+/// How many messages of `bytes` the line carries per second at `baud` (8N1: 10 bits per
+/// byte), 0 for none.
+pub(crate) fn per_second(baud: u32, bytes: f64) -> f64 {
+    if bytes > 0.0 {
+        f64::from(baud) / 10.0 / bytes
+    } else {
+        0.0
+    }
+}
+
 /// Relative error of a force against its reference, on the scale of the largest reference.
-fn force_error(got: &[f64; 3], want: &[f64; 3], scale: f64) -> f64 {
+pub(crate) fn force_error(got: &[f64; 3], want: &[f64; 3], scale: f64) -> f64 {
     let diff = (0..3).map(|d| (got[d] - want[d]).abs()).fold(0.0, f64::max);
     diff / scale.max(f64::MIN_POSITIVE)
 }
@@ -348,20 +391,15 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
         .map_or((0.0, 0), |(b, c)| (b.received as f64, c));
     let field_up = summary.field.map_or(0.0, |(b, _)| b.sent as f64);
     let force_bytes = summary.force_bytes.unwrap_or_default();
-    let link_rates = [115_200u32, 921_600, 3_000_000]
+    let link_rates = BAUDS
         .into_iter()
-        .map(|baud| {
-            let bytes_per_s = f64::from(baud) / 10.0;
-            let per = |b: f64| if b > 0.0 { bytes_per_s / b } else { 0.0 };
-            LinkRate {
-                baud,
-                frames_per_s: per(up + down),
-                force_queries_per_s: per(force_bytes.total() as f64),
-                field_frames_per_s: per(field_bytes + field_up),
-            }
+        .map(|baud| LinkRate {
+            baud,
+            frames_per_s: per_second(baud, up + down),
+            force_queries_per_s: per_second(baud, force_bytes.total() as f64),
+            field_frames_per_s: per_second(baud, field_bytes + field_up),
         })
         .collect();
-    let max_cycles = cycles.last().copied().unwrap_or(0.0);
     Report {
         frames: records.len() as u32,
         grid: session.grid,
@@ -369,25 +407,15 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
         mvus: session.mvus,
         tolerance: session.tolerance,
         cycle_budget: session.cycle_budget,
-        frame_cycles: Spread {
-            p50: percentile(&cycles, 0.5),
-            p99: percentile(&cycles, 0.99),
-            max: max_cycles,
-        },
-        frames_per_s_at_100mhz: Rate {
-            p50: CLOCK_HZ / percentile(&cycles, 0.5).max(1.0),
-            worst: CLOCK_HZ / max_cycles.max(1.0),
-        },
+        frame_cycles: Spread::of(&cycles),
+        frames_per_s_at_100mhz: Rate::of(&cycles),
         force_updates_per_s: if summary.force_cycles > 0 {
             CLOCK_HZ / summary.force_cycles as f64
         } else {
             0.0
         },
         force_query_cycles_max: summary.force_cycles,
-        iterations: IterationSpread {
-            p50: percentile(&iterations, 0.5),
-            max: iterations.last().copied().unwrap_or(0.0),
-        },
+        iterations: IterationSpread::of(&iterations),
         residual_max: records.iter().map(|r| r.residual).fold(0.0, f64::max),
         error_vs_converged_max: records
             .iter()
