@@ -301,13 +301,13 @@ impl Soc {
         self.dir.join("gateware")
     }
 
-    /// Main RAM (base, size) and the CSR register map, from the generated csr.json.
-    fn memory_map(&self) -> Result<(serde_json::Value, u64, u64), LitexError> {
+    /// Main RAM (base, size), from the generated csr.json.
+    fn main_ram(&self) -> Result<(u64, u64), LitexError> {
         let json = read_json(&self.csr_json())?;
         let ram = &json["memories"]["main_ram"];
         let (base, size) = (ram["base"].as_u64(), ram["size"].as_u64());
         match (base, size) {
-            (Some(base), Some(size)) => Ok((json["csr_registers"].clone(), base, size)),
+            (Some(base), Some(size)) => Ok((base, size)),
             _ => Err(LitexError::CsrMismatch {
                 generated: self.csr_json(),
                 what: "memories.main_ram (missing)".into(),
@@ -636,7 +636,7 @@ fn prepare_run(
         }
     }
     if let Some(image) = image {
-        let (_, ram_base, ram_size) = soc.memory_map()?;
+        let (ram_base, ram_size) = soc.main_ram()?;
         write_main_ram_init(
             &run_dir.join("sim_main_ram.init"),
             image,
