@@ -20,6 +20,7 @@ use core::sync::atomic::{fence, AtomicU32, AtomicUsize, Ordering};
 
 use deform_shared::protocol::{PhaseCounters, MAX_HARTS};
 use deform_target_core::exec::{Executor, PhaseClock, Task};
+use deform_target_core::mvu_backend::MvuBackend;
 
 use crate::board::{Board, Bsp};
 
@@ -189,9 +190,12 @@ pub fn worker(hart: usize) -> ! {
     }
 }
 
-/// The firmware's executor: hart 0 plus the workers that came up.
+/// The firmware's executor: hart 0 plus the workers that came up, and the board's hardware
+/// MVUs if it has them. There may be more MVUs than harts (a LiteX SoC has one hart): a phase's
+/// tasks for MVUs beyond the harts then run on hart 0, after its own.
 pub struct Harts {
     pub count: usize,
+    pub mvus: Option<&'static dyn MvuBackend>,
 }
 
 impl Harts {
@@ -233,32 +237,45 @@ impl PhaseClock for Harts {
 }
 
 impl Executor for Harts {
+    /// The harts, or the hardware MVUs where there are more of those.
     fn harts(&self) -> usize {
-        self.count
+        let mvus = self.mvus.map_or(0, |m| m.mvus());
+        self.count.max(mvus).clamp(1, MAX_HARTS)
     }
 
     fn run(&self, harts: usize, task: Task<'_>) {
-        let harts = harts.clamp(1, self.count);
-        if harts > 1 {
-            self.publish(task, harts, ALL);
+        let harts = harts.clamp(1, self.harts());
+        let real = harts.min(self.count);
+        if real > 1 {
+            self.publish(task, real, ALL);
         }
         task(0);
-        if harts > 1 {
-            self.finish(harts - 1);
+        for h in real..harts {
+            task(h);
+        }
+        if real > 1 {
+            self.finish(real - 1);
         }
     }
 
     fn run_measured(&self, harts: usize, task: Task<'_>) -> [u64; MAX_HARTS] {
-        let harts = harts.clamp(1, self.count);
+        let harts = harts.clamp(1, self.harts());
         let mut counts = [0u64; MAX_HARTS];
-        let start = riscv::register::minstret::read64();
-        task(0);
-        counts[0] = riscv::register::minstret::read64().wrapping_sub(start);
-        for (hart, count) in counts.iter_mut().enumerate().take(harts).skip(1) {
-            self.publish(task, harts, hart);
-            self.finish(1);
-            *count = u64::from(DISPATCH.counts[hart].load(Ordering::Relaxed));
+        for (hart, count) in counts.iter_mut().enumerate().take(harts) {
+            if hart == 0 || hart >= self.count {
+                let start = riscv::register::minstret::read64();
+                task(hart);
+                *count = riscv::register::minstret::read64().wrapping_sub(start);
+            } else {
+                self.publish(task, self.count.min(harts), hart);
+                self.finish(1);
+                *count = u64::from(DISPATCH.counts[hart].load(Ordering::Relaxed));
+            }
         }
         counts
+    }
+
+    fn mvu_backend(&self) -> Option<&dyn MvuBackend> {
+        self.mvus
     }
 }

@@ -47,6 +47,7 @@ use deform_target_core::session::Session;
 use deform_target_core::transport::{self, LinkEvent, TargetLink, Tx};
 
 use board::{Board, Bsp, Serial};
+use deform_target_core::exec::Executor;
 use harts::Harts;
 use store::TakeOnce;
 
@@ -86,18 +87,27 @@ fn main(hart: usize) -> ! {
     let Some(buffers) = store::BUFFERS.take() else {
         Board::exit(EXIT_NO_STORAGE)
     };
-    let count = harts::start_workers();
-    let mut session = Session::new(buffers.storage(), target_info(count), Harts { count });
+    let (mvus, vectors) = match Board::mvus() {
+        Some(m) => (Some(m.backend), Some((m.p, m.kp))),
+        None => (None, None),
+    };
+    let harts = Harts {
+        count: harts::start_workers(),
+        mvus,
+    };
+    let count = harts.harts();
+    let mut session = Session::new(buffers.storage(vectors), target_info(count), harts);
     let Some(link) = LINK.take() else {
         Board::exit(EXIT_NO_STORAGE)
     };
     defmt::info!(
-        "deform firmware {=str} up: {=usize} words, {=usize} tiles, n <= {=usize}, {=usize} harts, board {=str}",
+        "deform firmware {=str} up: {=usize} words, {=usize} tiles, n <= {=usize}, {=usize} MVUs ({=str}), board {=str}",
         FIRMWARE_VERSION,
         store::WORD_CAPACITY,
         store::TILE_CAPACITY,
-        store::MAX_N,
+        session.info().max_n as usize,
         count,
+        if session.executor().mvu_backend().is_some() { "hardware" } else { "harts" },
         Board::NAME
     );
     let mut handle = |body| activity::logged(body, |body| session.handle(body));

@@ -80,15 +80,23 @@ impl Buffers {
         responses: [0; RESPONSE_VALUES],
     };
 
-    /// Lends all buffers to a session.
-    pub fn storage(&mut self) -> Storage<'_> {
+    /// Lends all buffers to a session; p and Kp are `vectors` instead where the board's
+    /// hardware MVUs hold them in their own memory (see `board::Mvus`).
+    pub fn storage(
+        &mut self,
+        vectors: Option<(&'static mut [Lanes], &'static mut [Sums])>,
+    ) -> Storage<'_> {
         let [d0, d1, d2] = &mut self.directions;
+        let (p, kp) = match vectors {
+            Some((p, kp)) => (p, kp),
+            None => (&mut self.p[..], &mut self.kp[..]),
+        };
         Storage {
             words: &mut self.words,
             tiles: &mut self.tiles,
             directions: [d0.storage(), d1.storage(), d2.storage()],
-            p: &mut self.p,
-            kp: &mut self.kp,
+            p,
+            kp,
             partial: &mut self.partial,
             responses: &mut self.responses,
         }

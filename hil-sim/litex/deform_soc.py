@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Generates deform's LiteX SoC for Verilator: a VexRiscv CPU, main RAM, a UART and timer0.
+"""Generates deform's LiteX SoC for Verilator: a VexRiscv CPU, main RAM, a UART, timer0 and the
+MVU array of gateware/ (0 to 8 hardware MVUs, ``--mvus``).
 
 Run by deform-hil-sim (src/litex.rs) inside the project's own virtual environment, once per SoC
 configuration: the output folder is keyed by a hash of this file and of the arguments, so a
@@ -19,13 +20,17 @@ buffer can take. The stock module reads regardless and overwrites unconsumed byt
 with more than 2 KiB in flight saw corrupt frames; bounded, the rest waits in the socket (TCP
 flow control reaches back through socat to the host's writes).
 
-Both shapes have the same CSR map (ctrl, identifier, timer0, uart; no sim_debug registers), so
-one firmware build runs on either. The script only writes the gateware and build_sim.sh; the
-caller runs that (the Verilator build) and the simulator itself.
+Every SoC it makes has the same CSR map (ctrl, identifier, mvus, timer0, uart; no sim_debug
+registers) and the MVU array's region at the same address, whatever ``--mvus`` says (0 included:
+the array's registers then report no MVUs), so one firmware build runs on all of them and reads
+the number of MVUs and their capacity from the array's registers at boot. The script only
+writes the gateware and build_sim.sh; the caller runs that (the Verilator build) and the
+simulator itself.
 """
 
 import argparse
 import os
+import sys
 
 import litex.build.sim
 
@@ -33,8 +38,16 @@ from litex.build.sim.config import SimConfig
 from litex.soc.integration.builder import Builder
 from litex.tools.litex_sim import SimSoC
 
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "gateware"))
+from deform_gateware.mvu_array import add_to_soc  # noqa: E402
+
 
 FLOW_MODULE = "serial2tcp_flow"
+
+# The simulated MVUs' capacity: n up to 4096 (a 16³ grid), 32 Ki words and 512 tiles per MVU.
+MVUS_NODES = 4096
+MVUS_WORDS = 32768
+MVUS_TILES = 512
 
 
 def write_flow_module(out):
@@ -68,6 +81,7 @@ def main():
     parser.add_argument("--cpu-variant", default="imac", help="VexRiscv variant (imac reads mcycle)")
     parser.add_argument("--main-ram-size", type=lambda s: int(s, 0), default=0x200000)
     parser.add_argument("--bios", action="store_true", help="ROM with the stock LiteX BIOS")
+    parser.add_argument("--mvus", type=int, default=0, help="hardware MVUs (0 to 8)")
     args = parser.parse_args()
 
     soc_args = dict(
@@ -89,6 +103,7 @@ def main():
             integrated_main_ram_init=[0] * (args.main_ram_size // 4),
         )
     soc = SimSoC(**soc_args)
+    add_to_soc(soc, args.mvus, words=MVUS_WORDS, tiles=MVUS_TILES, nodes=MVUS_NODES)
     if args.bios:
         # No memory test of main RAM at boot (2 MiB written and read back: tens of seconds of
         # simulation before the BIOS asks for a serial boot); the BIOS skips it when told that

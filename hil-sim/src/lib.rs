@@ -19,6 +19,7 @@
 //! virtual nanosecond), which is what lets the firmware's `mcycle`/`minstret` reports be compared
 //! between runs.
 
+pub mod gateware;
 pub mod litex;
 pub mod relay;
 

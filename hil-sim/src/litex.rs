@@ -62,6 +62,17 @@ pub const LITEX_PYTHON_PACKAGES: &[&str] = &[
 const SOC_SCRIPT: &str = include_str!("../litex/deform_soc.py");
 const SOC_SCRIPT_PATH: &str = "hil-sim/litex/deform_soc.py";
 
+/// The gateware the SoC builds in (the MVU array), part of the cache key too.
+const GATEWARE_SOURCES: &[&str] = &[
+    include_str!("../../gateware/deform_gateware/word.py"),
+    include_str!("../../gateware/deform_gateware/multiplier.py"),
+    include_str!("../../gateware/deform_gateware/mvu.py"),
+    include_str!("../../gateware/deform_gateware/mvu_array.py"),
+];
+
+/// The most hardware MVUs an SoC may have (the gateware's MVU array).
+pub const MAX_MVUS: u8 = 8;
+
 /// The firmware build configured for the SoC that [`SocConfig::default`] generates.
 const COMMITTED_CSR_JSON: &str = "firmware/boards/litex-vexriscv/csr.json";
 
@@ -161,15 +172,20 @@ pub struct SocConfig {
     pub main_ram_size: u32,
     /// With ROM and the stock LiteX BIOS (boots by serial, SFL), instead of resetting into RAM.
     pub bios: bool,
+    /// Hardware MVUs in the SoC's MVU array (0 to [`MAX_MVUS`]); every count has the same CSR
+    /// map, so one firmware runs on all of them.
+    pub mvus: u8,
 }
 
 impl Default for SocConfig {
-    /// The SoC the committed csr.json describes: `imac`, 2 MiB main RAM, no BIOS.
+    /// The SoC the committed csr.json describes: `imac`, 2 MiB main RAM, no BIOS, no MVUs
+    /// (the array's registers are there all the same).
     fn default() -> Self {
         SocConfig {
             cpu_variant: "imac".into(),
             main_ram_size: 0x20_0000,
             bios: false,
+            mvus: 0,
         }
     }
 }
@@ -181,12 +197,20 @@ impl SocConfig {
         self
     }
 
+    /// The same SoC with `mvus` hardware MVUs.
+    pub fn with_mvus(mut self, mvus: u8) -> Self {
+        self.mvus = mvus;
+        self
+    }
+
     fn args(&self) -> Vec<String> {
         let mut args = vec![
             "--cpu-variant".into(),
             self.cpu_variant.clone(),
             "--main-ram-size".into(),
             format!("{:#x}", self.main_ram_size),
+            "--mvus".into(),
+            self.mvus.to_string(),
         ];
         if self.bios {
             args.push("--bios".into());
@@ -199,6 +223,9 @@ impl SocConfig {
         let crc = crc::Crc::<u64>::new(&crc::CRC_64_ECMA_182);
         let mut digest = crc.digest();
         digest.update(SOC_SCRIPT.as_bytes());
+        for source in GATEWARE_SOURCES {
+            digest.update(source.as_bytes());
+        }
         for arg in self.args() {
             digest.update(arg.as_bytes());
             digest.update(b"\0");
@@ -207,8 +234,13 @@ impl SocConfig {
             digest.update(package.as_bytes());
         }
         format!(
-            "{}-{:016x}",
+            "{}{}-{:016x}",
             if self.bios { "bios" } else { "ram" },
+            if self.mvus > 0 {
+                format!("-{}mvu", self.mvus)
+            } else {
+                String::new()
+            },
             digest.finalize()
         )
     }
@@ -396,6 +428,12 @@ impl LitexConfig {
             elf: Some(elf.into()),
             start_timeout: Duration::from_secs(30),
         }
+    }
+
+    /// The same, on the SoC with `mvus` hardware MVUs.
+    pub fn with_mvus(mut self, mvus: u8) -> Self {
+        self.soc = self.soc.with_mvus(mvus);
+        self
     }
 
     /// The default SoC with the stock BIOS, nothing loaded.
@@ -705,6 +743,8 @@ mod tests {
         let mut bigger = a.clone();
         bigger.main_ram_size *= 2;
         assert_ne!(a.key(), bigger.key());
+        assert_ne!(a.key(), a.clone().with_mvus(4).key());
+        assert!(a.clone().with_mvus(4).key().starts_with("ram-4mvu-"));
         assert!(a.key().starts_with("ram-") && a.clone().with_bios().key().starts_with("bios-"));
     }
 

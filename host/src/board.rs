@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
 use anyhow::Context;
-use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim};
+use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim, MAX_MVUS};
 use deform_hil_sim::{firmware_elf, loader_elf, Qemu, QemuConfig};
 
 use crate::cli_logs::LogOptions;
@@ -34,7 +34,8 @@ pub enum SimulatedBoard {
     /// QEMU's riscv32 `virt` machine: exact instruction counts, up to 8 harts.
     #[default]
     Qemu,
-    /// A LiteX VexRiscv SoC under Verilator: real cycles, one hart, ~0.8 M cycles/s.
+    /// A LiteX VexRiscv SoC under Verilator: real cycles, one hart, ~0.8 M cycles/s; with
+    /// `--mvus N` the SoC with N hardware MVUs (gateware/).
     Litex,
 }
 
@@ -54,8 +55,9 @@ pub enum BoardChoice {
         harts: u8,
     },
     /// Load this firmware ELF (`None`: the `litex-vexriscv` build) into the main RAM of the
-    /// simulated LiteX VexRiscv SoC and run it there (one hart; real cycles).
-    Litex { firmware: Option<PathBuf> },
+    /// simulated LiteX VexRiscv SoC and run it there (one hart; real cycles), on the SoC with
+    /// `mvus` hardware MVUs (0: none, the MVU phase in software).
+    Litex { firmware: Option<PathBuf>, mvus: u8 },
     /// A board already running the firmware, on this serial device.
     Port(String),
 }
@@ -105,10 +107,15 @@ impl Board {
                     .with_context(|| format!("connecting to the board on {path}"))?;
                 Board::new(target, firmware_logs, None, false)
             }
-            BoardChoice::Litex { firmware } => {
+            BoardChoice::Litex { firmware, mvus } => {
+                if *mvus > MAX_MVUS {
+                    anyhow::bail!(
+                        "--mvus {mvus}: the simulated LiteX SoC has at most {MAX_MVUS} hardware MVUs"
+                    );
+                }
                 let elf = firmware.clone().unwrap_or_else(litex_firmware_elf);
                 let firmware_logs = firmware_logs(Some(logs.elf.as_deref().unwrap_or(&elf)), logs)?;
-                let sim = LitexSim::start(&LitexConfig::new(&elf))
+                let sim = LitexSim::start(&LitexConfig::new(&elf).with_mvus(*mvus))
                     .context("starting the simulated LiteX SoC")?;
                 let path = sim.serial_path().to_string_lossy().into_owned();
                 let link = Link::new(open_serial(&path)?);

@@ -15,7 +15,7 @@
 //! the residual goes in as s⊙r and the correction comes back as s⊙d, while the residual is
 //! still measured against A itself.
 
-use deform_shared::protocol::{SolveParams, SolveReport, Start, MAX_DIRECTIONS};
+use deform_shared::protocol::{PhaseCounters, SolveParams, SolveReport, Start, MAX_DIRECTIONS};
 
 use crate::link::{LinkError, Port, Target};
 use crate::model::Csr;
@@ -103,6 +103,21 @@ impl Refined {
             .iter()
             .map(|r| r.mvu.cycles + r.svu.cycles)
             .sum()
+    }
+
+    /// Hart 0's counters over the MVU phases and over the SVU phases of all solves: on the
+    /// LiteX SoC its real cycles beside the instructions it retired (with hardware MVUs, the
+    /// MVU phase's instructions are the CPU's start, wait and read-out).
+    pub fn phases(&self) -> (PhaseCounters, PhaseCounters) {
+        let add = |a: PhaseCounters, b: PhaseCounters| PhaseCounters {
+            cycles: a.cycles + b.cycles,
+            instructions: a.instructions + b.instructions,
+        };
+        self.reports
+            .iter()
+            .fold(Default::default(), |(mvu, svu), r| {
+                (add(mvu, r.mvu), add(svu, r.svu))
+            })
     }
 }
 

@@ -366,12 +366,54 @@ impl<E: Executor> Engine<'_, '_, E> {
         &all[..self.harts.min(all.len())]
     }
 
-    /// Kp = K·p for every direction, pᵀKp, and the OR of |Kp|: the MVU phase.
+    /// Kp = K·p for every direction, pᵀKp, and the OR of |Kp|: the MVU phase, on the hardware
+    /// MVUs where the board has them and they hold the matrix, else in software.
     fn mvu(&self, clock: &mut Clock) {
         let t = self.exec.now();
-        self.run(&|h| self.mvu_tiles(h), clock, true);
-        self.run(&|h| self.mvu_rows(h), clock, true);
+        if !self.mvu_on_hardware(clock) {
+            self.run(&|h| self.mvu_tiles(h), clock, true);
+            self.run(&|h| self.mvu_rows(h), clock, true);
+        }
         charge(&mut clock.mvu, t, self.exec);
+    }
+
+    /// The MVU phase on the executor's hardware MVUs ([`crate::mvu_backend`]): their results
+    /// go to hart 0's slot (the others' are zero), hart 0's instructions meanwhile to the MVU
+    /// phase's counts. False if there is no hardware or it cannot run this phase.
+    fn mvu_on_hardware(&self, clock: &mut Clock) -> bool {
+        let Some(hardware) = self.exec.mvu_backend() else {
+            return false;
+        };
+        clock.flush_serial(self.exec);
+        let before = self.exec.now();
+        let p = self.p.as_mut_ptr() as *const Lanes;
+        let Some(results) = hardware.run(self.a.n, p, self.kp.as_mut_ptr(), self.directions) else {
+            return false;
+        };
+        // SAFETY: no task runs; hart 0 has the result slots to itself.
+        let outs = unsafe { self.out.slice_mut(0..self.harts) };
+        for (h, out) in outs.iter_mut().enumerate() {
+            let mine = h == 0;
+            out.p_kp = if mine {
+                results.p_kp
+            } else {
+                [0; MAX_DIRECTIONS]
+            };
+            out.kp_or = if mine {
+                results.kp_or
+            } else {
+                [0; MAX_DIRECTIONS]
+            };
+        }
+        let mut counts = [0u64; MAX_HARTS];
+        counts[0] = self
+            .exec
+            .now()
+            .instructions
+            .wrapping_sub(before.instructions);
+        clock.costs.parallel(counts, self.harts, true);
+        clock.last = self.exec.now();
+        true
     }
 
     /// Hart h's tiles: zero its rows (or private slots), then run every tile with `mvu = h`.

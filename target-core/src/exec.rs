@@ -17,6 +17,8 @@ use core::ops::Range;
 
 use deform_shared::protocol::{PhaseCounters, MAX_HARTS};
 
+use crate::mvu_backend::MvuBackend;
+
 /// Reads the cycle and retired-instruction counters, so that the solver can charge each phase.
 pub trait PhaseClock {
     fn now(&self) -> PhaseCounters;
@@ -46,6 +48,12 @@ pub trait Executor: PhaseClock + Sync {
     /// hart's retired-instruction count over its own task is exact; returns those counts
     /// (zero where the executor cannot count).
     fn run_measured(&self, harts: usize, task: Task<'_>) -> [u64; MAX_HARTS];
+
+    /// The hardware MVUs beside the harts, if the board has them (see
+    /// [`crate::mvu_backend`]); without them the harts run every MVU phase in software.
+    fn mvu_backend(&self) -> Option<&dyn MvuBackend> {
+        None
+    }
 }
 
 /// Runs every hart's task in turn on the calling thread: the host's stand-in for N MVUs.

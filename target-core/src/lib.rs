@@ -5,6 +5,9 @@
 //! - [`cg`]: conjugate gradients in block floating point, phase by phase. The MVU
 //!   ([`kernel`]) executes the instruction words (thesis 4.2.1) and yields Kp and pᵀKp; the SVU
 //!   ([`svu`]) does α, r, β, x and p (4.2.2).
+//! - [`mvu_backend`], [`mvu_program`]: hardware MVUs beside the CPU (the gateware's MVU array)
+//!   take over the MVU phase where the board has them; the program is how a matrix is laid
+//!   out in their memories.
 //! - [`session`]: the protocol state machine. It owns no memory: the firmware lends it the
 //!   matrix store and the vectors, and it turns each request into exactly one response.
 //! - [`log_buffer`]: where the firmware's encoded defmt frames wait to be shipped; it never
@@ -25,6 +28,8 @@ pub mod exec;
 pub mod kernel;
 pub mod live;
 pub mod log_buffer;
+pub mod mvu_backend;
+pub mod mvu_program;
 pub mod predict;
 pub mod session;
 pub mod superpose;

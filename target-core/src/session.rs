@@ -338,6 +338,7 @@ impl<'a, E: Executor> Session<'a, E> {
 
     /// Forgets the matrix, the vectors that belong to it and the solution.
     fn drop_matrix(&mut self) {
+        self.unload_mvus();
         self.matrix = MatrixState::Empty;
         self.rhs = [VectorState::Empty; MAX_DIRECTIONS];
         self.guess = [VectorState::Empty; MAX_DIRECTIONS];
@@ -526,7 +527,39 @@ impl<'a, E: Executor> Session<'a, E> {
             }
         };
         self.matrix = MatrixState::Loaded(up.shape);
+        self.load_mvus();
         Ok(Response::Ack)
+    }
+
+    /// The matrix is about to change: the hardware MVUs (if any) forget it.
+    fn unload_mvus(&self) {
+        if let Some(hardware) = self.exec.mvu_backend() {
+            hardware.unload();
+        }
+    }
+
+    /// The matrix just became resident: the hardware MVUs (if any) take it if it fits; the
+    /// partial-sum pool is their scratch space (it holds n rows on every target that has them).
+    fn load_mvus(&mut self) {
+        let (Some(hardware), Some(plan), MatrixState::Loaded(shape)) =
+            (self.exec.mvu_backend(), self.plan.as_ref(), self.matrix)
+        else {
+            return;
+        };
+        let (tiles, words) = (
+            self.store.tiles.get(..to_usize(shape.tiles)),
+            self.store.words.get(..to_usize(shape.words)),
+        );
+        if let (Some(tiles), Some(words)) = (tiles, words) {
+            let matrix = Matrix {
+                n: to_usize(shape.n),
+                frac_bits: shape.frac_bits,
+                tiles,
+                words,
+                plan,
+            };
+            hardware.load(&matrix, self.store.partial);
+        }
     }
 
     /// The matrix ready to solve with.
@@ -558,6 +591,7 @@ impl<'a, E: Executor> Session<'a, E> {
         if frac_bits > MAX_FRAC_BITS {
             return Err(ErrorCode::BadFracBits(frac_bits));
         }
+        self.unload_mvus();
         self.matrix = MatrixState::Updating {
             shape,
             frac_bits,
@@ -617,6 +651,7 @@ impl<'a, E: Executor> Session<'a, E> {
             return Err(ErrorCode::MatrixCrc { computed });
         }
         self.matrix = MatrixState::Loaded(Shape { frac_bits, ..shape });
+        self.load_mvus();
         Ok(Response::Ack)
     }
 

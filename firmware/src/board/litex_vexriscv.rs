@@ -10,24 +10,27 @@
 //! Main RAM is cached (reads and writes through the 4 KiB data cache); addresses with bit 31
 //! set are uncached I/O on this VexRiscv, which is where LiteX puts the CSRs.
 
-use super::{Bsp, Serial};
+use super::{Bsp, Mvus, Serial};
 
 /// The CSR register addresses, main RAM and clock of the SoC (generated from csr.json).
-mod csr {
+pub(super) mod csr {
     include!(concat!(env!("OUT_DIR"), "/litex_csr.rs"));
 }
 
 /// LiteX UART event bit of a received byte (`ev_pending`: write it to pop the byte).
 const UART_EV_RX: u32 = 1 << 1;
 
-fn read32(addr: usize) -> u32 {
-    // SAFETY: only called with CSR addresses from the SoC's csr.json, always mapped (uncached
-    // I/O); reading them has no effect on Rust-visible memory.
+pub(super) fn read32(addr: usize) -> u32 {
+    // SAFETY: only called with CSR addresses from the SoC's csr.json and addresses in its MVU
+    // array's region (litex_mvus.rs), always mapped (uncached I/O); reading them has no effect
+    // on Rust-visible memory.
     unsafe { core::ptr::read_volatile(addr as *const u32) }
 }
 
-fn write32(addr: usize, value: u32) {
-    // SAFETY: as in `read32`; writing a UART or timer register touches no Rust-visible memory.
+pub(super) fn write32(addr: usize, value: u32) {
+    // SAFETY: as in `read32`; writing a UART, timer or MVU register, or an MVU's program
+    // memory, touches no Rust-visible memory (the p and Kp windows lent to the solver are
+    // written through their slices, not here).
     unsafe { core::ptr::write_volatile(addr as *mut u32, value) }
 }
 
@@ -159,4 +162,9 @@ impl Bsp for LitexVexriscv {
 
     /// One hart never waits for others at boot (`harts::start_workers` returns at once).
     fn wake_at(_ticks: u64) {}
+
+    /// The SoC's MVU array, if csr.json has one and it has MVUs.
+    fn mvus() -> Option<Mvus> {
+        super::litex_mvus::probe()
+    }
 }

@@ -15,8 +15,8 @@
 //!   one hart, no CLINT or PLIC; its addresses come from the SoC's `csr.json` at build time
 //!   ([`litex_vexriscv`]).
 //!
-//! A third board (e.g. LiteX with a `full+cfu` VexRiscv and a hardware MVU) is one more module
-//! and one more feature.
+//! A LiteX SoC may also carry deform's hardware MVUs (`gateware/`): the board finds them from
+//! its csr.json and hands them over through [`Bsp::mvus`] ([`litex_mvus`]).
 
 #[cfg(all(feature = "qemu-virt", feature = "litex-vexriscv"))]
 compile_error!("choose one board feature: `qemu-virt` or `litex-vexriscv`, not both");
@@ -28,6 +28,8 @@ pub mod qemu_virt;
 #[cfg(feature = "qemu-virt")]
 pub use qemu_virt::QemuVirt as Board;
 
+#[cfg(all(feature = "litex-vexriscv", not(feature = "qemu-virt")))]
+pub mod litex_mvus;
 #[cfg(all(feature = "litex-vexriscv", not(feature = "qemu-virt")))]
 pub mod litex_vexriscv;
 #[cfg(all(feature = "litex-vexriscv", not(feature = "qemu-virt")))]
@@ -86,6 +88,22 @@ pub trait Bsp {
 
     /// Arms hart 0's timer wake-up at `ticks` (the boot probe's deadline).
     fn wake_at(ticks: u64);
+
+    /// The board's hardware MVUs, if it has any (called once, by hart 0 at boot). Without them
+    /// the harts run the MVU phase in software.
+    fn mvus() -> Option<Mvus> {
+        None
+    }
+}
+
+/// Hardware MVUs beside the CPU, and the vectors they share with it.
+pub struct Mvus {
+    /// Runs the MVU phase (see `deform_target_core::mvu_backend`).
+    pub backend: &'static dyn deform_target_core::mvu_backend::MvuBackend,
+    /// The search directions and Kp in the MVUs' own memories, lent to the solver as its
+    /// vectors, so that no phase copies them.
+    pub p: &'static mut [deform_target_core::kernel::Lanes],
+    pub kp: &'static mut [deform_target_core::kernel::Sums],
 }
 
 /// A polled serial port, as the protocol loops use it.

@@ -55,7 +55,10 @@ fn model_b_on_6_cubed_matches_f64_to_1e_8_with_refinement() {
     };
     let model = args.build().expect("model builds");
     let plan = SolvePlan {
-        board: Some(BoardChoice::Litex { firmware: None }),
+        board: Some(BoardChoice::Litex {
+            firmware: None,
+            mvus: 0,
+        }),
         tol: 1e-10,
         max_iter: None,
         max_solves: 8,

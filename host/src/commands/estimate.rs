@@ -239,6 +239,7 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
         }),
         (None, TargetKind::Litex) => Some(BoardChoice::Litex {
             firmware: args.firmware.clone(),
+            mvus: 0,
         }),
         (None, TargetKind::Host) => None,
     };

@@ -273,6 +273,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         },
         (None, board::SimulatedBoard::Litex) => BoardChoice::Litex {
             firmware: args.firmware.clone(),
+            mvus: args.layout.mvus.unwrap_or(0),
         },
     };
     let timeouts = args.link.apply(Timeouts {

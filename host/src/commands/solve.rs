@@ -12,6 +12,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
+use deform_shared::protocol::PhaseCounters;
 use deform_shared::word::VALUE_BITS;
 use serde::Serialize;
 
@@ -37,8 +38,9 @@ pub enum TargetKind {
     Host,
     /// Load the `litex-vexriscv` firmware into a LiteX SoC with a VexRiscv CPU, simulated cycle
     /// for cycle by Verilator (`cargo xtask setup` and `cargo xtask firmware --board litex`
-    /// first; the SoC is built once, ~2 min). One MVU; about 0.8 M cycles per second: keep the
-    /// grid small.
+    /// first; each SoC is built once, ~2-4 min). Without --mvus the MVU phase runs on the CPU;
+    /// with --mvus N on the SoC's N hardware MVUs (gateware/, up to 8). About 0.8 M cycles per
+    /// second: keep the grid small.
     Litex,
 }
 
@@ -224,6 +226,10 @@ pub struct EngineStats {
     pub critical_path_cycles: u64,
     /// Hart 0's MVU + SVU `mcycle` over all solves (under QEMU -icount: all harts' sum).
     pub cycles: u64,
+    /// Hart 0's cycles and instructions over the MVU phases, and over the SVU phases, of all
+    /// solves (real cycles on the LiteX SoC, hardware MVU phases included).
+    pub mvu_phases: PhaseCounters,
+    pub svu_phases: PhaseCounters,
 }
 
 /// Everything a solve reports (the JSON `stats` object).
@@ -311,6 +317,7 @@ impl SolveArgs {
             }),
             (None, TargetKind::Litex) => Some(BoardChoice::Litex {
                 firmware: self.firmware.clone(),
+                mvus: self.layout.mvus.unwrap_or(0),
             }),
             (None, TargetKind::Host) => None,
         };
@@ -485,6 +492,8 @@ pub fn solve_model(model: &Model, plan: &SolvePlan) -> anyhow::Result<Solved> {
                 words_fetched_unfused: refined.words_fetched_unfused(),
                 critical_path_cycles: refined.critical_path_cycles(),
                 cycles: refined.cycles(),
+                mvu_phases: refined.phases().0,
+                svu_phases: refined.phases().1,
             });
         }
     }
@@ -563,6 +572,13 @@ fn print_summary(stats: &SolveStats) {
             e.words_fetched,
             e.words_fetched_unfused,
             e.critical_path_cycles
+        );
+        println!(
+            "phases      MVU {} cycles / {} instructions retired, SVU {} cycles / {} instructions (hart 0's counters, all solves)",
+            e.mvu_phases.cycles,
+            e.mvu_phases.instructions,
+            e.svu_phases.cycles,
+            e.svu_phases.instructions
         );
         if let Some(p) = &e.performance {
             println!(

@@ -175,3 +175,4 @@ pub fn dense(system: &TestSystem) -> Vec<Vec<f64>> {
 }
 
 pub mod fuzz;
+pub mod mvu;

@@ -1,0 +1,207 @@
+//! The MVU array of `gateware/` on a LiteX SoC (thesis 4.2.1, Fig. 4-8): the hardware MVU phase.
+//!
+//! - **Found** from the SoC's csr.json at build time (build.rs: the `mvus_*` registers, the
+//!   `mvus` memory region and its layout constants) and from its capacity registers at boot
+//!   (MVUs, rows, words and tiles per MVU), so one firmware build runs on an SoC with any number
+//!   of MVUs, none included (then it runs the software kernel, as on an SoC without the array).
+//! - **Vectors**: p and Kp are windows of the array's memory region, laid out exactly as the
+//!   solver's `[Lanes]` and `[Sums]` (gateware/deform_gateware/mvu_array.py). They are lent to
+//!   the solver as its p and Kp ([`probe`]), so an MVU phase copies no vector. The region is
+//!   uncached I/O on this VexRiscv (bit 31 set), so the CPU never reads a stale Kp.
+//! - **Loading** ([`MvuBackend::load`]): each resident matrix is laid out by
+//!   `deform_target_core::mvu_program` and written through the bus (words, tiles, lengths, row
+//!   owners, shared rows); one that does not fit is refused with a log line, and its phases run
+//!   in software.
+//! - **A phase** ([`MvuBackend::run`]): write the direction count and `start`, poll `busy`, read
+//!   pᵀKp and the OR of |Kp|; Kp is already where the solver reads it.
+
+use core::sync::atomic::{compiler_fence, AtomicBool, AtomicU32, AtomicUsize, Ordering};
+
+use deform_target_core::cg::Matrix;
+use deform_target_core::kernel::{Lanes, Sums};
+use deform_target_core::mvu_backend::{MvuBackend, MvuResults};
+use deform_target_core::mvu_program::{build, Capacity, ProgramError, ProgramSink};
+
+use super::litex_vexriscv::{read32, write32};
+use super::Mvus;
+
+/// The addresses generated from csr.json.
+use super::litex_vexriscv::csr::mvus as regs;
+
+/// The array's state as the firmware knows it.
+pub struct LitexMvus {
+    /// A program is loaded and the Kp window follows its row owners.
+    loaded: AtomicBool,
+    /// The loaded matrix's n.
+    n: AtomicU32,
+}
+
+static ARRAY: LitexMvus = LitexMvus {
+    loaded: AtomicBool::new(false),
+    n: AtomicU32::new(0),
+};
+
+/// Set once the vectors have been handed out.
+static TAKEN: AtomicUsize = AtomicUsize::new(0);
+
+fn p_window() -> usize {
+    regs::BASE + regs::P_OFFSET
+}
+
+fn kp_window() -> usize {
+    regs::BASE + regs::KP_OFFSET
+}
+
+/// The MVU array, if the SoC has one with at least one MVU; the first call only.
+pub fn probe() -> Option<Mvus> {
+    if !regs::PRESENT || read32(regs::COUNT) == 0 {
+        return None;
+    }
+    if crate::atomic::set_flag(&TAKEN, Ordering::AcqRel) {
+        let nodes = read32(regs::NODES) as usize;
+        write32(regs::KP_PLAIN, 1);
+        // SAFETY: the p and Kp windows are `nodes` rows of memory in the array's region
+        // (16-byte `Lanes` and 24-byte `Sums` each, aligned: the region is 16 MiB-aligned),
+        // which nothing else in the firmware addresses; the `TAKEN` flag makes these the only
+        // references to them. Reads return what was last written (the bus does read-modify-
+        // write of whole entries), except that an MVU phase writes Kp — only while `run` waits
+        // for it, with the solver's Kp handed to it and compiler fences on either side, like a
+        // DMA transfer into a buffer.
+        let (p, kp) = unsafe {
+            (
+                core::slice::from_raw_parts_mut(p_window() as *mut Lanes, nodes),
+                core::slice::from_raw_parts_mut(kp_window() as *mut Sums, nodes),
+            )
+        };
+        Some(Mvus {
+            backend: &ARRAY,
+            p,
+            kp,
+        })
+    } else {
+        None
+    }
+}
+
+/// Writes a program into the array's memories through the bus.
+struct Bus;
+
+fn unit(mvu: usize) -> usize {
+    regs::BASE + regs::UNIT_OFFSET + mvu * regs::UNIT_STRIDE
+}
+
+impl ProgramSink for Bus {
+    fn word(&mut self, mvu: usize, index: usize, word: u32, flags: u8) {
+        let at = unit(mvu) + regs::UNIT_WORDS + 8 * index;
+        write32(at, word);
+        write32(at + 4, u32::from(flags));
+    }
+
+    fn tile(&mut self, mvu: usize, index: usize, row_base: u32, col_base: u32, mirrored: bool) {
+        let at = unit(mvu) + regs::UNIT_TILES + 8 * index;
+        write32(at, row_base | (col_base << 16));
+        write32(at + 4, u32::from(mirrored));
+    }
+
+    fn length(&mut self, mvu: usize, words: usize) {
+        write32(unit(mvu) + regs::UNIT_LENGTH, words as u32);
+    }
+
+    fn owner(&mut self, row: usize, owner: u8) {
+        write32(regs::BASE + regs::OWNER_OFFSET + 4 * row, u32::from(owner));
+    }
+
+    fn shared(&mut self, index: usize, row: usize, contributors: u8, owner: u8) {
+        let entry = row as u32 | u32::from(contributors) << 16 | u32::from(owner) << 24;
+        write32(regs::BASE + regs::SHARED_OFFSET + 4 * index, entry);
+    }
+}
+
+/// A value of `words` CSR words, most significant word first (LiteX's CSR ordering).
+fn read_wide(addr: usize, words: usize) -> u128 {
+    (0..words).fold(0u128, |v, k| v << 32 | u128::from(read32(addr + 4 * k)))
+}
+
+fn why(e: &ProgramError) -> &'static str {
+    match e {
+        ProgramError::NoSuchMvu { .. } => "a tile names an MVU the array lacks",
+        ProgramError::DimensionTooLarge { .. } => "n exceeds the array's rows",
+        ProgramError::TooManyWords { .. } => "an MVU's words exceed its word memory",
+        ProgramError::TooManyTiles { .. } => "an MVU's tiles exceed its tile table",
+        ProgramError::RowUncovered { .. } => "a row no tile writes",
+        ProgramError::Inconsistent => "inconsistent tiles",
+    }
+}
+
+impl MvuBackend for LitexMvus {
+    fn mvus(&self) -> usize {
+        read32(regs::COUNT) as usize
+    }
+
+    fn unload(&self) {
+        self.loaded.store(false, Ordering::Relaxed);
+        write32(regs::KP_PLAIN, 1);
+    }
+
+    fn load(&self, a: &Matrix<'_>, scratch: &mut [Sums]) -> bool {
+        self.unload();
+        let capacity = Capacity {
+            mvus: self.mvus(),
+            nodes: read32(regs::NODES) as usize,
+            words: read32(regs::WORDS) as usize,
+            tiles: read32(regs::TILES) as usize,
+        };
+        match build(a.tiles, a.words, a.n, &capacity, scratch, &mut Bus) {
+            Ok(program) => {
+                write32(regs::N, a.n as u32);
+                write32(regs::SHARED_ROWS, program.shared_rows as u32);
+                write32(regs::KP_PLAIN, 0);
+                self.n.store(a.n as u32, Ordering::Relaxed);
+                self.loaded.store(true, Ordering::Relaxed);
+                defmt::info!(
+                    "hardware MVUs hold the matrix: {=usize} words on {=usize} MVU(s), {=usize} shared rows",
+                    a.words.len(),
+                    capacity.mvus,
+                    program.shared_rows
+                );
+                true
+            }
+            Err(e) => {
+                defmt::warn!(
+                    "hardware MVUs cannot hold the matrix ({=str}): the MVU phase runs in software",
+                    why(&e)
+                );
+                false
+            }
+        }
+    }
+
+    fn run(
+        &self,
+        n: usize,
+        p: *const Lanes,
+        kp: *mut Sums,
+        directions: usize,
+    ) -> Option<MvuResults> {
+        let ours = p as usize == p_window() && kp as usize == kp_window();
+        if !self.loaded.load(Ordering::Relaxed)
+            || self.n.load(Ordering::Relaxed) as usize != n
+            || !ours
+            || !(1..=3).contains(&directions)
+        {
+            return None;
+        }
+        write32(regs::DIRECTIONS, directions as u32);
+        // Every store to p before the start, every load of Kp after the end.
+        compiler_fence(Ordering::SeqCst);
+        write32(regs::START, 1);
+        while read32(regs::BUSY) != 0 {}
+        compiler_fence(Ordering::SeqCst);
+        let mut results = MvuResults::default();
+        for d in 0..directions {
+            results.p_kp[d] = read_wide(regs::P_KP[d], 4) as i128;
+            results.kp_or[d] = read_wide(regs::KP_OR[d], 2) as u64;
+        }
+        Some(results)
+    }
+}

@@ -1,0 +1,96 @@
+"""One MVU alone, synthesised for an ECP5 with open tools (YoWASP's Yosys and nextpnr-ecp5 from
+PyPI), out of context: does it fit an LFE5U-85F and close timing at the thesis's 133 MHz?
+
+    python -m deform_gateware.synth --out DIR [--freq 133] [--speed 6] [--seed 1]
+
+writes DIR/mvu.v (Migen's Verilog of ``mvu.Mvu``), DIR/mvu.json (Yosys), DIR/report.json
+(nextpnr's timing and utilisation) and prints a summary as one JSON object on stdout: LUT4s,
+flip-flops, MULT18X18D and DP16KD used and available, Fmax, and whether it fits and meets the
+frequency. Every port of the unit is a port of the design (``--out-of-context``: no I/O pads),
+so nothing is optimised away that the MVU array would use.
+
+The tools run in YoWASP's sandbox, where /tmp is private: every path handed to them is relative
+to DIR, which must not be under /tmp.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+
+from migen.fhdl.verilog import convert
+
+from deform_gateware.mvu import Mvu
+
+# The LFE5U-85F in the ULX3S's package.
+DEVICE = ["--85k", "--package", "CABGA381"]
+# The MVU's capacity in the ECP5 builds (bitstream.py uses the same for up to four MVUs).
+WORDS, TILES, NODES = 4096, 256, 1024
+
+
+def tool(name):
+    """A YoWASP tool from the Python environment running this script."""
+    return os.path.join(os.path.dirname(sys.executable), "yowasp-" + name)
+
+
+def unit_ports(unit):
+    ports = {unit.start, unit.last_row, unit.directions, unit.length, unit.busy, unit.stalls}
+    ports |= set(unit.p_kp_low) | set(unit.p_kp_high) | set(unit.kp_or)
+    for port in (unit.bus_word, unit.bus_tile, unit.bus_p, unit.bus_kp):
+        ports |= {port.adr, port.dat_r, port.dat_w, port.we}
+    return ports
+
+
+def run(cmd, cwd, log):
+    with open(os.path.join(cwd, log), "w") as f:
+        result = subprocess.run(cmd, cwd=cwd, stdout=f, stderr=subprocess.STDOUT)
+    if result.returncode != 0:
+        raise SystemExit("%s failed (%d); see %s" % (cmd[0], result.returncode,
+                                                      os.path.join(cwd, log)))
+
+
+def summary(report, freq):
+    used = report["utilization"]
+    fmax = min(v["achieved"] for v in report["fmax"].values())
+
+    def count(cell):
+        u = used.get(cell, {"used": 0, "available": 0})
+        return {"used": u["used"], "available": u["available"]}
+
+    cells = {name: count(cell) for name, cell in
+             [("lut4", "TRELLIS_COMB"), ("ff", "TRELLIS_FF"), ("mult18x18d", "MULT18X18D"),
+              ("dp16kd", "DP16KD")]}
+    fits = all(c["used"] <= c["available"] for c in cells.values())
+    return dict(cells, fmax_mhz=round(fmax, 1), target_mhz=freq, fits=fits,
+                meets_timing=fmax >= freq)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--freq", type=float, default=133.0)
+    parser.add_argument("--speed", default="6")
+    parser.add_argument("--seed", default="1")
+    args = parser.parse_args()
+    out = os.path.abspath(args.out)
+    if out.startswith("/tmp/"):
+        raise SystemExit("--out must not be under /tmp (YoWASP's sandbox has its own /tmp)")
+    os.makedirs(out, exist_ok=True)
+    unit = Mvu(WORDS, TILES, NODES)
+    convert(unit, ios=unit_ports(unit), name="mvu").write(os.path.join(out, "mvu.v"))
+    run([tool("yosys"), "-q", "-p", "read_verilog mvu.v; synth_ecp5 -top mvu -json mvu.json; "
+         "tee -o yosys_stat.txt stat"], out, "yosys.log")
+    run([tool("nextpnr-ecp5")] + DEVICE + [
+        "--speed", args.speed, "--freq", str(args.freq), "--seed", args.seed,
+        "--json", "mvu.json", "--out-of-context", "--timing-allow-fail",
+        "--report", "report.json"], out, "nextpnr.log")
+    with open(os.path.join(out, "report.json")) as f:
+        result = summary(json.load(f), args.freq)
+    result.update(words=WORDS, tiles=TILES, nodes=NODES, speed=args.speed, seed=args.seed)
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
