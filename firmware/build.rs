@@ -146,6 +146,8 @@ const MVUS_REGISTERS: &[(&str, &str)] = &[
     ("mvus_kp_plain", "KP_PLAIN"),
     ("mvus_start", "START"),
     ("mvus_busy", "BUSY"),
+    ("mvus_cycles", "CYCLES"),
+    ("mvus_stalls", "STALLS"),
 ];
 
 /// The MVU array's memory layout (csr.json constants `mvus_*_offset`, gateware/mvu_array.py).

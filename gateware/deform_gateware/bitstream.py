@@ -75,7 +75,10 @@ def main():
     if out.startswith("/tmp/"):
         raise SystemExit("--out must not be under /tmp (YoWASP's sandbox has its own /tmp)")
     os.makedirs(out, exist_ok=True)
-    os.environ["PATH"] = wrappers(out) + os.pathsep + os.environ.get("PATH", "")
+    # The tools' wrappers first, then this environment's Python (the BIOS build runs
+    # `python3 -m litex...`).
+    os.environ["PATH"] = os.pathsep.join(
+        [wrappers(out), os.path.dirname(sys.executable), os.environ.get("PATH", "")])
     soc = ulx3s_soc(args.mvus)
     builder = Builder(soc, output_dir=out, csr_json=os.path.join(out, "csr.json"))
     builder.build(seed=args.seed)

@@ -7,36 +7,44 @@ What it computes is ``target-core``'s portable kernel (``kernel::portable_row``,
 
 Memories (all loaded between phases by the MVU array's bus; the unit only reads them, except Kp):
 
-- ``words``: 36-bit entries, the instruction words of its tiles back to back and the write-back
-  flags of each ER word (``word.FIRST_OWN`` ...);
-- ``tiles``: per tile ``row_base``, ``col_base`` and the mirrored bit; EM moves to the next one;
-- ``p_col``: p (three 32-bit lanes per node), read twice per clock: at column ``col_base + c``
-  and, for a mirrored tile, at ``n - 1 - col_base - c``;
-- ``p_row``: another copy of p, read at the row of each write-back (for pᵀKp);
-- ``kp``: this unit's Kp, three 64-bit sums per row.
+- ``words`` (block RAM): 36-bit entries, the instruction words of its tiles back to back and
+  the write-back flags of each ER word (``word.FIRST_OWN`` ...);
+- ``tiles`` (distributed RAM, read in the same clock): per tile ``row_base``, ``col_base``,
+  ``n - 1 - col_base`` and the mirrored bit; EM moves to the next one (the table's read
+  address is a register, ``next_tile``: nothing stands between it and the table);
+- ``p_col`` (block RAM): p (three 32-bit lanes per node), read twice per clock: at column
+  ``col_base + c`` and, for a mirrored tile, at ``n - 1 - col_base - c``;
+- ``p_row`` (block RAM): another copy of p, read at the row of each write-back (for pᵀKp);
+- ``kp`` (block RAM): this unit's Kp, three 64-bit sums per row.
+
+Every block RAM read answers two clocks after its address (``bram.LATENCY``: the block's output
+register is on, which is what lets the unit run at the thesis's 133 MHz on an ECP5).
 
 The word pipeline (no stage ever stalls; the fetch waits instead):
 
-    F0 fetch   the word memory at ``wa``
-    F1 decode  EM/ER/column/value/flags; the p addresses from the tile context
-    F2         p read; the multipliers take value x p for 3 lanes, own and mirrored
-    M ...      the multipliers' pipeline (``Multiplier.latency`` clocks)
-    A          accumulate, 64 bits per lane; an ER word's sums are complete after it
-    E          an ER word's sums (and rows, flags) go into the write-back queue
+    F0  fetch the word memory at ``wa``
+    F1  (block RAM)
+    F2  decode EM/ER/column/value/flags; the p addresses from the tile context
+    F3  (block RAM)
+    F4  p is there: the multipliers take value x p for 3 lanes, own and mirrored
+    M.. the multipliers' pipeline (``Multiplier.latency`` clocks)
+    A   accumulate, 64 bits per lane; an ER word's sums are complete after it
+    E   an ER word's sums (and rows, flags) go into the write-back queue
 
 The write-back takes queue entries one part at a time (the own row, then the mirror row of a
-mirrored tile), two clocks each: read Kp and p at the row, then store (first write-back of the
-row in this phase) or add, OR the magnitudes into max |Kp| if this was the row's last
-write-back, and hand p[row] and the sums to the pᵀKp sequencer, which multiplies each lane's
-32-bit p by the sum's low and high halves in turn (2 clocks per direction) and accumulates
-Σ p·low and Σ p·high; the array joins them into pᵀKp. The fetch stops while the queue could
-overflow; ``stalls`` counts those clocks.
+mirrored tile), three clocks each: read Kp and p at the row, wait, then store (the first
+write-back of the row in this phase) or add, OR the magnitudes into max |Kp| if this was the
+row's last write-back, and hand p[row] and the sums to the pᵀKp sequencer, which multiplies each
+lane's 32-bit p by the sum's low and high halves in turn (2 clocks per direction) and
+accumulates Σ p·low and Σ p·high; the array joins them into pᵀKp. The fetch stops while the
+queue could overflow; ``stalls`` counts those clocks.
 """
 
-from migen import (Module, Signal, Memory, Array, Cat, If, Case, FSM, NextState, NextValue,
+from migen import (Module, Signal, Memory, Array, Cat, If, FSM, NextState, NextValue,
                    Replicate)
 from migen.genlib.fifo import SyncFIFO
 
+from deform_gateware.bram import Bram, LATENCY
 from deform_gateware.multiplier import Multiplier
 from deform_gateware.word import (InstructionWord, ENTRY_BITS, VALUE_BITS, FIRST_OWN, LAST_OWN,
                                   FIRST_MIRROR, LAST_MIRROR)
@@ -67,19 +75,21 @@ def magnitude(v):
 
 
 class BusPort:
-    """The side of a memory port the MVU array drives while the unit is idle."""
+    """The side of a memory the MVU array drives while the unit is idle (reads answer
+    ``bram.LATENCY`` clocks after the address, the tile table's in the same clock)."""
 
-    def __init__(self, adr_bits, width, write=False):
+    def __init__(self, adr_bits, width):
         self.adr = Signal(adr_bits)
         self.dat_r = Signal(width)
-        self.dat_w = Signal(width) if write else None
-        self.we = Signal() if write else None
+        self.dat_w = Signal(width)
+        self.we = Signal()
 
 
 class Mvu(Module):
-    """One MVU: ``words`` word entries, ``tiles`` tiles, p and Kp for ``nodes`` rows."""
+    """One MVU: ``words`` word entries, ``tiles`` tiles, p and Kp for ``nodes`` rows;
+    ``primitive``: ECP5 block RAM primitives (see ``bram``)."""
 
-    def __init__(self, words, tiles, nodes):
+    def __init__(self, words, tiles, nodes, primitive=False):
         self.words_depth, self.tiles_depth, self.nodes_depth = words, tiles, nodes
         nb = bits_for(nodes)
         self.node_bits = nb
@@ -97,93 +107,96 @@ class Mvu(Module):
         self.kp_or = [Signal(SUM_BITS) for _ in range(LANES)]
 
         # Memories, and the ports the array uses while the unit is idle.
-        self.specials.word_mem = word_mem = Memory(ENTRY_BITS, words)
-        self.specials.tile_mem = tile_mem = Memory(2 * nb + 1, tiles)
-        self.specials.p_col = p_col = Memory(LANES * P_BITS, nodes)
-        self.specials.p_row = p_row = Memory(LANES * P_BITS, nodes)
-        self.specials.kp_mem = kp_mem = Memory(LANES * SUM_BITS, nodes)
-        self.bus_word = BusPort(bits_for(words), ENTRY_BITS, write=True)
-        self.bus_tile = BusPort(bits_for(tiles), 2 * nb + 1, write=True)
-        self.bus_p = BusPort(nb, LANES * P_BITS, write=True)   # writes both copies, reads p_col
-        self.bus_kp = BusPort(nb, LANES * SUM_BITS, write=True)
-
-        word_rd = word_mem.get_port()
-        word_wr = word_mem.get_port(write_capable=True)
-        tile_rd = tile_mem.get_port()
+        self.submodules.words = Bram(ENTRY_BITS, words, primitive=primitive)
+        self.submodules.p_col = Bram(LANES * P_BITS, nodes, read_ports=2, primitive=primitive)
+        self.submodules.p_row = Bram(LANES * P_BITS, nodes, primitive=primitive)
+        self.submodules.kp = Bram(LANES * SUM_BITS, nodes, primitive=primitive)
+        self.specials.tile_mem = tile_mem = Memory(3 * nb + 1, tiles)
+        tile_rd = tile_mem.get_port(async_read=True)
         tile_wr = tile_mem.get_port(write_capable=True)
-        p_own = p_col.get_port(write_capable=True)
-        p_mirror = p_col.get_port()
-        p_at_row = p_row.get_port()
-        p_row_wr = p_row.get_port(write_capable=True)
-        kp_rd = kp_mem.get_port()
-        kp_wr = kp_mem.get_port(write_capable=True)
-        self.specials += [word_rd, word_wr, tile_rd, tile_wr, p_own, p_mirror, p_at_row,
-                          p_row_wr, kp_rd, kp_wr]
+        self.specials += tile_rd, tile_wr
+        self.bus_word = BusPort(bits_for(words), ENTRY_BITS)
+        self.bus_tile = BusPort(bits_for(tiles), 3 * nb + 1)   # write only
+        self.bus_p = BusPort(nb, LANES * P_BITS)   # writes both copies, reads p_col
+        self.bus_kp = BusPort(nb, LANES * SUM_BITS)
 
-        # The array's ports: writes only while idle; reads share the unit's read ports.
         idle = ~self.busy
         self.comb += [
-            word_wr.adr.eq(self.bus_word.adr), word_wr.dat_w.eq(self.bus_word.dat_w),
-            word_wr.we.eq(self.bus_word.we & idle), self.bus_word.dat_r.eq(word_rd.dat_r),
+            self.words.adr.eq(self.bus_word.adr), self.words.dat_w.eq(self.bus_word.dat_w),
+            self.words.we.eq(self.bus_word.we & idle),
+            self.bus_word.dat_r.eq(self.words.read[0].dat),
             tile_wr.adr.eq(self.bus_tile.adr), tile_wr.dat_w.eq(self.bus_tile.dat_w),
-            tile_wr.we.eq(self.bus_tile.we & idle), self.bus_tile.dat_r.eq(tile_rd.dat_r),
-            p_own.dat_w.eq(self.bus_p.dat_w), p_own.we.eq(self.bus_p.we & idle),
-            p_row_wr.adr.eq(self.bus_p.adr), p_row_wr.dat_w.eq(self.bus_p.dat_w),
-            p_row_wr.we.eq(self.bus_p.we & idle), self.bus_p.dat_r.eq(p_mirror.dat_r),
-            self.bus_kp.dat_r.eq(kp_rd.dat_r),
+            tile_wr.we.eq(self.bus_tile.we & idle),
+            self.p_col.adr.eq(self.bus_p.adr), self.p_col.dat_w.eq(self.bus_p.dat_w),
+            self.p_col.we.eq(self.bus_p.we & idle),
+            self.p_row.adr.eq(self.bus_p.adr), self.p_row.dat_w.eq(self.bus_p.dat_w),
+            self.p_row.we.eq(self.bus_p.we & idle),
+            self.bus_p.dat_r.eq(self.p_col.read[1].dat),
+            self.bus_kp.dat_r.eq(self.kp.read[0].dat),
         ]
-
-        self._pipeline(word_rd, tile_rd, p_own, p_mirror, idle)
-        self._write_back(p_at_row, kp_rd, kp_wr, idle)
+        self._pipeline(tile_rd, idle)
+        self._write_back(idle)
 
     # The word pipeline -------------------------------------------------------------------------
 
-    def _pipeline(self, word_rd, tile_rd, p_own, p_mirror, idle):
+    def _pipeline(self, tile_rd, idle):
         nb = self.node_bits
         wa = Signal(bits_for(self.words_depth + 1))
-        tile = Signal(bits_for(self.tiles_depth + 1))
+        next_tile = Signal(bits_for(self.tiles_depth + 1))   # the header `tile_rd` shows
         issue = Signal()
         self.queue = queue = SyncFIFO(self._entry_width(), QUEUE_DEPTH)
         self.submodules += queue
 
-        # F1: decode, in the tile context.
+        # F2: decode, in the tile context; `tile_rd` shows the next tile's header.
         decode = InstructionWord()
         self.submodules += decode
-        f1_valid = Signal()
+        fetched = [Signal() for _ in range(LATENCY)]   # F1, F2 valid
+        f2_valid = fetched[-1]
         row = Signal(nb)
         col_base = Signal(nb)
         mirror_col_base = Signal(nb)
         mirrored = Signal()
         next_row_base = Signal(nb)
         next_col_base = Signal(nb)
+        next_mirror_col_base = Signal(nb)
         next_mirrored = Signal()
         advance = Signal()
         self.comb += [
-            decode.entry.eq(word_rd.dat_r),
-            Cat(next_row_base, next_col_base, next_mirrored).eq(tile_rd.dat_r),
-            advance.eq(f1_valid & decode.em),
+            decode.entry.eq(self.words.read[0].dat),
+            tile_rd.adr.eq(next_tile),
+            Cat(next_row_base, next_col_base, next_mirror_col_base, next_mirrored).eq(
+                tile_rd.dat_r),
+            advance.eq(f2_valid & decode.em),
         ]
 
-        # F2 and the multipliers.
-        f2 = dict(valid=Signal(), er=Signal(), flags=Signal(4), row=Signal(nb),
-                  mirror_row=Signal(nb), mirrored=Signal(), value=Signal((VALUE_BITS, True)))
+        # F3/F4 (p from the block RAM) and the multipliers.
+        control_bits = 1 + 1 + 4 + 2 * nb + 1
+        f3 = Signal(control_bits)
+        f3_value = Signal((VALUE_BITS, True))
+        f4 = Signal(control_bits)
+        f4_value = Signal((VALUE_BITS, True))
+        mirror_row = Signal(nb)
+        self.comb += mirror_row.eq(self.last_row - row)
+        self.sync += [
+            f3.eq(Cat(f2_valid, decode.er, decode.flags, row, mirror_row, mirrored)),
+            f3_value.eq(decode.value),
+            f4.eq(f3), f4_value.eq(f3_value),
+        ]
         own_mul = [Multiplier(VALUE_BITS, P_BITS) for _ in range(LANES)]
         mirror_mul = [Multiplier(VALUE_BITS, P_BITS) for _ in range(LANES)]
         self.submodules += own_mul + mirror_mul
         latency = own_mul[0].latency
-        p_own_lanes, fill_own = lanes(p_own.dat_r, P_BITS)
-        p_mirror_lanes, fill_mirror = lanes(p_mirror.dat_r, P_BITS)
+        p_own_lanes, fill_own = lanes(self.p_col.read[0].dat, P_BITS)
+        p_mirror_lanes, fill_mirror = lanes(self.p_col.read[1].dat, P_BITS)
         self.comb += fill_own + fill_mirror
         for lane in range(LANES):
             self.comb += [
-                own_mul[lane].a.eq(f2["value"]), own_mul[lane].b.eq(p_own_lanes[lane]),
-                mirror_mul[lane].a.eq(f2["value"]), mirror_mul[lane].b.eq(p_mirror_lanes[lane]),
+                own_mul[lane].a.eq(f4_value), own_mul[lane].b.eq(p_own_lanes[lane]),
+                mirror_mul[lane].a.eq(f4_value), mirror_mul[lane].b.eq(p_mirror_lanes[lane]),
             ]
         # The control of each word, delayed alongside the multipliers.
-        control = Cat(f2["valid"], f2["er"], f2["flags"], f2["row"], f2["mirror_row"],
-                      f2["mirrored"])
-        delayed = [Signal(len(control)) for _ in range(latency)]
-        self.sync += delayed[0].eq(control)
+        delayed = [Signal(control_bits) for _ in range(latency)]
+        self.sync += delayed[0].eq(f4)
         for k in range(1, latency):
             self.sync += delayed[k].eq(delayed[k - 1])
         a = dict(valid=Signal(), er=Signal(), flags=Signal(4), row=Signal(nb),
@@ -213,28 +226,25 @@ class Mvu(Module):
         ]
 
         # F0: fetch while the queue has room for every ER word that may be in flight.
-        in_flight = 3 + latency + 1
+        in_flight = LATENCY + 2 + latency + 2
         room = Signal()
         self.comb += room.eq(queue.level < QUEUE_DEPTH - in_flight)
         fsm = FSM(reset_state="IDLE")
         self.submodules.fsm = fsm
         fsm.act("IDLE",
-            tile_rd.adr.eq(self.bus_tile.adr),
-            word_rd.adr.eq(self.bus_word.adr),
+            self.words.read[0].adr.eq(self.bus_word.adr),
+            NextValue(next_tile, 0),
             If(self.start & (self.length != 0),
                 NextValue(fresh, 1), NextValue(self.stalls, 0),
                 NextState("FIRST_TILE")))
-        fsm.act("FIRST_TILE", tile_rd.adr.eq(0), NextState("SECOND_TILE"))
-        fsm.act("SECOND_TILE",
-            tile_rd.adr.eq(1),
-            NextValue(tile, 0), NextValue(wa, 0),
+        fsm.act("FIRST_TILE",
+            NextValue(next_tile, 1), NextValue(wa, 0),
             NextValue(row, next_row_base), NextValue(col_base, next_col_base),
-            NextValue(mirror_col_base, self.last_row - next_col_base),
+            NextValue(mirror_col_base, next_mirror_col_base),
             NextValue(mirrored, next_mirrored),
             NextState("RUN"))
         fsm.act("RUN",
-            tile_rd.adr.eq(tile + 1 + advance),
-            word_rd.adr.eq(wa),
+            self.words.read[0].adr.eq(wa),
             issue.eq((wa != self.length) & room),
             If(issue, NextValue(wa, wa + 1)),
             If((wa != self.length) & ~room, NextValue(self.stalls, self.stalls + 1)),
@@ -243,33 +253,28 @@ class Mvu(Module):
         fsm.act("DRAIN", If(drained, NextState("IDLE")))
         self.comb += self.busy.eq(~fsm.ongoing("IDLE"))
 
-        # F1 -> F2 registers and the tile context.
+        # F0 -> F2 valid bits, and the tile context at F2.
         self.sync += [
-            f1_valid.eq(issue),
-            f2["valid"].eq(f1_valid),
-            f2["er"].eq(decode.er),
-            f2["flags"].eq(decode.flags),
-            f2["row"].eq(row),
-            f2["mirror_row"].eq(self.last_row - row),
-            f2["mirrored"].eq(mirrored),
-            f2["value"].eq(decode.value),
+            fetched[0].eq(issue),
+            *[fetched[k].eq(fetched[k - 1]) for k in range(1, LATENCY)],
             If(advance,
-                tile.eq(tile + 1),
+                next_tile.eq(next_tile + 1),
                 row.eq(next_row_base), col_base.eq(next_col_base),
-                mirror_col_base.eq(self.last_row - next_col_base),
+                mirror_col_base.eq(next_mirror_col_base),
                 mirrored.eq(next_mirrored),
-            ).Elif(f1_valid & decode.er,
+            ).Elif(f2_valid & decode.er,
                 row.eq(row + 1)),
         ]
-        # The p reads of F1: p[col_base + c], p[n - 1 - col_base - c]; the array's while idle.
+        # The p reads of F2: p[col_base + c], p[n - 1 - col_base - c]; the array's while idle.
         self.comb += [
             If(idle,
-                p_own.adr.eq(self.bus_p.adr), p_mirror.adr.eq(self.bus_p.adr),
+                self.p_col.read[0].adr.eq(self.bus_p.adr),
+                self.p_col.read[1].adr.eq(self.bus_p.adr),
             ).Else(
-                p_own.adr.eq(col_base + decode.column),
-                p_mirror.adr.eq(mirror_col_base - decode.column)),
+                self.p_col.read[0].adr.eq(col_base + decode.column),
+                self.p_col.read[1].adr.eq(mirror_col_base - decode.column)),
         ]
-        self._drained_parts = (drained, [f1_valid, f2["valid"], a["valid"], e["valid"]]
+        self._drained_parts = (drained, fetched + [f3[0], f4[0], a["valid"], e["valid"]]
                                + [d[0] for d in delayed])
 
     def _entry_width(self):
@@ -278,18 +283,14 @@ class Mvu(Module):
 
     # The write-back and pᵀKp ---------------------------------------------------------------------
 
-    def _write_back(self, p_at_row, kp_rd, kp_wr, idle):
+    def _write_back(self, idle):
         nb = self.node_bits
         queue = self.queue
         drained, in_pipe = self._drained_parts
+        kp_rd = self.kp.read[0]
+        p_at_row = self.p_row.read[0]
 
-        # The entry being written back.
-        row = Signal(nb)
-        mirror_row = Signal(nb)
-        mirrored = Signal()
-        flags = Signal(4)
-        own = [Signal((SUM_BITS, True)) for _ in range(LANES)]
-        mirror = [Signal((SUM_BITS, True)) for _ in range(LANES)]
+        # The queue's head, and the entry whose mirror part is still to go.
         d_row = Signal(nb)
         d_mirror_row = Signal(nb)
         d_mirrored = Signal()
@@ -298,14 +299,19 @@ class Mvu(Module):
         d_mirror = [Signal((SUM_BITS, True)) for _ in range(LANES)]
         self.comb += Cat(d_row, d_mirror_row, d_mirrored, d_flags, *d_own, *d_mirror).eq(
             queue.dout)
-
-        # The part in its update clock: which row, sums, first/last.
-        part_row = Signal(nb)
-        part_sums = [Signal((SUM_BITS, True)) for _ in range(LANES)]
-        part_first = Signal()
-        part_last = Signal()
-        updating = Signal()
+        mirror_row = Signal(nb)
+        flags = Signal(4)
+        mirror = [Signal((SUM_BITS, True)) for _ in range(LANES)]
         mirror_pending = Signal()
+
+        # A part (a row, its sums, first/last) through the stages S (select: read Kp and p at
+        # its row), W (the block RAMs), U (update: store or add) and R (write Kp, OR the
+        # magnitudes of a finished row). Parts follow each other as closely as every clock,
+        # except that a part may not read a row that a part ahead of it has yet to write.
+        def part():
+            return dict(valid=Signal(), row=Signal(nb), first=Signal(), last=Signal(),
+                        sums=[Signal((SUM_BITS, True)) for _ in range(LANES)])
+        w, u, r = part(), part(), part()
 
         # The pᵀKp sequencer: a job is p[row] (3 lanes) and the part's sums; it feeds the
         # multiplier one product per clock, lane by lane, low half then high half.
@@ -314,62 +320,78 @@ class Mvu(Module):
         left = Signal(3)      # products of the job still to feed
         step = Signal(3)      # 2·lane + half of the next one
         seq_busy = Signal()
-        free_next = Signal()  # the sequencer can take a job in the next clock
-        self.comb += [seq_busy.eq(left != 0), free_next.eq(left <= 1)]
+        # A part selected now reaches U (and hands over its job) LATENCY clocks later, when
+        # the sequencer must be feeding its last product at the latest; no part may be in W
+        # then either (its job would be due at the same time).
+        free_soon = Signal()
+        # What `left` will have counted down from: a job being handed over now (a part in U)
+        # starts at 2·directions.
+        due = Signal(3)
+        self.comb += [
+            seq_busy.eq(left != 0),
+            If(u["valid"], due.eq(Cat(0, self.directions))).Else(due.eq(left)),
+            free_soon.eq(due <= LATENCY + 1),
+        ]
 
-        # Select: read Kp and p at the next part's row (the pending mirror part first).
         select_row = Signal(nb)
         take_own = Signal()
         take_mirror = Signal()
+        clear = Signal()
         self.comb += [
-            take_mirror.eq(mirror_pending & ~updating & free_next),
-            take_own.eq(~mirror_pending & ~updating & queue.readable & free_next),
-            If(take_mirror, select_row.eq(mirror_row)).Else(select_row.eq(d_row)),
+            If(mirror_pending, select_row.eq(mirror_row)).Else(select_row.eq(d_row)),
+            clear.eq(free_soon & ~w["valid"]
+                     & ~(u["valid"] & (u["row"] == select_row))
+                     & ~(r["valid"] & (r["row"] == select_row))),
+            take_mirror.eq(mirror_pending & clear),
+            take_own.eq(~mirror_pending & queue.readable & clear),
             queue.re.eq(take_own),
         ]
         self.comb += If(idle, kp_rd.adr.eq(self.bus_kp.adr)).Else(kp_rd.adr.eq(select_row))
         self.comb += p_at_row.adr.eq(select_row)
         self.sync += [
-            updating.eq(take_own | take_mirror),
+            w["valid"].eq(take_own | take_mirror),
+            w["row"].eq(select_row),
             If(take_own,
-                row.eq(d_row), mirror_row.eq(d_mirror_row), mirrored.eq(d_mirrored),
-                flags.eq(d_flags),
-                *[o.eq(d) for o, d in zip(own, d_own)],
+                mirror_row.eq(d_mirror_row), flags.eq(d_flags),
                 *[m.eq(d) for m, d in zip(mirror, d_mirror)],
                 mirror_pending.eq(d_mirrored),
-                part_row.eq(d_row),
-                part_first.eq(d_flags[FIRST_OWN]), part_last.eq(d_flags[LAST_OWN]),
-                *[s.eq(d) for s, d in zip(part_sums, d_own)],
+                w["first"].eq(d_flags[FIRST_OWN]), w["last"].eq(d_flags[LAST_OWN]),
+                *[x.eq(d) for x, d in zip(w["sums"], d_own)],
             ),
             If(take_mirror,
                 mirror_pending.eq(0),
-                part_row.eq(mirror_row),
-                part_first.eq(flags[FIRST_MIRROR]), part_last.eq(flags[LAST_MIRROR]),
-                *[s.eq(m) for s, m in zip(part_sums, mirror)],
+                w["first"].eq(flags[FIRST_MIRROR]), w["last"].eq(flags[LAST_MIRROR]),
+                *[x.eq(m) for x, m in zip(w["sums"], mirror)],
             ),
+            u["valid"].eq(w["valid"]), u["row"].eq(w["row"]), u["first"].eq(w["first"]),
+            u["last"].eq(w["last"]), *[x.eq(y) for x, y in zip(u["sums"], w["sums"])],
         ]
 
-        # Update: store or add, OR the magnitudes of a finished row, hand over to pᵀKp.
-        old, fill_old = lanes(kp_rd.dat_r, SUM_BITS)
-        p_lanes, fill_p = lanes(p_at_row.dat_r, P_BITS)
-        new = [Signal((SUM_BITS, True)) for _ in range(LANES)]
+        # U: store or add (Kp and p at the row have arrived), and hand over to pᵀKp.
+        old, fill_old = lanes(kp_rd.dat, SUM_BITS)
+        p_lanes, fill_p = lanes(p_at_row.dat, P_BITS)
         self.comb += fill_old + fill_p
-        for lane in range(LANES):
-            self.comb += If(part_first, new[lane].eq(part_sums[lane])).Else(
-                new[lane].eq(old[lane] + part_sums[lane]))
+        self.sync += [
+            r["valid"].eq(u["valid"]), r["row"].eq(u["row"]), r["last"].eq(u["last"]),
+            *[If(u["first"], x.eq(s)).Else(x.eq(o + s))
+              for x, o, s in zip(r["sums"], old, u["sums"])],
+        ]
+        # R: write, and OR the magnitudes of a finished row.
         self.comb += If(idle,
-            kp_wr.adr.eq(self.bus_kp.adr), kp_wr.dat_w.eq(self.bus_kp.dat_w),
-            kp_wr.we.eq(self.bus_kp.we),
+            self.kp.adr.eq(self.bus_kp.adr), self.kp.dat_w.eq(self.bus_kp.dat_w),
+            self.kp.we.eq(self.bus_kp.we),
         ).Else(
-            kp_wr.adr.eq(part_row), kp_wr.dat_w.eq(Cat(*new)), kp_wr.we.eq(updating))
+            self.kp.adr.eq(r["row"]), self.kp.dat_w.eq(Cat(*r["sums"])),
+            self.kp.we.eq(r["valid"]))
         self.sync += If(self.start & idle, *[o.eq(0) for o in self.kp_or]).Elif(
-            updating & part_last,
-            *[o.eq(o | magnitude(n)) for o, n in zip(self.kp_or, new)])
-        self.sync += If(updating,
+            r["valid"] & r["last"],
+            *[o.eq(o | magnitude(n)) for o, n in zip(self.kp_or, r["sums"])])
+        self.sync += If(u["valid"],
             step.eq(0), left.eq(Cat(0, self.directions)),
             *[j.eq(p) for j, p in zip(job_p, p_lanes)],
-            *[j.eq(s) for j, s in zip(job_sums, part_sums)],
+            *[j.eq(x) for j, x in zip(job_sums, u["sums"])],
         ).Elif(seq_busy, step.eq(step + 1), left.eq(left - 1))
+        stages = [w["valid"], u["valid"], r["valid"]]
 
         # The products p · (low or high half of a sum), accumulated by half: a zero-extended
         # low half and a sign-extended high half, so Σ p·sum = Σ p·low + 2^32 · Σ p·high.
@@ -403,7 +425,7 @@ class Mvu(Module):
 
         # Done once nothing is in flight anywhere.
         self.comb += drained.eq(
-            (Cat(*in_pipe) == 0) & ~queue.readable & ~updating & ~mirror_pending
+            (Cat(*in_pipe, *stages) == 0) & ~queue.readable & ~mirror_pending
             & ~seq_busy & ~mul.valid & ~self._mul_in_flight(mul))
 
     def _mul_in_flight(self, mul):

@@ -13,8 +13,9 @@ offsets (also written into csr.json as constants, ``MVUS_*_OFFSET``, for the fir
   one word per entry (row in bits 0..15, contributor mask in 16..23, owner in 24..26).
 - ``UNIT_OFFSET + m * UNIT_STRIDE``: MVU m: its word memory (8 bytes per entry: the word, then
   the flags in bits 0..3), its tile table at ``UNIT_TILES`` (8 bytes per tile: row_base in
-  bits 0..15 and col_base in 16..31, then the mirrored bit), and its word count at
-  ``UNIT_LENGTH``.
+  bits 0..15 and col_base in 16..31, then n - 1 - col_base in bits 0..15 and the mirrored bit
+  in bit 31; written first word first, the entry is stored when its second word arrives, and
+  reads as 0), and its word count at ``UNIT_LENGTH``.
 
 All of this layout is ``target-core/src/mvu_program.rs``'s, and p and Kp are exactly the
 solver's ``p: &mut [Lanes]`` and ``kp: &mut [Sums]``: the firmware lends these windows to the
@@ -72,7 +73,7 @@ class Tables:
 class MvuArray(Module, AutoCSR):
     """``mvus`` MVUs (0 to 8), each with ``words`` words, ``tiles`` tiles, ``nodes`` rows."""
 
-    def __init__(self, mvus, words=8192, tiles=256, nodes=1024):
+    def __init__(self, mvus, words=8192, tiles=256, nodes=1024, primitive=False):
         assert 0 <= mvus <= MAX_UNITS and nodes <= 1 << 16 and words <= 1 << 16
         self.mvus, self.words_depth, self.tiles_depth, self.nodes_depth = mvus, words, tiles, nodes
         self.bus = wishbone.Interface(data_width=32, adr_width=30)
@@ -100,7 +101,7 @@ class MvuArray(Module, AutoCSR):
             setattr(self, "p_kp%d" % d, self.p_kp[d])
             setattr(self, "kp_or%d" % d, self.kp_or[d])
 
-        self.units = [Mvu(words, tiles, nodes) for _ in range(mvus)]
+        self.units = [Mvu(words, tiles, nodes, primitive=primitive) for _ in range(mvus)]
         for k, unit in enumerate(self.units):
             setattr(self.submodules, "mvu%d" % k, unit)
         self.lengths = [Signal(bits_for(words + 1)) for _ in range(mvus)]
@@ -184,8 +185,10 @@ class MvuArray(Module, AutoCSR):
             *[NextValue(s, 0) for s in self.reduce_sum],
             NextValue(m, 0),
             NextState("REDUCE_WAIT"))
-        # Kp read addresses are presented from REDUCE_WAIT on (reduce_row is registered).
-        fsm.act("REDUCE_WAIT", NextValue(cycles, cycles + 1), NextState("REDUCE_ADD"))
+        # Kp read addresses are presented from REDUCE_WAIT on (reduce_row is registered); the
+        # block RAMs answer LATENCY clocks later.
+        fsm.act("REDUCE_WAIT", NextValue(cycles, cycles + 1), NextState("REDUCE_WAIT2"))
+        fsm.act("REDUCE_WAIT2", NextValue(cycles, cycles + 1), NextState("REDUCE_ADD"))
         chosen = [Signal((SUM_BITS, True)) for _ in range(LANES)]
         chosen_entry = Signal(LANES * SUM_BITS)
         self.comb += chosen_entry.eq(Array([u.bus_kp.dat_r for u in units])[m])
@@ -292,7 +295,9 @@ class MvuArray(Module, AutoCSR):
                         NextValue(target, T_LENGTH)),
                     NextValue(sub, in_unit[0]))),
             NextState("READ"))
-        fsm.act("READ", NextState("DATA"))
+        # The block RAMs answer LATENCY (2) clocks after the address.
+        fsm.act("READ", NextState("WAIT"))
+        fsm.act("WAIT", NextState("DATA"))
 
         # Read addresses, from the decoded index (the phase's own while it runs).
         for u in units:
@@ -325,7 +330,6 @@ class MvuArray(Module, AutoCSR):
             T_OWNER: self.owner_rd.dat_r,
             T_SHARED: self.shared_rd.dat_r,
             T_WORD: Array([u.bus_word.dat_r for u in units] or [nothing])[unit],
-            T_TILE: Array([self._tile_for_bus(u) for u in units] or [nothing])[unit],
             T_LENGTH: Array(self.lengths or [nothing])[unit],
         }
         self.comb += [If(target == t, entry.eq(v)) for t, v in cases.items()]
@@ -337,6 +341,9 @@ class MvuArray(Module, AutoCSR):
         self.comb += Array([new_entry[32 * i:32 * (i + 1)] for i in range(6)])[sub].eq(merged)
 
         write = Signal()
+        # A tile entry's first word waits here for its second.
+        tile_low = Signal(32)
+        self.sync += If(write & (target == T_TILE) & (sub == 0), tile_low.eq(merged))
         fsm.act("DATA",
             bus.ack.eq(1), bus.dat_r.eq(word),
             write.eq(we),
@@ -347,8 +354,8 @@ class MvuArray(Module, AutoCSR):
                 u.bus_p.dat_w.eq(new_entry), u.bus_p.we.eq(write & (target == T_P)),
                 u.bus_word.dat_w.eq(new_entry), u.bus_word.we.eq(write & (target == T_WORD)
                                                                  & (unit == k)),
-                u.bus_tile.dat_w.eq(self._tile_from_bus(u, new_entry)),
-                u.bus_tile.we.eq(write & (target == T_TILE) & (unit == k)),
+                u.bus_tile.dat_w.eq(self._tile_from_bus(u, tile_low, merged)),
+                u.bus_tile.we.eq(write & (target == T_TILE) & (unit == k) & (sub == 1)),
                 If(self.phase_busy,
                     u.bus_kp.dat_w.eq(Cat(*self.reduce_sum)),
                     u.bus_kp.we.eq(self.reduce_we & (self.reduce_owner == k)),
@@ -364,23 +371,7 @@ class MvuArray(Module, AutoCSR):
             self.pad_wr.dat_w.eq(merged), self.pad_wr.we.eq(write & (target == T_PAD)),
         ]
 
-    def _tile_for_bus(self, u):
-        """A tile-table entry as the bus shows it: row_base | col_base << 16, then mirrored."""
+    def _tile_from_bus(self, u, low, high):
+        """A tile-table entry from its two bus words (see the module's documentation)."""
         nb = u.node_bits
-        d = u.bus_tile.dat_r
-        return d[0:nb] | (d[nb:2 * nb] << 16) | (d[2 * nb] << 32)
-
-    def _tile_from_bus(self, u, e):
-        nb = u.node_bits
-        return Cat(e[0:nb], e[16:16 + nb], e[32])
-
-
-def add_to_soc(soc, mvus, words, tiles, nodes):
-    """Adds an MVU array to a LiteX SoC: its registers (``mvus_*``), its region (``mvus``) and
-    the layout constants (``MVUS_*``) the firmware's build reads from csr.json."""
-    from litex.soc.integration.soc import SoCRegion
-    soc.mvus = MvuArray(mvus, words=words, tiles=tiles, nodes=nodes)
-    soc.bus.add_slave("mvus", soc.mvus.bus,
-                      SoCRegion(origin=REGION_ORIGIN, size=REGION_SIZE, cached=False))
-    for name, value in CONSTANTS.items():
-        soc.add_constant("MVUS_" + name, value)
+        return Cat(low[0:nb], low[16:16 + nb], high[0:nb], high[31])

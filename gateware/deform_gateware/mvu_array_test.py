@@ -82,7 +82,7 @@ class MvuArrayTest(unittest.TestCase):
                 yield from run_phase(dut, phase)
                 kp = []
                 for row, owner in enumerate(case["owner"]):
-                    entry = yield dut.units[owner].kp_mem[row]
+                    entry = yield dut.units[owner].kp.memory[row]
                     kp.append(testvectors.kp_lanes(entry))
                 got.append((kp, *(yield from results(dut, phase))))
 
@@ -114,9 +114,10 @@ class MvuArrayTest(unittest.TestCase):
                 for i, (word, flags) in enumerate(case["words"][m]):
                     yield from write(unit + UNIT_WORDS + 8 * i, word)
                     yield from write(unit + UNIT_WORDS + 8 * i + 4, flags)
-                for i, (row_base, col_base, mirrored) in enumerate(case["tiles"][m]):
+                for i, (row_base, col_base, mirror_base, mirrored) in enumerate(case["tiles"][m]):
                     yield from write(unit + UNIT_TILES + 8 * i, row_base | (col_base << 16))
-                    yield from write(unit + UNIT_TILES + 8 * i + 4, int(mirrored))
+                    yield from write(unit + UNIT_TILES + 8 * i + 4,
+                                     mirror_base | (int(mirrored) << 31))
                 yield from write(unit + UNIT_LENGTH, case["lengths"][m])
                 # The program reads back as written.
                 for i, (word, flags) in enumerate(case["words"][m][:8]):

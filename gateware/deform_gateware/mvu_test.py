@@ -29,7 +29,7 @@ def run_phase(unit, case, phase, first):
         yield
     kp = []
     for row in range(n):
-        kp.append(testvectors.kp_lanes((yield unit.kp_mem[row])))
+        kp.append(testvectors.kp_lanes((yield unit.kp.memory[row])))
     d = phase["directions"]
     p_kp, kp_or = [], []
     for lane in range(d):

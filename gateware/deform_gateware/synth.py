@@ -78,7 +78,7 @@ def main():
     if out.startswith("/tmp/"):
         raise SystemExit("--out must not be under /tmp (YoWASP's sandbox has its own /tmp)")
     os.makedirs(out, exist_ok=True)
-    unit = Mvu(WORDS, TILES, NODES)
+    unit = Mvu(WORDS, TILES, NODES, primitive=True)
     convert(unit, ios=unit_ports(unit), name="mvu").write(os.path.join(out, "mvu.v"))
     run([tool("yosys"), "-q", "-p", "read_verilog mvu.v; synth_ecp5 -top mvu -json mvu.json; "
          "tee -o yosys_stat.txt stat"], out, "yosys.log")

@@ -36,8 +36,9 @@ def word_entry(word, flags):
 
 
 def tile_entry(tile, node_bits):
-    row_base, col_base, mirrored = tile
-    return row_base | (col_base << node_bits) | (int(mirrored) << (2 * node_bits))
+    row_base, col_base, mirror_col_base, mirrored = tile
+    return (row_base | (col_base << node_bits) | (mirror_col_base << (2 * node_bits))
+            | (int(mirrored) << (3 * node_bits)))
 
 
 def p_entry(lanes):
@@ -61,14 +62,14 @@ def init_unit(unit, case, m):
     """Fills MVU m's word, tile and p memories with the case's program (p of its first phase)."""
     words = case["words"][m] if m < len(case["words"]) else []
     tiles = case["tiles"][m] if m < len(case["tiles"]) else []
-    unit.word_mem.init = padded([word_entry(w, f) for w, f in words], unit.words_depth)
+    unit.words.memory.init = padded([word_entry(w, f) for w, f in words], unit.words_depth)
     unit.tile_mem.init = padded([tile_entry(t, unit.node_bits) for t in tiles], unit.tiles_depth)
     p = [p_entry(lanes) for lanes in case["phases"][0]["p"]]
-    unit.p_col.init = padded(p, unit.nodes_depth)
-    unit.p_row.init = padded(p, unit.nodes_depth)
+    unit.p_col.memory.init = padded(p, unit.nodes_depth)
+    unit.p_row.memory.init = padded(p, unit.nodes_depth)
     # Kp as an earlier matrix might have left it: the first write-backs must overwrite it.
-    unit.kp_mem.init = [(0x5A5A5A5A5A5A5A5A * (row + 1)) & ((1 << 192) - 1)
-                        for row in range(unit.nodes_depth)]
+    unit.kp.memory.init = [(0x5A5A5A5A5A5A5A5A * (row + 1)) & ((1 << 192) - 1)
+                           for row in range(unit.nodes_depth)]
 
 
 def length(case, m):
@@ -78,5 +79,5 @@ def length(case, m):
 def set_p(unit, p):
     """Simulation writes of a new p into MVU ``unit``'s copies."""
     for i, lanes in enumerate(p):
-        yield unit.p_col[i].eq(p_entry(lanes))
-        yield unit.p_row[i].eq(p_entry(lanes))
+        yield unit.p_col.memory[i].eq(p_entry(lanes))
+        yield unit.p_row.memory[i].eq(p_entry(lanes))

@@ -4,10 +4,12 @@
 //! ```text
 //! cargo xtask setup && cargo xtask firmware && cargo xtask firmware --board litex
 //! cargo run --release -p deform-hil-sim --example litex_cycles [-- --edges 4,6,8 --model a]
+//! cargo run --release -p deform-hil-sim --example litex_cycles -- --mvus 4 [--whole]
 //! ```
 //!
-//! For each cubic grid (one MVU, the `deform solve` layout: row blocks, mirrored half when K is
-//! persymmetric) it solves one direction for a fixed number of iterations on both targets and
+//! For each cubic grid (the `deform solve` layout: row blocks over `--mvus` MVUs, one without
+//! the flag; mirrored half when K is persymmetric) it solves one direction for a fixed number of
+//! iterations on both targets and
 //! prints, per CG iteration: the MVU phase's cycles and instructions (and so its CPI and its
 //! cycles per instruction word), the SVU's, and the whole iteration's, the time at a 100 MHz
 //! soft-core clock, and the thesis's hardware (one instruction word per clock: 3,320 cycles
@@ -17,12 +19,18 @@
 //! RTL's cycles; under QEMU `-icount` a cycle is an instruction). They cover the whole phase:
 //! loop, row ends and the reductions, not only the inner loop. The first iteration runs with
 //! cold caches; its cost is averaged in.
+//!
+//! With `--mvus N` the SoC has N hardware MVUs (gateware/) and the MVU phase runs on them: its
+//! cycles are then the CPU's start, wait and read-out around the array's work, and the
+//! firmware's log line "MVU array: … cycles in the MVUs" (printed when the next grid's matrix
+//! replaces the last) gives the array's own clocks. QEMU runs the same layout on N harts.
 
 use std::time::{Duration, Instant};
 
 use clap::Parser;
-use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim};
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
+use deform_host::board::{Board, BoardChoice};
+use deform_host::cli_logs::LogOptions;
 use deform_host::encode::{encode_with, EncodeOptions, Partition};
 use deform_host::link::{Target, Timeouts};
 use deform_host::model::{Axis, Connection, Elasticity, FixedNodeSet, Grid, Model, ModelSpec};
@@ -46,6 +54,10 @@ struct Args {
     /// The soft core's clock for the time column, MHz.
     #[arg(long, default_value_t = 100.0)]
     clock_mhz: f64,
+    /// Hardware MVUs in the SoC, and MVUs the layout uses (0: the MVU phase in software, one
+    /// MVU's layout).
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=8))]
+    mvus: u8,
 }
 
 /// The thesis's hardware, 500 nodes, one MVU: cycles per CG iteration (model A, model B).
@@ -90,14 +102,22 @@ fn main() -> anyhow::Result<()> {
         ..Timeouts::default()
     };
     let started = Instant::now();
-    let sim = LitexSim::start(&LitexConfig::new(litex_firmware_elf()))?;
-    let mut litex = Target::connect(sim.serial_path().to_str().unwrap_or_default(), timeouts)?;
-    let qemu = Qemu::start(&QemuConfig::new(firmware_elf()))?;
+    let layout_mvus = args.mvus.max(1);
+    // The firmware's logs are printed (the MVU array's own cycle count among them).
+    let choice = BoardChoice::Litex {
+        firmware: None,
+        mvus: args.mvus,
+    };
+    let mut board = Board::open(&choice, timeouts, &LogOptions::default())?;
+    let litex = &mut board.target;
+    let qemu = Qemu::start(&QemuConfig::new(firmware_elf()).harts(layout_mvus))?;
     let mut virt = Target::connect(qemu.pty_path().to_str().unwrap_or_default(), timeouts)?;
     println!(
-        "deform on a LiteX VexRiscv (imac, Verilator) and QEMU virt, model {}, 1 MVU, {}, {} \
-         iterations per solve; per CG iteration:",
+        "deform on a LiteX VexRiscv (imac, Verilator{}) and QEMU virt, model {}, {} MVU(s), {}, \
+         {} iterations per solve; per CG iteration:",
+        if args.mvus > 0 { ", hardware MVUs" } else { "" },
         connection.letter(),
+        layout_mvus,
         if args.whole {
             "whole K"
         } else {
@@ -106,8 +126,8 @@ fn main() -> anyhow::Result<()> {
         args.iterations
     );
     println!(
-        "{:>5} {:>6} | {:>9} {:>9} {:>5} {:>6} | {:>9} {:>9} {:>5} | {:>9} {:>9} {:>5} {:>8} | {:>9} | {:>7}",
-        "n", "words", "MVU cyc", "MVU ins", "CPI", "cyc/wd", "SVU cyc", "SVU ins", "CPI",
+        "{:>5} {:>6} | {:>9} {:>9} {:>5} {:>6} {:>6} | {:>9} {:>9} {:>5} | {:>9} {:>9} {:>5} {:>8} | {:>9} | {:>7}",
+        "n", "words", "MVU cyc", "MVU ins", "CPI", "cyc/wd", "/MVU", "SVU cyc", "SVU ins", "CPI",
         "cycles", "instr", "CPI", "µs", "QEMU ins", "/thesis"
     );
     for &edge in &args.edges {
@@ -128,7 +148,7 @@ fn main() -> anyhow::Result<()> {
         let encoding = encode_with(
             a,
             &EncodeOptions {
-                mvus: 1,
+                mvus: layout_mvus,
                 partition: Partition::Rows,
                 use_symmetry: !args.whole,
             },
@@ -145,18 +165,19 @@ fn main() -> anyhow::Result<()> {
             target.upload_matrix(&encoding.matrix)?;
             Ok(target.solve_for(&rhs, params)?.0)
         };
-        let on_litex = Figures::of(&run(&mut litex)?);
+        let on_litex = Figures::of(&run(litex)?);
         let on_qemu = Figures::of(&run(&mut virt)?);
         let words = encoding.matrix.words.len() as f64;
         let cycles = on_litex.cycles();
         println!(
-            "{:>5} {:>6} | {:>9.0} {:>9.0} {:>5.2} {:>6.2} | {:>9.0} {:>9.0} {:>5.2} | {:>9.0} {:>9.0} {:>5.2} {:>8.1} | {:>9.0} | {:>6.1}×",
+            "{:>5} {:>6} | {:>9.0} {:>9.0} {:>5.2} {:>6.2} {:>6.2} | {:>9.0} {:>9.0} {:>5.2} | {:>9.0} {:>9.0} {:>5.2} {:>8.1} | {:>9.0} | {:>6.1}×",
             a.n(),
             words,
             on_litex.mvu.0,
             on_litex.mvu.1,
             on_litex.mvu.0 / on_litex.mvu.1,
             on_litex.mvu.0 / words,
+            on_litex.mvu.0 * f64::from(layout_mvus) / words,
             on_litex.svu.0,
             on_litex.svu.1,
             on_litex.svu.0 / on_litex.svu.1,
@@ -170,11 +191,15 @@ fn main() -> anyhow::Result<()> {
     }
     println!(
         "(cycles: VexRiscv mcycle; instr: its minstret; cyc/wd: MVU-phase cycles per stored \
-         instruction word; µs at {} MHz; QEMU ins: QEMU's exact instructions per iteration; \
-         /thesis: cycles over the thesis's {thesis} per iteration at 500 nodes, one word per clock)",
+         instruction word, /MVU: the same per MVU (words / MVUs); µs at {} MHz; QEMU ins: \
+         QEMU's exact instructions per iteration; /thesis: cycles over the thesis's {thesis} per \
+         iteration at 500 nodes, one word per clock)",
         args.clock_mhz
     );
+    // A Hello drops the last matrix: with hardware MVUs the firmware logs their cycles.
+    litex.reset()?;
+    std::thread::sleep(Duration::from_secs(2));
     eprintln!("wall time {:.1} s", started.elapsed().as_secs_f64());
-    drop(sim);
+    drop(board);
     Ok(())
 }

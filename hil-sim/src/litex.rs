@@ -66,6 +66,7 @@ const SOC_SCRIPT_PATH: &str = "hil-sim/litex/deform_soc.py";
 const GATEWARE_SOURCES: &[&str] = &[
     include_str!("../../gateware/deform_gateware/word.py"),
     include_str!("../../gateware/deform_gateware/multiplier.py"),
+    include_str!("../../gateware/deform_gateware/bram.py"),
     include_str!("../../gateware/deform_gateware/mvu.py"),
     include_str!("../../gateware/deform_gateware/mvu_array.py"),
 ];

@@ -6,8 +6,10 @@
 //! - **Word memory**: its tiles' instruction words back to back, in tile order (the EM bit ends
 //!   each tile), each with four **write-back flags** beside it (bits 32..35 of a 36-bit entry,
 //!   the width of an ECP5 block RAM; meaningful on ER words only, see [`flags`]).
-//! - **Tile table**: per tile `row_base`, `col_base` and whether it is mirrored; the MVU moves to
-//!   the next entry at each EM word.
+//! - **Tile table**: per tile `row_base`, `col_base`, `n − 1 − col_base` (where a mirrored
+//!   tile's columns count down from, kept so that the MVU need not subtract when it moves to a
+//!   tile) and whether it is mirrored ([`TileEntry`]); the MVU moves to the next entry at each
+//!   EM word.
 //! - **Kp memory**: one row of sums (three directions, 64 bits each) per row of K. At each ER
 //!   word the MVU *writes back* its row sum: stored where the flag says this is the MVU's first
 //!   contribution to that row in the phase, added to what is there otherwise. A mirrored tile's
@@ -47,6 +49,16 @@ pub mod flags {
     pub const FIRST_MIRROR: u8 = 1 << 2;
     /// As [`LAST_OWN`], for the mirror row.
     pub const LAST_MIRROR: u8 = 1 << 3;
+}
+
+/// One entry of an MVU's tile table.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct TileEntry {
+    pub row_base: u32,
+    pub col_base: u32,
+    /// n − 1 − col_base: a mirrored word of column c reads p[mirror_col_base − c].
+    pub mirror_col_base: u32,
+    pub mirrored: bool,
 }
 
 /// What the MVU array holds (its capacity registers).
@@ -93,7 +105,7 @@ pub trait ProgramSink {
     /// Entry `index` of MVU `mvu`'s word memory: an instruction word and its [`flags`].
     fn word(&mut self, mvu: usize, index: usize, word: u32, flags: u8);
     /// Entry `index` of MVU `mvu`'s tile table.
-    fn tile(&mut self, mvu: usize, index: usize, row_base: u32, col_base: u32, mirrored: bool);
+    fn tile(&mut self, mvu: usize, index: usize, entry: TileEntry);
     /// MVU `mvu` runs `words` words per phase (0: it sits the phase out).
     fn length(&mut self, mvu: usize, words: usize);
     /// Row `row`'s Kp lives in MVU `owner`'s Kp memory.
@@ -233,7 +245,13 @@ fn emit_mvu(
         if usize::from(t.mvu) != m {
             continue;
         }
-        sink.tile(m, tile_index, t.row_base, t.col_base, t.mirrored);
+        let entry = TileEntry {
+            row_base: t.row_base,
+            col_base: t.col_base,
+            mirror_col_base: n as u32 - 1 - t.col_base,
+            mirrored: t.mirrored,
+        };
+        sink.tile(m, tile_index, entry);
         tile_index += 1;
         let mut own = t.row_base as usize;
         for &w in tile_words {

@@ -20,7 +20,7 @@ use core::sync::atomic::{compiler_fence, AtomicBool, AtomicU32, AtomicUsize, Ord
 use deform_target_core::cg::Matrix;
 use deform_target_core::kernel::{Lanes, Sums};
 use deform_target_core::mvu_backend::{MvuBackend, MvuResults};
-use deform_target_core::mvu_program::{build, Capacity, ProgramError, ProgramSink};
+use deform_target_core::mvu_program::{build, Capacity, ProgramError, ProgramSink, TileEntry};
 
 use super::litex_vexriscv::{read32, write32};
 use super::Mvus;
@@ -34,11 +34,21 @@ pub struct LitexMvus {
     loaded: AtomicBool,
     /// The loaded matrix's n.
     n: AtomicU32,
+    /// Phases run on the loaded matrix, the clocks the array spent in them (its own `cycles`
+    /// register, start to end of the reduction) and MVU 0's fetch stalls: logged when the
+    /// matrix is dropped, beside which the solver's counters show what the CPU spent around
+    /// them (modulo 2^32).
+    phases: AtomicU32,
+    cycles: AtomicU32,
+    stalls: AtomicU32,
 }
 
 static ARRAY: LitexMvus = LitexMvus {
     loaded: AtomicBool::new(false),
     n: AtomicU32::new(0),
+    phases: AtomicU32::new(0),
+    cycles: AtomicU32::new(0),
+    stalls: AtomicU32::new(0),
 };
 
 /// Set once the vectors have been handed out.
@@ -97,10 +107,11 @@ impl ProgramSink for Bus {
         write32(at + 4, u32::from(flags));
     }
 
-    fn tile(&mut self, mvu: usize, index: usize, row_base: u32, col_base: u32, mirrored: bool) {
+    /// The first word is held by the array until the second completes the entry.
+    fn tile(&mut self, mvu: usize, index: usize, e: TileEntry) {
         let at = unit(mvu) + regs::UNIT_TILES + 8 * index;
-        write32(at, row_base | (col_base << 16));
-        write32(at + 4, u32::from(mirrored));
+        write32(at, e.row_base | (e.col_base << 16));
+        write32(at + 4, e.mirror_col_base | (u32::from(e.mirrored) << 31));
     }
 
     fn length(&mut self, mvu: usize, words: usize) {
@@ -141,6 +152,18 @@ impl MvuBackend for LitexMvus {
     fn unload(&self) {
         self.loaded.store(false, Ordering::Relaxed);
         write32(regs::KP_PLAIN, 1);
+        let phases = self.phases.load(Ordering::Relaxed);
+        if phases > 0 {
+            defmt::info!(
+                "MVU array: {=u32} phases, {=u32} cycles in the MVUs, {=u32} of them with MVU 0's fetch stalled",
+                phases,
+                self.cycles.load(Ordering::Relaxed),
+                self.stalls.load(Ordering::Relaxed)
+            );
+        }
+        for counter in [&self.phases, &self.cycles, &self.stalls] {
+            counter.store(0, Ordering::Relaxed);
+        }
     }
 
     fn load(&self, a: &Matrix<'_>, scratch: &mut [Sums]) -> bool {
@@ -197,6 +220,15 @@ impl MvuBackend for LitexMvus {
         write32(regs::START, 1);
         while read32(regs::BUSY) != 0 {}
         compiler_fence(Ordering::SeqCst);
+        let add = |counter: &AtomicU32, v: u32| {
+            counter.store(
+                counter.load(Ordering::Relaxed).wrapping_add(v),
+                Ordering::Relaxed,
+            )
+        };
+        add(&self.phases, 1);
+        add(&self.cycles, read32(regs::CYCLES));
+        add(&self.stalls, read32(regs::STALLS));
         let mut results = MvuResults::default();
         for d in 0..directions {
             results.p_kp[d] = read_wide(regs::P_KP[d], 4) as i128;

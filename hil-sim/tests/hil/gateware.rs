@@ -4,13 +4,16 @@
 //! (1..3), matrices wider than one 512-column window, and rows at the edge of exact sums. Each
 //! case runs two phases on the same program (the second on Kp memories the first left behind).
 //!
-//! Needs the LiteX venv (`cargo xtask setup`), which has Migen. Set `DEFORM_MVU_VECTORS_KEEP`
-//! to a folder to keep the vectors there (then `python -m unittest` in gateware/ with
-//! `DEFORM_MVU_VECTORS` naming the file reruns the Python side alone).
+//! Then CI's synthesis check: one MVU, alone, for the ECP5 the boards carry, must fit and close
+//! timing at the thesis's 133 MHz.
+//!
+//! Needs the LiteX venv (`cargo xtask setup`), which has Migen and the YoWASP tools. Set
+//! `DEFORM_MVU_VECTORS_KEEP` to a folder to keep the vectors there (then `python -m unittest` in
+//! gateware/ with `DEFORM_MVU_VECTORS` naming the file reruns the Python side alone).
 
 use std::path::PathBuf;
 
-use deform_hil_sim::gateware::{run_unit_tests, VECTORS_ENV};
+use deform_hil_sim::gateware::{run_unit_tests, synthesize_mvu, VECTORS_ENV};
 use deform_shared::word::{Word, VALUE_MAX, VALUE_MIN};
 use deform_target_core::kernel::Lanes;
 use deform_target_core::mvu_program::{build, Capacity};
@@ -164,5 +167,29 @@ fn the_gateware_matches_the_portable_kernel_bit_for_bit() {
     assert!(
         report.contains("OK"),
         "the gateware's tests ({VECTORS_ENV}) did not pass:\n{report}"
+    );
+}
+
+/// One MVU synthesised alone (out of context) for the LFE5U-85F at speed grade 6 with YoWASP's
+/// Yosys and nextpnr-ecp5: it fits, and nextpnr's Fmax is at least the thesis's 133 MHz. A few
+/// minutes (the first run also compiles the WebAssembly tools, cached afterwards).
+#[test]
+fn one_mvu_fits_the_ecp5_and_meets_133_mhz() {
+    // Not under /tmp: the tools run in YoWASP's sandbox, which has a /tmp of its own.
+    let out = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/gateware/synth-mvu");
+    let report = synthesize_mvu(&out, 133.0, 6, 1).unwrap_or_else(|e| panic!("{e}"));
+    println!(
+        "one MVU on the LFE5U-85F: {} LUT4, {} FF, {} MULT18X18D, {} DP16KD, Fmax {:.1} MHz",
+        report.lut4.used,
+        report.ff.used,
+        report.mult18x18d.used,
+        report.dp16kd.used,
+        report.fmax_mhz
+    );
+    assert!(report.fits, "{report:?}");
+    assert!(
+        report.meets_timing && report.fmax_mhz >= 133.0,
+        "Fmax {:.1} MHz, below 133: {report:?}",
+        report.fmax_mhz
     );
 }

@@ -349,6 +349,45 @@ fn save(dir: &Path, stem: &str, panels: &[Panel]) -> anyhow::Result<Vec<PathBuf>
     Ok(vec![svg, png])
 }
 
+/// The thesis's DE2 board (Cyclone II EP2C35): 35 18×18 multipliers, of which its five MVUs
+/// and SVU used at most all (thesis 5.1; Fig. 5-1's own values are not in its text).
+const THESIS_DE2_MULTIPLIERS: f64 = 35.0;
+const THESIS_DE2_MVUS: f64 = 5.0;
+
+/// Fig. 5-1 with synthesised numbers (`cargo xtask bitstream`): the 18×18 multiplier blocks a
+/// whole SoC uses against its MVUs, `points` as (MVUs, MULT18X18D used), beside the device's
+/// `available` and the thesis's DE2. Writes `multipliers_per_mvu.svg` and `.png` in `dir`.
+pub fn multipliers_per_mvu(
+    points: &[(f64, f64)],
+    available: f64,
+    dir: &Path,
+) -> anyhow::Result<Vec<PathBuf>> {
+    let mut panel = Panel::new(
+        "Multipliers against MVUs (thesis Fig. 5-1), synthesised for the LFE5U-85F".into(),
+        "MVUs",
+        "18×18 multipliers",
+    );
+    panel.log_x = false;
+    panel.log_y = false;
+    panel.lines.push(Line {
+        label: "ours: MULT18X18D in the SoC (VexRiscv's 4 included)".into(),
+        color: COLORS[0],
+        points: points.to_vec(),
+        dashed: false,
+    });
+    panel.hlines.push((
+        available,
+        format!("LFE5U-85F: {available} MULT18X18D"),
+        COLORS[1],
+    ));
+    panel.marks.push(Mark {
+        label: "thesis: 5 MVUs on the DE2's 35 multipliers".into(),
+        color: BLACK,
+        at: (THESIS_DE2_MVUS, THESIS_DE2_MULTIPLIERS),
+    });
+    save(dir, "multipliers_per_mvu", &[panel])
+}
+
 fn mvu_label(mvus: u8) -> String {
     if mvus == 1 {
         "1 MVU".into()

@@ -69,13 +69,17 @@ impl Model {
                 *acc = [0; 3];
             };
             for &(bits, f) in &prog.words[m][..length] {
-                let (col_base, mirrored) = (tiles[tile].1 as usize, tiles[tile].2);
+                let (col_base, mirror_base, mirrored) = (
+                    tiles[tile].1 as usize,
+                    tiles[tile].2 as usize,
+                    tiles[tile].3,
+                );
                 let w = Word(bits);
                 let (c, v) = (w.column() as usize, i64::from(w.raw_value()));
                 for lane in 0..3 {
                     own[lane] = own[lane].wrapping_add(v * i64::from(p[col_base + c][lane]));
                     if mirrored {
-                        let q = i64::from(p[n - 1 - col_base - c][lane]);
+                        let q = i64::from(p[mirror_base - c][lane]);
                         mir[lane] = mir[lane].wrapping_add(v * q);
                     }
                 }

@@ -15,7 +15,7 @@ use deform_shared::word::{Word, COLUMN_WINDOW, EM_BIT, VALUE_MAX, VALUE_MIN};
 
 use crate::cg::MAX_WORDS_PER_ROW;
 use crate::kernel::{p_kp_and_max, run_tile_dyn, Lanes, Sums, TileRun};
-use crate::mvu_program::ProgramSink;
+use crate::mvu_program::{ProgramSink, TileEntry};
 
 /// How the tiles are shared out between the MVUs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -355,8 +355,8 @@ pub fn reference_mvu_phase(m: &RandomMatrix, p: &[Lanes], directions: usize) -> 
 pub struct Recorded {
     /// Per MVU: (word, flags) entries.
     pub words: Vec<Vec<(u32, u8)>>,
-    /// Per MVU: (row_base, col_base, mirrored).
-    pub tiles: Vec<Vec<(u32, u32, bool)>>,
+    /// Per MVU: (row_base, col_base, mirror_col_base, mirrored).
+    pub tiles: Vec<Vec<(u32, u32, u32, bool)>>,
     /// Per MVU: words run per phase.
     pub lengths: Vec<usize>,
     /// Per row: the owner MVU.
@@ -379,11 +379,12 @@ impl ProgramSink for Recorded {
         }
         put(&mut self.words[mvu], index, (word, flags));
     }
-    fn tile(&mut self, mvu: usize, index: usize, row_base: u32, col_base: u32, mirrored: bool) {
+    fn tile(&mut self, mvu: usize, index: usize, e: TileEntry) {
         if self.tiles.len() <= mvu {
             self.tiles.resize(mvu + 1, Vec::new());
         }
-        put(&mut self.tiles[mvu], index, (row_base, col_base, mirrored));
+        let entry = (e.row_base, e.col_base, e.mirror_col_base, e.mirrored);
+        put(&mut self.tiles[mvu], index, entry);
     }
     fn length(&mut self, mvu: usize, words: usize) {
         put(&mut self.lengths, mvu, words);
