@@ -22,12 +22,12 @@ use anyhow::{bail, Context};
 use deform_shared::protocol::{SolveParams, Start};
 use serde::{Deserialize, Serialize};
 
-use super::board::BenchTarget;
 use super::BenchModel;
 use crate::encode::encode;
+use crate::link::Target;
 use crate::model::{Axis, Csr, Model};
 use crate::reference::{self, max_abs_diff, norm, residual};
-use crate::refine::FIXED_POINT_FLOOR;
+use deform_shared::qformat::FIXED_POINT_FLOOR;
 
 /// What to run.
 #[derive(Debug, Clone)]
@@ -139,7 +139,7 @@ pub fn f64_series(
 
 /// The target's curve, with refinement (see the module doc). `target` gets the cube's A.
 pub fn target_series(
-    target: &mut BenchTarget,
+    target: &mut Target,
     model: BenchModel,
     config: &ConvergenceConfig,
 ) -> anyhow::Result<ConvergenceSeries> {
@@ -147,7 +147,7 @@ pub fn target_series(
     target.upload_matrix(&encode(&p.a)?)?;
     let n = p.b.len();
     let b_norm = norm(&p.b);
-    let cap = (10 * n).min(u32::MAX as usize) as u32;
+    let cap = crate::refine::default_max_iterations(n);
     let params = |max_iterations| SolveParams {
         max_iterations,
         tolerance: config.tol.max(FIXED_POINT_FLOOR),

@@ -20,17 +20,40 @@
 //! 100 MHz ([`NOMINAL_CLOCK_HZ`]) with one instruction per cycle, the rate of a simple in-order
 //! soft core; the instruction counts stay the primary figure.
 
-pub mod board;
 pub mod convergence;
 pub mod host_baseline;
+pub mod plan;
 pub mod plots;
 pub mod realtime;
 pub mod report;
 pub mod sweep;
 
+use std::time::Duration;
+
+use anyhow::anyhow;
 use serde::{Deserialize, Serialize};
 
+use crate::board::{session_timeouts, Board, TargetFlags};
 use crate::model::{Connection, Grid, ModelSpec};
+
+/// The bench's board with `mvus` MVUs (QEMU: as many harts), its logs decoded: what every
+/// target part opens.
+pub fn open_board(
+    target: &TargetFlags,
+    mvus: u8,
+    solve_timeout: Duration,
+) -> anyhow::Result<Board> {
+    let choice = target.choice(Some(mvus), None)?.ok_or_else(|| {
+        anyhow!(
+            "--target host: the bench measures a target; the host baseline alone is --only host"
+        )
+    })?;
+    Board::open(
+        &choice,
+        session_timeouts(solve_timeout),
+        &target.logs.options(),
+    )
+}
 
 /// The clock at which the thesis measured its accelerator (sec. 5.2), at which our cycle counts
 /// become times and MFLOPS (eq. 56 itself is [`crate::metrics::performance`]).

@@ -10,21 +10,20 @@ use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use serde::Serialize;
 
-use crate::board::{Board, BoardChoice, DEFAULT_QEMU_HARTS};
-use crate::cli_logs::LogFlags;
-use crate::cli_model::ModelFlags;
-use crate::commands::solve::{
-    resolve_model, TargetKind, DEFAULT_MAX_SOLVES, DEFAULT_TIMEOUT_SECONDS,
-};
+use crate::board::{Board, BoardFlags};
 use crate::inverse::homogeneous::{self, HomogeneousEstimate};
 use crate::inverse::parametric::{self, ParametricEstimate};
 use crate::inverse::regularise::Regularisation;
 use crate::inverse::spring_field::{self, SpringFieldEstimate};
 use crate::inverse::{Network, Observations, SpdSolver};
+use crate::link::DEFAULT_SOLVE_TIMEOUT;
 use crate::link::{LinkFlags, Timeouts};
+use crate::model::flags::ModelFlags;
 use crate::model::Model;
+use crate::output::paths::Outputs;
 use crate::output::vtk::{write_vtk, VtkKind};
 use crate::output::{node_rows_with_stiffness, OutputFormat};
+use crate::refine::DEFAULT_MAX_SOLVES;
 
 /// The homogeneous estimator reported as `k`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -80,18 +79,9 @@ pub struct EstimateArgs {
     #[arg(long, value_name = "FILE.vtu|FILE.vts")]
     pub map: Option<PathBuf>,
 
-    /// Where the SPD solves run: `qemu` boots the firmware under QEMU, `host` uses the f64
-    /// reference CG. Ignored when --port names a real board.
-    #[arg(long, value_enum, default_value_t = TargetKind::Qemu)]
-    pub target: TargetKind,
-
-    /// Serial device of a real board running the deform firmware.
-    #[arg(long, value_name = "PATH")]
-    pub port: Option<String>,
-
-    /// Firmware ELF for --target qemu. Default: $DEFORM_FIRMWARE, else the release build.
-    #[arg(long, value_name = "ELF")]
-    pub firmware: Option<PathBuf>,
+    /// Where the SPD solves run (`host`: the f64 reference CG).
+    #[command(flatten)]
+    pub board: BoardFlags,
 
     /// True relative residual each SPD solve must reach (target solves are refined on the host).
     #[arg(long, default_value_t = 1e-10)]
@@ -102,14 +92,11 @@ pub struct EstimateArgs {
     pub max_solves: u32,
 
     /// Seconds one target solve may take.
-    #[arg(long, default_value_t = DEFAULT_TIMEOUT_SECONDS, value_parser = clap::value_parser!(u64).range(1..))]
+    #[arg(long, default_value_t = DEFAULT_SOLVE_TIMEOUT.as_secs(), value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout: u64,
 
     #[command(flatten)]
     pub link: LinkFlags,
-
-    #[command(flatten)]
-    pub logs: LogFlags,
 
     /// Print every estimate as one JSON document (the homogeneous one under `k`) instead of
     /// the summary.
@@ -227,21 +214,16 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
     if !(args.tol.is_finite() && args.tol > 0.0 && args.tol < 1.0) {
         bail!("--tol {} must be a number in (0, 1)", args.tol);
     }
-    let (_, spec) = resolve_model(args.scenario.as_deref(), &args.model)?;
+    Outputs::new()
+        .input("scenario", args.scenario.as_deref())
+        .input("observations", Some(&args.observations))
+        .file("--map", args.map.as_deref())
+        .check()?;
+    let (_, spec) = args.model.resolve(args.scenario.as_deref())?;
     let model = Model::build(&spec).context("building the model")?;
     let obs = Observations::read(&args.observations, model.grid())?;
 
-    let choice = match (&args.port, args.target) {
-        (Some(port), _) => Some(BoardChoice::Port(port.clone())),
-        (None, TargetKind::Qemu) => Some(BoardChoice::Qemu {
-            firmware: args.firmware.clone(),
-            harts: DEFAULT_QEMU_HARTS,
-        }),
-        (None, TargetKind::Litex) => Some(BoardChoice::Litex {
-            firmware: args.firmware.clone(),
-        }),
-        (None, TargetKind::Host) => None,
-    };
+    let choice = args.board.choice(None)?;
     let (target_name, (homogeneous, parametric, spring_field)) = match choice {
         None => {
             let mut host: SpdSolver<'_, Box<dyn serialport::SerialPort>> =
@@ -256,7 +238,7 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
                 solve: Duration::from_secs(args.timeout),
                 ..Timeouts::default()
             });
-            let mut board = Board::open(&choice, timeouts, &args.logs.options())?;
+            let mut board = Board::open(&choice, timeouts, &args.board.target.logs.options())?;
             let name = board.describe();
             let mut solver = SpdSolver::Target {
                 target: &mut board.target,

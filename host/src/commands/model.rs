@@ -2,17 +2,18 @@
 //! properties of thesis 2.5) and its encoding as instruction words, optionally exporting K.
 
 use std::fmt;
-use std::fs::File;
-use std::io::{self, BufWriter, Write};
+use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use clap::Args;
 
-use crate::cli_model::ModelFlags;
 use crate::encode::{encode_with, max_quantization_error, EncodeOptions, Encoding};
+use crate::model::flags::ModelFlags;
 use crate::model::matrix_market::write_matrix_market;
 use crate::model::{Axis, Csr, Model};
+use crate::output::file::write_atomic;
+use crate::output::paths::Outputs;
 
 /// Build the tissue model and print the properties of its stiffness matrix K and its encoding.
 #[derive(Debug, Clone, Args)]
@@ -192,11 +193,11 @@ impl fmt::Display for ModelReport {
 
 /// Runs `deform model`.
 pub fn run(args: &ModelCommandArgs) -> anyhow::Result<()> {
-    let scenario = match &args.scenario {
-        Some(path) => Some(crate::scenario::Scenario::load(path, args.model.grid)?),
-        None => None,
-    };
-    let spec = args.model.spec_over(scenario.as_ref().map(|s| &s.model));
+    Outputs::new()
+        .input("scenario", args.scenario.as_deref())
+        .file("--export-mtx", args.export_mtx.as_deref())
+        .check()?;
+    let (_, spec) = args.model.resolve(args.scenario.as_deref())?;
     let model = Model::build(&spec).context("the model does not describe a solvable system")?;
     let report = ModelReport::of(&model);
     let mut stdout = io::stdout().lock();
@@ -230,9 +231,7 @@ fn export_stiffness(model: &Model, path: &Path) -> anyhow::Result<()> {
         spec.elasticity,
         model.fixed_count()
     );
-    let file = File::create(path).with_context(|| format!("writing {}", path.display()))?;
-    write_matrix_market(&k, &comment, BufWriter::new(file))
-        .with_context(|| format!("writing {}", path.display()))
+    write_atomic(path, |out| Ok(write_matrix_market(&k, &comment, out)?))
 }
 
 #[cfg(test)]

@@ -22,6 +22,7 @@ pub mod boundary;
 pub mod components;
 pub mod elasticity;
 pub mod field;
+pub mod flags;
 pub mod grid;
 pub mod loads;
 pub mod matrix_market;
@@ -36,7 +37,7 @@ use springs::{MeanOfEndNodes, SpringStiffness, Uniform};
 
 pub use boundary::{Face, FixedNodeSet, Side};
 pub use elasticity::Elasticity;
-pub use field::{FieldError, Inclusion, StiffnessField};
+pub use field::{FieldError, Inclusion, NodeField};
 pub use grid::{Axis, Grid, Node};
 pub use loads::{FacePressure, PointLoad};
 pub use prescribed::PrescribedDisplacement;
@@ -53,7 +54,7 @@ pub struct ModelSpec {
     pub elasticity: Elasticity,
     /// Heterogeneous tissue: a per-node stiffness; each spring takes the mean of its end nodes
     /// and K is the same for all three directions. `None`: homogeneous (`elasticity`).
-    pub field: Option<StiffnessField>,
+    pub field: Option<NodeField>,
     /// Named node sets to fix (their union is fixed).
     pub fixed_sets: Vec<FixedNodeSet>,
     /// Individual nodes to fix, in addition to `fixed_sets`.
@@ -584,7 +585,7 @@ mod tests {
     fn heterogeneous_2x2x2_model_a_by_hand() {
         let mut s = spec((2, 2, 2), Connection::Axial);
         s.fixed_sets = vec!["x-".parse().unwrap()];
-        s.field = Some(StiffnessField {
+        s.field = Some(NodeField {
             background: 1.0,
             inclusions: Vec::new(),
             nodes: vec![(Node::new(1, 1, 1), 3.0)],
@@ -620,7 +621,7 @@ mod tests {
     fn inclusion_3x3x3_model_b_by_hand() {
         let mut s = spec((3, 3, 3), Connection::AxialShear);
         s.fixed_sets = vec!["z-".parse().unwrap()];
-        s.field = Some(StiffnessField {
+        s.field = Some(NodeField {
             background: 1.0,
             inclusions: vec![Inclusion {
                 center: [1.0, 1.0, 1.0],
