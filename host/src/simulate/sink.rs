@@ -142,6 +142,12 @@ pub fn dynamic_step_line(s: &DynamicStep) -> String {
     line
 }
 
+/// How far above `--tol` a quasi-static step's true residual may end before the run says so:
+/// the target stops on its recursive fixed-point residual, which the true f64 one exceeds by a
+/// small factor (1e-7 asked, up to 1.8e-7 measured on the thesis cube), while a
+/// displacement-dependent K costs the fixed point far more (1.4e-5).
+pub const MISS_FACTOR: f64 = 10.0;
+
 /// Sums over a run, for its closing lines.
 #[derive(Debug, Default)]
 pub struct Totals {
@@ -154,7 +160,8 @@ pub struct Totals {
     pub bytes_after_first: u64,
     /// Bytes a values-only update saved against full uploads.
     pub saved: u64,
-    /// Steps whose true residual stayed above the tolerance, and the worst.
+    /// Steps whose true residual ended above [`MISS_FACTOR`] × the tolerance, and the worst
+    /// residual of all.
     pub missed: u64,
     pub worst_residual: f64,
 }
@@ -171,7 +178,7 @@ impl Totals {
             self.bytes_after_first += r.bytes.total();
         }
         self.saved += r.update.map_or(0, |u| u.bytes_saved());
-        if r.residual > tol {
+        if r.residual > MISS_FACTOR * tol {
             self.missed += 1;
         }
         self.worst_residual = self.worst_residual.max(r.residual);
@@ -182,9 +189,10 @@ impl Totals {
     pub fn missed_line(&self, tol: f64) -> Option<String> {
         (self.missed > 0).then(|| {
             format!(
-                "warning: {} of {} step(s) ended above --tol {tol:e}: true residual up to {:.2e} \
-                 (the target's fixed point stops at its own recursive residual; --dynamic steps \
-                 are refined to --tol on the host)",
+                "warning: {} of {} step(s) ended far above --tol {tol:e}: true residual up to \
+                 {:.2e} (the target's fixed point stops at its own recursive residual, which a \
+                 displacement-dependent K leaves far from the true one; quasi-static steps are not \
+                 refined)",
                 self.missed, self.steps, self.worst_residual
             )
         })

@@ -12,3 +12,4 @@ mod live_field;
 mod live_host;
 mod model_cli;
 mod scenario_files;
+mod target_logs;
