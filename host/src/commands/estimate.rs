@@ -8,12 +8,12 @@ use std::time::Duration;
 
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
-use serde::Serialize;
 
 use crate::board::{Board, BoardFlags};
-use crate::inverse::homogeneous::{self, HomogeneousEstimate};
+use crate::inverse::homogeneous;
 use crate::inverse::parametric::{self, ParametricEstimate};
 use crate::inverse::regularise::Regularisation;
+use crate::inverse::report::{EstimateReport, Homogeneous, ModelSummary, ObservationSummary};
 use crate::inverse::spring_field::{self, SpringFieldEstimate};
 use crate::inverse::{Network, Observations, SpdSolver};
 use crate::link::DEFAULT_SOLVE_TIMEOUT;
@@ -104,34 +104,6 @@ pub struct EstimateArgs {
     pub json: bool,
 }
 
-/// Everything `deform estimate` reports (the `--json` document).
-#[derive(Debug, Serialize)]
-pub struct EstimateReport {
-    /// The chosen homogeneous estimate (N/m) and its standard error.
-    pub k: f64,
-    pub k_standard_error: f64,
-    pub estimator: &'static str,
-    pub observations: ObservationSummary,
-    pub target: String,
-    pub homogeneous: Homogeneous,
-    pub parametric: Option<ParametricEstimate>,
-    pub spring_field: Option<SpringFieldEstimate>,
-}
-
-#[derive(Debug, Serialize)]
-pub struct Homogeneous {
-    pub output_error: HomogeneousEstimate,
-    pub equation_error: HomogeneousEstimate,
-}
-
-#[derive(Debug, Serialize)]
-pub struct ObservationSummary {
-    pub file: String,
-    pub sets: usize,
-    pub nodes: usize,
-    pub free_nodes: usize,
-}
-
 /// Runs the estimators on `obs` as `args` ask, solving on `solver`.
 pub fn estimate_all<P: crate::link::Port>(
     args: &EstimateArgs,
@@ -173,30 +145,6 @@ pub fn estimate_all<P: crate::link::Port>(
         parametric,
         springs,
     ))
-}
-
-fn print_homogeneous(e: &HomogeneousEstimate, chosen: bool) {
-    let directions: Vec<String> = ["x", "y", "z"]
-        .iter()
-        .zip(e.k_by_direction)
-        .filter_map(|(axis, k)| k.map(|k| format!("{axis} {k:.6}")))
-        .collect();
-    println!(
-        "{:<15} k = {:.6} ± {:.2e} N/m{}, relative residual {:.3e} ({} equations; by direction: {})",
-        e.method,
-        e.k,
-        e.standard_error,
-        if chosen { " [k]" } else { "" },
-        e.relative_residual,
-        e.equations,
-        directions.join(", ")
-    );
-    if let Some(s) = e.solves {
-        println!(
-            "                {} forward system(s), {} target solve(s), {} CG iterations",
-            s.systems, s.target_solves, s.iterations
-        );
-    }
 }
 
 pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
@@ -263,6 +211,12 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
             free_nodes: Network::of(&model).free_nodes().count(),
         },
         target: target_name,
+        model: ModelSummary {
+            grid: spec.grid.to_string(),
+            connection: spec.connection.to_string(),
+            fixed: model.fixed_count(),
+            prescribed: model.prescribed_count(),
+        },
         parametric,
         spring_field,
         homogeneous,
@@ -282,67 +236,7 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
         writeln!(out)?;
         return Ok(());
     }
-    println!("target          {}", report.target);
-    println!(
-        "model           {} grid, {}, {} fixed and {} prescribed node(s)",
-        spec.grid,
-        spec.connection,
-        model.fixed_count(),
-        model.prescribed_count()
-    );
-    println!(
-        "observations    {}: {} set(s) × {} nodes ({} free)",
-        report.observations.file,
-        report.observations.sets,
-        report.observations.nodes,
-        report.observations.free_nodes
-    );
-    print_homogeneous(
-        &report.homogeneous.output_error,
-        args.estimator == Estimator::OutputError,
-    );
-    print_homogeneous(
-        &report.homogeneous.equation_error,
-        args.estimator == Estimator::EquationError,
-    );
-    if let Some(p) = &report.parametric {
-        println!(
-            "parametric      α0 = {:.6}, α1 = {:.6}, α2 = {:.6}, relative residual {:.3e}",
-            p.alpha[0], p.alpha[1], p.alpha[2], p.relative_residual
-        );
-    }
-    if let Some(f) = &report.spring_field {
-        println!(
-            "springs         {} unknowns from {} equations ({} field(s)); H: {} nonzeros, half-band {}; {}",
-            f.unknowns,
-            f.equations,
-            f.fields,
-            f.normal_nnz,
-            f.normal_bandwidth,
-            if f.regularisation.is_empty() {
-                "no regularisation".to_string()
-            } else {
-                format!("regularised {}", f.regularisation.join(", "))
-            }
-        );
-        println!(
-            "                k̃ in [{:.4}, {:.4}], relative residual {:.3e}; {} target solve(s), {} CG iterations",
-            f.min_k, f.max_k, f.relative_residual, f.solves.target_solves, f.solves.iterations
-        );
-        let r = &f.stiff_region;
-        if r.max - r.median <= 0.01 * r.median.abs() {
-            println!(
-                "stiffest region none: the map is uniform (max {:.4} within 1% of the median {:.4})",
-                r.max, r.median
-            );
-        } else {
-            let c = r.centre;
-            println!(
-                "stiffest region {} node(s) with k ≥ {:.3} (median {:.3}, max {:.3}), centred at ({:.2}, {:.2}, {:.2})",
-                r.nodes, r.threshold, r.median, r.max, c[0], c[1], c[2]
-            );
-        }
-    }
+    print!("{report}");
     if let Some(map) = &args.map {
         println!("wrote           {}", map.display());
     }

@@ -11,21 +11,19 @@ use clap::Args;
 use deform_shared::qformat::FIXED_POINT_FLOOR;
 
 use super::solve::DEFAULT_TIMEOUT_SECONDS;
-use crate::board::{self, Board, BoardFlags};
+use crate::board::{Board, BoardFlags};
 use crate::dynamics::flags::DynamicFlags;
-use crate::dynamics::target::{simulate_dynamic, DynamicModel, DynamicParams};
+use crate::dynamics::target::{DynamicModel, DynamicParams};
 use crate::encode::EncodeOptions;
 use crate::link::{LinkFlags, Timeouts};
 use crate::model::flags::ModelFlags;
 use crate::model::Model;
 use crate::output::paths::Outputs;
-use crate::progress::{bar, upload_progress};
 use crate::refine::{default_max_iterations, parse_tolerance, DEFAULT_MAX_SOLVES};
 use crate::simulate::plan::{parse_alpha, Overrides, SeriesPlan};
-use crate::simulate::sink::{
-    dynamic_step_line, step_line, DynamicStepRow, StepRow, StepSink, Totals,
-};
-use crate::simulate::{simulate_with, StepModel, StepParams, StepResult};
+use crate::simulate::run::{self, Files};
+use crate::simulate::sink::Totals;
+use crate::simulate::StepParams;
 use crate::solve::LayoutFlags;
 
 /// Quasi-static time series solved step by step on the target with K resident: a scenario's
@@ -185,12 +183,6 @@ fn quasi_static(
     board: &mut Board,
     layout: EncodeOptions,
 ) -> anyhow::Result<Totals> {
-    let template = StepResult::default();
-    let mut sink = StepSink::create(
-        args.steps_csv.as_deref(),
-        args.out.as_deref(),
-        &StepRow(&template),
-    )?;
     let params = StepParams {
         warm_start: !args.cold,
         predict: !args.no_predict,
@@ -200,58 +192,19 @@ fn quasi_static(
         check_reference: args.check,
         layout,
     };
-    let steps_bar = bar(u64::from(plan.schedule.steps), "steps");
-    // Firmware log lines print above the bar, not through it.
-    board::lock(board.logs()).set_progress(Some(steps_bar.clone()));
-    let upload_bar = bar(0, "upload");
-    let mut totals = Totals::default();
-    let mut written: anyhow::Result<()> = Ok(());
-    let step_model = |t: f64| plan.model_at(t);
-    let ran = simulate_with(
-        &mut board.target,
-        model,
-        plan.schedule,
-        plan.simulation
-            .is_some()
-            .then_some(&step_model as StepModel),
-        plan.nonlinear,
-        params,
-        upload_progress(&upload_bar),
-        |r: &StepResult| {
-            totals.add(r, args.tol);
-            steps_bar.suspend(|| println!("{}", step_line(r)));
-            steps_bar.inc(1);
-            if written.is_ok() {
-                written = sink.write(&StepRow(r), model, r);
-            }
-        },
+    let files = Files {
+        steps_csv: args.steps_csv.as_deref(),
+        out: args.out.as_deref(),
+    };
+    let (totals, wrote) = run::quasi_static(board, plan, model, params, files)?;
+    print!(
+        "{}",
+        totals.quasi_static_lines(&params, plan.nonlinear.is_some())
     );
-    steps_bar.finish_and_clear();
-    let wrote = sink.finish();
-    ran.context("simulating on the target")?;
-    written?;
-    println!(
-        "{} steps, {} CG iterations in all, {} critical-path cycles (worst step {}) ({})",
-        totals.steps,
-        totals.iterations,
-        totals.cycles,
-        totals.max_cycles,
-        match (args.cold, args.no_fuse || args.no_predict) {
-            (true, _) => "cold starts",
-            (false, true) => "warm starts from the previous step",
-            (false, false) => "fused, started from the target's prediction 2u(t−1) − u(t−2)",
-        }
-    );
-    if plan.nonlinear.is_some() {
-        println!(
-            "values-only updates saved {} bytes on the wire against full uploads",
-            totals.saved
-        );
-    }
     if let Some(line) = totals.missed_line(args.tol) {
         eprintln!("{line}");
     }
-    for line in wrote? {
+    for line in wrote {
         println!("wrote       {line}");
     }
     Ok(totals)
@@ -272,15 +225,6 @@ fn dynamic(
         spec.describe(),
         plan.schedule.dt
     );
-    let template = crate::dynamics::target::DynamicStep {
-        result: StepResult::default(),
-        energy: 0.0,
-    };
-    let mut sink = StepSink::create(
-        args.steps_csv.as_deref(),
-        args.out.as_deref(),
-        &DynamicStepRow(&template),
-    )?;
     let params = DynamicParams {
         tol: args.tol,
         max_solves: args.dynamics.max_solves.unwrap_or(DEFAULT_MAX_SOLVES),
@@ -288,51 +232,13 @@ fn dynamic(
         check_reference: args.check,
         layout,
     };
-    let steps_bar = bar(u64::from(plan.schedule.steps), "steps");
-    board::lock(board.logs()).set_progress(Some(steps_bar.clone()));
-    let upload_bar = bar(0, "upload");
-    let mut totals = Totals::default();
-    let mut written: anyhow::Result<()> = Ok(());
-    let step_model = |t: f64| plan.model_at(t);
-    let ran = simulate_dynamic(
-        &mut board.target,
-        model,
-        plan.simulation
-            .is_some()
-            .then_some(&step_model as StepModel),
-        plan.schedule,
-        built,
-        params,
-        upload_progress(&upload_bar),
-        |s| {
-            totals.add(&s.result, args.tol);
-            steps_bar.suspend(|| println!("{}", dynamic_step_line(s)));
-            steps_bar.inc(1);
-            if written.is_ok() {
-                written = sink.write(&DynamicStepRow(s), model, &s.result);
-            }
-        },
-    );
-    steps_bar.finish_and_clear();
-    let wrote = sink.finish();
-    ran.context("simulating the dynamics on the target")?;
-    written?;
-    let steps = totals.steps.max(1);
-    println!(
-        "{} steps, {} CG iterations ({:.1} per step), {} critical-path cycles ({} per step, worst {})",
-        totals.steps,
-        totals.iterations,
-        totals.iterations as f64 / steps as f64,
-        totals.cycles,
-        totals.cycles / steps,
-        totals.max_cycles
-    );
-    println!(
-        "link        {} bytes in all; {} per step after the first (right-hand sides, solves, solutions)",
-        totals.bytes,
-        totals.bytes_after_first / (steps - 1).max(1)
-    );
-    for line in wrote? {
+    let files = Files {
+        steps_csv: args.steps_csv.as_deref(),
+        out: args.out.as_deref(),
+    };
+    let (totals, wrote) = run::dynamic(board, plan, built, model, params, files)?;
+    print!("{}", totals.dynamic_lines());
+    for line in wrote {
         println!("wrote       {line}");
     }
     Ok(totals)

@@ -34,6 +34,7 @@
 //! full upload are reported per step.
 
 pub mod plan;
+pub mod run;
 pub mod sink;
 
 use deform_shared::protocol::{SolveParams, SolveReport, Start, VectorSlot};

@@ -184,6 +184,43 @@ impl Totals {
         self.worst_residual = self.worst_residual.max(r.residual);
     }
 
+    /// The closing lines of a quasi-static run solved with `params`.
+    pub fn quasi_static_lines(&self, params: &super::StepParams, nonlinear: bool) -> String {
+        let start = match (params.warm_start, params.fuse && params.predict) {
+            (false, _) => "cold starts",
+            (true, false) => "warm starts from the previous step",
+            (true, true) => "fused, started from the target's prediction 2u(t−1) − u(t−2)",
+        };
+        let mut out = format!(
+            "{} steps, {} CG iterations in all, {} critical-path cycles (worst step {}) ({start})\n",
+            self.steps, self.iterations, self.cycles, self.max_cycles
+        );
+        if nonlinear {
+            out += &format!(
+                "values-only updates saved {} bytes on the wire against full uploads\n",
+                self.saved
+            );
+        }
+        out
+    }
+
+    /// The closing lines of a dynamic run.
+    pub fn dynamic_lines(&self) -> String {
+        let steps = self.steps.max(1);
+        format!(
+            "{} steps, {} CG iterations ({:.1} per step), {} critical-path cycles ({} per step, worst {})\n\
+             link        {} bytes in all; {} per step after the first (right-hand sides, solves, solutions)\n",
+            self.steps,
+            self.iterations,
+            self.iterations as f64 / steps as f64,
+            self.cycles,
+            self.cycles / steps,
+            self.max_cycles,
+            self.bytes,
+            self.bytes_after_first / (steps - 1).max(1)
+        )
+    }
+
     /// Says so when steps ended above the tolerance (the target's fixed point stops at its own
     /// recursive residual; a displacement-dependent K costs it precision).
     pub fn missed_line(&self, tol: f64) -> Option<String> {
