@@ -44,9 +44,10 @@ pub struct ConvergenceConfig {
 }
 
 /// Which arithmetic a curve is for.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Arithmetic {
     /// The target: block-floating-point CG, refined on the host.
+    #[default]
     FixedPoint,
     /// The host's f64 reference CG.
     F64,
@@ -62,7 +63,7 @@ impl Arithmetic {
 }
 
 /// One curve of Fig. 2-9.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct ConvergenceSeries {
     pub model: BenchModel,
     pub arithmetic: Arithmetic,

@@ -65,9 +65,12 @@ pub fn micros(cycles: f64) -> f64 {
 }
 
 /// The two spring networks of thesis Fig. 2-5, as the benchmark names them.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum,
+)]
 pub enum BenchModel {
     /// Model A: 6 axial neighbours.
+    #[default]
     A,
     /// Model B: all 26 neighbours.
     B,

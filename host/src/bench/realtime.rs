@@ -48,7 +48,7 @@ pub struct RealtimeConfig {
 }
 
 /// One time step's cost.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct StepBudget {
     pub step: u32,
     /// CG iterations, summed over x, y and z.
@@ -60,7 +60,7 @@ pub struct StepBudget {
 }
 
 /// One scenario's steps and verdicts.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct RealtimeScenario {
     pub model: BenchModel,
     pub edge: usize,

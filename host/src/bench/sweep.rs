@@ -44,7 +44,7 @@ pub struct SweepConfig {
 }
 
 /// One measured point.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct SweepPoint {
     pub model: BenchModel,
     pub edge: usize,

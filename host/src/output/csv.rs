@@ -38,6 +38,15 @@ impl Display for Sci {
     }
 }
 
+/// A float with a fixed number of decimals (`{:.N}`).
+pub struct Fixed(pub f64, pub usize);
+
+impl Display for Fixed {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{:.*}", self.1, self.0)
+    }
+}
+
 /// A value that may be missing: an empty field then.
 pub struct Maybe<T>(pub Option<T>);
 
