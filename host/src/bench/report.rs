@@ -73,36 +73,33 @@ impl CsvRow for SweepRow<'_> {
         column("mvus_used", &p.mvus_used);
         column("partition", &p.partition);
         column("symmetry_used", &p.symmetry_used);
-        column(
-            "mvu_cycles_per_iteration",
-            &Fixed(p.mvu_cycles_per_iteration, 0),
-        );
-        column(
-            "svu_cycles_per_iteration",
-            &Fixed(p.svu_cycles_per_iteration, 0),
-        );
-        column("cycles_per_iteration", &Fixed(p.cycles_per_iteration, 0));
-        column(
-            "mvu_instructions_per_iteration",
-            &Fixed(p.mvu_instructions_per_iteration, 0),
-        );
-        column(
-            "svu_instructions_per_iteration",
-            &Fixed(p.svu_instructions_per_iteration, 0),
-        );
-        column(
-            "instructions_per_nonzero",
-            &Fixed(p.instructions_per_nonzero, 3),
-        );
-        column(
-            "instructions_per_product",
-            &Fixed(p.instructions_per_product, 3),
-        );
-        column(
-            "microseconds_per_iteration",
-            &Fixed(p.microseconds_per_iteration, 3),
-        );
-        column("mflops", &Fixed(p.mflops, 3));
+        // (name, value, decimals): cycles and instructions whole, ratios to three places.
+        let figures = [
+            ("mvu_cycles_per_iteration", p.mvu_cycles_per_iteration, 0),
+            ("svu_cycles_per_iteration", p.svu_cycles_per_iteration, 0),
+            ("cycles_per_iteration", p.cycles_per_iteration, 0),
+            (
+                "mvu_instructions_per_iteration",
+                p.mvu_instructions_per_iteration,
+                0,
+            ),
+            (
+                "svu_instructions_per_iteration",
+                p.svu_instructions_per_iteration,
+                0,
+            ),
+            ("instructions_per_nonzero", p.instructions_per_nonzero, 3),
+            ("instructions_per_product", p.instructions_per_product, 3),
+            (
+                "microseconds_per_iteration",
+                p.microseconds_per_iteration,
+                3,
+            ),
+            ("mflops", p.mflops, 3),
+        ];
+        for (name, value, decimals) in figures {
+            column(name, &Fixed(value, decimals));
+        }
         column("saturations", &p.saturations);
         column("wire_bytes_matrix_upload", &p.wire_bytes_matrix_upload);
         column("wire_bytes_per_solve", &p.wire_bytes_per_solve);

@@ -112,6 +112,19 @@ pub struct SimulateArgs {
 }
 
 impl SimulateArgs {
+    /// Where the steps go.
+    fn files(&self) -> Files<'_> {
+        Files {
+            steps_csv: self.steps_csv.as_deref(),
+            out: self.out.as_deref(),
+        }
+    }
+
+    /// CG iterations per target solve for an n-node model.
+    fn max_iterations(&self, n: usize) -> u32 {
+        self.max_iter.unwrap_or(default_max_iterations(n))
+    }
+
     /// Reads the scenario file, if any (as `deform solve` does), and merges flags over it.
     pub fn resolve(&self) -> anyhow::Result<SeriesPlan> {
         let overrides = Overrides {
@@ -188,15 +201,11 @@ fn quasi_static(
         predict: !args.no_predict,
         fuse: !args.no_fuse,
         tol: args.tol,
-        max_iterations: args.max_iter.unwrap_or(default_max_iterations(model.n())),
+        max_iterations: args.max_iterations(model.n()),
         check_reference: args.check,
         layout,
     };
-    let files = Files {
-        steps_csv: args.steps_csv.as_deref(),
-        out: args.out.as_deref(),
-    };
-    let (totals, wrote) = run::quasi_static(board, plan, model, params, files)?;
+    let (totals, wrote) = run::quasi_static(board, plan, model, params, args.files())?;
     print!(
         "{}",
         totals.quasi_static_lines(&params, plan.nonlinear.is_some())
@@ -228,15 +237,11 @@ fn dynamic(
     let params = DynamicParams {
         tol: args.tol,
         max_solves: args.dynamics.max_solves.unwrap_or(DEFAULT_MAX_SOLVES),
-        max_iterations: args.max_iter.unwrap_or(default_max_iterations(model.n())),
+        max_iterations: args.max_iterations(model.n()),
         check_reference: args.check,
         layout,
     };
-    let files = Files {
-        steps_csv: args.steps_csv.as_deref(),
-        out: args.out.as_deref(),
-    };
-    let (totals, wrote) = run::dynamic(board, plan, built, model, params, files)?;
+    let (totals, wrote) = run::dynamic(board, plan, built, model, params, args.files())?;
     print!("{}", totals.dynamic_lines());
     for line in wrote {
         println!("wrote       {line}");

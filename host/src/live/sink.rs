@@ -1,6 +1,6 @@
 //! Where a headless session's frames go as they come: `--frames-csv` (one typed row per
-//! frame, [`FrameRow`]) and `--out` (the frame's solution as a ParaView series, through
-//! [`SeriesWriter`]). Every engine writes through it, so every output flag works on every
+//! frame, [`FrameRow`]) and `--out` (the frame's solution as a ParaView series), through
+//! [`RunFiles`]. Every engine writes through it, so every output flag works on every
 //! target; a write error stops the session at that frame, whatever the engine.
 
 use std::fmt::Display;
@@ -9,9 +9,9 @@ use std::path::Path;
 use super::engine::Frame;
 use super::setup::ToolKind;
 use crate::model::Model;
-use crate::output::csv::{CsvRow, CsvTable, Maybe, Sci};
+use crate::output::csv::{CsvRow, Maybe, Sci};
 use crate::output::node_rows;
-use crate::output::series::{Numbering, SeriesTarget, SeriesWriter};
+use crate::output::series::{Numbering, RunFiles};
 
 /// One frame as `--frames-csv` writes it: t, the tool, the answer and its reference (a force
 /// tool's `ux,uy,uz` columns; a displacement tool's `fx,fy,fz`), residual, iterations, cycles,
@@ -58,8 +58,7 @@ impl CsvRow for FrameRow<'_> {
 pub struct FrameSink<'m> {
     model: &'m Model,
     kind: ToolKind,
-    csv: Option<CsvTable>,
-    series: Option<SeriesWriter>,
+    files: RunFiles,
 }
 
 impl<'m> FrameSink<'m> {
@@ -76,50 +75,32 @@ impl<'m> FrameSink<'m> {
             motion: dynamic.then(Default::default),
             ..Frame::default()
         };
-        let csv = csv
-            .map(|path| {
-                let row = FrameRow {
-                    kind,
-                    frame: &template,
-                };
-                CsvTable::create(path, &row)
-            })
-            .transpose()?;
-        let series = out
-            .map(|path| SeriesWriter::create(SeriesTarget::of(path), Numbering::FRAMES))
-            .transpose()?;
+        let row = FrameRow {
+            kind,
+            frame: &template,
+        };
         Ok(Self {
             model,
             kind,
-            csv,
-            series,
+            files: RunFiles::create(csv, &row, out, Numbering::FRAMES)?,
         })
     }
 
     /// Writes `frame` (and `u`, its solution, to the series where the engine holds one).
     pub fn write(&mut self, frame: &Frame, u: Option<&[Vec<f64>; 3]>) -> anyhow::Result<()> {
-        if let Some(csv) = self.csv.as_mut() {
-            csv.write(&FrameRow {
-                kind: self.kind,
-                frame,
-            })?;
-        }
-        if let (Some(series), Some(u)) = (self.series.as_mut(), u) {
-            series.write_step(frame.frame, frame.t, &node_rows(self.model, u))?;
-        }
-        Ok(())
+        let row = FrameRow {
+            kind: self.kind,
+            frame,
+        };
+        let model = self.model;
+        self.files.write(&row, frame.frame, frame.t, || {
+            u.map(|u| node_rows(model, u))
+        })
     }
 
     /// Gives the files their real names and writes the series' collection; the lines to print.
     pub fn finish(self) -> anyhow::Result<Vec<String>> {
-        let mut wrote = Vec::new();
-        if let Some(series) = self.series {
-            wrote.push(series.finish()?);
-        }
-        if let Some(csv) = self.csv {
-            wrote.push(csv.finish()?.display().to_string());
-        }
-        Ok(wrote)
+        self.files.finish()
     }
 }
 

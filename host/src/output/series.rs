@@ -16,6 +16,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 
+use super::csv::{CsvRow, CsvTable};
 use super::file::StreamedFile;
 use super::vtk::{write_pvd, write_vtk, VtkKind};
 use super::{write_csv_row, NodeDisplacement};
@@ -181,6 +182,63 @@ impl SeriesWriter {
             }
             (None, None) => unreachable!("a CSV series has its file"),
         }
+    }
+}
+
+/// What a run writes as it goes: its per-step (or per-frame) CSV table and its series of
+/// displacement fields, either or both. `deform simulate` and `deform live` each write
+/// through one.
+pub struct RunFiles {
+    csv: Option<CsvTable>,
+    series: Option<SeriesWriter>,
+}
+
+impl RunFiles {
+    /// Creates the table (`template`'s header) and the series, before the run starts.
+    pub fn create(
+        csv: Option<&Path>,
+        template: &dyn CsvRow,
+        series: Option<&Path>,
+        numbering: Numbering,
+    ) -> anyhow::Result<Self> {
+        Ok(Self {
+            csv: csv.map(|p| CsvTable::create(p, template)).transpose()?,
+            series: series
+                .map(|p| SeriesWriter::create(SeriesTarget::of(p), numbering))
+                .transpose()?,
+        })
+    }
+
+    /// Step `step` at `t`: its row, and its field if the series wants one (`rows` is called
+    /// only then).
+    pub fn write(
+        &mut self,
+        row: &dyn CsvRow,
+        step: u32,
+        t: f64,
+        rows: impl FnOnce() -> Option<Vec<NodeDisplacement>>,
+    ) -> anyhow::Result<()> {
+        if let Some(csv) = self.csv.as_mut() {
+            csv.write(row)?;
+        }
+        if let Some(series) = self.series.as_mut() {
+            if let Some(rows) = rows() {
+                series.write_step(step, t, &rows)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Gives the files their real names and writes the series' collection; the lines to print.
+    pub fn finish(self) -> anyhow::Result<Vec<String>> {
+        let mut wrote = Vec::new();
+        if let Some(series) = self.series {
+            wrote.push(series.finish()?);
+        }
+        if let Some(csv) = self.csv {
+            wrote.push(csv.finish()?.display().to_string());
+        }
+        Ok(wrote)
     }
 }
 

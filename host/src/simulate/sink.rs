@@ -1,6 +1,6 @@
 //! Where a time series goes as it runs: `--steps-csv` (one typed row per step: [`StepRow`],
-//! or [`DynamicStepRow`] for a dynamic series) and `--out` (every step's displacements through
-//! [`SeriesWriter`]); and the lines a person reads per step and at the end.
+//! or [`DynamicStepRow`] for a dynamic series) and `--out` (every step's displacements), through
+//! [`RunFiles`]; and the lines a person reads per step and at the end.
 
 use std::fmt::Display;
 use std::path::Path;
@@ -8,9 +8,9 @@ use std::path::Path;
 use super::StepResult;
 use crate::dynamics::target::DynamicStep;
 use crate::model::Model;
-use crate::output::csv::{CsvRow, CsvTable, Sci};
+use crate::output::csv::{CsvRow, Sci};
 use crate::output::node_rows;
-use crate::output::series::{Numbering, SeriesTarget, SeriesWriter};
+use crate::output::series::{Numbering, RunFiles};
 
 /// One quasi-static step of `--steps-csv`.
 pub struct StepRow<'a>(pub &'a StepResult);
@@ -55,8 +55,7 @@ impl CsvRow for DynamicStepRow<'_> {
 
 /// `--steps-csv` and `--out` of a series.
 pub struct StepSink {
-    csv: Option<CsvTable>,
-    series: Option<SeriesWriter>,
+    files: RunFiles,
 }
 
 impl StepSink {
@@ -67,36 +66,20 @@ impl StepSink {
         template: &dyn CsvRow,
     ) -> anyhow::Result<Self> {
         Ok(Self {
-            csv: csv.map(|p| CsvTable::create(p, template)).transpose()?,
-            series: out
-                .map(|p| SeriesWriter::create(SeriesTarget::of(p), Numbering::STEPS))
-                .transpose()?,
+            files: RunFiles::create(csv, template, out, Numbering::STEPS)?,
         })
     }
 
-    /// One step: its row, and its displacements (the model's node stiffness alongside).
+    /// One step: its row, and its displacements (the model's node stiffness alongside: a
+    /// displacement-dependent model's per-spring field is not written).
     pub fn write(&mut self, row: &dyn CsvRow, model: &Model, r: &StepResult) -> anyhow::Result<()> {
-        if let Some(csv) = self.csv.as_mut() {
-            csv.write(row)?;
-        }
-        if let Some(series) = self.series.as_mut() {
-            // The node stiffness shown is the model's (a displacement-dependent model's
-            // springs change per step; that per-spring field is not written).
-            series.write_step(r.step, r.t, &node_rows(model, &r.u))?;
-        }
-        Ok(())
+        self.files
+            .write(row, r.step, r.t, || Some(node_rows(model, &r.u)))
     }
 
     /// Gives the files their real names; the lines to print.
     pub fn finish(self) -> anyhow::Result<Vec<String>> {
-        let mut wrote = Vec::new();
-        if let Some(series) = self.series {
-            wrote.push(series.finish()?);
-        }
-        if let Some(csv) = self.csv {
-            wrote.push(csv.finish()?.display().to_string());
-        }
-        Ok(wrote)
+        self.files.finish()
     }
 }
 
