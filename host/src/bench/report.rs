@@ -57,15 +57,25 @@ fn table<R: CsvRow>(template: R, rows: impl IntoIterator<Item = R>) -> String {
     text
 }
 
+/// The columns every bench table starts with: which cube.
+fn cube_columns(
+    column: &mut dyn FnMut(&'static str, &dyn Display),
+    model: super::BenchModel,
+    edge: usize,
+    n: usize,
+) {
+    column("model", &model.label());
+    column("edge", &edge);
+    column("n", &n);
+}
+
 /// One sweep point of `bench.csv`.
 struct SweepRow<'a>(&'a super::sweep::SweepPoint);
 
 impl CsvRow for SweepRow<'_> {
     fn columns(&self, column: &mut dyn FnMut(&'static str, &dyn Display)) {
         let p = self.0;
-        column("model", &p.model.label());
-        column("edge", &p.edge);
-        column("n", &p.n);
+        cube_columns(column, p.model, p.edge, p.n);
         column("nnz", &p.nnz);
         column("words", &p.words);
         column("tiles", &p.tiles);
@@ -137,9 +147,7 @@ struct RealtimeRow<'a>(&'a RealtimeScenario, &'a StepBudget);
 impl CsvRow for RealtimeRow<'_> {
     fn columns(&self, column: &mut dyn FnMut(&'static str, &dyn Display)) {
         let (s, st) = (self.0, self.1);
-        column("model", &s.model.label());
-        column("edge", &s.edge);
-        column("n", &s.n);
+        cube_columns(column, s.model, s.edge, s.n);
         column("step", &st.step);
         column("iterations", &st.iterations);
         column("mvu_cycles", &st.mvu_cycles);
@@ -157,9 +165,7 @@ struct HostRow<'a>(&'a HostPoint);
 impl CsvRow for HostRow<'_> {
     fn columns(&self, column: &mut dyn FnMut(&'static str, &dyn Display)) {
         let p = self.0;
-        column("model", &p.model.label());
-        column("edge", &p.edge);
-        column("n", &p.n);
+        cube_columns(column, p.model, p.edge, p.n);
         column("nnz", &p.nnz);
         column("matrix_bytes", &p.matrix_bytes);
         column("build_seconds", &Sci(p.build_seconds));
