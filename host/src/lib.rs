@@ -5,6 +5,7 @@
 //! - the library: [`solve`] (a model solved on a target or the host), [`simulate`] and
 //!   [`dynamics`] (time series), [`live`] (the live engine and its sessions), [`inverse`]
 //!   (estimates from observations), [`bench`] (the thesis's performance analysis);
+//! - [`series`]: a time series' schedule and steps, under both kinds of series;
 //! - [`board`] (which target, its logs and its bytes) over [`link`] (the serial protocol)
 //!   and [`flash`] (loaders);
 //! - what they all share: [`model`] (the spring network of thesis ch. 2 and its flags),
@@ -32,5 +33,6 @@ pub mod progress;
 pub mod reference;
 pub mod refine;
 pub mod scenario;
+pub mod series;
 pub mod simulate;
 pub mod solve;

@@ -24,6 +24,7 @@ use crate::output::paths::Outputs;
 use crate::output::vtk::{write_vtk, VtkKind};
 use crate::output::{node_rows_with_stiffness, OutputFormat};
 use crate::refine::DEFAULT_MAX_SOLVES;
+use crate::scenario::resolve_model;
 
 /// The homogeneous estimator reported as `k`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -167,7 +168,7 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
         .input("observations", Some(&args.observations))
         .file("--map", args.map.as_deref())
         .check()?;
-    let (_, spec) = args.model.resolve(args.scenario.as_deref())?;
+    let (_, spec) = resolve_model(args.scenario.as_deref(), &args.model)?;
     let model = Model::build(&spec).context("building the model")?;
     let obs = Observations::read(&args.observations, model.grid())?;
 

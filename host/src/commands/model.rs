@@ -7,12 +7,13 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use clap::Args;
 
+use crate::encode::report::ModelReport;
 use crate::model::flags::ModelFlags;
 use crate::model::matrix_market::write_matrix_market;
-use crate::model::report::ModelReport;
 use crate::model::{Axis, Model};
 use crate::output::file::write_atomic;
 use crate::output::paths::Outputs;
+use crate::scenario::resolve_model;
 
 /// Build the tissue model and print the properties of its stiffness matrix K and its encoding.
 #[derive(Debug, Clone, Args)]
@@ -37,7 +38,7 @@ pub fn run(args: &ModelCommandArgs) -> anyhow::Result<()> {
         .input("scenario", args.scenario.as_deref())
         .file("--export-mtx", args.export_mtx.as_deref())
         .check()?;
-    let (_, spec) = args.model.resolve(args.scenario.as_deref())?;
+    let (_, spec) = resolve_model(args.scenario.as_deref(), &args.model)?;
     let model = Model::build(&spec).context("the model does not describe a solvable system")?;
     let report = ModelReport::of(&model);
     let mut stdout = io::stdout().lock();

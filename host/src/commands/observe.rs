@@ -14,6 +14,7 @@ use crate::model::Model;
 use crate::output::file::write_atomic;
 use crate::output::paths::Outputs;
 use crate::reference::max_abs;
+use crate::scenario::resolve_model;
 use crate::simulate::plan::parse_alpha;
 
 /// Write observation sets: the model's displacements (solved by the f64 reference) plus white
@@ -78,7 +79,7 @@ pub fn run(args: &ObserveArgs) -> anyhow::Result<()> {
         .input("scenario", args.scenario.as_deref())
         .file("--out", Some(&args.out))
         .check()?;
-    let (_, spec) = args.model.resolve(args.scenario.as_deref())?;
+    let (_, spec) = resolve_model(args.scenario.as_deref(), &args.model)?;
     let model = Model::build(&spec).context("building the model")?;
     let mut existing = if args.append && args.out.exists() {
         Observations::read(&args.out, model.grid())

@@ -10,12 +10,11 @@ use anyhow::{anyhow, Context};
 use clap::Args;
 use deform_shared::qformat::FIXED_POINT_FLOOR;
 
-use super::solve::DEFAULT_TIMEOUT_SECONDS;
 use crate::board::{Board, BoardFlags};
 use crate::dynamics::flags::DynamicFlags;
 use crate::dynamics::target::{DynamicModel, DynamicParams};
 use crate::encode::EncodeOptions;
-use crate::link::{LinkFlags, Timeouts};
+use crate::link::{LinkFlags, Timeouts, DEFAULT_SOLVE_TIMEOUT};
 use crate::model::flags::ModelFlags;
 use crate::model::Model;
 use crate::output::paths::Outputs;
@@ -81,7 +80,7 @@ pub struct SimulateArgs {
     pub board: BoardFlags,
 
     /// Seconds one target solve may take.
-    #[arg(long, default_value_t = DEFAULT_TIMEOUT_SECONDS, value_parser = clap::value_parser!(u64).range(1..))]
+    #[arg(long, default_value_t = DEFAULT_SOLVE_TIMEOUT.as_secs(), value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout: u64,
 
     #[command(flatten)]

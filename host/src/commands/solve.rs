@@ -15,6 +15,7 @@ use crate::output::paths::Outputs;
 use crate::output::{node_rows, write_displacements, OutputFormat};
 use crate::precondition::Preconditioner;
 use crate::refine::{parse_tolerance, DEFAULT_MAX_SOLVES};
+use crate::scenario::resolve_model;
 use crate::scenario::Scenario;
 use crate::solve::{prescribed_error, solve_model, LayoutFlags, SolvePlan, DEFAULT_TOL};
 
@@ -94,7 +95,7 @@ pub struct ResolvedSolve {
 impl SolveArgs {
     /// Reads the scenario file, if any, and merges flags over it over the defaults.
     pub fn resolve(&self) -> anyhow::Result<ResolvedSolve> {
-        let (scenario, spec) = self.model.resolve(self.scenario.as_deref())?;
+        let (scenario, spec) = resolve_model(self.scenario.as_deref(), &self.model)?;
         let file = scenario
             .as_ref()
             .map(|s| s.solver.clone())

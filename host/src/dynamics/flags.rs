@@ -4,9 +4,8 @@
 
 use clap::Args;
 
-use crate::dynamics::{Damping, DynamicsSpec, Scheme};
+use crate::dynamics::{Damping, DynamicsSettings, DynamicsSpec, Scheme};
 use crate::model::NodeField;
-use crate::scenario::DynamicsSettings;
 
 /// Mass per node (kg) when neither a flag nor the scenario gives one.
 pub const DEFAULT_MASS: f64 = 0.01;

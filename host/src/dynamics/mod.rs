@@ -59,6 +59,6 @@ pub mod target;
 #[cfg(test)]
 mod tests;
 
-pub use params::{Damping, DynamicsError, DynamicsSpec, Scheme};
+pub use params::{Damping, DynamicsError, DynamicsSettings, DynamicsSpec, Scheme};
 pub use step::{Forcing, Loads, State, StepMatrices};
 pub use system::DynamicSystem;

@@ -75,6 +75,15 @@ pub struct DynamicsSpec {
     pub scheme: Scheme,
 }
 
+/// A scenario's `[dynamics]` table, checked (`crate::scenario::dynamics`): every key optional (flags and defaults fill in the rest).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct DynamicsSettings {
+    pub mass: Option<NodeField>,
+    pub damping: Option<Damping>,
+    pub rayleigh: Option<[f64; 2]>,
+    pub scheme: Option<Scheme>,
+}
+
 /// Why a dynamic model or step is refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum DynamicsError {

@@ -22,7 +22,7 @@ use crate::model::{Axis, Model, ModelError};
 use crate::precondition::Scaled;
 use crate::reference::{self, max_abs, max_abs_diff, norm};
 use crate::refine::{critical_path_cycles, solve_refined, RefineError, RefineParams};
-use crate::simulate::{Schedule, StepModel, StepResult};
+use crate::series::{Schedule, StepModel, StepResult};
 
 /// How to solve each step.
 #[derive(Debug, Clone, Copy)]

@@ -100,12 +100,12 @@ impl fmt::Display for EstimateReport {
         homogeneous_lines(
             f,
             &self.homogeneous.output_error,
-            self.estimator == "output error",
+            self.estimator == self.homogeneous.output_error.method,
         )?;
         homogeneous_lines(
             f,
             &self.homogeneous.equation_error,
-            self.estimator == "equation error",
+            self.estimator == self.homogeneous.equation_error.method,
         )?;
         if let Some(p) = &self.parametric {
             writeln!(

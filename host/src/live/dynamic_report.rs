@@ -5,8 +5,8 @@
 use serde::Serialize;
 
 use super::engine::Frame;
-use super::report::{per_second, percentile, sorted, IterationSpread, Rate, Spread, BAUDS};
 use super::session::force_error;
+use super::stats::{per_second, percentile, sorted, IterationSpread, Rate, Spread, BAUDS};
 use crate::dynamics::{Damping, DynamicsSpec};
 
 /// Why `force_updates_per_s` is null for dynamic frames.

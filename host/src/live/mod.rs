@@ -12,7 +12,8 @@
 //!   ([`quasi_static`]: on a target over [`link`], or on the host) or dynamic ([`dynamic`]:
 //!   one time step h of [`crate::dynamics`] per frame, S resident on the target).
 //! - [`session`]: the scripted session behind `--headless`, over any engine; [`sink`] writes
-//!   its frames (`--frames-csv`, `--out`); [`report`] and [`dynamic_report`] are its JSON.
+//!   its frames (`--frames-csv`, `--out`); [`report`] and [`dynamic_report`] are its JSON, over
+//!   the figures of [`stats`].
 //! - [`interactive`]: the session behind `--serve`, the tool where the browser puts it, over
 //!   any engine; [`serve`] carries the page and the frames to the browsers.
 //! - [`field`]: which nodes a field frame carries (`--field all|surface|stride:K`).
@@ -32,5 +33,6 @@ pub mod session;
 pub mod setup;
 pub mod sink;
 pub mod start;
+pub mod stats;
 
 pub use setup::{LiveSetup, SetupError};

@@ -1,6 +1,6 @@
 //! The model flags, shared by every subcommand that builds a model (`deform model`,
 //! `deform solve`, `simulate`, `observe`, `estimate`): flatten [`ModelFlags`] into a
-//! subcommand's clap `Args`; [`ModelFlags::resolve`] merges them over a scenario file.
+//! subcommand's clap `Args`; [`crate::scenario::resolve_model`] merges them over a scenario file.
 //!
 //! Each flag value parses through the `FromStr` of its model type, so a malformed value is
 //! refused by clap with the flag's name and the expected form; checks that need the whole
@@ -9,13 +9,10 @@
 
 use clap::{Args, ValueEnum};
 
-use std::path::Path;
-
 use crate::model::{
     Connection, Elasticity, FacePressure, FixedNodeSet, Grid, ModelSpec, Node, PointLoad,
     PrescribedDisplacement,
 };
-use crate::scenario::{Scenario, ScenarioError};
 
 /// `--model`: the thesis's letters for the two spring networks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -134,20 +131,6 @@ pub struct ModelFlags {
 }
 
 impl ModelFlags {
-    /// Reads the scenario file at `path`, if any, and merges these flags over it over the
-    /// defaults: the model every command that builds one starts from.
-    pub fn resolve(
-        &self,
-        path: Option<&Path>,
-    ) -> Result<(Option<Scenario>, ModelSpec), ScenarioError> {
-        let scenario = match path {
-            Some(path) => Some(Scenario::load(path, self.grid)?),
-            None => None,
-        };
-        let spec = self.spec_over(scenario.as_ref().map(|s| &s.model));
-        Ok((scenario, spec))
-    }
-
     /// The spec these flags give over `file` (a scenario file's model, or `None` for the
     /// built-in defaults).
     pub fn spec_over(&self, file: Option<&ModelSpec>) -> ModelSpec {

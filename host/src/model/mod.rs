@@ -27,7 +27,6 @@ pub mod grid;
 pub mod loads;
 pub mod matrix_market;
 pub mod prescribed;
-pub mod report;
 pub mod sparse;
 pub mod springs;
 mod triple;

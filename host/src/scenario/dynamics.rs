@@ -15,17 +15,9 @@ use toml::Spanned;
 
 use super::field::{FieldParts, InclusionAt, Quantity, DAMPING, MASS};
 use super::{Ctx, ScenarioError};
-use crate::dynamics::{Damping, Scheme};
+use crate::dynamics::Damping;
+pub use crate::dynamics::DynamicsSettings;
 use crate::model::{Grid, NodeField};
-
-/// `[dynamics]`, checked: every key optional (flags and defaults fill in the rest).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct DynamicsSettings {
-    pub mass: Option<NodeField>,
-    pub damping: Option<Damping>,
-    pub rayleigh: Option<[f64; 2]>,
-    pub scheme: Option<Scheme>,
-}
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -198,6 +198,20 @@ struct OutputToml {
     out: Option<PathBuf>,
 }
 
+/// Reads the scenario file at `path`, if any, and merges the model `flags` over it over the
+/// defaults: the model every command that builds one starts from.
+pub fn resolve_model(
+    path: Option<&Path>,
+    flags: &crate::model::flags::ModelFlags,
+) -> Result<(Option<Scenario>, ModelSpec), ScenarioError> {
+    let scenario = match path {
+        Some(path) => Some(Scenario::load(path, flags.grid)?),
+        None => None,
+    };
+    let spec = flags.spec_over(scenario.as_ref().map(|s| &s.model));
+    Ok((scenario, spec))
+}
+
 /// 1-based line and column (in characters) of byte `offset` in `src`.
 pub fn line_column(src: &str, offset: usize) -> (usize, usize) {
     let offset = offset.min(src.len());

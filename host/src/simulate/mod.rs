@@ -37,7 +37,9 @@ pub mod plan;
 pub mod run;
 pub mod sink;
 
-use deform_shared::protocol::{SolveParams, SolveReport, Start, VectorSlot};
+use deform_shared::protocol::{SolveParams, Start, VectorSlot};
+
+pub use crate::series::{Schedule, StepModel, StepResult};
 
 use crate::board::WireBytes;
 use crate::encode::{encode_with, EncodeOptions};
@@ -47,30 +49,6 @@ use crate::model::boundary::eliminate_fixed_nodes;
 use crate::model::{Axis, Csr, Model};
 use crate::reference::{self, max_abs, max_abs_diff};
 use deform_shared::qformat::FIXED_POINT_FLOOR;
-
-/// The time steps and how the loads follow them.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Schedule {
-    pub steps: u32,
-    pub dt: f64,
-}
-
-impl Schedule {
-    /// t of step `s` (1-based).
-    pub fn time(&self, s: u32) -> f64 {
-        s as f64 * self.dt
-    }
-
-    /// The fraction of the model's loads applied at time `t`: a linear ramp to 1 at the end.
-    pub fn load_factor(&self, t: f64) -> f64 {
-        let end = self.steps as f64 * self.dt;
-        if end > 0.0 {
-            (t / end).clamp(0.0, 1.0)
-        } else {
-            1.0
-        }
-    }
-}
 
 /// Displacement-dependent spring stiffness k̃ = α0 + α1·Σ_d Δl^d + α2·Σ_d (Δl^d)².
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -112,32 +90,6 @@ impl StepParams {
     }
 }
 
-/// What one step produced.
-#[derive(Debug, Clone, Default)]
-pub struct StepResult {
-    pub step: u32,
-    pub t: f64,
-    /// Target CG iterations, summed over the three directions (fused too: the fused loop's own
-    /// count is each report's `iterations`).
-    pub iterations: u32,
-    /// The target's report of each solve this step made (one per direction with a load), with
-    /// its cycle and instruction counters.
-    pub reports: Vec<SolveReport>,
-    /// Critical-path cycles of the step's solves, as the target measured them
-    /// ([`crate::refine::critical_path_cycles`]).
-    pub cycles: u64,
-    /// Bytes the step moved on the line, both ways (any matrix upload or update included).
-    pub bytes: WireBytes,
-    /// Largest true relative residual ‖b − K·u‖/‖b‖ over the directions.
-    pub residual: f64,
-    pub max_u: f64,
-    /// max |u − u_ref| / max |u_ref| against the f64 reference, if asked.
-    pub deviation: Option<f64>,
-    /// Nonlinear model: how K reached the target this step (`None`: full upload).
-    pub update: Option<UpdateReport>,
-    pub u: [Vec<f64>; 3],
-}
-
 #[derive(Debug, thiserror::Error)]
 pub enum SimulateError {
     #[error(transparent)]
@@ -162,9 +114,6 @@ pub enum SimulateError {
     )]
     MatrixChanged(f64),
 }
-
-/// The model at time t, for [`simulate_with`].
-pub type StepModel<'a> = &'a dyn Fn(f64) -> Result<Model, crate::model::ModelError>;
 
 /// K for the nonlinear model after displacements `u` (fixed nodes eliminated).
 pub fn nonlinear_matrix(

@@ -38,7 +38,7 @@ pub struct SeriesPlan {
 impl SeriesPlan {
     /// Reads the scenario file at `path`, if any, and merges `flags` over it.
     pub fn load(path: Option<&Path>, flags: &Overrides) -> anyhow::Result<Self> {
-        let (scenario, spec) = flags.model.resolve(path)?;
+        let (scenario, spec) = crate::scenario::resolve_model(path, &flags.model)?;
         let dynamics = flags.dynamics.resolve(
             scenario
                 .as_ref()

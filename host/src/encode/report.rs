@@ -3,7 +3,7 @@
 
 use std::fmt;
 
-use crate::encode::{encode_with, max_quantization_error, EncodeOptions, Encoding};
+use super::{encode_with, max_quantization_error, EncodeOptions, Encoding};
 use crate::model::{Axis, Csr, Model};
 
 /// Everything `deform model` prints, computed once so that it can be tested without stdout.
