@@ -128,8 +128,13 @@ impl TargetFlags {
                 .filter_map(|(flag, given)| given.then_some(flag))
                 .collect();
                 if !given.is_empty() {
+                    let verb = if given.len() == 1 {
+                        "describes"
+                    } else {
+                        "describe"
+                    };
                     bail!(
-                        "{} describe(s) a board; --target host runs the f64 reference on this \
+                        "{} {verb} a board; --target host runs the f64 reference on this \
                          computer",
                         given.join(", ")
                     );

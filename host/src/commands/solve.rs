@@ -163,8 +163,9 @@ impl SolveArgs {
         ];
         let given: Vec<&str> = given.iter().filter(|(_, g)| *g).map(|(f, _)| *f).collect();
         if !given.is_empty() {
+            let verb = if given.len() == 1 { "applies" } else { "apply" };
             bail!(
-                "{} appl(ies) to target solves; --target host solves by the f64 reference CG \
+                "{} {verb} to target solves; --target host solves by the f64 reference CG \
                  (--tol and --max-iter apply to it)",
                 given.join(", ")
             );
