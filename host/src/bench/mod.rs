@@ -30,7 +30,7 @@ pub mod sweep;
 
 use std::time::Duration;
 
-use anyhow::anyhow;
+use anyhow::bail;
 use serde::{Deserialize, Serialize};
 
 use crate::board::{session_timeouts, Board, TargetFlags};
@@ -43,11 +43,12 @@ pub fn open_board(
     mvus: u8,
     solve_timeout: Duration,
 ) -> anyhow::Result<Board> {
-    let choice = target.choice(Some(mvus), None)?.ok_or_else(|| {
-        anyhow!(
-            "--target host: the bench measures a target; the host baseline alone is --only host"
-        )
-    })?;
+    if target.kind(None) == crate::board::TargetKind::Host && target.port.is_none() {
+        bail!("--target host: the bench measures a target; the host baseline alone is --only host");
+    }
+    let choice = target
+        .choice(Some(mvus), None)?
+        .expect("a board: the host was refused above");
     Board::open(
         &choice,
         session_timeouts(solve_timeout),
@@ -145,6 +146,18 @@ pub mod thesis {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_host_is_no_board_to_measure() {
+        let host = TargetFlags {
+            kind: Some(crate::board::TargetKind::Host),
+            ..TargetFlags::default()
+        };
+        let e = open_board(&host, 1, Duration::from_secs(1))
+            .err()
+            .expect("refused");
+        assert!(e.to_string().contains("--only host"), "{e}");
+    }
 
     #[test]
     fn micros_at_the_nominal_clock() {
