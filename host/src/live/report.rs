@@ -53,10 +53,9 @@ pub struct OverBudget {
     pub worst_cycles: u64,
 }
 
-/// The report `--report FILE.json` writes.
+/// Where and how the session ran: the report's first keys.
 #[derive(Debug, Clone, Serialize)]
-pub struct Report {
-    pub frames: u32,
+pub struct Header {
     /// `qemu`, `litex` or `port`, as dynamic reports name it.
     pub target: String,
     pub grid: [usize; 3],
@@ -64,6 +63,14 @@ pub struct Report {
     pub mvus: u8,
     pub tolerance: f64,
     pub cycle_budget: u64,
+}
+
+/// The report `--report FILE.json` writes.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub frames: u32,
+    #[serde(flatten)]
+    pub header: Header,
     /// With a budget: the frames over it (none: 0 and 0).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub over_budget: Option<OverBudget>,
@@ -106,12 +113,7 @@ pub struct Report {
 
 /// The session as the target ran it, for the report's header.
 pub struct Session {
-    pub target: String,
-    pub grid: [usize; 3],
-    pub model: String,
-    pub mvus: u8,
-    pub tolerance: f64,
-    pub cycle_budget: u64,
+    pub header: Header,
     pub model_cycles: u64,
     pub model_iterations: u32,
     pub resets: u32,
@@ -152,22 +154,18 @@ pub fn report(session: Session, records: &[Frame], summary: &Summary) -> Report 
             field_frames_per_s: per_second(baud, field_bytes + field_up),
         })
         .collect();
+    let budget = session.header.cycle_budget;
     let over = records
         .iter()
         .filter_map(|r| r.cycles)
-        .filter(|&c| session.cycle_budget > 0 && c > session.cycle_budget);
-    let over_budget = (session.cycle_budget > 0).then(|| OverBudget {
+        .filter(|&c| budget > 0 && c > budget);
+    let over_budget = (budget > 0).then(|| OverBudget {
         frames: over.clone().count() as u32,
         worst_cycles: over.max().unwrap_or(0),
     });
     Report {
         frames: records.len() as u32,
-        target: session.target,
-        grid: session.grid,
-        model: session.model,
-        mvus: session.mvus,
-        tolerance: session.tolerance,
-        cycle_budget: session.cycle_budget,
+        header: session.header,
         over_budget,
         frame_cycles: Spread::of(&cycles),
         frames_per_s_at_100mhz: Rate::of(&cycles),
@@ -309,7 +307,7 @@ impl Report {
             writeln!(
                 out,
                 "budget      {} of {} frame(s) over the {} cycles, worst {} cycles",
-                over.frames, self.frames, self.cycle_budget, over.worst_cycles
+                over.frames, self.frames, self.header.cycle_budget, over.worst_cycles
             )
             .unwrap();
         }
@@ -405,7 +403,7 @@ impl SessionReport {
         frames: &[Frame],
         summary: &Summary,
     ) -> Self {
-        use super::dynamic_report::{report as dynamic, DynamicInfo, Header};
+        use super::dynamic_report::{report as dynamic, DynamicInfo, Header as DynamicHeader};
         let setup = &live.setup;
         let g = setup.model.grid();
         let grid = [g.nx(), g.ny(), g.nz()];
@@ -414,7 +412,7 @@ impl SessionReport {
             crate::model::Connection::AxialShear => "b",
         };
         if let Some(spec) = &live.dynamics {
-            let header = Header {
+            let header = DynamicHeader {
                 grid,
                 model: model.into(),
                 mvus: on.mvus,
@@ -430,12 +428,14 @@ impl SessionReport {
         }
         let built = engine.model_report();
         let session = Session {
-            target: on.target,
-            grid,
-            model: model.into(),
-            mvus: on.mvus,
-            tolerance: options.tol(),
-            cycle_budget: options.cycle_budget(),
+            header: Header {
+                target: on.target,
+                grid,
+                model: model.into(),
+                mvus: on.mvus,
+                tolerance: options.tol(),
+                cycle_budget: options.cycle_budget(),
+            },
             model_cycles: built.map_or(0, |m| m.cycles),
             model_iterations: built.map_or(0, |m| m.iterations),
             resets: engine.resets(),
