@@ -29,8 +29,7 @@ use std::time::{Duration, Instant};
 
 use clap::Parser;
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
-use deform_host::board::{Board, BoardChoice};
-use deform_host::cli_logs::LogOptions;
+use deform_host::board::{Board, BoardChoice, LogOptions};
 use deform_host::encode::{encode_with, EncodeOptions, Partition};
 use deform_host::link::{Target, Timeouts};
 use deform_host::model::{Axis, Connection, Elasticity, FixedNodeSet, Grid, Model, ModelSpec};

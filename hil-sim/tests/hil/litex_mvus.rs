@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim};
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_host::board::BoardChoice;
-use deform_host::commands::solve::{solve_model, LayoutFlags, SolvePlan};
+use deform_host::solve::solve_model;
 use deform_host::encode::{encode_with, EncodeOptions, Partition};
 use deform_host::link::{Target, Timeouts};
 use deform_host::model::{Axis, Connection, Grid, Model, ModelSpec, Node, PointLoad};
@@ -133,24 +133,16 @@ fn hardware_mvus_give_the_software_kernels_results_bit_for_bit() {
 #[test]
 fn solve_on_four_hardware_mvus_refines_to_1e_10() {
     let model = cube(Connection::AxialShear);
-    let plan = SolvePlan {
-        board: Some(BoardChoice::Litex {
+    let mut plan = support::plan(
+        BoardChoice::Litex {
             firmware: None,
             mvus: MVUS,
-        }),
-        tol: 1e-10,
-        max_iter: None,
-        max_solves: 8,
-        solve_timeout: Duration::from_secs(900),
-        layout: LayoutFlags {
-            mvus: Some(MVUS),
-            ..LayoutFlags::default()
         },
-        precondition: Default::default(),
-        fuse: true,
-        link: Default::default(),
-        logs: Default::default(),
-    };
+        1e-10,
+        8,
+        Duration::from_secs(900),
+    );
+    plan.mvus = Some(MVUS);
     let solved = solve_model(&model, &plan).expect("solve on the LiteX SoC's hardware MVUs");
     let (rel, scale) = support::deviation_from_reference(&solved);
     assert!(scale > 0.0);

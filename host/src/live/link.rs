@@ -13,6 +13,7 @@ use deform_shared::protocol::{ErrorCode, Request, Response, VectorSlot};
 use super::field::FieldChoice;
 use super::setup::ToolKind;
 use super::LiveSetup;
+use crate::board::WireBytes;
 use crate::link::{LinkError, Port, Target};
 
 /// A started live session on a target.
@@ -115,6 +116,11 @@ impl<'a, P: Port> LiveLink<'a, P> {
         Ok(())
     }
 
+    /// Bytes the target's link has moved so far (see [`WireBytes`]).
+    pub fn wire(&self) -> WireBytes {
+        WireBytes::of(&self.target.stats())
+    }
+
     fn solve_timeout(&self) -> Duration {
         self.target.timeouts().solve
     }
@@ -207,6 +213,7 @@ impl<'a, P: Port> LiveLink<'a, P> {
                 code: ErrorCode::Live(e),
             }
         })?;
+        let start = self.wire();
         let mut frame = FieldFrame::default();
         let mut exponent = None;
         let requests = selection.chunk_offsets().map(|offset| Request::ReadField {
@@ -236,6 +243,7 @@ impl<'a, P: Port> LiveLink<'a, P> {
                 )),
             }
         })?;
+        frame.bytes = self.wire().since(start);
         Ok(frame)
     }
 
@@ -257,4 +265,6 @@ pub struct FieldFrame {
     pub nodes: Vec<(usize, [f64; 3])>,
     /// The target's cycles for building the frame: its chunks' together.
     pub cycles: u64,
+    /// Its bytes on the line, both ways.
+    pub bytes: WireBytes,
 }
