@@ -59,7 +59,7 @@ def ulx3s_soc(mvus):
                   integrated_rom_size=0x20000, integrated_sram_size=0x2000,
                   with_led_chaser=False)
     words, tiles, nodes = capacity(mvus)
-    add_to_soc(soc, mvus, words=words, tiles=tiles, nodes=nodes)
+    add_to_soc(soc, mvus, words=words, tiles=tiles, nodes=nodes, primitive=True)
     return soc
 
 

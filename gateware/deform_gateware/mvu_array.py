@@ -375,3 +375,15 @@ class MvuArray(Module, AutoCSR):
         """A tile-table entry from its two bus words (see the module's documentation)."""
         nb = u.node_bits
         return Cat(low[0:nb], low[16:16 + nb], high[0:nb], high[31])
+
+
+def add_to_soc(soc, mvus, words, tiles, nodes, primitive=False):
+    """Adds an MVU array to a LiteX SoC: its registers (``mvus_*``), its region (``mvus``) and
+    the layout constants (``MVUS_*``) the firmware's build reads from csr.json. ``primitive``:
+    ECP5 block RAM primitives with their output registers (a board's bitstream; see ``bram``)."""
+    from litex.soc.integration.soc import SoCRegion
+    soc.mvus = MvuArray(mvus, words=words, tiles=tiles, nodes=nodes, primitive=primitive)
+    soc.bus.add_slave("mvus", soc.mvus.bus,
+                      SoCRegion(origin=REGION_ORIGIN, size=REGION_SIZE, cached=False))
+    for name, value in CONSTANTS.items():
+        soc.add_constant("MVUS_" + name, value)
