@@ -284,15 +284,13 @@ fn serve_dynamic(target: &str, solver: &str) {
             let _ = self.0.wait();
         }
     }
-    let mut server = Server(
-        Command::new(env!("CARGO_BIN_EXE_deform"))
-            .arg("live")
-            .arg(&example)
-            .args(["--serve", "--target", target, "--addr", "127.0.0.1:0"])
-            .stdout(Stdio::piped())
-            .spawn()
-            .unwrap(),
-    );
+    let mut command = Command::new(env!("CARGO_BIN_EXE_deform"));
+    command
+        .arg("live")
+        .arg(&example)
+        .args(["--serve", "--target", target, "--addr", "127.0.0.1:0"])
+        .stdout(Stdio::piped());
+    let mut server = Server(deform_hil_sim::child::spawn(command).unwrap());
     let mut out = BufReader::new(server.0.stdout.take().unwrap());
     let mut serving = String::new();
     while !serving.contains("WebSocket on port ") {

@@ -24,7 +24,8 @@ use tungstenite::{Message, WebSocket};
 const SCENARIO: &str = "../examples/needle-insertion.toml";
 const FORCE_SCENARIO: &str = "../examples/probe-force-8b.toml";
 
-/// A process and the process group it leads (QEMU and Chromium's helpers), killed on drop.
+/// A process and the process group it leads (QEMU and Chromium's helpers), killed on drop; and,
+/// should this test process die first, killed by the kernel with it (hil-sim's `child::spawn`).
 pub(crate) struct Group(Child);
 
 impl Drop for Group {
@@ -35,12 +36,12 @@ impl Drop for Group {
     }
 }
 
-fn spawn_group(cmd: &mut Command) -> Group {
+fn spawn_group(mut cmd: Command) -> Group {
     use std::os::unix::process::CommandExt;
     let program = format!("{:?}", cmd.get_program());
+    cmd.process_group(0);
     Group(
-        cmd.process_group(0)
-            .spawn()
+        deform_hil_sim::child::spawn(cmd)
             .unwrap_or_else(|e| panic!("{program} does not start: {e}")),
     )
 }
@@ -205,15 +206,15 @@ fn reference(u: [f64; 3]) -> ([f64; 3], f64) {
 /// `deform live SCENARIO --serve` on a free port with `args` added: the server (killed on
 /// drop), the page's address and the WebSocket's port, once it serves.
 pub(crate) fn serve(scenario: &Path, args: &[&str]) -> (Group, String, u16) {
-    let mut server = spawn_group(
-        Command::new(env!("CARGO_BIN_EXE_deform"))
-            .arg("live")
-            .arg(scenario)
-            .args(["--serve", "--addr", "127.0.0.1:0"])
-            .args(args)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit()),
-    );
+    let mut command = Command::new(env!("CARGO_BIN_EXE_deform"));
+    command
+        .arg("live")
+        .arg(scenario)
+        .args(["--serve", "--addr", "127.0.0.1:0"])
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit());
+    let mut server = spawn_group(command);
     let out = lines(server.0.stdout.take().unwrap());
     let serving = wait_for(
         &out,
@@ -237,30 +238,30 @@ fn open(page: &str, profile: &str) -> (Group, Cdp) {
     let profile = Path::new(env!("CARGO_TARGET_TMPDIR")).join(profile);
     let _ = std::fs::remove_dir_all(&profile);
     std::fs::create_dir_all(&profile).unwrap();
-    let mut browser = spawn_group(
-        Command::new(chromium())
-            .args([
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--disable-quic",
-                "--no-first-run",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
-                // Containers often have a small /dev/shm.
-                "--disable-dev-shm-usage",
-                // WebGL in software, since there is no GPU.
-                "--use-angle=swiftshader",
-                "--enable-unsafe-swiftshader",
-                "--window-size=1200,800",
-                "--remote-debugging-port=0",
-            ])
-            .arg(format!("--user-data-dir={}", profile.display()))
-            .arg("about:blank")
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped()),
-    );
+    let mut command = Command::new(chromium());
+    command
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            // Containers often have a small /dev/shm.
+            "--disable-dev-shm-usage",
+            // WebGL in software, since there is no GPU.
+            "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader",
+            "--window-size=1200,800",
+            "--remote-debugging-port=0",
+        ])
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .arg("about:blank")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    let mut browser = spawn_group(command);
     let err = lines(browser.0.stderr.take().unwrap());
     let devtools = wait_for(&err, "ws://", Duration::from_secs(60), "chromium");
     let mut cdp = Cdp::connect(devtools.trim());

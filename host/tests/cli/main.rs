@@ -11,3 +11,4 @@ mod live_cli;
 mod live_field;
 mod model_cli;
 mod scenario_files;
+mod signals;
