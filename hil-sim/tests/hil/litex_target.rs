@@ -29,7 +29,6 @@ fn start() -> LitexSim {
 fn timeouts() -> Timeouts {
     Timeouts {
         handshake: Duration::from_secs(120),
-        hello_retry: Duration::from_secs(5),
         request: Duration::from_secs(60),
         solve: Duration::from_secs(600),
         ..Timeouts::default()

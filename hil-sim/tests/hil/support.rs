@@ -21,7 +21,6 @@ pub fn boot() -> Qemu {
 pub fn timeouts() -> Timeouts {
     Timeouts {
         handshake: Duration::from_secs(20),
-        hello_retry: Duration::from_secs(2),
         request: Duration::from_secs(20),
         solve: Duration::from_secs(120),
         ..Timeouts::default()
