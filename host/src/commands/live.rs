@@ -313,6 +313,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         tolerance: args.tol,
         cycle_budget: args.cycle_budget,
         model_cycles: link.model.cycles,
+        model_instructions: link.model.cycles.saturating_sub(link.model.stall_cycles),
         model_iterations: link.model.iterations,
         resets: link.resets,
         paced: args.pace.is_some(),
@@ -329,6 +330,7 @@ pub fn run(args: &LiveArgs) -> anyhow::Result<()> {
         report.frames_per_s_at_100mhz.p50,
         report.frames_per_s_at_100mhz.worst
     );
+    println!("            {}", headless::instructions_line(&report));
     let (answer, unit) = match setup.kind {
         ToolKind::Displacement => ("force", "F"),
         ToolKind::Force => ("tool motion", "ū"),

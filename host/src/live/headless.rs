@@ -7,6 +7,7 @@
 //! the tool nodes' mean displacement, and the queries are displacement queries from the
 //! compliance model (`tool` and `answer` in the report say which).
 
+use deform_shared::protocol::PhaseCounters;
 use serde::Serialize;
 
 use super::field::FieldChoice;
@@ -57,6 +58,8 @@ pub struct FrameRecord {
     pub residual: f64,
     pub iterations: u32,
     pub cycles: u32,
+    /// The retired instructions counted as `cycles` is (equal to it under QEMU `-icount`).
+    pub instructions: u32,
     /// max |u − u_converged| / max |u_converged|.
     pub error_vs_converged: f64,
     pub bytes_up: u64,
@@ -96,8 +99,9 @@ pub struct DownBytes {
     /// Nodes one field frame carried.
     pub field_nodes: usize,
     /// The target's cycles for building one field frame (all its chunks; the largest over
-    /// the session).
+    /// the session), and its retired instructions.
     pub field_build_cycles: u64,
+    pub field_build_instructions: u64,
 }
 
 /// Frames per second the serial line itself allows at a baud rate (8N1: 10 bits per byte).
@@ -121,11 +125,17 @@ pub struct Report {
     pub mvus: u8,
     pub tolerance: f64,
     pub cycle_budget: u64,
+    /// The frames' cycles (the target's `mcycle`) and their retired instructions, and the
+    /// cycles per instruction over all frames: equal under QEMU `-icount` (CPI 1), the RTL's on
+    /// the LiteX SoC.
     pub frame_cycles: Spread,
+    pub frame_instructions: Spread,
+    pub frame_cpi: Option<f64>,
     pub frames_per_s_at_100mhz: Rate,
     /// Force updates per second at 100 MHz from the local model's measured cycles (worst).
     pub force_updates_per_s: f64,
     pub force_query_cycles_max: u64,
+    pub force_query_instructions_max: u64,
     pub iterations: IterationSpread,
     pub residual_max: f64,
     pub error_vs_converged_max: f64,
@@ -137,6 +147,7 @@ pub struct Report {
     /// The quantised field against the frame's own solution, relative to max |u|.
     pub field_quantisation_error_max: f64,
     pub model_cycles: u64,
+    pub model_instructions: u64,
     pub model_iterations: u32,
     /// Median over the frames, on the line (a frame's request).
     pub bytes_up_per_frame: f64,
@@ -156,6 +167,21 @@ pub struct Report {
     pub tool: &'static str,
     /// What the "force" keys measure for this kind of tool.
     pub answer: &'static str,
+}
+
+/// The frames' retired instructions beside their cycles: the CPI, or that the two are equal
+/// (QEMU `-icount`: one instruction per cycle by construction).
+pub fn instructions_line(report: &Report) -> String {
+    let i = &report.frame_instructions;
+    match report.frame_cpi {
+        Some(cpi) if report.frame_cycles.max != i.max || report.frame_cycles.p50 != i.p50 => {
+            format!(
+                "instructions p50 {:.0}, p99 {:.0}, max {:.0}: CPI {cpi:.2} over the frames",
+                i.p50, i.p99, i.max
+            )
+        }
+        _ => "(cycles = instructions retired: one per cycle under QEMU -icount)".to_string(),
+    }
 }
 
 pub(crate) fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -289,6 +315,9 @@ pub fn run<P: Port>(
                         .model_force_error
                         .max(force_error(&got, &want, scale.max(1e-12)));
                 summary.force_cycles = summary.force_cycles.max(u64::from(answer.cycles));
+                summary.force_instructions = summary
+                    .force_instructions
+                    .max(u64::from(answer.instructions));
                 summary.force_bytes = Some(bytes);
             }
         }
@@ -321,6 +350,7 @@ pub fn run<P: Port>(
             }
             summary.field = Some((field_bytes, 3 * field.nodes.len()));
             summary.field_cycles = summary.field_cycles.max(field.cycles);
+            summary.field_instructions = summary.field_instructions.max(field.instructions);
         }
         let record = FrameRecord {
             frame,
@@ -331,6 +361,7 @@ pub fn run<P: Port>(
             residual: f64::from(answer.residual),
             iterations: u32::from(answer.iterations),
             cycles: answer.cycles,
+            instructions: answer.instructions,
             error_vs_converged: err,
             bytes_up: bytes.sent,
             bytes_down: bytes.received,
@@ -349,10 +380,12 @@ pub fn run<P: Port>(
 pub struct Summary {
     pub model_force_error: f64,
     pub force_cycles: u64,
+    pub force_instructions: u64,
     pub force_bytes: Option<WireBytes>,
     pub field: Option<(WireBytes, usize)>,
     pub field_error: f64,
     pub field_cycles: u64,
+    pub field_instructions: u64,
     pub lag: Lag,
 }
 
@@ -364,6 +397,7 @@ pub struct Session {
     pub tolerance: f64,
     pub cycle_budget: u64,
     pub model_cycles: u64,
+    pub model_instructions: u64,
     pub model_iterations: u32,
     pub resets: u32,
     pub paced: bool,
@@ -375,6 +409,7 @@ pub struct Session {
 /// The report over `records`.
 pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> Report {
     let cycles = sorted(records.iter().map(|r| f64::from(r.cycles)));
+    let instructions = sorted(records.iter().map(|r| f64::from(r.instructions)));
     let iterations = sorted(records.iter().map(|r| f64::from(r.iterations)));
     let force_scale = records
         .iter()
@@ -408,6 +443,12 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
         tolerance: session.tolerance,
         cycle_budget: session.cycle_budget,
         frame_cycles: Spread::of(&cycles),
+        frame_instructions: Spread::of(&instructions),
+        frame_cpi: PhaseCounters {
+            cycles: records.iter().map(|r| u64::from(r.cycles)).sum(),
+            instructions: records.iter().map(|r| u64::from(r.instructions)).sum(),
+        }
+        .cpi(),
         frames_per_s_at_100mhz: Rate::of(&cycles),
         force_updates_per_s: if summary.force_cycles > 0 {
             CLOCK_HZ / summary.force_cycles as f64
@@ -415,6 +456,7 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
             0.0
         },
         force_query_cycles_max: summary.force_cycles,
+        force_query_instructions_max: summary.force_instructions,
         iterations: IterationSpread::of(&iterations),
         residual_max: records.iter().map(|r| r.residual).fold(0.0, f64::max),
         error_vs_converged_max: records
@@ -425,6 +467,7 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
         model_force_error_max: summary.model_force_error,
         field_quantisation_error_max: summary.field_error,
         model_cycles: session.model_cycles,
+        model_instructions: session.model_instructions,
         model_iterations: session.model_iterations,
         bytes_up_per_frame: up,
         bytes_up_per_frame_max: records.iter().map(|r| r.bytes_up).max().unwrap_or(0),
@@ -440,6 +483,7 @@ pub fn report(session: Session, records: &[FrameRecord], summary: &Summary) -> R
             field_selection: session.field.to_string(),
             field_nodes: field_components / 3,
             field_build_cycles: summary.field_cycles,
+            field_build_instructions: summary.field_instructions,
         },
         bytes_up_per_force_query: force_bytes.sent as f64,
         bytes_down_per_force_query: force_bytes.received as f64,
