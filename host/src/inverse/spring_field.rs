@@ -405,6 +405,18 @@ pub fn estimate<P: Port>(
             rss += field.weight * (field.f[p] - predicted).powi(2);
         }
     }
+    let relative_residual = if ff > 0.0 { (rss / ff).sqrt() } else { 0.0 };
+    let finite = |v: &f64| v.is_finite();
+    super::ensure_finite(
+        "per-spring",
+        &[
+            ("the relative residual", relative_residual),
+            (
+                "a spring's k",
+                k.iter().copied().find(|v| !finite(v)).unwrap_or(0.0),
+            ),
+        ],
+    )?;
     let node_stiffness = node_map(net, &unknown_of, &k, prior_k);
     let stiff_region = stiff_region(net, &node_stiffness);
     let node_coords = |p: usize| {
@@ -419,7 +431,7 @@ pub fn estimate<P: Port>(
         normal_bandwidth: scaled.bandwidth(),
         prior_k,
         regularisation: regularisation.iter().map(|r| r.to_string()).collect(),
-        relative_residual: if ff > 0.0 { (rss / ff).sqrt() } else { 0.0 },
+        relative_residual,
         solves,
         min_k: k.iter().copied().fold(f64::INFINITY, f64::min),
         max_k: k.iter().copied().fold(f64::NEG_INFINITY, f64::max),
