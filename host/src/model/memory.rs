@@ -1,0 +1,121 @@
+//! How much memory building a model takes, checked against what the machine has before anything
+//! is allocated.
+//!
+//! The grid may have up to 2²⁴ nodes ([`super::grid::MAX_NODES`]), but a 256³ model B needs
+//! about 24 GB to assemble and encode: without this check `deform model --grid 256,256,256`
+//! allocated past the machine's memory and died in the allocator (exit 134, any QEMU it had
+//! started left behind). The estimate is the measured peak of `deform model` (the largest of the
+//! commands: it also encodes K and analyses it) as bytes per node plus bytes per nonzero,
+//! fitted on 64³ models A and B (130 MB and 366 MB peak resident), with a margin.
+
+use super::grid::Grid;
+use super::springs::Connection;
+
+/// Bytes per node of the measured peak (the vectors, per-node tables, the tool-free analysis).
+const BYTES_PER_NODE: f64 = 182.0;
+/// Bytes per nonzero of K (triplets while assembling, CSR, the encoded words and their copies).
+const BYTES_PER_NONZERO: f64 = 45.0;
+/// The process itself (binary, allocator, the firmware ELF's tables).
+const BASE_BYTES: f64 = 8e6;
+/// Head-room over the fitted peak.
+const MARGIN: f64 = 1.25;
+
+/// What building a model would take.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MemoryEstimate {
+    pub nodes: u64,
+    /// Nonzeros of K: one per node and two per spring.
+    pub nonzeros: u64,
+    pub bytes: u64,
+}
+
+/// The estimate for a `grid` with `connection` springs (exact counts, no allocation).
+pub fn estimate(grid: Grid, connection: Connection) -> MemoryEstimate {
+    let dims = [grid.nx(), grid.ny(), grid.nz()].map(|d| d as u64);
+    let nodes = dims.iter().product::<u64>();
+    // Each spring joins a node to the one at +offset; half the offsets cover every spring once.
+    let springs: u64 = connection
+        .offsets()
+        .filter(|&o| o > (0, 0, 0))
+        .map(|(di, dj, dk)| {
+            [di, dj, dk]
+                .iter()
+                .zip(dims)
+                .map(|(&d, n)| n.saturating_sub(d.unsigned_abs() as u64))
+                .product::<u64>()
+        })
+        .sum();
+    let nonzeros = nodes + 2 * springs;
+    let bytes =
+        MARGIN * (BASE_BYTES + BYTES_PER_NODE * nodes as f64 + BYTES_PER_NONZERO * nonzeros as f64);
+    MemoryEstimate {
+        nodes,
+        nonzeros,
+        bytes: bytes as u64,
+    }
+}
+
+/// The memory this process may still take, in bytes: the kernel's `MemAvailable`, or less where
+/// a cgroup (a container's limit) allows less. `None` where neither can be read (not Linux):
+/// then nothing is refused.
+///
+/// Read from `/proc` and `/sys` by hand: two numbers in two text files do not justify a
+/// system-information crate.
+pub fn available_bytes() -> Option<u64> {
+    let meminfo = std::fs::read_to_string("/proc/meminfo").ok();
+    let available = meminfo.as_deref().and_then(|text| {
+        text.lines()
+            .find_map(|l| l.strip_prefix("MemAvailable:"))
+            .and_then(|v| v.trim().strip_suffix("kB"))
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .map(|kb| kb * 1024)
+    });
+    let read = |path: &str| -> Option<u64> {
+        std::fs::read_to_string(path).ok()?.trim().parse().ok()
+    };
+    let cgroup = read("/sys/fs/cgroup/memory.max")
+        .map(|max| max.saturating_sub(read("/sys/fs/cgroup/memory.current").unwrap_or(0)));
+    match (available, cgroup) {
+        (Some(a), Some(c)) => Some(a.min(c)),
+        (a, c) => a.or(c),
+    }
+}
+
+/// `bytes` for a person: `24.3 GB`, `512 MB`.
+pub fn human(bytes: u64) -> String {
+    let b = bytes as f64;
+    if b >= 1e9 {
+        format!("{:.1} GB", b / 1e9)
+    } else {
+        format!("{:.0} MB", b / 1e6)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nonzeros_are_counted_exactly() {
+        // 3×3×3 model A: 27 nodes, 54 springs (3 directions × 2 × 3 × 3).
+        let a = estimate(Grid::new(3, 3, 3).unwrap(), Connection::Axial);
+        assert_eq!((a.nodes, a.nonzeros), (27, 27 + 2 * 54));
+        // 2×2×2 model B: every pair of the 8 corners is a spring (28).
+        let b = estimate(Grid::new(2, 2, 2).unwrap(), Connection::AxialShear);
+        assert_eq!(b.nonzeros, 8 + 2 * 28);
+        // The advertised limit, 2²⁴ nodes of model B: ~453 M nonzeros, tens of GB.
+        let big = estimate(Grid::new(256, 256, 256).unwrap(), Connection::AxialShear);
+        assert_eq!(big.nodes, 1 << 24);
+        assert!(big.nonzeros > 440_000_000 && big.bytes > 20_000_000_000, "{big:?}");
+        assert_eq!(human(24_300_000_000), "24.3 GB");
+        assert_eq!(human(512_000_000), "512 MB");
+    }
+
+    #[test]
+    fn the_machines_memory_is_read() {
+        if std::path::Path::new("/proc/meminfo").exists() {
+            let available = available_bytes().expect("MemAvailable");
+            assert!(available > 1 << 20, "{available}");
+        }
+    }
+}
