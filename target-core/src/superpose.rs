@@ -21,10 +21,7 @@
 use deform_shared::live::MAX_TOOL_NODES;
 use deform_shared::qformat::{block_exponent, ldexp};
 
-use crate::predict::scale;
-
-/// Largest |mantissa| written: 2^29, as [`crate::predict`]'s.
-const TOP_BITS: i32 = 29;
+use crate::predict::{bits, scale, TOP_BITS};
 
 /// Bits of the largest term m_j·g (see the bounds in the module doc).
 const TERM_BITS: i32 = 55;
@@ -44,11 +41,6 @@ impl Column {
             max: g.iter().map(|v| v.unsigned_abs()).max().unwrap_or(0),
         }
     }
-}
-
-/// Number of bits of `v` (0 for 0).
-fn bits(v: u64) -> i32 {
-    (u64::BITS - v.leading_zeros()) as i32
 }
 
 /// Adds Σ_j coeffs_j·G_j and the `own` terms (node, value) to `x`, whose exponent is `e_x`

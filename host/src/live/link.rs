@@ -13,6 +13,7 @@ use deform_shared::protocol::{ErrorCode, Request, Response, VectorSlot};
 use super::field::FieldChoice;
 use super::setup::ToolKind;
 use super::LiveSetup;
+use crate::board::WireBytes;
 use crate::link::{LinkError, Port, Target};
 
 /// A started live session on a target.
@@ -119,6 +120,11 @@ impl<'a, P: Port> LiveLink<'a, P> {
         Ok(())
     }
 
+    /// Bytes the target's link has moved so far (see [`WireBytes`]).
+    pub fn wire(&self) -> WireBytes {
+        WireBytes::of(&self.target.stats())
+    }
+
     fn solve_timeout(&self) -> Duration {
         self.target.timeouts().solve
     }
@@ -215,6 +221,7 @@ impl<'a, P: Port> LiveLink<'a, P> {
                 code: ErrorCode::Live(e),
             }
         })?;
+        let start = self.wire();
         let mut frame = FieldFrame::default();
         let mut exponent = None;
         let requests = selection.chunk_offsets().map(|offset| Request::ReadField {
@@ -246,6 +253,7 @@ impl<'a, P: Port> LiveLink<'a, P> {
                 )),
             }
         })?;
+        frame.bytes = self.wire().since(start);
         Ok(frame)
     }
 
@@ -269,4 +277,6 @@ pub struct FieldFrame {
     pub cycles: u64,
     /// The retired instructions counted as `cycles` is.
     pub instructions: u64,
+    /// Its bytes on the line, both ways.
+    pub bytes: WireBytes,
 }

@@ -10,6 +10,8 @@ mod litex_term;
 mod live_browser;
 mod live_cli;
 mod live_field;
+mod live_host;
 mod model_cli;
 mod scenario_files;
 mod signals;
+mod target_logs;

@@ -16,7 +16,7 @@ use deform_shared::protocol::{PhaseCounters, SolveReport};
 
 /// The Schur columns' tolerance: the fixed-point CG's floor, which the host's refinement
 /// also uses.
-const MODEL_TOLERANCE: f64 = 1e-7;
+const MODEL_TOLERANCE: f64 = deform_shared::qformat::FIXED_POINT_FLOOR;
 
 fn live(e: LiveError) -> ErrorCode {
     ErrorCode::Live(e)

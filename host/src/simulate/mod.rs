@@ -33,39 +33,22 @@
 //! only the new values go to the target ([`Target::update_values`]); the bytes saved against a
 //! full upload are reported per step.
 
-use deform_shared::protocol::{SolveParams, SolveReport, Start, VectorSlot};
+pub mod plan;
+pub mod run;
+pub mod sink;
 
+use deform_shared::protocol::{SolveParams, Start, VectorSlot};
+
+pub use crate::series::{Schedule, StepModel, StepResult};
+
+use crate::board::WireBytes;
 use crate::encode::{encode_with, EncodeOptions};
 use crate::link::{LinkError, Port, Target, UpdateReport, UploadProgress};
 use crate::model::assembly::assemble_laplacian;
 use crate::model::boundary::eliminate_fixed_nodes;
 use crate::model::{Axis, Csr, Model};
 use crate::reference::{self, max_abs, max_abs_diff};
-use crate::refine::FIXED_POINT_FLOOR;
-
-/// The time steps and how the loads follow them.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Schedule {
-    pub steps: u32,
-    pub dt: f64,
-}
-
-impl Schedule {
-    /// t of step `s` (1-based).
-    pub fn time(&self, s: u32) -> f64 {
-        s as f64 * self.dt
-    }
-
-    /// The fraction of the model's loads applied at time `t`: a linear ramp to 1 at the end.
-    pub fn load_factor(&self, t: f64) -> f64 {
-        let end = self.steps as f64 * self.dt;
-        if end > 0.0 {
-            (t / end).clamp(0.0, 1.0)
-        } else {
-            1.0
-        }
-    }
-}
+use deform_shared::qformat::FIXED_POINT_FLOOR;
 
 /// Displacement-dependent spring stiffness k̃ = α0 + α1·Σ_d Δl^d + α2·Σ_d (Δl^d)².
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -107,27 +90,6 @@ impl StepParams {
     }
 }
 
-/// What one step produced.
-#[derive(Debug, Clone)]
-pub struct StepResult {
-    pub step: u32,
-    pub t: f64,
-    /// Target CG iterations, summed over the three directions (fused too: the fused loop's own
-    /// count is each report's `iterations`).
-    pub iterations: u32,
-    /// The target's report of each solve this step made (one per direction with a load), with
-    /// its cycle and instruction counters.
-    pub reports: Vec<SolveReport>,
-    /// Largest true relative residual ‖b − K·u‖/‖b‖ over the directions.
-    pub residual: f64,
-    pub max_u: f64,
-    /// max |u − u_ref| / max |u_ref| against the f64 reference, if asked.
-    pub deviation: Option<f64>,
-    /// Nonlinear model: how K reached the target this step (`None`: full upload).
-    pub update: Option<UpdateReport>,
-    pub u: [Vec<f64>; 3],
-}
-
 #[derive(Debug, thiserror::Error)]
 pub enum SimulateError {
     #[error(transparent)]
@@ -152,9 +114,6 @@ pub enum SimulateError {
     )]
     MatrixChanged(f64),
 }
-
-/// The model at time t, for [`simulate_with`].
-pub type StepModel<'a> = &'a dyn Fn(f64) -> Result<Model, crate::model::ModelError>;
 
 /// K for the nonlinear model after displacements `u` (fixed nodes eliminated).
 pub fn nonlinear_matrix(
@@ -190,6 +149,7 @@ pub fn simulate<P: Port>(
 
 /// Like [`simulate`], but with `step_model` given the loads and prescribed displacements of
 /// each step come from `step_model(t)` (whose matrix must equal `model`'s) instead of a ramp.
+/// A SIGINT or SIGTERM ends the series after the step under way ([`crate::interrupt`]).
 #[allow(clippy::too_many_arguments)]
 pub fn simulate_with<P: Port>(
     target: &mut Target<P>,
@@ -212,73 +172,148 @@ pub fn simulate_with<P: Port>(
         target.upload_matrix_with_progress(&encoding.matrix, &mut on_upload)?;
     }
     for s in 1..=schedule.steps {
+        if crate::interrupt::requested() {
+            break;
+        }
         let t = schedule.time(s);
-        let at_t = match step_model {
-            None => None,
-            Some(f) => {
-                let m = f(t).map_err(|source| SimulateError::StepModel { t, source })?;
-                if m.unit_matrix() != model.unit_matrix() {
-                    return Err(SimulateError::MatrixChanged(t));
-                }
-                Some(m)
-            }
-        };
+        let before = WireBytes::of(&target.stats());
+        let at_t = model_at(model, step_model, t)?;
         // The ramp, or the step's own model at full value.
         let (factor, step) = match &at_t {
             None => (schedule.load_factor(t), model),
             Some(m) => (1.0, m),
         };
-        let (k, update, rhs): (Csr, Option<UpdateReport>, Vec<Vec<f64>>) = match nonlinear {
-            None => (
-                model.unit_matrix().clone(),
-                None,
-                Axis::ALL
-                    .iter()
-                    .map(|&d| step.scaled_rhs(d).iter().map(|b| b * factor).collect())
-                    .collect(),
-            ),
-            Some(Nonlinear { alpha }) => {
-                let k = nonlinear_matrix(model, alpha, &previous)?;
-                let layout = EncodeOptions {
-                    use_symmetry: false,
-                    ..params.layout
-                };
-                let encoded = encode_with(&k, &layout)?.matrix;
-                let update = if target.pattern_matches(&encoded) {
-                    Some(target.update_values(&encoded)?)
-                } else {
-                    target.upload_matrix_with_progress(&encoded, &mut on_upload)?;
-                    None
-                };
-                let rhs = Axis::ALL
-                    .iter()
-                    .map(|&d| step.load(d).iter().map(|f| f * factor).collect())
-                    .collect();
-                (k, update, rhs)
-            }
+        let system = match nonlinear {
+            None => StepSystem::linear(model, step, factor),
+            Some(Nonlinear { alpha }) => StepSystem::nonlinear(
+                target,
+                model,
+                step,
+                factor,
+                alpha,
+                &previous,
+                &params,
+                &mut on_upload,
+            )?,
         };
         let mut result = StepResult {
             step: s,
             t,
             iterations: 0,
             reports: Vec::new(),
+            cycles: 0,
             residual: 0.0,
             max_u: 0.0,
             deviation: None,
-            update,
+            update: system.update,
+            bytes: WireBytes::default(),
             u: Default::default(),
         };
-        let mut deviation: Option<f64> = None;
         let solutions = if params.fuse {
-            solve_fused_step(target, &rhs, &previous, s, params, &mut result)?
+            solve_fused_step(target, &system.rhs, &previous, s, params, &mut result)?
         } else {
-            solve_step_separately(target, &rhs, &previous, params, &mut result)?
+            solve_step_separately(target, &system.rhs, &previous, params, &mut result)?
         };
-        for ((d, b), x) in Axis::ALL.iter().zip(&rhs).zip(solutions) {
+        system.check(solutions, params.check_reference, &mut result)?;
+        result.cycles = crate::refine::critical_path_cycles(&result.reports);
+        result.bytes = WireBytes::of(&target.stats()).since(before);
+        previous.clone_from(&result.u);
+        on_step(&result);
+        results.push(result);
+    }
+    Ok(results)
+}
+
+/// The model at `t` from `step_model`, checked to keep `model`'s matrix (`None`: no
+/// keyframes, the ramp applies).
+fn model_at(
+    model: &Model,
+    step_model: Option<StepModel>,
+    t: f64,
+) -> Result<Option<Model>, SimulateError> {
+    let Some(f) = step_model else {
+        return Ok(None);
+    };
+    let m = f(t).map_err(|source| SimulateError::StepModel { t, source })?;
+    if m.unit_matrix() != model.unit_matrix() {
+        return Err(SimulateError::MatrixChanged(t));
+    }
+    Ok(Some(m))
+}
+
+/// One step's system: the matrix its residual is measured with, how it reached the target
+/// and the right-hand sides.
+struct StepSystem<'m> {
+    k: std::borrow::Cow<'m, Csr>,
+    update: Option<UpdateReport>,
+    rhs: Vec<Vec<f64>>,
+}
+
+impl<'m> StepSystem<'m> {
+    /// The resident K and `step`'s loads at `factor` (scaled by 1/k_d: the unit matrix).
+    fn linear(model: &'m Model, step: &Model, factor: f64) -> Self {
+        StepSystem {
+            k: std::borrow::Cow::Borrowed(model.unit_matrix()),
+            update: None,
+            rhs: Axis::ALL
+                .iter()
+                .map(|&d| step.scaled_rhs(d).iter().map(|b| b * factor).collect())
+                .collect(),
+        }
+    }
+
+    /// K after the `previous` displacements, sent as values only where its pattern allows.
+    #[allow(clippy::too_many_arguments)]
+    fn nonlinear<P: Port>(
+        target: &mut Target<P>,
+        model: &Model,
+        step: &Model,
+        factor: f64,
+        alpha: [f64; 3],
+        previous: &[Vec<f64>; 3],
+        params: &StepParams,
+        on_upload: &mut impl FnMut(UploadProgress),
+    ) -> Result<Self, SimulateError> {
+        let k = nonlinear_matrix(model, alpha, previous)?;
+        let layout = EncodeOptions {
+            use_symmetry: false,
+            ..params.layout
+        };
+        let encoded = encode_with(&k, &layout)?.matrix;
+        let update = if target.pattern_matches(&encoded) {
+            Some(target.update_values(&encoded)?)
+        } else {
+            target.upload_matrix_with_progress(&encoded, on_upload)?;
+            None
+        };
+        let rhs = Axis::ALL
+            .iter()
+            .map(|&d| step.load(d).iter().map(|f| f * factor).collect())
+            .collect();
+        Ok(StepSystem {
+            k: std::borrow::Cow::Owned(k),
+            update,
+            rhs,
+        })
+    }
+
+    /// Puts the step's `solutions` into `result` with their true residual, its largest |u|
+    /// and, if asked, the deviation from the f64 reference.
+    fn check(
+        &self,
+        solutions: Vec<Vec<f64>>,
+        check_reference: bool,
+        result: &mut StepResult,
+    ) -> Result<(), SimulateError> {
+        let n = self.k.n();
+        let mut deviation: Option<f64> = None;
+        for ((d, b), x) in Axis::ALL.iter().zip(&self.rhs).zip(solutions) {
             if max_abs(b) > 0.0 {
-                result.residual = result.residual.max(reference::relative_residual(&k, b, &x));
-                if params.check_reference {
-                    let want = reference::solve(&k, b, None, 1e-12, 10 * n.max(100))?;
+                result.residual = result
+                    .residual
+                    .max(reference::relative_residual(&self.k, b, &x));
+                if check_reference {
+                    let want = reference::solve(&self.k, b, None, 1e-12, 10 * n.max(100))?;
                     let scale = max_abs(&want.x);
                     let dev = max_abs_diff(&x, &want.x) / if scale > 0.0 { scale } else { 1.0 };
                     deviation = Some(deviation.map_or(dev, |m| m.max(dev)));
@@ -288,11 +323,8 @@ pub fn simulate_with<P: Port>(
         }
         result.deviation = deviation;
         result.max_u = result.u.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
-        previous = result.u.clone();
-        on_step(&result);
-        results.push(result);
+        Ok(())
     }
-    Ok(results)
 }
 
 /// One target run for all three directions of a step (a zero right-hand side gives 0 on the

@@ -1,15 +1,14 @@
-//! How much memory building a model takes, checked against what the machine has before anything
-//! is allocated.
+//! What the machine has, and what a command will take of it: a model's and a long run's memory
+//! are checked against it before they are allocated, so that too much is refused with both
+//! figures instead of ending in an allocation abort (exit 134, any QEMU it had started left
+//! behind).
 //!
-//! The grid may have up to 2²⁴ nodes ([`super::grid::MAX_NODES`]), but a 256³ model B needs
-//! about 24 GB to assemble and encode: without this check `deform model --grid 256,256,256`
-//! allocated past the machine's memory and died in the allocator (exit 134, any QEMU it had
-//! started left behind). The estimate is the measured peak of `deform model` (the largest of the
-//! commands: it also encodes K and analyses it) as bytes per node plus bytes per nonzero,
-//! fitted on 64³ models A and B (130 MB and 366 MB peak resident), with a margin.
+//! A model's figure ([`model_estimate`]) is the measured peak of `deform model` (the largest of
+//! the commands: it also encodes K and analyses it) as bytes per node plus bytes per nonzero,
+//! fitted on 64³ models A and B (130 MB and 366 MB peak resident), with a margin: the grid may
+//! have up to 2²⁴ nodes, but a 256³ model B needs about 24 GB.
 
-use super::grid::Grid;
-use super::springs::Connection;
+use crate::model::{Connection, Grid};
 
 /// Bytes per node of the measured peak (the vectors, per-node tables, the tool-free analysis).
 const BYTES_PER_NODE: f64 = 182.0;
@@ -30,7 +29,7 @@ pub struct MemoryEstimate {
 }
 
 /// The estimate for a `grid` with `connection` springs (exact counts, no allocation).
-pub fn estimate(grid: Grid, connection: Connection) -> MemoryEstimate {
+pub fn model_estimate(grid: Grid, connection: Connection) -> MemoryEstimate {
     let dims = [grid.nx(), grid.ny(), grid.nz()].map(|d| d as u64);
     let nodes = dims.iter().product::<u64>();
     // Each spring joins a node to the one at +offset; half the offsets cover every spring once.
@@ -61,7 +60,7 @@ pub fn estimate(grid: Grid, connection: Connection) -> MemoryEstimate {
 ///
 /// Read from `/proc` and `/sys` by hand: two numbers in two text files do not justify a
 /// system-information crate.
-pub fn available_bytes() -> Option<u64> {
+pub fn available() -> Option<u64> {
     let meminfo = std::fs::read_to_string("/proc/meminfo").ok();
     let available = meminfo.as_deref().and_then(|text| {
         text.lines()
@@ -70,9 +69,8 @@ pub fn available_bytes() -> Option<u64> {
             .and_then(|v| v.trim().parse::<u64>().ok())
             .map(|kb| kb * 1024)
     });
-    let read = |path: &str| -> Option<u64> {
-        std::fs::read_to_string(path).ok()?.trim().parse().ok()
-    };
+    let read =
+        |path: &str| -> Option<u64> { std::fs::read_to_string(path).ok()?.trim().parse().ok() };
     let cgroup = read("/sys/fs/cgroup/memory.max")
         .map(|max| max.saturating_sub(read("/sys/fs/cgroup/memory.current").unwrap_or(0)));
     match (available, cgroup) {
@@ -81,13 +79,19 @@ pub fn available_bytes() -> Option<u64> {
     }
 }
 
-/// `bytes` for a person: `24.3 GB`, `512 MB`.
+/// `bytes` for people: "34.4 GB".
 pub fn human(bytes: u64) -> String {
-    let b = bytes as f64;
-    if b >= 1e9 {
-        format!("{:.1} GB", b / 1e9)
+    let units = ["B", "kB", "MB", "GB", "TB", "PB", "EB"];
+    let mut value = bytes as f64;
+    let mut unit = 0;
+    while value >= 1000.0 && unit + 1 < units.len() {
+        value /= 1000.0;
+        unit += 1;
+    }
+    if unit == 0 {
+        format!("{bytes} B")
     } else {
-        format!("{:.0} MB", b / 1e6)
+        format!("{value:.1} {}", units[unit])
     }
 }
 
@@ -96,26 +100,26 @@ mod tests {
     use super::*;
 
     #[test]
-    fn nonzeros_are_counted_exactly() {
-        // 3×3×3 model A: 27 nodes, 54 springs (3 directions × 2 × 3 × 3).
-        let a = estimate(Grid::new(3, 3, 3).unwrap(), Connection::Axial);
-        assert_eq!((a.nodes, a.nonzeros), (27, 27 + 2 * 54));
-        // 2×2×2 model B: every pair of the 8 corners is a spring (28).
-        let b = estimate(Grid::new(2, 2, 2).unwrap(), Connection::AxialShear);
-        assert_eq!(b.nonzeros, 8 + 2 * 28);
-        // The advertised limit, 2²⁴ nodes of model B: ~453 M nonzeros, tens of GB.
-        let big = estimate(Grid::new(256, 256, 256).unwrap(), Connection::AxialShear);
-        assert_eq!(big.nodes, 1 << 24);
-        assert!(big.nonzeros > 440_000_000 && big.bytes > 20_000_000_000, "{big:?}");
-        assert_eq!(human(24_300_000_000), "24.3 GB");
-        assert_eq!(human(512_000_000), "512 MB");
+    fn figures_read_as_people_write_them() {
+        assert_eq!(human(512), "512 B");
+        assert_eq!(human(34_359_738_368), "34.4 GB");
+        assert!(available().is_some_and(|b| b > 0));
     }
 
     #[test]
-    fn the_machines_memory_is_read() {
-        if std::path::Path::new("/proc/meminfo").exists() {
-            let available = available_bytes().expect("MemAvailable");
-            assert!(available > 1 << 20, "{available}");
-        }
+    fn nonzeros_are_counted_exactly() {
+        // 3×3×3 model A: 27 nodes, 54 springs (3 directions × 2 × 3 × 3).
+        let a = model_estimate(Grid::new(3, 3, 3).unwrap(), Connection::Axial);
+        assert_eq!((a.nodes, a.nonzeros), (27, 27 + 2 * 54));
+        // 2×2×2 model B: every pair of the 8 corners is a spring (28).
+        let b = model_estimate(Grid::new(2, 2, 2).unwrap(), Connection::AxialShear);
+        assert_eq!(b.nonzeros, 8 + 2 * 28);
+        // The advertised limit, 2²⁴ nodes of model B: ~453 M nonzeros, tens of GB.
+        let big = model_estimate(Grid::new(256, 256, 256).unwrap(), Connection::AxialShear);
+        assert_eq!(big.nodes, 1 << 24);
+        assert!(
+            big.nonzeros > 440_000_000 && big.bytes > 20_000_000_000,
+            "{big:?}"
+        );
     }
 }
