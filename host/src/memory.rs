@@ -55,10 +55,10 @@ pub fn model_estimate(grid: Grid, connection: Connection) -> MemoryEstimate {
 }
 
 /// The memory this process may still take, in bytes: the kernel's `MemAvailable`, or less where
-/// a cgroup (a container's limit) allows less. `None` where neither can be read (not Linux):
-/// then nothing is refused.
+/// a cgroup (a container's limit) or the process's address-space limit (`ulimit -v`) allows
+/// less. `None` where none can be read (not Linux): then nothing is refused.
 ///
-/// Read from `/proc` and `/sys` by hand: two numbers in two text files do not justify a
+/// Read from `/proc` and `/sys` by hand: three numbers in three text files do not justify a
 /// system-information crate.
 pub fn available() -> Option<u64> {
     let meminfo = std::fs::read_to_string("/proc/meminfo").ok();
@@ -73,10 +73,24 @@ pub fn available() -> Option<u64> {
         |path: &str| -> Option<u64> { std::fs::read_to_string(path).ok()?.trim().parse().ok() };
     let cgroup = read("/sys/fs/cgroup/memory.max")
         .map(|max| max.saturating_sub(read("/sys/fs/cgroup/memory.current").unwrap_or(0)));
-    match (available, cgroup) {
-        (Some(a), Some(c)) => Some(a.min(c)),
-        (a, c) => a.or(c),
-    }
+    [available, cgroup, address_space_limit()]
+        .into_iter()
+        .flatten()
+        .min()
+}
+
+/// The soft `RLIMIT_AS` from `/proc/self/limits` (`Max address space  SOFT  HARD  bytes`), if
+/// it is not `unlimited`.
+fn address_space_limit() -> Option<u64> {
+    let limits = std::fs::read_to_string("/proc/self/limits").ok()?;
+    let line = limits
+        .lines()
+        .find(|l| l.starts_with("Max address space"))?;
+    line["Max address space".len()..]
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
 }
 
 /// `bytes` for people: "34.4 GB".
