@@ -416,3 +416,30 @@ fn a_nak_naming_a_later_number_fetches_the_lost_replies_at_once() {
     assert_eq!(link.stats().timeouts, 0, "{:?}", link.stats());
     assert_eq!(link.stats().retransmits, 2, "{:?}", link.stats());
 }
+
+/// The time a deadline counts may pass on the host's side (a slow reply handler, a loaded
+/// machine) while the target's replies wait unread: they are read before the run fails. Here the
+/// handler takes 0.4 s on a 0.3 s timeout while the target has answered everything.
+#[test]
+fn replies_waiting_on_the_line_are_read_before_a_deadline_fails_the_run() {
+    let (host, target) = UnixStream::pair().unwrap();
+    let mut link = Link::new(host).with_timeout(Duration::from_millis(300));
+    link.set_config(LinkConfig {
+        retransmit: Duration::from_secs(1),
+        ..LinkConfig::default()
+    });
+    serve(target, |received| match received {
+        Received::Request(req) => answer_frame(req.seq, Response::Ack),
+        Received::Unreadable(_) => Vec::new(),
+    });
+    let mut replies = 0;
+    link.run((0..4).map(end), |_, _| {
+        replies += 1;
+        if replies == 1 {
+            thread::sleep(Duration::from_millis(400));
+        }
+        Ok(())
+    })
+    .unwrap();
+    assert_eq!(replies, 4);
+}
