@@ -72,7 +72,9 @@ struct Dispatch {
     only: AtomicUsize,
     done: AtomicUsize,
     task: UnsafeCell<Option<Task<'static>>>,
+    /// Each hart's retired instructions and cycles over its last measured task.
     counts: [AtomicU32; MAX_HARTS],
+    cycles: [AtomicU32; MAX_HARTS],
 }
 
 // SAFETY: `task` is written only by hart 0 while no worker runs a phase (before the generation
@@ -86,6 +88,7 @@ static DISPATCH: Dispatch = Dispatch {
     done: AtomicUsize::new(0),
     task: UnsafeCell::new(None),
     counts: [const { AtomicU32::new(0) }; MAX_HARTS],
+    cycles: [const { AtomicU32::new(0) }; MAX_HARTS],
 };
 
 /// Sends hart `hart` a software interrupt.
@@ -175,10 +178,11 @@ pub fn worker(hart: usize) -> ! {
         let task = unsafe { *DISPATCH.task.get() };
         if let Some(task) = task {
             if only == hart {
-                let start = riscv::register::minstret::read64();
+                let start = counters();
                 task(hart);
-                let spent = riscv::register::minstret::read64().wrapping_sub(start);
-                DISPATCH.counts[hart].store(spent as u32, Ordering::Relaxed);
+                let spent = counters().since(start);
+                DISPATCH.counts[hart].store(spent.instructions as u32, Ordering::Relaxed);
+                DISPATCH.cycles[hart].store(spent.cycles as u32, Ordering::Relaxed);
             } else {
                 task(hart);
             }
@@ -227,12 +231,20 @@ impl Harts {
     }
 }
 
+/// This hart's `mcycle` and `minstret`. Never inlined: every reading then runs the same
+/// instructions between the two counters, so a delta of `mcycle` and one of `minstret` cover the
+/// same stretch of work (under QEMU `-icount`, where both count instructions, they are equal).
+#[inline(never)]
+fn counters() -> PhaseCounters {
+    PhaseCounters {
+        cycles: riscv::register::mcycle::read64(),
+        instructions: riscv::register::minstret::read64(),
+    }
+}
+
 impl PhaseClock for Harts {
     fn now(&self) -> PhaseCounters {
-        PhaseCounters {
-            cycles: riscv::register::mcycle::read64(),
-            instructions: riscv::register::minstret::read64(),
-        }
+        counters()
     }
 }
 
@@ -258,18 +270,22 @@ impl Executor for Harts {
         }
     }
 
-    fn run_measured(&self, harts: usize, task: Task<'_>) -> [u64; MAX_HARTS] {
+    fn run_measured(&self, harts: usize, task: Task<'_>) -> [PhaseCounters; MAX_HARTS] {
+        // Beyond the harts (hardware MVUs, `self.harts()`), hart 0 runs the shares in turn.
         let harts = harts.clamp(1, self.harts());
-        let mut counts = [0u64; MAX_HARTS];
+        let mut counts = [PhaseCounters::default(); MAX_HARTS];
         for (hart, count) in counts.iter_mut().enumerate().take(harts) {
             if hart == 0 || hart >= self.count {
-                let start = riscv::register::minstret::read64();
+                let start = counters();
                 task(hart);
-                *count = riscv::register::minstret::read64().wrapping_sub(start);
+                *count = counters().since(start);
             } else {
                 self.publish(task, self.count.min(harts), hart);
                 self.finish(1);
-                *count = u64::from(DISPATCH.counts[hart].load(Ordering::Relaxed));
+                *count = PhaseCounters {
+                    cycles: u64::from(DISPATCH.cycles[hart].load(Ordering::Relaxed)),
+                    instructions: u64::from(DISPATCH.counts[hart].load(Ordering::Relaxed)),
+                };
             }
         }
         counts

@@ -114,14 +114,20 @@ impl Refined {
         critical_path_cycles(&self.reports)
     }
 
-    /// Hart 0's `mcycle` over the MVU and SVU phases of all solves. Under QEMU `-icount` every
-    /// hart's counter follows one machine-wide instruction count, so with several harts this is
-    /// their sum, not the parallel time: see [`Refined::critical_path_cycles`] for that.
-    pub fn cycles(&self) -> u64 {
+    /// The same critical path in cycles and in retired instructions.
+    pub fn critical_path(&self) -> PhaseCounters {
+        critical_path(&self.reports)
+    }
+
+    /// Hart 0's `mcycle` and `minstret` over the MVU and SVU phases of all solves. Under QEMU
+    /// `-icount` every hart's counters follow one machine-wide instruction count, so with several
+    /// harts this is their sum, not the parallel time: see [`Refined::critical_path`] for that.
+    pub fn hart0(&self) -> PhaseCounters {
         self.reports
             .iter()
-            .map(|r| r.mvu.cycles + r.svu.cycles)
-            .sum()
+            .fold(PhaseCounters::default(), |sum, r| {
+                sum.saturating_add(r.mvu).saturating_add(r.svu)
+            })
     }
 
     /// Hart 0's counters over the MVU phases and over the SVU phases of all solves: on the
@@ -143,10 +149,14 @@ impl Refined {
 /// Critical-path cycles of `reports`, as the target measured them over each whole solve
 /// (`SolveReport::whole_solve`: every phase's slowest hart plus hart 0's serial work), summed.
 pub fn critical_path_cycles(reports: &[SolveReport]) -> u64 {
-    reports
-        .iter()
-        .map(|r| r.whole_solve.mvu_critical + r.whole_solve.svu_critical)
-        .sum()
+    critical_path(reports).cycles
+}
+
+/// [`critical_path_cycles`] with the retired instructions beside the cycles.
+pub fn critical_path(reports: &[SolveReport]) -> PhaseCounters {
+    reports.iter().fold(PhaseCounters::default(), |sum, r| {
+        sum.saturating_add(r.whole_solve.critical())
+    })
 }
 
 #[derive(Debug, thiserror::Error)]

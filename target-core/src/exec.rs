@@ -45,9 +45,9 @@ pub trait Executor: PhaseClock + Sync {
     fn run(&self, harts: usize, task: Task<'_>);
 
     /// Like [`run`](Self::run), but one hart at a time while the others sleep, so that each
-    /// hart's retired-instruction count over its own task is exact; returns those counts
-    /// (zero where the executor cannot count).
-    fn run_measured(&self, harts: usize, task: Task<'_>) -> [u64; MAX_HARTS];
+    /// hart's cycle and retired-instruction counts over its own task are exact; returns those
+    /// counts (zero where the executor cannot count).
+    fn run_measured(&self, harts: usize, task: Task<'_>) -> [PhaseCounters; MAX_HARTS];
 
     /// The hardware MVUs beside the harts, if the board has them (see
     /// [`crate::mvu_backend`]); without them the harts run every MVU phase in software.
@@ -78,9 +78,9 @@ impl Executor for Sequential {
         }
     }
 
-    fn run_measured(&self, harts: usize, task: Task<'_>) -> [u64; MAX_HARTS] {
+    fn run_measured(&self, harts: usize, task: Task<'_>) -> [PhaseCounters; MAX_HARTS] {
         self.run(harts, task);
-        [0; MAX_HARTS]
+        [PhaseCounters::default(); MAX_HARTS]
     }
 }
 

@@ -27,7 +27,6 @@ const MVUS: u8 = 4;
 fn timeouts() -> Timeouts {
     Timeouts {
         handshake: Duration::from_secs(180),
-        hello_retry: Duration::from_secs(5),
         request: Duration::from_secs(120),
         solve: Duration::from_secs(900),
         ..Timeouts::default()
