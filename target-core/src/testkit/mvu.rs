@@ -227,6 +227,13 @@ fn cut(
     mirrored: bool,
     drafts: &mut Vec<Draft>,
 ) {
+    let draft = |row_base, rows, mvu| Draft {
+        row_base,
+        col_base,
+        rows,
+        mvu,
+        mirrored,
+    };
     if shape.split == Split::Overlap && shape.mvus > 1 && rng.u32(0..3) > 0 {
         let at = rng.usize(0..rows.len());
         let tail_rows = rows.split_off(at + 1);
@@ -234,28 +241,10 @@ fn cut(
         let tail_of_row = row.split_off(rng.usize(0..=row.len()));
         let mut second = vec![tail_of_row];
         second.extend(tail_rows);
-        drafts.push(Draft {
-            row_base: r0,
-            col_base,
-            rows,
-            mvu,
-            mirrored,
-        });
-        drafts.push(Draft {
-            row_base: r0 + at,
-            col_base,
-            rows: second,
-            mvu: (mvu + 1) % shape.mvus,
-            mirrored,
-        });
+        drafts.push(draft(r0, rows, mvu));
+        drafts.push(draft(r0 + at, second, (mvu + 1) % shape.mvus));
     } else {
-        drafts.push(Draft {
-            row_base: r0,
-            col_base,
-            rows,
-            mvu,
-            mirrored,
-        });
+        drafts.push(draft(r0, rows, mvu));
     }
 }
 
