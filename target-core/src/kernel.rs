@@ -15,9 +15,10 @@
 //! Each product q·p (|q| < 2^20, |p| < 2^30) is exact in `i64`, and so is the row sum (at most
 //! 2^12 products of a tile row before the sum could reach 2^62; validated tiles have at most
 //! 512 columns per row, and [`crate::cg::plan`] refuses a matrix whose rows could overflow).
-//! Nothing is rounded. pᵀKp is not formed here but once per finished row of Kp, in the MVU
-//! phase's second step ([`p_kp_and_max`]), exactly in `i128`: per row rather than per tile row
-//! and mirror row, which halves its cost where rows span two tiles.
+//! Nothing is rounded. pᵀKp is formed once per finished row of Kp, exactly
+//! ([`p_kp_and_max`]), per row rather than per tile row and mirror row: where every row of K
+//! is one row of one tile ([`crate::cg::Plan::fused`]) by each MVU over its own rows right
+//! after its tiles, otherwise in the MVU phase's second step.
 //!
 //! # Loop shape
 //!
@@ -74,14 +75,15 @@ pub struct TileRun {
     pub y_mirror: *mut Sums,
 }
 
-/// pᵀKp over rows `p`/`kp` (one hart's share of finished rows) for `directions`, exactly, and
-/// the OR of |Kp| per direction (whose highest bit is that of max |Kp|).
+/// pᵀKp over rows `p`/`kp` (finished rows) for `directions`, exactly, and the OR of |Kp| per
+/// direction (whose highest bit is that of max |Kp|).
 ///
 /// Each product p·Kp (|p| < 2^30, |Kp| < 2^62) is split by Kp's 32-bit halves h (signed) and l
 /// (unsigned) into p·l and p·h, two 64-bit products; their words are summed in three `i64`s by
 /// weight 2^0, 2^32 and 2^64, which cannot overflow for any n ≤ 2^16 (below 2^48, 2^50 and
 /// 2^46), and are joined into the `i128` once. That is about half the instructions of an
-/// `i128` accumulation per row on rv32.
+/// `i128` accumulation per row on rv32; one direction at a time keeps the six words of the
+/// sums in registers.
 pub fn p_kp_and_max(
     p: &[Lanes],
     kp: &[Sums],
@@ -107,8 +109,13 @@ pub fn p_kp_and_max(
     (p_kp, or)
 }
 
-/// Runs one tile for `D` fused directions (`MIRROR`: persymmetric half storage), adding each
-/// row sum into `y` (and each mirror row's into `y_mirror`).
+/// Runs one tile for `D` fused directions (`MIRROR`: persymmetric half storage), each row sum
+/// *stored* into `y` (and each mirror row's into `y_mirror`) if `STORE`, else *added*.
+///
+/// A row's sum may be stored where it is the only one the row gets ([`crate::cg::Plan::fused`]:
+/// every row of K is one row of one tile, own or mirror, and the MVUs do not overlap); then
+/// nothing zeroes the rows first and no second step adds partial rows up. Otherwise rows were
+/// zeroed and take their tiles' sums by adding.
 ///
 /// # Safety
 ///
@@ -119,7 +126,7 @@ pub fn p_kp_and_max(
 /// - `y` points at `rows` writable slots (and `y_mirror` at the top of `rows` slots going
 ///   down, for `MIRROR`) that no one else accesses during the call.
 #[inline(always)]
-pub unsafe fn run_tile<const D: usize, const MIRROR: bool>(t: &TileRun) {
+pub unsafe fn run_tile<const D: usize, const MIRROR: bool, const STORE: bool>(t: &TileRun) {
     let mut w = t.words;
     let mut y = t.y;
     let mut y_mirror = t.y_mirror;
@@ -147,22 +154,30 @@ pub unsafe fn run_tile<const D: usize, const MIRROR: bool>(t: &TileRun) {
             };
         }
         // SAFETY: one slot per tile row, as the caller promised.
-        unsafe {
-            let out = &mut *y;
-            for d in 0..D {
-                out[d] += acc[d];
-            }
-        }
+        unsafe { end_row::<D, STORE>(y, &acc) };
         y = y.wrapping_add(1);
         if MIRROR {
             // SAFETY: as above, walking down from the mirror of row_base.
-            unsafe {
-                let out = &mut *y_mirror;
-                for d in 0..D {
-                    out[d] += mirror_acc[d];
-                }
-            }
+            unsafe { end_row::<D, STORE>(y_mirror, &mirror_acc) };
             y_mirror = y_mirror.wrapping_sub(1);
+        }
+    }
+}
+
+/// A row's end: its sum `acc` stored into `*y` (`STORE`) or added to it.
+///
+/// # Safety
+///
+/// `y` is a writable slot no one else accesses.
+#[inline(always)]
+unsafe fn end_row<const D: usize, const STORE: bool>(y: *mut Sums, acc: &[i64; D]) {
+    // SAFETY: forwarded from the caller.
+    let out = unsafe { &mut *y };
+    for d in 0..D {
+        if STORE {
+            out[d] = acc[d];
+        } else {
+            out[d] += acc[d];
         }
     }
 }
@@ -206,22 +221,28 @@ unsafe fn portable_row<const D: usize, const MIRROR: bool>(
     }
 }
 
-/// [`run_tile`] for a run-time direction count (1..=3) and mirror flag.
+/// [`run_tile`] for a run-time direction count (1..=3), mirror flag and row end.
 ///
 /// # Safety
 ///
 /// As [`run_tile`].
 #[inline(never)]
-pub unsafe fn run_tile_dyn(t: &TileRun, directions: usize, mirrored: bool) {
+pub unsafe fn run_tile_dyn(t: &TileRun, directions: usize, mirrored: bool, store: bool) {
     // SAFETY: forwarded contract.
     unsafe {
-        match (directions, mirrored) {
-            (1, false) => run_tile::<1, false>(t),
-            (2, false) => run_tile::<2, false>(t),
-            (1, true) => run_tile::<1, true>(t),
-            (2, true) => run_tile::<2, true>(t),
-            (_, false) => run_tile::<3, false>(t),
-            (_, true) => run_tile::<3, true>(t),
+        match (directions, mirrored, store) {
+            (1, false, false) => run_tile::<1, false, false>(t),
+            (2, false, false) => run_tile::<2, false, false>(t),
+            (1, true, false) => run_tile::<1, true, false>(t),
+            (2, true, false) => run_tile::<2, true, false>(t),
+            (_, false, false) => run_tile::<3, false, false>(t),
+            (_, true, false) => run_tile::<3, true, false>(t),
+            (1, false, true) => run_tile::<1, false, true>(t),
+            (2, false, true) => run_tile::<2, false, true>(t),
+            (1, true, true) => run_tile::<1, true, true>(t),
+            (2, true, true) => run_tile::<2, true, true>(t),
+            (_, false, true) => run_tile::<3, false, true>(t),
+            (_, true, true) => run_tile::<3, true, true>(t),
         }
     }
 }
