@@ -32,6 +32,7 @@ pub struct Buffers {
     kp: [Sums; MAX_N],
     partial: [Sums; PARTIAL_ROWS],
     responses: [i32; RESPONSE_VALUES],
+    residuals: [i16; RESPONSE_VALUES],
 }
 
 /// The vectors of one direction of a fused solve.
@@ -78,6 +79,7 @@ impl Buffers {
         kp: [[0; MAX_DIRECTIONS]; MAX_N],
         partial: [[0; MAX_DIRECTIONS]; PARTIAL_ROWS],
         responses: [0; RESPONSE_VALUES],
+        residuals: [0; RESPONSE_VALUES],
     };
 
     /// Lends all buffers to a session.
@@ -91,6 +93,7 @@ impl Buffers {
             kp: &mut self.kp,
             partial: &mut self.partial,
             responses: &mut self.responses,
+            residuals: &mut self.residuals,
         }
     }
 }

@@ -56,7 +56,7 @@ use deform_shared::word::ER_BIT;
 
 use crate::exec::{share, SharedSlice};
 pub use crate::exec::{Executor, NoClock, PhaseClock, Sequential};
-use crate::kernel::{p_kp_and_max, run_tile_dyn, Lanes, Sums, TileRun};
+use crate::kernel::{p_kp_and_max, run_tile_dyn, Lanes, Sums, TileRun, VALUE_SIGN_SHIFT};
 use crate::svu::{
     self, bound_of, bound_of_squares, bound_of_u64, check_bound, magnitude_bits, sum_squares,
     Block, HartOut, Lin, Narrow, PassR, PassXP, Scalar, Threshold,
@@ -133,6 +133,10 @@ pub struct Plan {
     /// ([`crate::kernel::run_tile`]). Otherwise rows are zeroed, added into and finished in
     /// the MVU phase's second step.
     pub fused: bool,
+    /// ‖K‖∞ in raw value units: the largest Σ_j |q_ij| over the rows (mirrors included). It
+    /// bounds ‖K·v‖₂ ≤ ‖K‖∞·‖v‖₂ (K is symmetric), which a live frame's residual estimate
+    /// needs ([`crate::superpose`]).
+    pub row_abs_max: u64,
 }
 
 /// Why [`plan`] refuses a matrix.
@@ -161,11 +165,12 @@ pub fn plan(
         offsets: [[0; 2]; MAX_HARTS],
         partial_len: 0,
         fused: false,
+        row_abs_max: 0,
     };
     // Words per row, mirrors included: every row sum must stay far from i64 overflow. And
-    // tile rows per row (own and mirror), for `fused`.
+    // tile rows per row (own and mirror), for `fused`, and Σ|q| per row, for `row_abs_max`.
     let counts = scratch.get_mut(..n).unwrap_or(&mut []);
-    counts.iter_mut().for_each(|c| (c[0], c[1]) = (0, 0));
+    counts.iter_mut().for_each(|c| *c = [0; MAX_DIRECTIONS]);
     let mut start = 0usize;
     for (i, t) in tiles.iter().enumerate() {
         let h = usize::from(t.mvu).min(MAX_HARTS - 1);
@@ -192,6 +197,9 @@ pub fn plan(
             {
                 if let Some(c) = counts.get_mut(r) {
                     c[0] += 1;
+                    c[2] += i64::from(
+                        (((w << VALUE_SIGN_SHIFT) as i32) >> VALUE_SIGN_SHIFT).unsigned_abs(),
+                    );
                     if c[0] > i64::from(MAX_WORDS_PER_ROW) {
                         return Err(PlanError::Matrix(MatrixError::RowTooLong {
                             tile: i as u32,
@@ -213,6 +221,7 @@ pub fn plan(
         })
     });
     plan.fused = !plan.overlapping && counts.len() == n && counts.iter().all(|c| c[1] == 1);
+    plan.row_abs_max = counts.iter().map(|c| c[2] as u64).max().unwrap_or(0);
     if plan.overlapping {
         let mut next = 0usize;
         for h in 0..plan.mvus {
@@ -251,7 +260,42 @@ pub struct System<'a> {
     pub x: &'a mut [i32],
     pub x_exponent: i32,
     pub r: &'a mut [i32],
+    /// `Some`: r already holds a residual for x₀ (a live frame's estimate,
+    /// [`crate::superpose`]), which the solve starts from instead of forming b − A·x₀ (the
+    /// caller vouches for it; a converged direction is still verified against b − A·x at the
+    /// end, as always). `None`: r is formed from b.
+    pub r_start: Option<GivenResidual>,
+    /// Set by the solve: the state of r on return.
+    pub outcome: Outcome,
 }
+
+/// A residual the caller hands a solve with x₀ ([`System::r_start`]): r's exponent, Σr² of its
+/// mantissas (exact) and the OR of their magnitudes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GivenResidual {
+    pub exponent: i32,
+    pub rr: u128,
+    pub or: u32,
+}
+
+/// What a solve leaves in a system's r and x besides the mantissas.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Outcome {
+    /// r's exponent, and a bound on max |r| (mantissa units).
+    pub r_exponent: i32,
+    pub r_bound: u64,
+    /// r is b − A·x formed by an MVU pass at the end (a start or a residual replacement that
+    /// the solve ended on), each element within [`EXACT_PASS_ERROR`] units of r's exponent of
+    /// the exact residual of the mantissas; else the recursive residual, or the given one.
+    pub r_exact: bool,
+    /// A bound on max |x| (mantissa units).
+    pub x_bound: u64,
+}
+
+/// The largest error, in units of r's exponent, of an element of b − A·x formed by an MVU pass
+/// ([`Solver::residual_of`]): below 1 unit from narrowing K·x (or K·x − b), ½ from rounding
+/// the term and ¼ from its multiplier, and on the inexact path below 1 from flooring b's shift.
+pub const EXACT_PASS_ERROR: f64 = 2.0;
 
 /// The vectors all directions share: the interleaved search directions, K·p, and the pool of
 /// private partial sums for overlapping MVUs.
@@ -284,6 +328,10 @@ struct Direction {
     b: Block,
     /// Residual replacements done so far.
     replacements: u32,
+    /// r was last formed by an MVU pass ([`Outcome::r_exact`]).
+    r_exact: bool,
+    /// r was given ([`System::r_start`]): no b − A·x₀ at the start.
+    given: bool,
 }
 
 impl Direction {
@@ -300,6 +348,8 @@ impl Direction {
         threshold: Threshold { m: 0, e: 0 },
         b: Block::ZERO,
         replacements: 0,
+        r_exact: false,
+        given: false,
     };
 
     /// Takes Σr² = `rr` of the residual block `r` as the current one.
@@ -651,9 +701,16 @@ impl<E: Executor> Engine<'_, '_, E> {
         self.run(&task, clock, false);
     }
 
-    /// The set-up on every hart's share: r = b, Σb², the ORs of b and x, p's lanes = x (or x
-    /// and its lane cleared, `zero_x`), Kp cleared.
-    fn setup(&self, b: &[&[i32]; MAX_DIRECTIONS], zero_x: bool, clock: &mut Clock) {
+    /// The set-up on every hart's share: r = b (where r is not `given`), Σb², the ORs of b and
+    /// x, p's lanes = x (or x and its lane cleared, `zero_x`), and Kp cleared where the MVUs
+    /// add into it (a fused plan stores every row).
+    fn setup(
+        &self,
+        b: &[&[i32]; MAX_DIRECTIONS],
+        given: [bool; MAX_DIRECTIONS],
+        zero_x: bool,
+        clock: &mut Clock,
+    ) {
         let n = self.a.n;
         let task = |h: usize| {
             let range = share(n, self.harts, h);
@@ -662,11 +719,14 @@ impl<E: Executor> Engine<'_, '_, E> {
             unsafe {
                 let out = &mut self.out.slice_mut(h..h + 1)[0];
                 let p = self.p.slice_mut(range.clone());
-                p.fill([0; 4]);
-                self.kp.slice_mut(range.clone()).fill([0; MAX_DIRECTIONS]);
+                if !self.a.plan.fused {
+                    self.kp.slice_mut(range.clone()).fill([0; MAX_DIRECTIONS]);
+                }
                 for d in 0..self.directions {
-                    let (b, r) = (&b[d][range.clone()], self.rs[d].slice_mut(range.clone()));
-                    r.copy_from_slice(b);
+                    let b = &b[d][range.clone()];
+                    if !given[d] {
+                        self.rs[d].slice_mut(range.clone()).copy_from_slice(b);
+                    }
                     out.rr[d] = sum_squares(b);
                     out.b_or[d] = b.iter().fold(0, |o, &m| o | magnitude_bits(m));
                     let x = self.xs[d].slice_mut(range.clone());
@@ -812,6 +872,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         for (d, plan) in plans.iter().enumerate() {
             if let Some(plan) = plan {
                 self.take_r(d, *plan);
+                self.state[d].r_exact = true;
             }
         }
         charge(&mut self.clock.svu, t, self.engine.exec);
@@ -819,8 +880,10 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
 
     /// r₀ = b − A·x₀ where x₀ ≠ 0, then p₀ = r₀ for every direction with work to do.
     fn start(&mut self) {
-        let guessed: [bool; MAX_DIRECTIONS] =
-            core::array::from_fn(|d| self.state[d].active && self.state[d].x.bound != 0);
+        let guessed: [bool; MAX_DIRECTIONS] = core::array::from_fn(|d| {
+            let st = &self.state[d];
+            st.active && st.x.bound != 0 && !st.given
+        });
         if guessed.iter().any(|&g| g) {
             self.residual_of(guessed);
         }
@@ -890,6 +953,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             let (rr_old, e_old) = (self.state[d].rr_scalar, self.state[d].r.e);
             self.take_r(d, *plan);
             let st = &mut self.state[d];
+            st.r_exact = false;
             let x = Lin::new(alphas[d], st.p, false, Some(st.x), &mut self.sat);
             xp_plans[d].x = Some(x);
             if st.converged || st.iterations >= self.params.max_iterations {
@@ -1009,12 +1073,15 @@ pub fn solve(
     let mut systems_b: [&[i32]; MAX_DIRECTIONS] = [&[]; MAX_DIRECTIONS];
     let mut b_exponents = [0i32; MAX_DIRECTIONS];
     let mut x_exponents = [0i32; MAX_DIRECTIONS];
+    let mut given = [None; MAX_DIRECTIONS];
     let mut xs = heapless::Vec::new();
     let mut rs = heapless::Vec::new();
     for (d, s) in systems.iter_mut().enumerate() {
         systems_b[d] = s.b;
         b_exponents[d] = s.b_exponent;
         x_exponents[d] = s.x_exponent;
+        // A given residual belongs to x₀: without one (a zero start) it is ignored.
+        given[d] = s.r_start.filter(|_| params.start != Start::Zero);
         let _ = xs.push(SharedSlice::new(&mut s.x[..n]));
         let _ = rs.push(SharedSlice::new(&mut s.r[..n]));
     }
@@ -1034,11 +1101,25 @@ pub fn solve(
         last: t0,
         ..Clock::default()
     };
-    engine.setup(&systems_b, params.start == Start::Zero, &mut clock);
+    let given_flags = given.map(|g| g.is_some());
+    engine.setup(
+        &systems_b,
+        given_flags,
+        params.start == Start::Zero,
+        &mut clock,
+    );
     let tol_sq = params.tolerance * params.tolerance;
     let mut state = [Direction::IDLE; MAX_DIRECTIONS];
     for d in 0..directions {
         state[d] = initial_state(&engine, d, b_exponents[d], &mut x_exponents[d], tol_sq);
+        if let Some(g) = given[d].filter(|_| state[d].active) {
+            let r = Block {
+                e: g.exponent,
+                bound: bound_of(g.or),
+            };
+            state[d].set_residual(g.rr, r);
+            state[d].given = true;
+        }
     }
     let mut solver = Solver {
         engine: &engine,
@@ -1065,10 +1146,20 @@ pub fn solve(
         solver.replace_residuals(verify);
     }
     solver.clock.flush_serial(exec);
+    let outcomes: [Outcome; MAX_DIRECTIONS] = core::array::from_fn(|d| {
+        let st = &solver.state[d];
+        Outcome {
+            r_exponent: st.r.e,
+            r_bound: st.r.bound,
+            r_exact: st.r_exact,
+            x_bound: st.x.bound,
+        }
+    });
     let (report, x_exponents) = finish(solver);
     drop(engine);
-    for (s, e) in systems.iter_mut().zip(x_exponents) {
+    for ((s, e), outcome) in systems.iter_mut().zip(x_exponents).zip(outcomes) {
         s.x_exponent = e;
+        s.outcome = outcome;
     }
     Ok(report)
 }

@@ -67,13 +67,13 @@
 
 use deform_shared::matrix::{validate_mvu, validate_tile, words_crc, MatrixError, TileHeader};
 use deform_shared::protocol::{
-    ErrorCode, Request, Response, SessionStep, SolveFailure, SolveParams, Start, TargetInfo,
-    VectorSlot, CHUNK_LEN, MAX_DIRECTIONS, MAX_HARTS, PROTOCOL_VERSION,
+    ErrorCode, Request, Response, SessionStep, SolveFailure, SolveParams, SolveReport, Start,
+    TargetInfo, VectorSlot, CHUNK_LEN, MAX_DIRECTIONS, MAX_HARTS, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{MANTISSA_LIMIT, MAX_FRAC_BITS};
 use deform_shared::word::{VALUE_MASK, VALUE_MAX, VALUE_MIN};
 
-use crate::cg::{self, Matrix, Plan, PlanError, System, Work};
+use crate::cg::{self, GivenResidual, Matrix, Outcome, Plan, PlanError, System, Work};
 use crate::exec::Executor;
 use crate::kernel::{Lanes, Sums};
 use crate::live::Live;
@@ -100,6 +100,9 @@ pub struct Storage<'a> {
     /// ([`crate::superpose`]); held only if all of a tool set's fit, else (or if empty) live
     /// frames fall back to the extrapolation of [`Start::Predicted`].
     pub responses: &'a mut [i32],
+    /// The response columns' own residuals, `i16` mantissas laid out as `responses`
+    /// ([`crate::superpose`]'s residual estimate); held only where as long as `responses`.
+    pub residuals: &'a mut [i16],
 }
 
 /// The vectors of one direction.
@@ -704,11 +707,35 @@ impl<'a, E: Executor> Session<'a, E> {
     }
 
     fn solve(&mut self, params: &SolveParams) -> Result<Response, ErrorCode> {
-        let shape = self.loaded()?;
         let directions = usize::from(params.directions);
         if !(1..=MAX_DIRECTIONS).contains(&directions) {
             return Err(ErrorCode::Solve(SolveFailure::BadDirections(
                 params.directions,
+            )));
+        }
+        let which: heapless::Vec<usize, MAX_DIRECTIONS> = (0..directions).collect();
+        let (report, _) = self.solve_directions(params, &which, [None; MAX_DIRECTIONS], false)?;
+        Ok(Response::Solved(report))
+    }
+
+    /// Solves the storage directions `which` (1..=3 of them, fused in that order; a live frame
+    /// solves only the directions its tool moved) with `params` (whose `directions` is
+    /// ignored), each from `r_start[d]` where given ([`cg::System::r_start`]). Every other
+    /// direction keeps its solution if `keep_others` (else, as after a `Solve` request, only
+    /// the solved directions have one). Returns the report and each direction's [`Outcome`].
+    fn solve_directions(
+        &mut self,
+        params: &SolveParams,
+        which: &[usize],
+        r_start: [Option<GivenResidual>; MAX_DIRECTIONS],
+        keep_others: bool,
+    ) -> Result<(SolveReport, [Outcome; MAX_DIRECTIONS]), ErrorCode> {
+        let shape = self.loaded()?;
+        if !(1..=MAX_DIRECTIONS).contains(&which.len())
+            || which.iter().any(|&d| d >= MAX_DIRECTIONS)
+        {
+            return Err(ErrorCode::Solve(SolveFailure::BadDirections(
+                which.len() as u8
             )));
         }
         let n = to_usize(shape.n);
@@ -721,7 +748,7 @@ impl<'a, E: Executor> Session<'a, E> {
         // All checks first, so that a refused solve changes nothing.
         let mut b_exponents = [0i32; MAX_DIRECTIONS];
         let mut x_exponents = [0i32; MAX_DIRECTIONS];
-        for d in 0..directions {
+        for &d in which {
             b_exponents[d] = self.rhs[d].exponent(SessionStep::NoRhs)?;
             x_exponents[d] = match params.start {
                 Start::Zero => 0,
@@ -750,7 +777,10 @@ impl<'a, E: Executor> Session<'a, E> {
             return Err(too_large);
         };
         let mut systems: heapless::Vec<System<'_>, MAX_DIRECTIONS> = heapless::Vec::new();
-        for (d, v) in vectors.iter_mut().enumerate().take(directions) {
+        for (d, v) in vectors.iter_mut().enumerate() {
+            if !which.contains(&d) {
+                continue;
+            }
             let DirectionStorage { b, x, x0, r } = v;
             let (Some(b), Some(x), Some(x0), Some(r)) =
                 (b.get(..n), x.get_mut(..n), x0.get_mut(..n), r.get_mut(..n))
@@ -783,9 +813,15 @@ impl<'a, E: Executor> Session<'a, E> {
                 x,
                 x_exponent: x_exponents[d],
                 r,
+                r_start: r_start[d],
+                outcome: Outcome::default(),
             });
         }
-        self.solution = [None; MAX_DIRECTIONS];
+        for (d, solution) in self.solution.iter_mut().enumerate() {
+            if !keep_others || which.contains(&d) {
+                *solution = None;
+            }
+        }
         let matrix = Matrix {
             n,
             frac_bits: shape.frac_bits,
@@ -802,10 +838,12 @@ impl<'a, E: Executor> Session<'a, E> {
             self.kept = [None; MAX_DIRECTIONS];
             ErrorCode::Solve(e)
         })?;
-        for (solution, system) in self.solution.iter_mut().zip(&systems) {
-            *solution = Some(system.x_exponent);
+        let mut outcomes = [Outcome::default(); MAX_DIRECTIONS];
+        for (&d, system) in which.iter().zip(&systems) {
+            self.solution[d] = Some(system.x_exponent);
+            outcomes[d] = system.outcome;
         }
-        Ok(Response::Solved(report))
+        Ok((report, outcomes))
     }
 
     fn read_solution(

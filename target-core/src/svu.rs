@@ -373,7 +373,7 @@ impl Scalar {
 
 /// An upper bound on |c|·bound·2^e as (mantissa, exponent): the high word of c's mantissa
 /// times the bound (clamped to 32 bits), plus one. One `mulhu`; below 2^32.
-fn magnitude_bound(c: Scalar, block: Block) -> (u32, i32) {
+pub fn magnitude_bound(c: Scalar, block: Block) -> (u32, i32) {
     if c.m == 0 || block.bound == 0 {
         return (0, 0);
     }
@@ -433,7 +433,7 @@ impl Lin {
 
 /// The [`Term`] for c·block into output exponent `e`, the block's elements shifted left by
 /// `shift`: mult = c·2^(e_block − shift − e + 32), rounded to nearest (ties away from 0).
-fn term(c: Scalar, block: Block, shift: u32, e: i32, sat: &mut u32) -> Term {
+pub fn term(c: Scalar, block: Block, shift: u32, e: i32, sat: &mut u32) -> Term {
     if block.bound == 0 || c.m == 0 {
         return Term { mult: 0, shift };
     }
@@ -578,23 +578,35 @@ impl Threshold {
 
 /// tol² (non-negative, finite) as a [`Scalar`], its mantissa cut to 32 bits (rounded down).
 fn tol_sq_scalar(tol_sq: f64) -> Scalar {
-    let bits = tol_sq.to_bits();
-    let biased = ((bits >> 52) & 0x7FF) as i32;
-    if tol_sq.is_nan() || tol_sq <= 0.0 || biased == 0 {
+    if tol_sq.is_nan() || tol_sq <= 0.0 {
         return Scalar::ZERO;
     }
-    if biased == 0x7FF {
-        return Scalar {
-            neg: false,
-            m: u32::MAX,
-            e: 1024,
-        };
-    }
-    let m53 = (bits & ((1 << 52) - 1)) | (1 << 52);
-    Scalar {
-        neg: false,
-        m: (m53 >> 21) as u32,
-        e: biased - 1075 + 21,
+    Scalar::of_f64(tol_sq)
+}
+
+impl Scalar {
+    /// v's sign and the top 32 bits of its magnitude (truncated); 0 and subnormals give zero,
+    /// infinities the largest scalar. Bit operations only (no soft-float call).
+    pub fn of_f64(v: f64) -> Scalar {
+        let bits = v.to_bits();
+        let biased = ((bits >> 52) & 0x7FF) as i32;
+        let neg = bits >> 63 == 1;
+        match biased {
+            0 => Scalar::ZERO,
+            0x7FF => Scalar {
+                neg,
+                m: u32::MAX,
+                e: 1024,
+            },
+            _ => {
+                let m53 = (bits & ((1 << 52) - 1)) | (1 << 52);
+                Scalar {
+                    neg,
+                    m: (m53 >> 21) as u32,
+                    e: biased - 1075 + 21,
+                }
+            }
+        }
     }
 }
 

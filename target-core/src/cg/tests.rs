@@ -206,6 +206,8 @@ fn run_fused(
             x,
             x_exponent: *xe,
             r,
+            r_start: None,
+            outcome: Default::default(),
         })
         .collect();
     let mut p = vec![[0i32; 4]; n];
@@ -431,6 +433,8 @@ fn short_workspace_is_an_error_not_a_panic() {
         x: &mut x,
         x_exponent: 0,
         r: &mut r,
+        r_start: None,
+        outcome: Default::default(),
     }];
     let params = SolveParams {
         max_iterations: 5,
@@ -475,6 +479,8 @@ fn iteration_cap_is_honoured() {
         x: &mut x,
         x_exponent: 0,
         r: &mut r,
+        r_start: None,
+        outcome: Default::default(),
     }];
     let params = SolveParams {
         max_iterations: 3,
@@ -657,5 +663,82 @@ fn mirrored_tiles_solve_like_the_whole_persymmetric_matrix() {
                 assert_eq!(x, &full.x[0], "{mvus} MVUs, round robin {round_robin}");
             }
         }
+    }
+}
+
+/// A given residual ([`System::r_start`]) is started from without an exact pass; even a wrong
+/// one ends verified against b − A·x, so the solution meets the tolerance.
+#[test]
+fn a_given_residual_is_started_from_and_the_end_verified() {
+    let m = encode(laplacian_3d(5, 1.0), 17, 125);
+    let n = m.n;
+    let b: Vec<f64> = (0..n).map(|i| ((i * 37) % 11) as f64 - 5.0).collect();
+    let x_near: Vec<f64> = reference(&m.rows, &b).iter().map(|v| v * 0.9).collect();
+    let kx = matvec(&m.rows, &x_near);
+    for factor in [1.0, 2.0] {
+        // The residual of x_near, or twice it (a wrong estimate).
+        let r: Vec<f64> = b.iter().zip(&kx).map(|(b, k)| factor * (b - k)).collect();
+        let (rm, re) = to_block(&r);
+        let rr: u128 = rm
+            .iter()
+            .map(|&v| (i64::from(v) * i64::from(v)) as u128)
+            .sum();
+        let or = rm.iter().fold(0, |o, &v| o | crate::svu::magnitude_bits(v));
+        let (bm, be) = to_block(&b);
+        let (mut xm, xe) = to_block(&x_near);
+        let mut r_vec = rm.clone();
+        let mut kp = vec![[0i64; MAX_DIRECTIONS]; n];
+        let mut partial = vec![[0i64; MAX_DIRECTIONS]; 4 * n];
+        let plan = plan(&m.tiles, &m.words, n, &mut kp, partial.len()).unwrap();
+        let mut systems = [System {
+            b: &bm,
+            b_exponent: be,
+            x: &mut xm,
+            x_exponent: xe,
+            r: &mut r_vec,
+            r_start: Some(GivenResidual {
+                exponent: re,
+                rr,
+                or,
+            }),
+            outcome: Default::default(),
+        }];
+        let matrix = Matrix {
+            n,
+            frac_bits: m.frac_bits,
+            tiles: &m.tiles,
+            words: &m.words,
+            plan: &plan,
+        };
+        let params = SolveParams {
+            max_iterations: 500,
+            tolerance: 1e-7,
+            start: Start::Previous,
+            directions: 1,
+            cycle_budget: 0,
+        };
+        let work = Work {
+            p: &mut vec![[0; 4]; n],
+            kp: &mut kp,
+            partial: &mut partial,
+        };
+        let report = solve(
+            &matrix,
+            &mut systems,
+            work,
+            &params,
+            &Sequential { harts: 3 },
+        )
+        .unwrap();
+        let s = &systems[0];
+        let x: Vec<f64> =
+            s.x.iter()
+                .map(|&v| from_mantissa(v, s.x_exponent))
+                .collect();
+        assert!(
+            report.converged && s.outcome.r_exact,
+            "{factor}: {report:?}"
+        );
+        assert!(true_residual(&m.rows, &x, &b) < 2e-7, "{factor}");
     }
 }
