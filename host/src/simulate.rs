@@ -33,10 +33,13 @@
 //! only the new values go to the target ([`Target::update_values`]); the bytes saved against a
 //! full upload are reported per step.
 
+use deform_shared::live::{LiveParams, MAX_TOOL_NODES};
 use deform_shared::protocol::{SolveParams, SolveReport, Start, VectorSlot};
 
 use crate::encode::{encode_with, EncodeOptions};
 use crate::link::{LinkError, Port, Target, UpdateReport, UploadProgress};
+use crate::live::link::LiveLink;
+use crate::live::LiveSetup;
 use crate::model::assembly::assemble_laplacian;
 use crate::model::boundary::eliminate_fixed_nodes;
 use crate::model::{Axis, Csr, Model};
@@ -116,8 +119,11 @@ pub struct StepResult {
     /// count is each report's `iterations`).
     pub iterations: u32,
     /// The target's report of each solve this step made (one per direction with a load), with
-    /// its cycle and instruction counters.
+    /// its cycle and instruction counters; none for a superposed step (see [`simulate_with`]).
     pub reports: Vec<SolveReport>,
+    /// The step's cycles on the target's critical path: its solves' (`whole_solve`), or a
+    /// superposed step's frame cycles (the first also carrying the response columns' solve).
+    pub cycles: u64,
     /// Largest true relative residual ‖b − K·u‖/‖b‖ over the directions.
     pub residual: f64,
     pub max_u: f64,
@@ -151,6 +157,8 @@ pub enum SimulateError {
         "the model at t = {0} has another matrix (other fixed or prescribed nodes) than the first"
     )]
     MatrixChanged(f64),
+    #[error("setting up the superposed steps: {0}")]
+    Setup(#[from] crate::live::SetupError),
 }
 
 /// The model at time t, for [`simulate_with`].
@@ -203,6 +211,13 @@ pub fn simulate_with<P: Port>(
 ) -> Result<Vec<StepResult>, SimulateError> {
     if nonlinear.is_some() && model.prescribed_count() > 0 {
         return Err(SimulateError::PrescribedNonlinear);
+    }
+    if let Some(step_model) =
+        step_model.filter(|f| superposable(model, schedule, *f, nonlinear, &params))
+    {
+        return simulate_superposed(
+            target, model, schedule, step_model, params, on_upload, on_step,
+        );
     }
     let n = model.n();
     let mut previous: [Vec<f64>; 3] = [vec![0.0; n], vec![0.0; n], vec![0.0; n]];
@@ -262,33 +277,139 @@ pub fn simulate_with<P: Port>(
             t,
             iterations: 0,
             reports: Vec::new(),
+            cycles: 0,
             residual: 0.0,
             max_u: 0.0,
             deviation: None,
             update,
             u: Default::default(),
         };
-        let mut deviation: Option<f64> = None;
         let solutions = if params.fuse {
             solve_fused_step(target, &rhs, &previous, s, params, &mut result)?
         } else {
             solve_step_separately(target, &rhs, &previous, params, &mut result)?
         };
-        for ((d, b), x) in Axis::ALL.iter().zip(&rhs).zip(solutions) {
-            if max_abs(b) > 0.0 {
-                result.residual = result.residual.max(reference::relative_residual(&k, b, &x));
-                if params.check_reference {
-                    let want = reference::solve(&k, b, None, 1e-12, 10 * n.max(100))?;
-                    let scale = max_abs(&want.x);
-                    let dev = max_abs_diff(&x, &want.x) / if scale > 0.0 { scale } else { 1.0 };
-                    deviation = Some(deviation.map_or(dev, |m| m.max(dev)));
-                }
-            }
-            result.u[d.position()] = x;
-        }
-        result.deviation = deviation;
-        result.max_u = result.u.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+        result.cycles = crate::refine::critical_path_cycles(&result.reports);
+        check_step(&mut result, &k, &rhs, solutions, params.check_reference)?;
         previous = result.u.clone();
+        on_step(&result);
+        results.push(result);
+    }
+    Ok(results)
+}
+
+/// Takes a step's solutions into `result` with their true relative residual against K (`k`)
+/// and the right-hand sides, and, if asked, their deviation from the f64 reference.
+fn check_step(
+    result: &mut StepResult,
+    k: &Csr,
+    rhs: &[Vec<f64>],
+    solutions: Vec<Vec<f64>>,
+    check_reference: bool,
+) -> Result<(), SimulateError> {
+    let n = k.n();
+    let mut deviation: Option<f64> = None;
+    for ((d, b), x) in Axis::ALL.iter().zip(rhs).zip(solutions) {
+        if max_abs(b) > 0.0 {
+            result.residual = result.residual.max(reference::relative_residual(k, b, &x));
+            if check_reference {
+                let want = reference::solve(k, b, None, 1e-12, 10 * n.max(100))?;
+                let scale = max_abs(&want.x);
+                let dev = max_abs_diff(&x, &want.x) / if scale > 0.0 { scale } else { 1.0 };
+                deviation = Some(deviation.map_or(dev, |m| m.max(dev)));
+            }
+        }
+        result.u[d.position()] = x;
+    }
+    result.deviation = deviation;
+    result.max_u = result.u.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+    Ok(())
+}
+
+/// Whether the series can run as superposed live frames ([`simulate_superposed`]): linear
+/// springs, fused predicted warm steps, at most [`MAX_TOOL_NODES`] prescribed nodes, and every
+/// step's loads the first model's (only the prescribed displacements move).
+fn superposable(
+    model: &Model,
+    schedule: Schedule,
+    step_model: StepModel,
+    nonlinear: Option<Nonlinear>,
+    params: &StepParams,
+) -> bool {
+    let eligible = nonlinear.is_none()
+        && params.fuse
+        && params.predict
+        && params.warm_start
+        && (1..=MAX_TOOL_NODES).contains(&model.prescribed_count());
+    eligible
+        && (1..=schedule.steps).all(|s| {
+            step_model(schedule.time(s)).is_ok_and(|m| {
+                m.unit_matrix() == model.unit_matrix()
+                    && Axis::ALL.iter().all(|&d| m.load(d) == model.load(d))
+            })
+        })
+}
+
+/// The series as the live loop's frames ([`crate::live`]): the target solves one response
+/// column per prescribed node once (`LiveStart`), then every step starts from the
+/// superposition of those columns (exact for linear springs) and skips even the exact r₀
+/// pass where its residual estimate allows; only the prescribed displacements go down per
+/// step, and the solutions come up for the output. The extrapolation of [`Start::Predicted`]
+/// stays the fallback where this does not apply ([`superposable`]).
+fn simulate_superposed<P: Port>(
+    target: &mut Target<P>,
+    model: &Model,
+    schedule: Schedule,
+    step_model: StepModel,
+    params: StepParams,
+    mut on_upload: impl FnMut(UploadProgress),
+    mut on_step: impl FnMut(&StepResult),
+) -> Result<Vec<StepResult>, SimulateError> {
+    let setup = LiveSetup::new(model.spec(), &params.layout)?;
+    // The live set-up streams the matrix itself: the whole of it, then the tool rows.
+    on_upload(UploadProgress {
+        words_sent: 0,
+        words_total: setup.matrix.words.len(),
+    });
+    let live_params = LiveParams {
+        tolerance: params.tol.max(FIXED_POINT_FLOOR) as f32,
+        max_iterations: params.max_iterations,
+        cycle_budget: 0,
+        scale: setup.scale.map(|k| k as f32),
+    };
+    let mut link = LiveLink::start(target, &setup, live_params)?;
+    let mut start_cycles = link.model.cycles;
+    let mut results = Vec::new();
+    for s in 1..=schedule.steps {
+        let t = schedule.time(s);
+        let at_t = step_model(t).map_err(|source| SimulateError::StepModel { t, source })?;
+        let tool: Vec<[f64; 3]> = setup
+            .tools
+            .iter()
+            .map(|&p| at_t.prescribed()[p].unwrap_or([0.0; 3]))
+            .collect();
+        let frame = link.frame(&tool)?;
+        let solutions = link.solution()?.to_vec();
+        let rhs: Vec<Vec<f64>> = Axis::ALL.iter().map(|&d| at_t.scaled_rhs(d)).collect();
+        let mut result = StepResult {
+            step: s,
+            t,
+            iterations: u32::from(frame.iterations),
+            reports: Vec::new(),
+            cycles: u64::from(frame.cycles) + std::mem::take(&mut start_cycles),
+            residual: 0.0,
+            max_u: 0.0,
+            deviation: None,
+            update: None,
+            u: Default::default(),
+        };
+        check_step(
+            &mut result,
+            at_t.unit_matrix(),
+            &rhs,
+            solutions,
+            params.check_reference,
+        )?;
         on_step(&result);
         results.push(result);
     }

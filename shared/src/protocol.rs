@@ -66,7 +66,9 @@ use crate::matrix::{MatrixError, TileHeader};
 /// `LiveLoadQuery`; `LiveMotion`, `LiveMotionQuery`; three more `LiveError`s).
 /// Version 10 (field): compact field frames: `ReadField::surface`, difference-coded
 /// `FieldChunk` values and their build cycles ([`crate::field`]).
-pub const PROTOCOL_VERSION: u16 = 10;
+/// Version 11 (engine): target-resident dynamic frames (`BeginStiffness`, `DynamicTool`,
+/// `DynamicStart`, `DynamicFrame`, `ErrorCode::Dynamic`; [`crate::dynamics`]).
+pub const PROTOCOL_VERSION: u16 = 11;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -259,6 +261,21 @@ pub enum Request {
     LiveLoadQuery {
         load: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
     },
+    /// Version 11 ([`crate::dynamics`]): starts a values-only upload of K into the resident
+    /// matrix's stiffness copy (its words, K's values in Q-format `frac_bits`); `UpdateValues`
+    /// and `EndUpdate` continue it as for `BeginUpdate`.
+    BeginStiffness {
+        frac_bits: u8,
+    },
+    /// Version 11: a dynamic session's tool node, its rows of S and K.
+    DynamicTool(crate::dynamics::DynamicTool),
+    /// Version 11: starts the dynamic session at rest; answered `Ack`.
+    DynamicStart(crate::dynamics::DynamicParams),
+    /// Version 11: one time step with the tool nodes at `tool` at its end (in the order of the
+    /// `DynamicTool`s); answered by [`Response::LiveFrame`].
+    DynamicFrame {
+        tool: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
+    },
 }
 
 impl Request {
@@ -286,6 +303,10 @@ impl Request {
             Request::LiveForceTool { .. } => "LiveForceTool",
             Request::LiveLoad { .. } => "LiveLoad",
             Request::LiveLoadQuery { .. } => "LiveLoadQuery",
+            Request::BeginStiffness { .. } => "BeginStiffness",
+            Request::DynamicTool(_) => "DynamicTool",
+            Request::DynamicStart(_) => "DynamicStart",
+            Request::DynamicFrame { .. } => "DynamicFrame",
         }
     }
 }
@@ -435,6 +456,9 @@ pub enum ErrorCode {
     OverlapTooLarge { rows: u32, capacity: u32 },
     #[error("live loop: {0}")]
     Live(crate::live::LiveError),
+    /// Version 11.
+    #[error("dynamic frames: {0}")]
+    Dynamic(crate::dynamics::DynamicError),
 }
 
 /// The step a request arrived out of, for [`ErrorCode::OutOfOrder`].

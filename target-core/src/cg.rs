@@ -270,12 +270,15 @@ pub struct System<'a> {
 }
 
 /// A residual the caller hands a solve with x₀ ([`System::r_start`]): r's exponent, Σr² of its
-/// mantissas (exact) and the OR of their magnitudes.
+/// mantissas (exact) and a bound on their magnitudes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct GivenResidual {
     pub exponent: i32,
     pub rr: u128,
-    pub or: u32,
+    pub bound: u64,
+    /// Where it is already within the tolerance, check it against b − A·x by an exact pass
+    /// before accepting x₀ (an estimate the caller cannot bound); else accept it as it is.
+    pub verify: bool,
 }
 
 /// What a solve leaves in a system's r and x besides the mantissas.
@@ -1115,7 +1118,7 @@ pub fn solve(
         if let Some(g) = given[d].filter(|_| state[d].active) {
             let r = Block {
                 e: g.exponent,
-                bound: bound_of(g.or),
+                bound: g.bound,
             };
             state[d].set_residual(g.rr, r);
             state[d].given = true;
@@ -1133,6 +1136,11 @@ pub fn solve(
     };
     charge(&mut solver.clock.svu, t0, exec);
     solver.start();
+    let unverified: [bool; MAX_DIRECTIONS] = core::array::from_fn(|d| {
+        let st = &solver.state[d];
+        st.given && st.converged && given[d].is_some_and(|g| g.verify)
+    });
+    solver.replace_residuals(unverified);
     while solver.state.iter().any(|s| s.active)
         && solver.iterations < params.max_iterations
         && solver.within_budget()
@@ -1162,6 +1170,90 @@ pub fn solve(
         s.outcome = outcome;
     }
     Ok(report)
+}
+
+/// What [`product`] measured: per lane the OR of |K·v| (its highest bit is that of the largest
+/// row sum), hart 0's counters over the phase and its critical path (every parallel step's
+/// slowest hart plus hart 0's serial work).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Product {
+    pub or: [u64; MAX_DIRECTIONS],
+    pub on_hart0: PhaseCounters,
+    pub critical: u64,
+}
+
+/// K·v for up to three vectors at once, `vectors[k]` into lane k of `work.kp` as exact `i64` row
+/// sums (value 2^(e_v − F) each): the MVU phase on its own, as a dynamic step needs it for
+/// K·u₀ ([`crate::dynamics`]). The vectors are only read (p's lanes take a copy).
+pub fn product(
+    a: &Matrix<'_>,
+    vectors: &mut [&mut [i32]],
+    work: Work<'_>,
+    exec: &impl Executor,
+) -> Result<Product, SolveFailure> {
+    let n = a.n;
+    let lanes = vectors.len();
+    if !(1..=MAX_DIRECTIONS).contains(&lanes) {
+        return Err(SolveFailure::BadDirections(lanes as u8));
+    }
+    let plan = a.plan;
+    let harts = plan.mvus.clamp(1, MAX_HARTS);
+    if vectors.iter().any(|v| v.len() < n)
+        || work.p.len() < n
+        || work.kp.len() < n
+        || work.partial.len() < plan.partial_len
+        || plan.mvus > exec.harts()
+    {
+        return Err(SolveFailure::WorkspaceTooSmall);
+    }
+    let t0 = exec.now();
+    let Work { p, kp, partial } = work;
+    let mut outs = [HartOut::default(); MAX_HARTS];
+    let mut xs = heapless::Vec::new();
+    for v in vectors.iter_mut() {
+        let _ = xs.push(SharedSlice::new(&mut v[..n]));
+    }
+    let engine = Engine {
+        a,
+        exec,
+        harts,
+        directions: lanes,
+        p: SharedSlice::new(&mut p[..n]),
+        kp: SharedSlice::new(&mut kp[..n]),
+        partial: SharedSlice::new(partial),
+        out: SharedSlice::new(&mut outs),
+        xs,
+        rs: heapless::Vec::new(),
+    };
+    let mut clock = Clock {
+        last: t0,
+        ..Clock::default()
+    };
+    if !plan.fused {
+        // Rows the MVUs add into start from zero.
+        engine.run(
+            &|h| {
+                let range = share(n, harts, h);
+                // SAFETY: each hart clears only its own share of Kp.
+                unsafe { engine.kp.slice_mut(range) }.fill([0; MAX_DIRECTIONS]);
+            },
+            &mut clock,
+            true,
+        );
+    }
+    engine.set_lanes([Lane::X; MAX_DIRECTIONS], &mut clock);
+    engine.mvu(&mut clock);
+    clock.flush_serial(exec);
+    let or = core::array::from_fn(|d| engine.outs().iter().fold(0, |o, out| o | out.kp_or[d]));
+    let now = exec.now();
+    Ok(Product {
+        or,
+        on_hart0: PhaseCounters {
+            cycles: now.cycles.wrapping_sub(t0.cycles),
+            instructions: now.instructions.wrapping_sub(t0.instructions),
+        },
+        critical: clock.costs.whole.mvu_critical + clock.costs.whole.svu_critical,
+    })
 }
 
 /// Direction d's state before the first iteration, from the set-up's results. A direction

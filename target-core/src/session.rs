@@ -74,6 +74,7 @@ use deform_shared::qformat::{MANTISSA_LIMIT, MAX_FRAC_BITS};
 use deform_shared::word::{VALUE_MASK, VALUE_MAX, VALUE_MIN};
 
 use crate::cg::{self, GivenResidual, Matrix, Outcome, Plan, PlanError, System, Work};
+use crate::dynamics::Dynamic;
 use crate::exec::Executor;
 use crate::kernel::{Lanes, Sums};
 use crate::live::Live;
@@ -103,6 +104,9 @@ pub struct Storage<'a> {
     /// The response columns' own residuals, `i16` mantissas laid out as `responses`
     /// ([`crate::superpose`]'s residual estimate); held only where as long as `responses`.
     pub residuals: &'a mut [i16],
+    /// The stiffness copy of a dynamic session ([`crate::dynamics`]): the resident matrix's
+    /// words with K's values; its length limits the matrices a dynamic session takes.
+    pub stiffness: &'a mut [u32],
 }
 
 /// The vectors of one direction.
@@ -173,6 +177,20 @@ enum MatrixState {
     },
 }
 
+/// The stiffness copy of the resident matrix (protocol version 11).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum StiffnessState {
+    Empty,
+    /// K's values arriving: `done` words have theirs.
+    Updating {
+        frac_bits: u8,
+        done: u32,
+    },
+    Complete {
+        frac_bits: u8,
+    },
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum VectorState {
     Empty,
@@ -211,6 +229,10 @@ pub struct Session<'a, E: Executor> {
     kept: [Option<i32>; MAX_DIRECTIONS],
     /// The live loop's tool set and local force model ([`crate::live`]).
     live: Live,
+    /// The stiffness copy's state (protocol version 11).
+    stiffness: StiffnessState,
+    /// A dynamic session's tools and state ([`crate::dynamics`]).
+    dynamic: Dynamic,
     /// How the MVUs share the resident matrix.
     plan: Option<Plan>,
 }
@@ -248,6 +270,8 @@ impl<'a, E: Executor> Session<'a, E> {
             solution: [None; MAX_DIRECTIONS],
             kept: [None; MAX_DIRECTIONS],
             live: Live::default(),
+            stiffness: StiffnessState::Empty,
+            dynamic: Dynamic::default(),
         }
     }
 
@@ -330,6 +354,10 @@ impl<'a, E: Executor> Session<'a, E> {
             Request::LiveForceTool { nodes } => self.live_force_tool(&nodes),
             Request::LiveLoad { load } => self.live_load(&load),
             Request::LiveLoadQuery { load } => self.live_load_query(&load),
+            Request::BeginStiffness { frac_bits } => self.begin_stiffness(frac_bits),
+            Request::DynamicTool(tool) => self.dynamic_tool(tool),
+            Request::DynamicStart(params) => self.dynamic_start(params),
+            Request::DynamicFrame { tool } => self.dynamic_frame(&tool),
         }
     }
 
@@ -347,6 +375,8 @@ impl<'a, E: Executor> Session<'a, E> {
         self.solution = [None; MAX_DIRECTIONS];
         self.kept = [None; MAX_DIRECTIONS];
         self.live.clear();
+        self.stiffness = StiffnessState::Empty;
+        self.dynamic.clear();
     }
 
     fn begin_matrix(&mut self, shape: Shape) -> Result<Response, ErrorCode> {
@@ -570,6 +600,9 @@ impl<'a, E: Executor> Session<'a, E> {
     }
 
     fn update_values(&mut self, offset: u32, values: &[i32]) -> Result<Response, ErrorCode> {
+        if let StiffnessState::Updating { .. } = self.stiffness {
+            return self.stiffness_values(offset, values);
+        }
         let MatrixState::Updating {
             shape,
             frac_bits,
@@ -603,6 +636,9 @@ impl<'a, E: Executor> Session<'a, E> {
     }
 
     fn end_update(&mut self, crc32: u32) -> Result<Response, ErrorCode> {
+        if let StiffnessState::Updating { .. } = self.stiffness {
+            return self.end_stiffness(crc32);
+        }
         let MatrixState::Updating {
             shape,
             frac_bits,
@@ -642,6 +678,8 @@ impl<'a, E: Executor> Session<'a, E> {
         len: u32,
     ) -> Result<Response, ErrorCode> {
         *self.slot_state(slot)? = VectorState::Empty;
+        // A dynamic session's state lives in the vectors.
+        self.dynamic.clear();
         match slot {
             // x0 now holds neither the guess nor the kept solution.
             VectorSlot::InitialGuess { direction } => self.kept[usize::from(direction)] = None,
@@ -714,6 +752,7 @@ impl<'a, E: Executor> Session<'a, E> {
             )));
         }
         let which: heapless::Vec<usize, MAX_DIRECTIONS> = (0..directions).collect();
+        self.dynamic.clear();
         let (report, _) = self.solve_directions(params, &which, [None; MAX_DIRECTIONS], false)?;
         Ok(Response::Solved(report))
     }
@@ -915,6 +954,7 @@ fn chunk_end(expected: u32, offset: u32, len: usize, limit: u32) -> Result<u32, 
         .ok_or(ErrorCode::ChunkTooLong)
 }
 
+mod dynamic_glue;
 mod live_glue;
 
 #[cfg(test)]

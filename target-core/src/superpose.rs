@@ -219,7 +219,7 @@ impl Terms {
 /// The smallest exponent that keeps the sum of the upper bounds `parts` (mantissa, exponent)
 /// below 2^29 units, or `None` if they are all zero: as [`crate::svu::Lin::new`] for any number
 /// of parts, each aligned to the largest exponent and rounded up.
-fn exponent_for(parts: &[(u32, i32)]) -> Option<i32> {
+pub(crate) fn exponent_for(parts: &[(u32, i32)]) -> Option<i32> {
     let e_hi = parts.iter().filter(|p| p.0 != 0).map(|p| p.1).max()?;
     let sum: u64 = parts
         .iter()

@@ -495,8 +495,9 @@ impl Narrow {
         }
     }
 
+    /// `v` narrowed.
     #[inline(always)]
-    fn apply(self, v: i64) -> i32 {
+    pub fn apply(self, v: i64) -> i32 {
         match self {
             Narrow::Left(k) => (v as i32).wrapping_shl(k),
             Narrow::Right(s) => {

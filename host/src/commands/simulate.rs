@@ -377,10 +377,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     if let Some(mut f) = csv {
         f.flush()?;
     }
-    let cycles: Vec<u64> = results
-        .iter()
-        .map(|r| crate::refine::critical_path_cycles(&r.reports))
-        .collect();
+    let cycles: Vec<u64> = results.iter().map(|r| r.cycles).collect();
     println!(
         "{} steps, {} CG iterations in all, {} critical-path cycles (worst step {}) ({})",
         results.len(),
@@ -388,6 +385,9 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         cycles.iter().sum::<u64>(),
         cycles.iter().max().unwrap_or(&0),
         match (args.cold, args.no_fuse || args.no_predict) {
+            _ if results.iter().all(|r| r.reports.is_empty()) => {
+                "superposed live frames: the prescribed nodes' response columns"
+            }
             (true, _) => "cold starts",
             (false, true) => "warm starts from the previous step",
             (false, false) => "fused, started from the target's prediction 2u(t−1) − u(t−2)",

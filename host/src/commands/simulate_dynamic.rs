@@ -198,6 +198,7 @@ mod tests {
                 t: 0.25,
                 iterations: 12,
                 reports: Vec::new(),
+                cycles: 0,
                 residual: 1e-5,
                 max_u: 2.5e-3,
                 deviation: None,

@@ -297,16 +297,18 @@ impl DynamicRunner {
             None
         };
         let after = target.stats();
+        let cycles = critical_path_cycles(&reports);
         Ok(DynamicStep {
             energy: system.energy(&self.state.u, &self.state.v),
             bytes_sent: after.bytes_sent - before.bytes_sent,
             bytes_received: after.bytes_received - before.bytes_received,
-            cycles: critical_path_cycles(&reports),
+            cycles,
             result: StepResult {
                 step,
                 t: self.state.t,
                 iterations,
                 reports,
+                cycles,
                 residual,
                 max_u: self.state.u.iter().map(|u| max_abs(u)).fold(0.0, f64::max),
                 deviation,

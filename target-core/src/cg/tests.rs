@@ -699,7 +699,8 @@ fn a_given_residual_is_started_from_and_the_end_verified() {
             r_start: Some(GivenResidual {
                 exponent: re,
                 rr,
-                or,
+                bound: crate::svu::bound_of(or),
+                verify: true,
             }),
             outcome: Default::default(),
         }];

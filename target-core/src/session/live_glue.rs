@@ -33,6 +33,7 @@ fn live(e: LiveError) -> ErrorCode {
 impl<E: Executor> Session<'_, E> {
     pub(super) fn live_tool(&mut self, row: ToolRow) -> Result<Response, ErrorCode> {
         let shape = self.loaded()?;
+        self.dynamic.clear();
         self.live.add_tool(row, shape.n).map_err(live)?;
         Ok(Response::Ack)
     }
@@ -40,6 +41,7 @@ impl<E: Executor> Session<'_, E> {
     /// A force tool at `nodes` (version 9).
     pub(super) fn live_force_tool(&mut self, nodes: &[u32]) -> Result<Response, ErrorCode> {
         let shape = self.loaded()?;
+        self.dynamic.clear();
         self.live.set_force_tool(nodes, shape.n).map_err(live)?;
         Ok(Response::Ack)
     }
@@ -491,7 +493,8 @@ impl<E: Executor> Session<'_, E> {
                     r_start[d] = df.r.map(|rt| GivenResidual {
                         exponent: rt.e,
                         rr: df.sums.rr,
-                        or: df.sums.r_or,
+                        bound: bound_from_or(df.sums.r_or),
+                        verify: true,
                     });
                 }
                 (true, Verdict::Exact) => {
@@ -775,7 +778,7 @@ fn hold_column(
 }
 
 /// A solve's share of hart 0's cycle count and its critical path; the same with one MVU.
-fn solve_cycles(report: &SolveReport) -> (u64, u64) {
+pub(super) fn solve_cycles(report: &SolveReport) -> (u64, u64) {
     let on_hart0 = report.mvu.cycles.saturating_add(report.svu.cycles);
     if report.mvus <= 1 {
         return (on_hart0, on_hart0);

@@ -33,6 +33,8 @@ pub struct OwnedStorage {
     /// residuals.
     pub responses: Vec<i32>,
     pub residuals: Vec<i16>,
+    /// A dynamic session's stiffness copy, as long as `words`.
+    pub stiffness: Vec<u32>,
 }
 
 impl OwnedStorage {
@@ -47,6 +49,7 @@ impl OwnedStorage {
             partial: vec![[0; MAX_DIRECTIONS]; 2 * max_n],
             responses: vec![0; MAX_TOOL_NODES * max_n],
             residuals: vec![0; MAX_TOOL_NODES * max_n],
+            stiffness: vec![0; words],
         }
     }
 
@@ -71,6 +74,7 @@ impl OwnedStorage {
             partial: &mut self.partial,
             responses: &mut self.responses,
             residuals: &mut self.residuals,
+            stiffness: &mut self.stiffness,
         }
     }
 
