@@ -55,6 +55,20 @@ pub struct Stepping {
     pub tool_u: [[f32; 3]; MAX_TOOL_NODES],
     /// Per direction, the OR of |K·u₀| of this step's MVU pass (0 where u is at rest).
     pub ku_or: [u64; 3],
+    /// Per direction, what the extrapolated start of the next step needs, where the session's
+    /// spare storage holds it ([`History`]).
+    pub history: [Option<History>; 3],
+}
+
+/// The last step's velocity change Δv₀ = v₀ − v₋₁, right-hand side change d₀ = b₀ − b₋₁ and
+/// the residual r₋₁f its solve started from, kept so that the next step starts from
+/// v₀ + Δv₀ (u₁ ≈ u₀ + h·(2v₀ − v₋₁)) with its residual in O(n) ([`residual_share`]). Their
+/// blocks; the mantissas are in the session's spare storage.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct History {
+    pub dv: Block,
+    pub d0: Block,
+    pub r1: Block,
 }
 
 impl Dynamic {
@@ -135,6 +149,7 @@ impl Dynamic {
             residual: [None; 3],
             tool_u: [[0.0; 3]; MAX_TOOL_NODES],
             ku_or: [0; 3],
+            history: [None; 3],
         }))
     }
 }
@@ -266,13 +281,171 @@ pub fn rhs_share(
     out
 }
 
-/// Pass U on one share: u ← `lin`(v) + u (h·v₁ rounded, u₀ shifted); returns the OR of |u|.
-pub fn advance_share(u: &mut [i32], v: &[i32], lin: &Lin) -> u32 {
+/// Pass U on one share: u ← `lin`(v) + u (h·v₁ rounded, u₀ shifted), and, where the step
+/// keeps a history, the step's velocity change Δv = v₁ − v₀ (v₀ from `v0`) by `dv` into
+/// `dv_out`. Returns the ORs of |u| and |Δv|.
+pub fn advance_share(
+    u: &mut [i32],
+    v: &[i32],
+    lin: &Lin,
+    history: Option<(&[i32], &mut [i32], &Difference)>,
+) -> (u32, u32) {
     let own = lin.own.unwrap_or_default();
     let mut or = 0;
     for (ui, &vi) in u.iter_mut().zip(v) {
         *ui = lin.term.apply_rounded(vi).wrapping_add(own.apply(*ui));
         or |= magnitude_bits(*ui);
+    }
+    let mut dv_or = 0;
+    if let Some((v0, out, dv)) = history {
+        for ((o, &a), &b) in out.iter_mut().zip(v).zip(v0) {
+            *o = dv.apply(a, b);
+            dv_or |= magnitude_bits(*o);
+        }
+    }
+    (or, dv_or)
+}
+
+/// a·2^(e_a − e) − b·2^(e_b − e) at exponent e, each rounded to nearest: a difference of two
+/// blocks (the step's velocity change), e chosen from their bounds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Difference {
+    pub e: i32,
+    shift_a: i32,
+    shift_b: i32,
+}
+
+impl Difference {
+    /// The difference of blocks `a` and `b`, its exponent keeping |a| + |b| below 2^29 units.
+    pub fn new(a: Block, b: Block) -> Difference {
+        let parts = [
+            magnitude_bound(Scalar::ONE, a),
+            magnitude_bound(Scalar::ONE, b),
+        ];
+        let e = crate::superpose::exponent_for(&parts).unwrap_or(a.e);
+        Difference {
+            e,
+            shift_a: e - a.e,
+            shift_b: e - b.e,
+        }
+    }
+
+    #[inline(always)]
+    pub fn apply(&self, a: i32, b: i32) -> i32 {
+        (scale(i64::from(a), self.shift_a) - scale(i64::from(b), self.shift_b)) as i32
+    }
+}
+
+/// The start's residual of a step with a history ([`residual_share`]): every term's shift onto
+/// r₀'s exponent, and d₁'s narrowing for keeping it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ResidualPlan {
+    /// r₀'s exponent.
+    pub e: i32,
+    /// d₁ (`i64` in Kp's lane, exponent `e_d`) onto e.
+    d_shift: i32,
+    /// r₀f (the last solve's residual, r) onto e, counted twice where the start is
+    /// extrapolated (then also d₀ and r₋₁f from the history, each onto e); `None` without
+    /// an extrapolated start.
+    r_shift: i32,
+    extrapolated: Option<(i32, i32)>,
+    /// d₁ narrowed to 31 bits for the history, and its exponent.
+    pub keep: Narrow,
+    pub e_keep: i32,
+}
+
+impl ResidualPlan {
+    /// The plan for d₁ (OR `d_or` at exponent `e_d`), r₀f (block `r`) and, extrapolating,
+    /// d₀ and r₋₁f (blocks `d0`, `r1`).
+    pub fn new(
+        d_or: u64,
+        e_d: i32,
+        r: Block,
+        extrapolated: Option<(Block, Block)>,
+        sat: &mut u32,
+    ) -> ResidualPlan {
+        let (keep, offset, d_bound) = Narrow::new(crate::svu::bound_of_u64(d_or), sat);
+        let d = Block {
+            e: e_d + offset,
+            bound: d_bound,
+        };
+        let twice = Block {
+            e: r.e + 1,
+            bound: r.bound,
+        };
+        let mut parts: heapless::Vec<(u32, i32), 4> = heapless::Vec::new();
+        for b in [d, if extrapolated.is_some() { twice } else { r }] {
+            let _ = parts.push(magnitude_bound(Scalar::ONE, b));
+        }
+        if let Some((d0, r1)) = extrapolated {
+            let _ = parts.push(magnitude_bound(Scalar::ONE, d0));
+            let _ = parts.push(magnitude_bound(Scalar::ONE, r1));
+        }
+        let e = crate::superpose::exponent_for(&parts).unwrap_or(r.e);
+        ResidualPlan {
+            e,
+            d_shift: e - e_d,
+            r_shift: e - r.e - i32::from(extrapolated.is_some()),
+            extrapolated: extrapolated.map(|(d0, r1)| (e - d0.e, e - r1.e)),
+            keep,
+            e_keep: d.e,
+        }
+    }
+}
+
+/// The start's residual on one share for the extrapolated start v₀ + Δv₀:
+/// r₀ = b₁ − S·(v₀ + Δv₀) = d₁ + 2·r₀f − d₀ − r₋₁f, since S·v₀ = b₀ − r₀f and
+/// S·Δv₀ = d₀ − r₀f + r₋₁f (or, without a history, r₀ = d₁ + r₀f for v₀). r holds r₀f and
+/// becomes r₀; the history takes d₁ (narrowed) and r₀f for the next step. Returns Σr₀² and
+/// the OR of |r₀|.
+pub fn residual_share(
+    r: &mut [i32],
+    kp: &[Sums],
+    lane: usize,
+    plan: &ResidualPlan,
+    history: Option<(&mut [i32], &mut [i32])>,
+) -> (u128, u32) {
+    let mut or = 0;
+    // v·2^(e_v − e) for a shift s = e − e_v, rounded to nearest.
+    let term = |v: i64, s: i32| scale(v, s);
+    match history {
+        Some((d_hist, r_hist)) => {
+            for (((ri, ki), dh), rh) in r.iter_mut().zip(kp).zip(d_hist).zip(r_hist) {
+                let d1 = ki[lane];
+                let r0 = i64::from(*ri);
+                let mut z = term(d1, plan.d_shift) + term(r0, plan.r_shift);
+                if let Some((sd, sr)) = plan.extrapolated {
+                    z -= term(i64::from(*dh), sd) + term(i64::from(*rh), sr);
+                }
+                *dh = plan.keep.apply(d1);
+                *rh = *ri;
+                *ri = z as i32;
+                or |= magnitude_bits(*ri);
+            }
+        }
+        None => {
+            for (ri, ki) in r.iter_mut().zip(kp) {
+                let z = term(ki[lane], plan.d_shift) + term(i64::from(*ri), plan.r_shift);
+                *ri = z as i32;
+                or |= magnitude_bits(*ri);
+            }
+        }
+    }
+    (sum_squares(r), or)
+}
+
+/// Pass A on one share, the start v₀ + Δv₀: v₀ kept in `v0`, then v ← `lin`(Δv) + v.
+/// Returns the OR of |v|.
+pub fn predict_share(v: &mut [i32], v0: &mut [i32], dv: &[i32], lin: Option<&Lin>) -> u32 {
+    v0.copy_from_slice(v);
+    let Some(lin) = lin else {
+        return v.iter().fold(0, |o, &x| o | magnitude_bits(x));
+    };
+    let own = lin.own.unwrap_or_default();
+    let mut or = 0;
+    for (vi, &d) in v.iter_mut().zip(dv) {
+        *vi = lin.term.apply_rounded(d).wrapping_add(own.apply(*vi));
+        or |= magnitude_bits(*vi);
     }
     or
 }

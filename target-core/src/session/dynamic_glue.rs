@@ -15,11 +15,12 @@ use deform_shared::qformat::ldexp;
 
 use super::*;
 use crate::cg::{GivenResidual, Outcome};
-use crate::dynamics::{advance_share, rhs_share, row_sum, LiveDynamicError, RhsPlan, RhsSums};
-use crate::exec::{share, SharedSlice};
-use crate::svu::{
-    bound_of, bound_of_squares, bound_of_u64, magnitude_bits, Block, Lin, Narrow, PassR, Scalar,
+use crate::dynamics::{
+    advance_share, predict_share, residual_share, rhs_share, row_sum, Difference, History,
+    LiveDynamicError, ResidualPlan, RhsPlan, RhsSums,
 };
+use crate::exec::{share, SharedSlice};
+use crate::svu::{bound_of, bound_of_u64, magnitude_bits, Block, Lin, Narrow, Scalar};
 
 fn dynamic(e: DynamicError) -> ErrorCode {
     ErrorCode::Dynamic(e)
@@ -49,6 +50,33 @@ impl Phases {
     }
 }
 
+/// A real multiplier as a fixed-point integer m·2^−shift (m below 2^40, so a 21-bit raw value
+/// times it stays within `i64`).
+#[derive(Debug, Clone, Copy, Default)]
+struct Fixed {
+    m: i64,
+    shift: i32,
+}
+
+impl Fixed {
+    fn of(v: f64) -> Fixed {
+        if v == 0.0 || !v.is_finite() {
+            return Fixed::default();
+        }
+        let shift = 39 - deform_shared::qformat::floor_log2(v);
+        let r = ldexp(v, shift);
+        Fixed {
+            m: (if r >= 0.0 { r + 0.5 } else { r - 0.5 }) as i64,
+            shift,
+        }
+    }
+
+    /// raw·m·2^−shift, rounded to nearest.
+    fn times(self, raw: i32) -> i64 {
+        crate::predict::scale(i64::from(raw) * self.m, self.shift)
+    }
+}
+
 /// b₀ at the rows a tool node writes (its own and its couplings'), per direction, kept on hart
 /// 0 while pass B overwrites b: at most every tool node and its row.
 type Stash = heapless::Vec<(u32, [i32; MAX_DIRECTIONS]), { MAX_TOOL_NODES * (MAX_TOOL_ROW + 1) }>;
@@ -69,6 +97,11 @@ struct Step {
     /// Per tool node, (K·u₀)_t and m·v₀t (real units), for the force.
     ku: [f64; MAX_TOOL_NODES],
     mv: [f64; MAX_TOOL_NODES],
+    /// v₀'s block before the start's extrapolation.
+    v0: Block,
+    /// What this step keeps for the next one: d₁'s narrowed block and r₀f's (where the last
+    /// solve left a checked r).
+    kept: Option<(Block, Block)>,
 }
 
 impl<E: Executor> Session<'_, E> {
@@ -197,7 +230,7 @@ impl<E: Executor> Session<'_, E> {
         if !active.is_empty() {
             self.stiffness_product(shape, &active, &mut phases)?;
             let mut steps = self.form_rhs(shape, tool, &active, &mut phases)?;
-            let (report, outcomes) = self.solve_step(shape, &steps, &mut phases)?;
+            let (report, outcomes) = self.solve_step(shape, &mut steps, &mut phases)?;
             residual = report.residual;
             iterations = report.iterations;
             for step in &mut steps {
@@ -319,6 +352,8 @@ impl<E: Executor> Session<'_, E> {
                 k_mult: [0.0; MAX_TOOL_NODES],
                 ku: [0.0; MAX_TOOL_NODES],
                 mv: [0.0; MAX_TOOL_NODES],
+                v0: st.v[d],
+                kept: None,
             };
             let mut tool_part = 0f64;
             for (t, dt) in tools.iter().enumerate() {
@@ -444,22 +479,27 @@ impl<E: Executor> Session<'_, E> {
         for (lane, step) in steps.iter_mut().enumerate() {
             let b = &mut self.store.directions[step.d].b;
             let kp = &mut self.store.kp;
-            let to_units = |v: f64| {
-                let r = ldexp(v, -step.plan.e);
-                (if r >= 0.0 { r + 0.5 } else { r - 0.5 }) as i64
-            };
+            // Per tool node, its couplings' multipliers in b's units as fixed-point integers:
+            // a raw value times one is a product and a rounded shift, no soft float per row.
+            let e = step.plan.e;
+            let ms: [Fixed; MAX_TOOL_NODES] =
+                core::array::from_fn(|t| Fixed::of(ldexp(step.s_mult[t], -e)));
+            let mk: [Fixed; MAX_TOOL_NODES] =
+                core::array::from_fn(|t| Fixed::of(ldexp(step.k_mult[t], -e)));
             for &(row, old) in stash {
                 let i = row as usize;
                 let Some(bi) = b.get_mut(i) else { continue };
                 let formed = *bi;
                 let mut value = i64::from(formed);
-                for (t, dt) in tools.iter().enumerate() {
-                    let (sm, km) = (step.s_mult[t], step.k_mult[t]);
-                    if dt.s.node == row {
-                        value = to_units(f64::from(dt.s.diagonal) * sm);
-                    } else if let Some(k) = dt.s.row.iter().position(|c| c.column == row) {
-                        let ks = dt.k.row.get(k).map_or(0, |c| c.value);
-                        value -= to_units(f64::from(dt.s.row[k].value) * sm + f64::from(ks) * km);
+                if let Some(t) = tools.iter().position(|dt| dt.s.node == row) {
+                    // A tool node's own row: S_tt·v₁t, whatever else couples to it.
+                    value = ms[t].times(tools[t].s.diagonal);
+                } else {
+                    for (t, dt) in tools.iter().enumerate() {
+                        if let Some(k) = dt.s.row.iter().position(|c| c.column == row) {
+                            let ks = dt.k.row.get(k).map_or(0, |c| c.value);
+                            value -= ms[t].times(dt.s.row[k].value) + mk[t].times(ks);
+                        }
                     }
                 }
                 let value = value.clamp(-(1 << 30) + 1, (1 << 30) - 1) as i32;
@@ -486,10 +526,11 @@ impl<E: Executor> Session<'_, E> {
     fn solve_step(
         &mut self,
         shape: Shape,
-        steps: &[Step],
+        steps: &mut [Step],
         phases: &mut Phases,
     ) -> Result<(SolveReport, [Outcome; MAX_DIRECTIONS]), ErrorCode> {
         let n = to_usize(shape.n);
+        self.predict(n, steps, phases)?;
         let r_start = self.start_residuals(n, steps, phases)?;
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
         let params = SolveParams {
@@ -564,29 +605,119 @@ impl<E: Executor> Session<'_, E> {
         Ok((report, outcomes))
     }
 
-    /// r₀ = d + r for every active direction whose r the last solve checked (pass R on every
-    /// hart: r ← 1·d + r, d narrowed from Kp's lane): the start for v₁ ≈ v₀, in O(n).
+    /// Whether the spare storage (the live loop's response columns, unused by a dynamic
+    /// session) holds every direction's history: four vectors each.
+    fn history_room(&self, n: usize) -> bool {
+        self.store.responses.len() >= 4 * MAX_DIRECTIONS * n
+    }
+
+    /// History vector `k` of direction `d` (0: Δv, 1: v₀, 2: d, 3: r), as a `SharedSlice`
+    /// base index into the spare storage.
+    fn history_at(n: usize, d: usize, k: usize) -> core::ops::Range<usize> {
+        let start = (4 * d + k) * n;
+        start..start + n
+    }
+
+    /// Pass A on every hart: v₀ kept (history slot 1), and where the history holds Δv₀ the
+    /// start v₀ + Δv₀ in x0 (u₁ ≈ u₀ + h·(2v₀ − v₋₁)), v's block updated.
+    fn predict(&mut self, n: usize, steps: &[Step], phases: &mut Phases) -> Result<(), ErrorCode> {
+        if !self.history_room(n) {
+            return Ok(());
+        }
+        let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let (_, st) = self.dynamic.parts().map_err(dynamic)?;
+        let mut sat = 0;
+        let lins: [Option<Lin>; MAX_DIRECTIONS] = core::array::from_fn(|lane| {
+            let step = steps.get(lane)?;
+            let h = st.history[step.d]?;
+            st.residual[step.d]?;
+            Some(Lin::new(
+                Scalar::ONE,
+                h.dv,
+                false,
+                Some(st.v[step.d]),
+                &mut sat,
+            ))
+        });
+        let mut ors = [[0u32; MAX_DIRECTIONS]; MAX_HARTS];
+        {
+            let Storage {
+                directions,
+                responses,
+                ..
+            } = &mut self.store;
+            let spare = SharedSlice::new(responses);
+            let mut vs: [&mut [i32]; MAX_DIRECTIONS] = Default::default();
+            for (d, v) in directions.iter_mut().enumerate() {
+                vs[d] = v.x0.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?;
+            }
+            let vs = vs.map(SharedSlice::new);
+            let out = SharedSlice::new(&mut ors);
+            let lins = &lins;
+            let task = |h: usize| {
+                let range = share(n, harts, h);
+                for (lane, step) in steps.iter().enumerate() {
+                    let (d, lo, hi) = (step.d, range.start, range.end);
+                    let at = |k| Self::history_at(n, d, k);
+                    // SAFETY: each hart touches only its own share of v and of the history
+                    // vectors (disjoint ranges of the spare storage), and its own slot.
+                    unsafe {
+                        let v0 = spare.slice_mut(at(1).start + lo..at(1).start + hi);
+                        let dv = &spare.as_slice()[at(0).start + lo..at(0).start + hi];
+                        out.slice_mut(h..h + 1)[0][lane] = predict_share(
+                            vs[d].slice_mut(range.clone()),
+                            v0,
+                            dv,
+                            lins[lane].as_ref(),
+                        );
+                    }
+                }
+            };
+            let t = self.exec.now();
+            let counts = self.exec.run_measured(harts, &task);
+            let critical = counts[..harts].iter().copied().max().unwrap_or(0);
+            phases.add(self.exec.now().cycles.wrapping_sub(t.cycles), critical);
+        }
+        let (_, st) = self.dynamic.parts().map_err(dynamic)?;
+        for (lane, step) in steps.iter().enumerate() {
+            if let Some(lin) = lins[lane] {
+                let or = ors[..harts].iter().fold(0, |o, s| o | s[lane]);
+                st.v[step.d] = Block {
+                    e: lin.e,
+                    bound: bound_of(or),
+                };
+            }
+        }
+        Ok(())
+    }
+
+    /// Pass D on every hart for every active direction whose r the last solve checked: the
+    /// start's residual r₀ = d₁ + r₀f (from v₀) or d₁ + 2·r₀f − d₀ − r₋₁f (from v₀ + Δv₀) in
+    /// O(n) instead of an MVU pass ([`residual_share`]), the history kept for the next step.
     fn start_residuals(
         &mut self,
         n: usize,
-        steps: &[Step],
+        steps: &mut [Step],
         phases: &mut Phases,
     ) -> Result<[Option<GivenResidual>; MAX_DIRECTIONS], ErrorCode> {
         let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let room = self.history_room(n);
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
         let mut plans = [None; MAX_DIRECTIONS];
         let mut sat = 0;
-        for (lane, step) in steps.iter().enumerate() {
+        for (lane, step) in steps.iter_mut().enumerate() {
             let Some(r) = st.residual[step.d] else {
                 continue;
             };
-            let (narrow, e_offset, bound) = Narrow::new(bound_of_u64(step.sums.d_or), &mut sat);
-            let d_block = Block {
-                e: step.plan.e_d + e_offset,
-                bound,
+            let extrapolated = st.history[step.d].filter(|_| room).map(|h| (h.d0, h.r1));
+            let plan = ResidualPlan::new(step.sums.d_or, step.plan.e_d, r, extrapolated, &mut sat);
+            let (_, _, d_bound) = Narrow::new(bound_of_u64(step.sums.d_or), &mut sat);
+            let d = Block {
+                e: plan.e_keep,
+                bound: d_bound,
             };
-            let lin = Lin::new(Scalar::ONE, d_block, true, Some(r), &mut sat);
-            plans[lane] = Some(PassR { lin, narrow });
+            step.kept = room.then_some((d, r));
+            plans[lane] = Some(plan);
         }
         let mut out = [None; MAX_DIRECTIONS];
         if plans.iter().all(Option::is_none) {
@@ -594,26 +725,43 @@ impl<E: Executor> Session<'_, E> {
         }
         let mut sums = [[(0u128, 0u32); MAX_DIRECTIONS]; MAX_HARTS];
         {
-            let Storage { directions, kp, .. } = &mut self.store;
+            let Storage {
+                directions,
+                kp,
+                responses,
+                ..
+            } = &mut self.store;
             let kp = SharedSlice::new(kp.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?);
+            let spare = SharedSlice::new(responses);
             let mut rs: [&mut [i32]; MAX_DIRECTIONS] = Default::default();
             for (d, v) in directions.iter_mut().enumerate() {
                 rs[d] = v.r.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?;
             }
             let rs = rs.map(SharedSlice::new);
             let out = SharedSlice::new(&mut sums);
+            let steps = &*steps;
             let task = |h: usize| {
                 let range = share(n, harts, h);
                 for (lane, step) in steps.iter().enumerate() {
                     let Some(plan) = plans[lane] else { continue };
-                    // SAFETY: each hart writes only its own share of r and its own slot of
-                    // the sums; Kp is only read.
+                    let (d, lo, hi) = (step.d, range.start, range.end);
+                    let at = |k| Self::history_at(n, d, k);
+                    // SAFETY: each hart writes only its own share of r and of the history
+                    // vectors and its own slot of the sums; Kp is only read.
                     unsafe {
-                        out.slice_mut(h..h + 1)[0][lane] = crate::svu::pass_r(
-                            rs[step.d].slice_mut(range.clone()),
+                        let history = room.then(|| {
+                            let (d_at, r_at) = (at(2).start, at(3).start);
+                            (
+                                spare.slice_mut(d_at + lo..d_at + hi),
+                                spare.slice_mut(r_at + lo..r_at + hi),
+                            )
+                        });
+                        out.slice_mut(h..h + 1)[0][lane] = residual_share(
+                            rs[d].slice_mut(range.clone()),
                             &kp.as_slice()[range.clone()],
                             lane,
-                            plan,
+                            &plan,
+                            history,
                         );
                     }
                 }
@@ -628,9 +776,9 @@ impl<E: Executor> Session<'_, E> {
             let rr: u128 = sums[..harts].iter().map(|s| s[lane].0).sum();
             let or = sums[..harts].iter().fold(0, |o, s| o | s[lane].1);
             out[step.d] = Some(GivenResidual {
-                exponent: plan.lin.e,
+                exponent: plan.e,
                 rr,
-                bound: bound_of_squares(or),
+                bound: bound_of(or),
                 verify: true,
             });
         }
@@ -659,7 +807,8 @@ impl<E: Executor> Session<'_, E> {
             .sum()
     }
 
-    /// Pass U on every hart, u₁ = u₀ + h·v₁, then the tool nodes at their prescribed values.
+    /// Pass U on every hart, u₁ = u₀ + h·v₁ (and, where there is room, the step's velocity
+    /// change for the next step's start), then the tool nodes at their prescribed values.
     fn advance(
         &mut self,
         shape: Shape,
@@ -669,6 +818,7 @@ impl<E: Executor> Session<'_, E> {
     ) -> Result<(), ErrorCode> {
         let n = to_usize(shape.n);
         let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let room = self.history_room(n);
         let (tools, st) = self.dynamic.parts().map_err(dynamic)?;
         let nodes: heapless::Vec<usize, MAX_TOOL_NODES> =
             tools.iter().map(|t| t.s.node as usize).collect();
@@ -684,9 +834,18 @@ impl<E: Executor> Session<'_, E> {
                 Lin::new(h, st.v[step.d], false, Some(u), &mut sat)
             })
             .collect();
-        let mut ors = [[0u32; MAX_DIRECTIONS]; MAX_HARTS];
+        let diffs: heapless::Vec<Difference, MAX_DIRECTIONS> = steps
+            .iter()
+            .map(|step| Difference::new(st.v[step.d], step.v0))
+            .collect();
+        let mut ors = [[(0u32, 0u32); MAX_DIRECTIONS]; MAX_HARTS];
         {
-            let Storage { directions, .. } = &mut self.store;
+            let Storage {
+                directions,
+                responses,
+                ..
+            } = &mut self.store;
+            let spare = SharedSlice::new(responses);
             let mut us: [&mut [i32]; MAX_DIRECTIONS] = Default::default();
             let mut vs: [&[i32]; MAX_DIRECTIONS] = Default::default();
             for (d, v) in directions.iter_mut().enumerate() {
@@ -695,17 +854,28 @@ impl<E: Executor> Session<'_, E> {
             }
             let us = us.map(SharedSlice::new);
             let out = SharedSlice::new(&mut ors);
-            let lins = &lins;
+            let (lins, diffs) = (&lins, &diffs);
             let task = |hart: usize| {
                 let range = share(n, harts, hart);
                 for (lane, step) in steps.iter().enumerate() {
-                    // SAFETY: each hart writes only its own share of u and its own slot; v
-                    // is only read.
+                    let (d, lo, hi) = (step.d, range.start, range.end);
+                    let at = |k| Self::history_at(n, d, k);
+                    // SAFETY: each hart writes only its own share of u and of the history's Δv
+                    // and its own slot; v and v₀ are only read.
                     unsafe {
+                        let history = room.then(|| {
+                            let (v0_at, dv_at) = (at(1).start, at(0).start);
+                            (
+                                &spare.as_slice()[v0_at + lo..v0_at + hi],
+                                spare.slice_mut(dv_at + lo..dv_at + hi),
+                                &diffs[lane],
+                            )
+                        });
                         out.slice_mut(hart..hart + 1)[0][lane] = advance_share(
-                            us[step.d].slice_mut(range.clone()),
-                            &vs[step.d][range.clone()],
+                            us[d].slice_mut(range.clone()),
+                            &vs[d][range.clone()],
                             &lins[lane],
+                            history,
                         );
                     }
                 }
@@ -721,7 +891,7 @@ impl<E: Executor> Session<'_, E> {
                 .x
                 .get_mut(..n)
                 .unwrap_or(&mut []);
-            let mut or = ors[..harts].iter().fold(0, |o, s| o | s[lane]);
+            let mut or = ors[..harts].iter().fold(0, |o, s| o | s[lane].0);
             for (t, &node) in nodes.iter().enumerate() {
                 let r = ldexp(f64::from(tool[t][step.d]), -e);
                 let m = (if r >= 0.0 { r + 0.5 } else { r - 0.5 }) as i64;
@@ -732,6 +902,19 @@ impl<E: Executor> Session<'_, E> {
             }
             self.solution[step.d] = Some(e);
             st.u_bound[step.d] = if or == 0 { 0 } else { bound_of(or) };
+            let dv_or = ors[..harts].iter().fold(0, |o, s| o | s[lane].1);
+            // The next step extrapolates only from a checked residual and a kept history.
+            st.history[step.d] = match (step.kept, st.residual[step.d]) {
+                (Some((d0, r1)), Some(_)) if room => Some(History {
+                    dv: Block {
+                        e: diffs[lane].e,
+                        bound: if dv_or == 0 { 0 } else { bound_of(dv_or) },
+                    },
+                    d0,
+                    r1,
+                }),
+                _ => None,
+            };
         }
         Ok(())
     }
