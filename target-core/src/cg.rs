@@ -139,6 +139,16 @@ pub struct Plan {
     pub row_abs_max: u64,
 }
 
+/// True if `t`'s first row is the last row of `previous`, the tile its MVU ran before it, and
+/// both are whole or both mirrored (so its first mirror row is `previous`'s last mirror row):
+/// the row is split between the two tiles at a column window's edge. A fused plan stores the
+/// first part at `previous`'s row end and adds it back after `t` has stored the second.
+fn continues(previous: Option<&TileHeader>, t: &TileHeader) -> bool {
+    previous.is_some_and(|p| {
+        p.mirrored == t.mirrored && p.rows > 0 && p.row_base + p.rows - 1 == t.row_base
+    })
+}
+
 /// Why [`plan`] refuses a matrix.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PlanError {
@@ -172,6 +182,7 @@ pub fn plan(
     let counts = scratch.get_mut(..n).unwrap_or(&mut []);
     counts.iter_mut().for_each(|c| *c = [0; MAX_DIRECTIONS]);
     let mut start = 0usize;
+    let mut last = [None; MAX_HARTS];
     for (i, t) in tiles.iter().enumerate() {
         let h = usize::from(t.mvu).min(MAX_HARTS - 1);
         plan.mvus = plan.mvus.max(h + 1);
@@ -180,7 +191,11 @@ pub fn plan(
         if t.mirrored {
             plan.rows[h][1] = plan.rows[h][1].cover(n - hi, n - lo);
         }
-        for r in lo..hi {
+        // A row split over two tiles of one MVU, one after the other, counts once: the MVU
+        // phase carries its first part into the second (`continues`).
+        let first = lo + usize::from(continues(last[h], t));
+        last[h] = Some(t);
+        for r in first..hi {
             let mirror = t.mirrored.then(|| n - 1 - r);
             for c in [Some(r), mirror].into_iter().flatten() {
                 if let Some(c) = counts.get_mut(c) {
@@ -479,12 +494,15 @@ impl<E: Executor> Engine<'_, '_, E> {
             unsafe { target.slice_mut(range) }.fill([0; MAX_DIRECTIONS]);
         }
         let mut start = 0usize;
+        let mut previous = None;
         for t in a.tiles {
             let first = start;
             start += t.words as usize;
             if usize::from(t.mvu) != h {
                 continue;
             }
+            let carried = plan.fused && continues(previous, t);
+            previous = Some(t);
             let (row_base, col_base) = (t.row_base as usize, t.col_base as usize);
             let mirror_row = n - 1 - row_base;
             let (y, y_mirror) = if plan.overlapping {
@@ -508,11 +526,23 @@ impl<E: Executor> Engine<'_, '_, E> {
                 y,
                 y_mirror,
             };
+            // A split row's first part, stored at the previous tile's row end, is carried over
+            // the store of its second part (an exact i64 sum, so the same bits as adding).
+            // SAFETY: fused plans do not overlap: these rows are this MVU's alone.
+            let saved = carried.then(|| unsafe { (*y, if t.mirrored { *y_mirror } else { *y }) });
             // SAFETY: the session validated every tile against n (rows, columns, ER/EM
             // structure) and sized p, kp and the pool for n and the plan; the tile's rows and
             // mirror rows lie in this MVU's hulls, which map to slots only it writes; p is only
             // read during this phase.
             unsafe { run_tile_dyn(&run, self.directions, t.mirrored, plan.fused) };
+            if let Some((own, mirror)) = saved {
+                // SAFETY: as above.
+                unsafe { carry(y, own, self.directions) };
+                if t.mirrored {
+                    // SAFETY: as above.
+                    unsafe { carry(y_mirror, mirror, self.directions) };
+                }
+            }
         }
         if plan.fused {
             self.finish_rows(h, plan.rows[h]);
@@ -1347,6 +1377,20 @@ fn sqrt(x: f64) -> f64 {
 }
 
 /// Adds hart 0's counters elapsed since `since` to `total`.
+/// Adds a split row's first part `part` into its finished second part at `y` (see
+/// [`continues`]).
+///
+/// # Safety
+///
+/// `y` is a row of Kp that no other hart accesses during the call.
+unsafe fn carry(y: *mut Sums, part: Sums, directions: usize) {
+    // SAFETY: forwarded from the caller.
+    let row = unsafe { &mut *y };
+    for (sum, part) in row.iter_mut().zip(part).take(directions) {
+        *sum += part;
+    }
+}
+
 fn charge(total: &mut PhaseCounters, since: PhaseCounters, clock: &impl PhaseClock) {
     let now = clock.now();
     total.cycles += now.cycles.wrapping_sub(since.cycles);

@@ -24,18 +24,52 @@ fn encode(rows: Vec<Vec<(usize, f64)>>, frac_bits: u8, block: usize) -> Encoded 
 
 /// Like [`encode`] for the first `rows.len()` rows of an n×n matrix.
 fn encode_rows(rows: Vec<Vec<(usize, f64)>>, n: usize, frac_bits: u8, block: usize) -> Encoded {
+    let pieces = (0..rows.len())
+        .step_by(block)
+        .map(|start| (start, rows[start..(start + block).min(rows.len())].to_vec()))
+        .collect();
+    encode_pieces(pieces, rows, n, frac_bits)
+}
+
+/// Like [`encode`], but each block's last row is split with the next block: its entries left of
+/// the diagonal end this block's tile and the rest begin the next tile (a row split at a
+/// column window's edge, as the host's encoder makes them).
+fn encode_split(rows: Vec<Vec<(usize, f64)>>, frac_bits: u8, block: usize) -> Encoded {
+    let n = rows.len();
+    let mut pieces: Vec<Piece> = Vec::new();
+    let mut carried: Option<Vec<(usize, f64)>> = None;
+    for start in (0..n).step_by(block) {
+        let end = (start + block).min(n);
+        let mut piece: Vec<_> = carried.take().into_iter().collect();
+        let first = start + usize::from(!piece.is_empty());
+        piece.extend(rows[first..end].iter().cloned());
+        if end < n {
+            let shared = &rows[end];
+            let (left, right) = shared.iter().partition(|&&(c, _)| c < end);
+            piece.push(left);
+            carried = Some(right);
+        }
+        pieces.push((start, piece));
+    }
+    encode_pieces(pieces, rows, n, frac_bits)
+}
+
+/// A tile to encode: its first row and its rows' entries.
+type Piece = (usize, Vec<Vec<(usize, f64)>>);
+
+/// Tiles of `pieces`, in order.
+fn encode_pieces(
+    pieces: Vec<Piece>,
+    rows: Vec<Vec<(usize, f64)>>,
+    n: usize,
+    frac_bits: u8,
+) -> Encoded {
     let mut tiles = Vec::new();
     let mut words = Vec::new();
-    for start in (0..rows.len()).step_by(block) {
-        let end = (start + block).min(rows.len());
-        let col_base = rows[start..end]
-            .iter()
-            .flatten()
-            .map(|&(c, _)| c)
-            .min()
-            .unwrap_or(0);
+    for (row_base, piece) in pieces {
+        let col_base = piece.iter().flatten().map(|&(c, _)| c).min().unwrap_or(0);
         let first = words.len();
-        for row in &rows[start..end] {
+        for row in &piece {
             if row.is_empty() {
                 words.push(Word::empty_row(false).bits());
             }
@@ -50,9 +84,9 @@ fn encode_rows(rows: Vec<Vec<(usize, f64)>>, n: usize, frac_bits: u8, block: usi
         }
         *words.last_mut().unwrap() |= deform_shared::word::EM_BIT;
         let header = TileHeader {
-            row_base: start as u32,
+            row_base: row_base as u32,
             col_base: col_base as u32,
-            rows: (end - start) as u32,
+            rows: piece.len() as u32,
             words: (words.len() - first) as u32,
             mvu: 0,
             mirrored: false,
@@ -553,6 +587,33 @@ fn any_number_of_mvus_and_either_partition_give_the_same_bits() {
             assert_eq!(out.x, one.x, "{mvus} MVUs, round robin {round_robin}");
             assert_eq!(out.report.directions, one.report.directions);
         }
+    }
+}
+
+/// Rows split between two tiles of one MVU, one after the other, keep the plan fused (the first
+/// part is carried over the second's store); split between two MVUs, the MVUs overlap. Either
+/// way the bits are those of the unsplit matrix.
+#[test]
+fn rows_split_between_consecutive_tiles_stay_fused_and_exact() {
+    let rows = laplacian_3d(6, 1.0);
+    let whole = encode(rows.clone(), 17, 24);
+    let split = encode_split(rows, 17, 24);
+    assert!(split
+        .tiles
+        .windows(2)
+        .all(|t| t[0].row_base + t[0].rows - 1 == t[1].row_base));
+    let n = whole.n;
+    let b = cube_rhs(n, 1);
+    let want = run_fused(&whole, &[&b], None, 1e-9, 1).unwrap();
+    for mvus in [1, 2, 3, 8] {
+        let m = assign(&split, mvus, false);
+        let mut kp = vec![[0i64; MAX_DIRECTIONS]; n];
+        let p = plan(&m.tiles, &m.words, n, &mut kp, 4 * n).unwrap();
+        assert_eq!(p.fused, mvus == 1, "{mvus} MVUs");
+        assert_eq!(p.overlapping, mvus > 1, "{mvus} MVUs");
+        let got = run_fused(&m, &[&b], None, 1e-9, mvus).unwrap();
+        assert_eq!(got.x, want.x, "{mvus} MVUs");
+        assert_eq!(got.report.directions, want.report.directions);
     }
 }
 
