@@ -366,11 +366,14 @@ impl<E: Executor> Session<'_, E> {
                 let own_u = u.get(node).copied().unwrap_or(0);
                 step.ku[t] = ldexp(row_sum(&dt.k, own_u, u) as f64, e_u - f_k);
                 step.mv[t] = m * ldexp(f64::from(v.get(node).copied().unwrap_or(0)), e_v);
+                // Σ|q| over the row in integers (exact: at most 1 + MAX_TOOL_ROW values below
+                // 2^21), converted once.
                 let column = |r: &ToolRow| -> f64 {
-                    core::iter::once(r.diagonal)
+                    let sum: u64 = core::iter::once(r.diagonal)
                         .chain(r.row.iter().map(|c| c.value))
-                        .map(|q| f64::from(q).abs())
-                        .sum()
+                        .map(|q| u64::from(q.unsigned_abs()))
+                        .sum();
+                    sum as f64
                 };
                 tool_part +=
                     column(&dt.s) * step.s_mult[t].abs() + column(&dt.k) * step.k_mult[t].abs();
@@ -409,7 +412,7 @@ impl<E: Executor> Session<'_, E> {
             }
         }
         self.rhs_pass(n, &mut steps, phases)?;
-        self.tool_rows(shape, &mut steps, &stash)?;
+        self.tool_rows(&mut steps, &stash)?;
         Ok(steps)
     }
 
@@ -468,13 +471,7 @@ impl<E: Executor> Session<'_, E> {
 
     /// The tool's rows of every active direction on hart 0: b₁ᵢ −= S_it·v₁t where a tool node
     /// couples, b₁t = S_tt·v₁t at its own row; d, Σb² and the ORs follow.
-    fn tool_rows(
-        &mut self,
-        shape: Shape,
-        steps: &mut [Step],
-        stash: &Stash,
-    ) -> Result<(), ErrorCode> {
-        let _ = shape;
+    fn tool_rows(&mut self, steps: &mut [Step], stash: &Stash) -> Result<(), ErrorCode> {
         let tools = self.dynamic.tools();
         for (lane, step) in steps.iter_mut().enumerate() {
             let b = &mut self.store.directions[step.d].b;
