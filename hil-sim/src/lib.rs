@@ -37,6 +37,14 @@ pub const MAX_HARTS: u8 = deform_shared::protocol::MAX_HARTS as u8;
 /// The QEMU binary that emulates the 32-bit RISC-V `virt` machine.
 pub const QEMU_BINARY: &str = "qemu-system-riscv32";
 
+/// Where `cargo xtask setup` unpacks Debian's QEMU packages, relative to the workspace root, on a
+/// machine where installing them through apt would remove another package (Debian's
+/// `qemu-system-misc` 7.2 conflicts with a backported `qemu-utils` 10).
+pub const QEMU_UNPACK_DIR: &str = "target/tools/qemu";
+
+/// The binary inside [`QEMU_UNPACK_DIR`] (`-bios none` needs none of the package's firmware files).
+pub const QEMU_UNPACKED_BINARY: &str = "usr/bin/qemu-system-riscv32";
+
 /// Where `cargo build --release` in the firmware's workspace puts the ELF, relative to the
 /// workspace root (`cargo xtask firmware` builds it there).
 pub const FIRMWARE_BUILD_PATH: &str =
@@ -82,6 +90,35 @@ pub fn loader_elf() -> PathBuf {
     }
 }
 
+/// The QEMU to run: [`QEMU_BINARY`] on `PATH`, else the copy `cargo xtask setup` unpacked into
+/// the workspace ([`QEMU_UNPACK_DIR`]), else the bare name (whose start then fails with
+/// [`HilError::QemuMissing`]).
+pub fn qemu_binary() -> PathBuf {
+    find_qemu(std::env::var_os("PATH").as_deref(), &workspace_root())
+}
+
+/// [`qemu_binary`] for a given `PATH` and workspace root.
+pub fn find_qemu(path: Option<&std::ffi::OsStr>, root: &Path) -> PathBuf {
+    let on_path = path
+        .into_iter()
+        .flat_map(std::env::split_paths)
+        .find_map(|dir| {
+            let candidate = dir.join(QEMU_BINARY);
+            is_executable(&candidate).then_some(candidate)
+        });
+    let unpacked = root.join(QEMU_UNPACK_DIR).join(QEMU_UNPACKED_BINARY);
+    on_path
+        .or_else(|| is_executable(&unpacked).then_some(unpacked))
+        .unwrap_or_else(|| PathBuf::from(QEMU_BINARY))
+}
+
+/// A file with an execute bit (what a shell's `PATH` search takes).
+pub fn is_executable(path: &Path) -> bool {
+    use std::os::unix::fs::PermissionsExt;
+    path.metadata()
+        .is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+}
+
 pub(crate) fn workspace_root() -> PathBuf {
     let manifest_dir = Path::new(env!("CARGO_MANIFEST_DIR"));
     manifest_dir.parent().unwrap_or(manifest_dir).to_path_buf()
@@ -97,8 +134,9 @@ pub enum HilError {
     )]
     FirmwareMissing { path: PathBuf },
     #[error(
-        "`{binary}` was not found: run `cargo xtask setup` \
-         or `apt-get install -y qemu-system-misc`"
+        "`{binary}` was not found on PATH nor in the workspace's {QEMU_UNPACK_DIR}: run \
+         `cargo xtask setup` (it installs Debian's qemu-system-misc, or unpacks it there where \
+         installing it would remove another package)"
     )]
     QemuMissing { binary: String },
     #[error("could not start `{binary}`: {source}")]
@@ -131,7 +169,7 @@ pub struct QemuConfig {
     pub elf: PathBuf,
     /// Harts (`-smp`); the firmware tells in its `TargetInfo` how many it puts to work.
     pub harts: u8,
-    /// The QEMU executable; [`QEMU_BINARY`] from `PATH` by default.
+    /// The QEMU executable; [`qemu_binary`] by default.
     pub qemu: OsString,
     /// How long QEMU may take to announce its pty.
     pub start_timeout: Duration,
@@ -146,7 +184,7 @@ impl QemuConfig {
         Self {
             elf: elf.into(),
             harts: 1,
-            qemu: QEMU_BINARY.into(),
+            qemu: qemu_binary().into_os_string(),
             start_timeout: Duration::from_secs(10),
             monitor: None,
         }
@@ -484,6 +522,38 @@ mod tests {
             text.contains("cargo xtask setup") && text.contains("qemu-system-misc"),
             "{text}"
         );
+        // Never advise `apt-get install qemu-system-misc`: it may remove a newer qemu-utils.
+        assert!(!text.contains("apt-get install"), "{text}");
+    }
+
+    /// A PATH without QEMU falls back to the copy `cargo xtask setup` unpacked in the workspace;
+    /// one on PATH wins; with neither, the bare name (so that starting it says it is missing).
+    #[test]
+    fn qemu_is_found_on_path_else_unpacked_in_the_workspace() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = std::env::temp_dir().join(format!("deform-find-qemu-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let root = dir.join("workspace");
+        let bin = dir.join("bin");
+        let executable = |path: &Path| {
+            std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+            std::fs::write(path, "#!/bin/sh\n").unwrap();
+            std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o755)).unwrap();
+        };
+        std::fs::create_dir_all(&bin).unwrap();
+        let path = std::env::join_paths([&bin]).unwrap();
+        assert_eq!(
+            find_qemu(Some(&path), &root),
+            PathBuf::from(QEMU_BINARY),
+            "nothing anywhere"
+        );
+        let unpacked = root.join(QEMU_UNPACK_DIR).join(QEMU_UNPACKED_BINARY);
+        executable(&unpacked);
+        assert_eq!(find_qemu(Some(&path), &root), unpacked);
+        assert_eq!(find_qemu(None, &root), unpacked);
+        executable(&bin.join(QEMU_BINARY));
+        assert_eq!(find_qemu(Some(&path), &root), bin.join(QEMU_BINARY));
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     /// Needs QEMU (`cargo xtask setup`): an empty kernel image makes it exit at once.

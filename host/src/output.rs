@@ -3,14 +3,16 @@
 //! |u| and the node stiffness as point data). The format follows the file extension, checked
 //! before any work is done.
 
+pub mod csv;
+pub mod file;
+pub mod paths;
 pub mod series;
 pub mod vtk;
 
-use std::fs::File;
-use std::io::{BufWriter, Write};
-use std::path::{Path, PathBuf};
+use std::io::Write;
+use std::path::Path;
 
-use anyhow::{bail, Context};
+use anyhow::bail;
 use serde::Serialize;
 
 use crate::model::Model;
@@ -91,7 +93,7 @@ pub fn node_rows_with_stiffness(
 
 /// Writes `rows` to `path` in the format its extension names; `stats` goes into JSON only.
 pub fn write_displacements(
-    path: &PathBuf,
+    path: &Path,
     rows: &[NodeDisplacement],
     stats: &impl Serialize,
 ) -> anyhow::Result<()> {
@@ -118,17 +120,23 @@ pub(crate) fn write_csv_row(
 
 /// CSV (`stats` = `None`) or JSON.
 fn write_table(
-    path: &PathBuf,
+    path: &Path,
     rows: &[NodeDisplacement],
     stats: Option<&impl Serialize>,
 ) -> anyhow::Result<()> {
-    let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
-    let mut out = BufWriter::new(file);
+    file::write_atomic(path, |out| write_table_to(out, rows, stats))
+}
+
+fn write_table_to(
+    out: &mut impl Write,
+    rows: &[NodeDisplacement],
+    stats: Option<&impl Serialize>,
+) -> anyhow::Result<()> {
     match stats {
         None => {
             writeln!(out, "i,j,k,ux,uy,uz")?;
             for r in rows {
-                write_csv_row(&mut out, "", r)?;
+                write_csv_row(out, "", r)?;
             }
         }
         Some(stats) => {
@@ -137,10 +145,16 @@ fn write_table(
                 stats: &'a S,
                 nodes: &'a [NodeDisplacement],
             }
-            serde_json::to_writer_pretty(&mut out, &Document { stats, nodes: rows })?;
+            serde_json::to_writer_pretty(&mut *out, &Document { stats, nodes: rows })?;
             writeln!(out)?;
         }
     }
-    out.flush()
-        .with_context(|| format!("writing {}", path.display()))
+    Ok(())
+}
+
+/// Writes `value` as pretty JSON to `path`, whole or not at all (a report).
+pub fn write_json(path: &Path, value: &impl Serialize) -> anyhow::Result<()> {
+    file::write_atomic(path, |out| {
+        Ok(serde_json::to_writer_pretty(&mut *out, value)?)
+    })
 }

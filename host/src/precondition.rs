@@ -104,7 +104,7 @@ pub fn jacobi(k: &Csr) -> Result<Scaled, PreconditionError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::{Connection, Grid, Inclusion, Model, ModelSpec, StiffnessField};
+    use crate::model::{Connection, Grid, Inclusion, Model, ModelSpec, NodeField};
     use crate::reference;
 
     /// A 12³ cube with a stiff inclusion (1000× the background) in its middle.
@@ -113,7 +113,7 @@ mod tests {
         Model::build(&ModelSpec {
             grid,
             connection: Connection::Axial,
-            field: Some(StiffnessField {
+            field: Some(NodeField {
                 background: 1.0,
                 inclusions: vec![Inclusion {
                     center: [6.0, 6.0, 6.0],

@@ -16,15 +16,34 @@
 //! still measured against A itself.
 
 use deform_shared::protocol::{SolveParams, SolveReport, Start, MAX_DIRECTIONS};
+// The target never gets an inner tolerance tighter than this: below it refinement does better.
+use deform_shared::qformat::FIXED_POINT_FLOOR;
 
 use crate::link::{LinkError, Port, Target};
 use crate::model::Csr;
 use crate::precondition::Scaled;
 use crate::reference::{norm, residual};
 
-/// The target never gets an inner tolerance tighter than this: below it the fixed-point
-/// iteration only burns cycles, and refinement does better.
-pub const FIXED_POINT_FLOOR: f64 = 1e-7;
+/// Target solves per right-hand side (the first plus refinement steps) when no flag or
+/// scenario says: `solve --max-solves`, `simulate --dynamic --max-solves`, `estimate`.
+pub const DEFAULT_MAX_SOLVES: u32 = 8;
+
+/// `--tol` as every command takes it: a relative residual in (0, 1).
+pub fn parse_tolerance(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(t) if t.is_finite() && t > 0.0 && t < 1.0 => Ok(t),
+        Ok(_) => {
+            Err("the tolerance must be a number in (0, 1): greater than 0 and less than 1".into())
+        }
+        Err(e) => Err(format!("not a number: {e}")),
+    }
+}
+
+/// CG iterations allowed per target solve when no flag says: 10·n (CG converges in at most n
+/// steps in exact arithmetic; fixed point needs some more), capped at what the wire carries.
+pub fn default_max_iterations(n: usize) -> u32 {
+    (10 * n).min(u32::MAX as usize) as u32
+}
 
 /// The target's inner tolerance is this fraction of `--tol`: its recursive fixed-point residual
 /// can sit a little below the true f64 one, and a solve that stops right at `--tol` would then

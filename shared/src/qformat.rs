@@ -25,6 +25,12 @@ pub const MANTISSA_BITS: u32 = 30;
 /// 2^[`MANTISSA_BITS`], the exclusive bound on a mantissa's magnitude.
 pub const MANTISSA_LIMIT: i64 = 1 << MANTISSA_BITS;
 
+/// The relative residual below which the fixed-point CG is not asked to go: its block floating
+/// point levels off around 1e-8 (30-bit mantissas), so a tighter inner tolerance only burns
+/// cycles. The host refines in f64 below it (`deform_host::refine`); the target's live model
+/// solves its columns to it. The one home of the figure.
+pub const FIXED_POINT_FLOOR: f64 = 1e-7;
+
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum QFormatError {
     #[error("{0} fractional bits requested; the 21-bit value field allows 0..=20")]

@@ -58,6 +58,9 @@ pub struct Stepping {
     /// Per direction, what the extrapolated start of the next step needs, where the session's
     /// spare storage holds it ([`History`]).
     pub history: [Option<History>; 3],
+    /// The exponent of the current step's field frames (`ReadField`), fixed at its first chunk
+    /// so that every chunk of a step's field shares it; cleared by each step.
+    pub field_exponent: Option<i8>,
 }
 
 /// The last step's velocity change Δv₀ = v₀ − v₋₁, right-hand side change d₀ = b₀ − b₋₁ and
@@ -150,6 +153,7 @@ impl Dynamic {
             tool_u: [[0.0; 3]; MAX_TOOL_NODES],
             ku_or: [0; 3],
             history: [None; 3],
+            field_exponent: None,
         }))
     }
 }

@@ -16,7 +16,7 @@ use deform_shared::qformat::{block_exponent, ldexp, to_mantissa};
 use deform_shared::word::{VALUE_MAX, VALUE_MIN};
 use heapless::Vec;
 
-use crate::predict::scale;
+use crate::predict::{bits, scale, TOP_BITS};
 use crate::superpose::Column;
 
 /// Most distinct free rows the tool nodes couple to.
@@ -24,9 +24,6 @@ pub const MAX_ROWS: usize = MAX_TOOL_NODES * MAX_TOOL_ROW;
 
 /// Marks a coupling to another tool node in [`Started::slots`].
 const TOOL_COLUMN: u16 = u16::MAX;
-
-/// Largest |mantissa| written into a right-hand side: 2^29, as the SVU's vectors.
-const TOP_BITS: i32 = 29;
 
 /// What a tool prescribes, and so what a frame carries and what it answers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -109,11 +106,6 @@ struct Snapshot {
     /// Top bit (magnitude bits + exponent) of the static loads elsewhere, if there are any:
     /// then b keeps them in place and its exponent can only grow.
     elsewhere_top: Option<i32>,
-}
-
-/// Number of bits of |v| (0 for 0).
-fn bits(v: u64) -> i32 {
-    (u64::BITS - v.leading_zeros()) as i32
 }
 
 impl Live {

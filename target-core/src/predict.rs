@@ -12,8 +12,14 @@
 //! from their exponents alone: a zero solution has exponent 0 whatever the scale of the others.
 
 /// Largest |mantissa| the prediction produces: 2^29, the bound the SVU's vectors keep (the
-/// wire allows 2^30; staying a factor two below it costs one bit of 30).
-const TOP_BITS: i32 = 29;
+/// wire allows 2^30; staying a factor two below it costs one bit of 30). The superposition
+/// predictor and the live right-hand sides keep the same bound: this is its one home.
+pub(crate) const TOP_BITS: i32 = 29;
+
+/// Number of bits of |v| (0 for 0).
+pub(crate) fn bits(v: u64) -> i32 {
+    (u64::BITS - v.leading_zeros()) as i32
+}
 
 /// Number of bits of the largest magnitude in `v` (0 for a zero vector).
 fn magnitude_bits(v: &[i32]) -> i32 {

@@ -29,12 +29,19 @@ use deform_hil_sim::litex::{
     litex_dir, LITEX_FIRMWARE_BUILD_PATH, LITEX_FIRMWARE_ENV, LITEX_PYTHON_PACKAGES,
 };
 use deform_hil_sim::{
-    FIRMWARE_BUILD_PATH, FIRMWARE_ENV, LOADER_BUILD_PATH, LOADER_ENV, QEMU_BINARY,
+    is_executable, qemu_binary, FIRMWARE_BUILD_PATH, FIRMWARE_ENV, LOADER_BUILD_PATH, LOADER_ENV,
+    QEMU_BINARY, QEMU_UNPACK_DIR,
 };
+
+mod apt;
 
 const RISCV_TARGET: &str = "riscv32imac-unknown-none-elf";
 /// The Debian package that holds `qemu-system-riscv32`.
 const QEMU_PACKAGE: &str = "qemu-system-misc";
+/// The packages unpacked into [`QEMU_UNPACK_DIR`] where installing [`QEMU_PACKAGE`] would remove
+/// another package: the binary and the two packages it depends on.
+const QEMU_UNPACK_PACKAGES: &[&str] =
+    &["qemu-system-misc", "qemu-system-common", "qemu-system-data"];
 /// Debian packages of the LiteX target: Verilator and the libraries its simulator links,
 /// binutils and GCC for RISC-V and meson/ninja (the stock LiteX BIOS), socat (the serial
 /// bridge), and Python's venv.
@@ -185,12 +192,6 @@ fn on_path(program: &str) -> Option<PathBuf> {
         .find(|candidate| is_executable(candidate))
 }
 
-fn is_executable(path: &Path) -> bool {
-    use std::os::unix::fs::PermissionsExt;
-    path.metadata()
-        .is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
-}
-
 fn setup() -> Result<()> {
     setup_rust()?;
     setup_qemu()?;
@@ -245,19 +246,115 @@ fn setup_rust() -> Result<()> {
     Ok(())
 }
 
+/// QEMU: found on `PATH` or unpacked in the workspace, else Debian's `qemu-system-misc` through
+/// apt, else (where apt would remove a package for it) unpacked from Debian's packages into
+/// [`QEMU_UNPACK_DIR`].
 fn setup_qemu() -> Result<()> {
-    if let Some(path) = on_path(QEMU_BINARY) {
+    if let Some(path) = installed_qemu() {
         eprintln!("==> QEMU: {}", path.display());
         return Ok(());
     }
-    apt_install(&["--no-install-recommends", QEMU_PACKAGE], "QEMU")?;
-    match on_path(QEMU_BINARY) {
-        Some(path) => {
-            eprintln!("==> QEMU: {}", path.display());
-            Ok(())
+    apt::refresh()?;
+    match qemu_route()? {
+        QemuRoute::Apt => apt::install(&[QEMU_PACKAGE], "QEMU")?,
+        QemuRoute::Unpack {
+            would_remove,
+            libraries,
+        } => {
+            eprintln!(
+                "==> installing {QEMU_PACKAGE} through apt would remove {}: unpacking Debian's \
+                 QEMU packages into {QEMU_UNPACK_DIR} instead",
+                would_remove.join(" ")
+            );
+            let libraries: Vec<&str> = libraries.iter().map(String::as_str).collect();
+            apt::install(&libraries, "the libraries QEMU links")?;
+            unpack_qemu()?;
         }
-        None => bail!("{QEMU_PACKAGE} was installed but {QEMU_BINARY} is still not on PATH"),
     }
+    let Some(path) = installed_qemu() else {
+        bail!("QEMU was set up but {QEMU_BINARY} is neither on PATH nor in {QEMU_UNPACK_DIR}");
+    };
+    let version = output_of(&path.to_string_lossy(), &["--version"])
+        .with_context(|| format!("{} was set up but does not run", path.display()))?;
+    eprintln!(
+        "==> QEMU: {} ({})",
+        path.display(),
+        version.lines().next().unwrap_or("").trim()
+    );
+    Ok(())
+}
+
+/// The QEMU the project would run ([`qemu_binary`]), if there is one.
+fn installed_qemu() -> Option<PathBuf> {
+    let path = qemu_binary();
+    path.is_absolute().then_some(path)
+}
+
+/// How set-up gets QEMU on this machine.
+#[derive(Debug, PartialEq, Eq)]
+enum QemuRoute {
+    /// `apt-get install qemu-system-misc` removes nothing.
+    Apt,
+    /// It would remove `would_remove`: the packages are unpacked into the workspace instead, after
+    /// the missing `libraries` they link are installed through apt.
+    Unpack {
+        would_remove: Vec<String>,
+        libraries: Vec<String>,
+    },
+}
+
+/// Decides [`QemuRoute`] from a simulation (`apt-get -s`): changes nothing.
+fn qemu_route() -> Result<QemuRoute> {
+    let simulation = apt::simulate(&[QEMU_PACKAGE])?;
+    if simulation.removals.is_empty() {
+        return Ok(QemuRoute::Apt);
+    }
+    let dependencies = apt::dependencies(QEMU_UNPACK_PACKAGES)?;
+    let dependencies: Vec<&str> = dependencies.iter().map(String::as_str).collect();
+    Ok(QemuRoute::Unpack {
+        would_remove: simulation.removals,
+        libraries: apt::missing(&dependencies)
+            .into_iter()
+            .map(String::from)
+            .collect(),
+    })
+}
+
+/// `apt-get download`s [`QEMU_UNPACK_PACKAGES`] and `dpkg -x`s them into [`QEMU_UNPACK_DIR`]
+/// (neither needs root nor touches the installed packages).
+fn unpack_qemu() -> Result<()> {
+    let dir = workspace_root().join(QEMU_UNPACK_DIR);
+    let debs = dir.join("debs");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&debs).with_context(|| format!("creating {}", debs.display()))?;
+    step(
+        &format!("download {}", QEMU_UNPACK_PACKAGES.join(" ")),
+        Command::new("apt-get")
+            .arg("download")
+            .args(QEMU_UNPACK_PACKAGES)
+            .current_dir(&debs),
+    )?;
+    let mut packages: Vec<PathBuf> = std::fs::read_dir(&debs)
+        .with_context(|| format!("listing {}", debs.display()))?
+        .filter_map(|entry| entry.ok().map(|e| e.path()))
+        .filter(|path| path.extension().is_some_and(|e| e == "deb"))
+        .collect();
+    packages.sort();
+    if packages.len() != QEMU_UNPACK_PACKAGES.len() {
+        bail!(
+            "apt-get download left {} packages in {}, not {}",
+            packages.len(),
+            debs.display(),
+            QEMU_UNPACK_PACKAGES.len()
+        );
+    }
+    for deb in &packages {
+        step(
+            &format!("unpack {}", display_program(&deb.to_string_lossy())),
+            Command::new("dpkg").arg("-x").arg(deb).arg(&dir),
+        )?;
+    }
+    std::fs::remove_dir_all(&debs).with_context(|| format!("removing {}", debs.display()))
 }
 
 /// Debian's Chromium and its WebDriver, for the browser test of `deform live --serve`.
@@ -267,7 +364,7 @@ fn setup_chromium() -> Result<()> {
         eprintln!("==> Chromium: {CHROMIUM_BINARY}, {CHROMEDRIVER_BINARY}");
         return Ok(());
     }
-    apt_install(&CHROMIUM_PACKAGES, "Chromium")?;
+    apt::install(&CHROMIUM_PACKAGES, "Chromium")?;
     match wanted.iter().find(|p| !Path::new(p).exists()) {
         None => {
             eprintln!("==> Chromium: {CHROMIUM_BINARY}, {CHROMEDRIVER_BINARY}");
@@ -280,56 +377,13 @@ fn setup_chromium() -> Result<()> {
     }
 }
 
-/// `apt-get update` and `apt-get install -y ARGS`, as root or through sudo, waiting for a
-/// package manager another process is running rather than failing at once.
-fn apt_install(args: &[&str], what: &str) -> Result<()> {
-    let lock = ["-o", "DPkg::Lock::Timeout=600"];
-    let privileged = |program: &str| -> Result<Command> {
-        if is_root() {
-            Ok(Command::new(program))
-        } else if on_path("sudo").is_some() {
-            let mut cmd = Command::new("sudo");
-            cmd.arg(program);
-            Ok(cmd)
-        } else {
-            bail!(
-                "{what} is missing and installing it needs root; run as root:\n    \
-                 apt-get update && apt-get install -y {}",
-                args.join(" ")
-            )
-        }
-    };
-    step(
-        "refresh the Debian package lists",
-        privileged("apt-get")?.args(lock).arg("update"),
-    )?;
-    step(
-        &format!("install {what} ({})", args.join(" ")),
-        privileged("apt-get")?
-            .args(lock)
-            .args(["install", "-y"])
-            .args(args)
-            .env("DEBIAN_FRONTEND", "noninteractive"),
-    )
-}
-
 /// The LiteX target's Debian packages, then its Python venv (`target/litex/venv`, or under
 /// `$DEFORM_LITEX_DIR`), each only if missing.
 fn setup_litex() -> Result<()> {
-    let missing: Vec<&str> = LITEX_PACKAGES
-        .iter()
-        .copied()
-        .filter(|p| {
-            output_of("dpkg-query", &["-W", "-f=${Status}", p])
-                .is_none_or(|status| !status.contains("install ok installed"))
-        })
-        .collect();
-    if missing.is_empty() {
+    if apt::missing(LITEX_PACKAGES).is_empty() {
         eprintln!("==> LiteX toolchain (Verilator, RISC-V GCC, socat): present");
     } else {
-        let mut args = vec!["--no-install-recommends"];
-        args.extend(&missing);
-        apt_install(&args, "the LiteX toolchain")?;
+        apt::install(LITEX_PACKAGES, "the LiteX toolchain")?;
     }
     setup_litex_venv()
 }
@@ -359,10 +413,6 @@ fn setup_litex_venv() -> Result<()> {
             .args(LITEX_PYTHON_PACKAGES),
     )?;
     std::fs::write(&marker, wanted).with_context(|| format!("writing {}", marker.display()))
-}
-
-fn is_root() -> bool {
-    output_of("id", &["-u"]).is_some_and(|uid| uid.trim() == "0")
 }
 
 /// Builds the firmware and returns the ELF's path.

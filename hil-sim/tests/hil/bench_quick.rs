@@ -4,17 +4,11 @@
 
 use std::path::{Path, PathBuf};
 
-use clap::Parser;
 use deform_host::bench::convergence::Arithmetic;
+use deform_host::bench::plan::{read_report, run, write_all, Choices};
 use deform_host::bench::report::BenchReport;
 use deform_host::bench::BenchModel;
-use deform_host::commands::bench::{run, BenchArgs};
-
-#[derive(Debug, Parser)]
-struct Cli {
-    #[command(flatten)]
-    args: BenchArgs,
-}
+use deform_host::board::TargetFlags;
 
 fn out_dir() -> PathBuf {
     let dir = std::env::temp_dir().join(format!("deform-bench-quick-{}", std::process::id()));
@@ -40,8 +34,11 @@ fn assert_picture(dir: &Path, stem: &str) {
 #[test]
 fn quick_bench_runs_every_part_and_writes_sane_files() {
     let dir = out_dir();
-    let cli = Cli::try_parse_from(["deform", "--quick", "--out", dir.to_str().unwrap()]).unwrap();
-    let report = run(&cli.args).expect("deform bench --quick");
+    let quick = Choices {
+        quick: true,
+        ..Choices::default()
+    };
+    let (report, _) = run(&quick, &TargetFlags::default(), &dir).expect("deform bench --quick");
 
     // bench.json is the report, bench.csv the sweep.
     let json = std::fs::read_to_string(dir.join("bench.json")).unwrap();
@@ -193,8 +190,8 @@ fn quick_bench_runs_every_part_and_writes_sane_files() {
     }
     // --replot redraws the pictures from bench.json alone.
     std::fs::remove_file(dir.join("mflops.svg")).unwrap();
-    let cli = Cli::try_parse_from(["deform", "--replot", "--out", dir.to_str().unwrap()]).unwrap();
-    let replotted = run(&cli.args).expect("deform bench --replot");
+    let replotted = read_report(&dir).expect("deform bench --replot");
+    write_all(&replotted, &dir).expect("the plots redrawn");
     assert_eq!(
         replotted.sweep.map(|s| s.points.len()),
         Some(sweep.points.len())

@@ -6,18 +6,11 @@ use crate::support;
 
 use std::time::Duration;
 
-use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
-use deform_host::board::BoardChoice;
-use deform_host::commands::solve::{solve_model, LayoutFlags, SolvePlan, Solved};
+use deform_hil_sim::Qemu;
 use deform_host::model::{Connection, Grid, Model, ModelSpec};
-use deform_host::precondition::Preconditioner;
+use deform_host::solve::{solve_model, SolvePlan, Solved};
 
 use support::*;
-
-fn boot_harts(harts: u8) -> Qemu {
-    Qemu::start(&QemuConfig::new(firmware_elf()).harts(harts))
-        .unwrap_or_else(|e| panic!("cannot boot the firmware: {e}"))
-}
 
 fn model(n: usize, connection: Connection) -> Model {
     let grid = Grid::new(n, n, n).unwrap();
@@ -30,24 +23,8 @@ fn model(n: usize, connection: Connection) -> Model {
     .expect("model builds")
 }
 
-fn plan(qemu: &Qemu, tol: f64, mvus: Option<u8>) -> SolvePlan {
-    SolvePlan {
-        board: Some(BoardChoice::Port(
-            qemu.pty_path().to_string_lossy().into_owned(),
-        )),
-        tol,
-        max_iter: None,
-        max_solves: 8,
-        solve_timeout: Duration::from_secs(300),
-        layout: LayoutFlags {
-            mvus,
-            ..LayoutFlags::default()
-        },
-        precondition: Preconditioner::None,
-        fuse: true,
-        link: Default::default(),
-        logs: Default::default(),
-    }
+fn plan_16(qemu: &Qemu, tol: f64) -> SolvePlan {
+    plan(port_of(qemu), tol, 8, Duration::from_secs(300))
 }
 
 fn check(label: &str, solved: &Solved, tol: f64) {
@@ -79,7 +56,7 @@ fn check(label: &str, solved: &Solved, tol: f64) {
 fn sixteen_cubed_model_a_on_one_mvu() {
     let mut qemu = boot_harts(1);
     let model = model(16, Connection::Axial);
-    let solved = solve_model(&model, &plan(&qemu, 1e-8, None)).expect("solve on QEMU");
+    let solved = solve_model(&model, &plan_16(&qemu, 1e-8)).expect("solve on QEMU");
     check("16³ model A, 1 MVU", &solved, 1e-8);
     let engine = solved.stats.engine.as_ref().unwrap();
     assert_eq!(engine.layout.mvus, 1);
@@ -91,7 +68,7 @@ fn sixteen_cubed_model_a_on_one_mvu() {
 fn sixteen_cubed_model_b_on_eight_mvus_refines_to_1e_10() {
     let mut qemu = boot_harts(8);
     let model = model(16, Connection::AxialShear);
-    let solved = solve_model(&model, &plan(&qemu, 1e-10, None)).expect("solve on QEMU");
+    let solved = solve_model(&model, &plan_16(&qemu, 1e-10)).expect("solve on QEMU");
     check("16³ model B, 8 MVUs, tol 1e-10", &solved, 1e-10);
     let engine = solved.stats.engine.as_ref().unwrap();
     assert_eq!(engine.layout.mvus, 8, "the default is every hart");
@@ -104,7 +81,7 @@ fn a_grid_too_large_for_the_target_is_refused_with_its_capacity() {
     let mut qemu = boot_harts(1);
     // 48³ = 110 592 nodes: more rows than the target's vectors hold.
     let model = model(48, Connection::Axial);
-    let err = solve_model(&model, &plan(&qemu, 1e-8, None))
+    let err = solve_model(&model, &plan_16(&qemu, 1e-8))
         .err()
         .expect("refused");
     let text = format!("{err:#}");
@@ -116,9 +93,11 @@ fn a_grid_too_large_for_the_target_is_refused_with_its_capacity() {
         "{text}"
     );
     // --mvus beyond the harts the target has is refused the same way.
-    let err = solve_model(&model, &plan(&qemu, 1e-8, Some(2)))
-        .err()
-        .expect("refused");
+    let two = SolvePlan {
+        mvus: Some(2),
+        ..plan_16(&qemu, 1e-8)
+    };
+    let err = solve_model(&model, &two).err().expect("refused");
     let text = format!("{err:#}");
     assert!(
         text.contains("--mvus 2") && text.contains("1 hart"),

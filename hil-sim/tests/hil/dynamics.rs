@@ -6,7 +6,9 @@
 use crate::support;
 
 use deform_host::dynamics::host::host_step;
-use deform_host::dynamics::target::{simulate_dynamic, DynamicParams, DynamicRunner, DynamicStep};
+use deform_host::dynamics::target::{
+    simulate_dynamic, DynamicModel, DynamicParams, DynamicRunner, DynamicStep,
+};
 use deform_host::dynamics::{DynamicsSpec, Loads, Scheme, StepMatrices};
 use deform_host::model::{Connection, Elasticity, Grid, Model, ModelError, ModelSpec};
 use deform_host::simulate::{Schedule, StepModel};
@@ -29,7 +31,7 @@ fn check(steps: &[DynamicStep], what: &str) {
         let dev = r.deviation.expect("checked against the f64 stepper");
         println!(
             "{what} step {}: {} iterations, {} cycles, {} B sent, deviation {dev:.2e}, energy {:.4e}",
-            r.step, r.iterations, s.cycles, s.bytes_sent, s.energy
+            r.step, r.iterations, r.cycles, r.bytes.sent, s.energy
         );
         assert!(dev <= 1e-8, "{what} step {}: deviation {dev:e}", r.step);
         assert!(r.max_u > 0.0);
@@ -58,7 +60,7 @@ fn dynamic_steps_on_the_target_equal_the_f64_stepper() {
             &model,
             None,
             schedule,
-            &dynamics,
+            DynamicModel::new(&model, &dynamics, schedule.dt).unwrap(),
             params(),
             |_| {},
             |_| {},
@@ -76,7 +78,7 @@ fn dynamic_steps_on_the_target_equal_the_f64_stepper() {
         &model,
         None,
         schedule,
-        &DynamicsSpec::uniform(1.0, [0.3; 3]),
+        DynamicModel::new(&model, &DynamicsSpec::uniform(1.0, [0.3; 3]), schedule.dt).unwrap(),
         params(),
         |_| {},
         |_| {},
@@ -113,7 +115,7 @@ fn a_keyframed_needle_moves_the_tissue_on_the_target_as_in_f64() {
         &model,
         Some(step_model),
         Schedule { steps: 8, dt: 0.05 },
-        &DynamicsSpec::uniform(0.2, [0.5; 3]),
+        DynamicModel::new(&model, &DynamicsSpec::uniform(0.2, [0.5; 3]), 0.05).unwrap(),
         params(),
         |_| {},
         |_| {},
@@ -147,7 +149,10 @@ fn a_new_time_step_is_a_values_only_update() {
     assert!(update.bytes_sent < update.full_upload_bytes);
     println!(
         "new h: values-only update {} B against a full upload of {} B; step bytes {} then {}",
-        update.bytes_sent, update.full_upload_bytes, first.bytes_sent, second.bytes_sent
+        update.bytes_sent,
+        update.full_upload_bytes,
+        first.result.bytes.sent,
+        second.result.bytes.sent
     );
     // The same two steps in f64 from scratch (the runner's own reference runs alongside too).
     let system = runner.system().clone();
@@ -183,19 +188,16 @@ fn a_new_time_step_is_a_values_only_update() {
 /// through the scenario and flag code `deform simulate` uses, equal the f64 stepper.
 #[test]
 fn the_dynamic_needle_example_on_the_target() {
-    use clap::Parser;
-    use deform_host::commands::simulate::SimulateArgs;
-    #[derive(Debug, Parser)]
-    struct Cli {
-        #[command(flatten)]
-        args: SimulateArgs,
-    }
+    use deform_host::simulate::plan::{Overrides, SeriesPlan};
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/../examples/needle-dynamic.toml"
     );
-    let cli = Cli::try_parse_from(["deform", path, "--steps", "10"]).unwrap();
-    let resolved = cli.args.resolve().unwrap();
+    let overrides = Overrides {
+        steps: Some(10),
+        ..Overrides::default()
+    };
+    let resolved = SeriesPlan::load(Some(std::path::Path::new(path)), &overrides).unwrap();
     let dynamics = resolved.dynamics.clone().expect("the example is dynamic");
     let model = Model::build(&resolved.spec).unwrap();
     let mut qemu = boot();
@@ -206,7 +208,7 @@ fn the_dynamic_needle_example_on_the_target() {
         &model,
         Some(&step_model as StepModel),
         resolved.schedule,
-        &dynamics,
+        DynamicModel::new(&model, &dynamics, resolved.schedule.dt).unwrap(),
         params(),
         |_| {},
         |_| {},
@@ -240,99 +242,128 @@ fn a_dynamic_live_session_follows_the_f64_stepper_and_relaxes_after_the_tool_lea
     let mut target = connect(&qemu);
     let (model, tools) = (&setup.model, &setup.tools);
     let params = needle.params(tol, layout);
-    let mut live = DynamicLive::on_target(model, tools, spec, h, params, &mut target).unwrap();
-    let mut host = <DynamicLive>::host(model, tools, spec, h).unwrap();
+    let built = DynamicModel::for_target(model, spec, h).unwrap();
+    let mut live = DynamicLive::on_target(model, tools, built, params, &mut target).unwrap();
+    let mut host = <DynamicLive>::host(model, tools, DynamicModel::new(model, spec, h).unwrap());
     let mut frames = Vec::new();
     for i in 1..=70 {
         let tool = needle.tool(i);
-        let got = live.frame(&tool).unwrap();
-        let want = host.frame(&tool).unwrap();
-        let scale = want.u.iter().map(|u| max_abs(u)).fold(0.0, f64::max);
+        let got = live.advance(i, &tool).unwrap();
+        let want = host.advance(i, &tool).unwrap();
+        let (got_u, want_u) = (&live.state().u, &host.state().u);
+        let scale = want_u.iter().map(|u| max_abs(u)).fold(0.0, f64::max);
         let err = (0..3)
-            .map(|d| max_abs_diff(&got.u[d], &want.u[d]))
+            .map(|d| max_abs_diff(&got_u[d], &want_u[d]))
             .fold(0.0, f64::max)
             / scale;
+        let motion = want.motion.unwrap();
         println!(
             "frame {i}: tool z {:+.3}, {} iterations, {:?} cycles, {} B up / {} B down, error {err:.2e}, max |v| {:.3e}, energy {:.4e}",
-            tool[0][2], got.iterations, got.cycles, got.bytes_up, got.bytes_down, want.max_v, want.energy
+            tool[0][2], got.iterations, got.cycles, got.bytes.sent, got.bytes.received, motion.max_v, motion.energy
         );
         // Refined to 1e-7 a step; 70 steps of accumulated rounding stay far below 1e-5.
         assert!(err <= 1e-5, "frame {i}: {err:e} of max |u|");
-        assert!(got.error_vs_reference.unwrap() <= 1e-5);
+        assert!(got.error_vs_converged.unwrap() <= 1e-5);
         assert!(got.residual <= tol, "frame {i}: residual {}", got.residual);
-        frames.push(want);
+        frames.push((want, want_u.clone()));
     }
-    let peak = frames.iter().map(|f| f.max_u).fold(0.0, f64::max);
-    let (withdrawn, last) = (&frames[55], &frames[69]);
+    let peak = frames.iter().map(|(f, _)| f.max_u).fold(0.0, f64::max);
+    let ((withdrawn, _), (last, last_u)) = (&frames[55], &frames[69]);
     assert_eq!(last.tool[0], [0.0; 3], "the needle is out");
     // The quasi-static frame for the tool at rest (no loads) is the undeformed tissue.
     let (rest, _) = setup.converged(&last.tool, None).unwrap();
     assert!(rest.iter().all(|u| max_abs(u) == 0.0));
     // The dynamic tissue is still displaced and moving 15 frames after the withdrawal.
     assert!(last.max_u > 1e-2 * peak, "max |u| {} of {peak}", last.max_u);
-    assert!(last.max_v > 1e-2, "max |v| {}", last.max_v);
+    let last_v = last.motion.unwrap().max_v;
+    assert!(last_v > 1e-2, "max |v| {last_v}");
     let moved = (0..3)
-        .map(|d| max_abs_diff(&frames[68].u[d], &last.u[d]))
+        .map(|d| max_abs_diff(&frames[68].1[d], &last_u[d]))
         .fold(0.0, f64::max);
     assert!(moved > 1e-4, "the tissue stopped: {moved:e}");
     // With dampers and the tool at rest nothing feeds the motion: the energy only falls.
+    let energy = |f: &deform_host::live::engine::Frame| f.motion.unwrap().energy;
     for w in frames[56..].windows(2) {
-        assert!(
-            w[1].energy <= w[0].energy,
-            "{} then {}",
-            w[0].energy,
-            w[1].energy
-        );
+        let (e0, e1) = (energy(&w[0].0), energy(&w[1].0));
+        assert!(e1 <= e0, "{e0} then {e1}");
     }
-    assert!(last.energy < withdrawn.energy);
+    assert!(energy(last) < energy(withdrawn));
     assert_alive(&mut qemu);
 }
 
-/// `deform live --port` on a dynamic scenario: the command's own path (scenario, flags, board
-/// over a serial device, report) against the firmware in QEMU as if it were a board; the
-/// report's keys and figures are those of a target session.
+/// `deform live --port` on a dynamic scenario: the session's own path (scenario, options,
+/// board over a serial device, engine, headless session, report) against the firmware in QEMU
+/// as if it were a board; the report's keys and figures are those of a target session.
 #[test]
 fn deform_live_runs_dynamic_frames_over_a_port() {
-    use clap::Parser;
-    use deform_host::commands::live::{run, LiveArgs};
-    #[derive(Debug, Parser)]
-    struct Cli {
-        #[command(flatten)]
-        args: LiveArgs,
-    }
+    use deform_host::board::{session_timeouts, Board, BoardChoice};
+    use deform_host::dynamics::flags::DynamicFlags;
+    use deform_host::live::report::{Place, SessionReport};
+    use deform_host::live::session;
+    use deform_host::live::start::{Live, Mode, Options};
     let mut qemu = boot();
     let pty = qemu.pty_path().to_str().unwrap().to_string();
     let example = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/../examples/needle-dynamic-8b.toml"
     );
-    let report = std::env::temp_dir().join(format!("deform-dynlive-{}.json", std::process::id()));
-    let report_arg = report.to_str().unwrap();
-    let cli = Cli::try_parse_from([
-        "deform",
-        example,
-        "--headless",
-        "--frames",
-        "12",
-        "--mvus",
-        "1",
-        "--port",
-        &pty,
-        "--report",
-        report_arg,
-    ])
-    .unwrap();
-    run(&cli.args).expect("deform live over the port");
-    let r: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
-    std::fs::remove_file(&report).unwrap();
+    let options = Options {
+        frames: Some(12),
+        ..Options::default()
+    };
+    let live = Live::load(
+        std::path::Path::new(example),
+        None,
+        &DynamicFlags::default(),
+        1,
+    )
+    .expect("the example loads");
+    let mode = Mode {
+        dynamic: true,
+        on_host: false,
+        serve: false,
+    };
+    options.check(mode).unwrap();
+    let built = live.dynamic_model(true).unwrap();
+    let mut board = Board::open(
+        &BoardChoice::Port(pty),
+        session_timeouts(options.timeout()),
+        &Default::default(),
+    )
+    .expect("the board on the port");
+    let mut engine = live
+        .engine(Some(&mut board), built, &options, true)
+        .unwrap();
+    let script = live.script(&options);
+    let tool_at = |t: f64| live.tool_at(t);
+    let (frames, summary) =
+        session::run(&mut *engine, &script, &tool_at, |_, _| Ok(())).expect("the session");
+    let place = Place {
+        target: "port".into(),
+        mvus: 1,
+    };
+    // The needle is a tool-driven, backward-Euler, isotropic tissue of one mass: the target
+    // forms its steps (protocol 11), so a frame is the tool's motion up and its force down.
+    assert_eq!(engine.name(), "target (dynamic, resident)");
+    let report = SessionReport::of(&live, &*engine, &options, place, &frames, &summary);
+    let r = serde_json::to_value(&report).unwrap();
     assert_eq!(r["frames"], 12);
     assert_eq!(r["target"], "port");
     assert!(r["frame_cycles"]["p50"].as_f64().unwrap() > 0.0, "{r}");
-    assert!(r["bytes_up_per_frame"].as_f64().unwrap() > 0.0, "{r}");
+    let (up, down) = (
+        r["bytes_up_per_frame"].as_f64().unwrap(),
+        r["bytes_down_per_frame"].as_f64().unwrap(),
+    );
+    assert!(up > 0.0 && up <= 64.0 && down > 0.0 && down <= 64.0, "{r}");
+    assert!(
+        r["residual_max"].as_f64().unwrap() <= options.tol(),
+        "every step within the tolerance: {r}"
+    );
     assert!(r["error_vs_converged_max"].as_f64().unwrap() <= 1e-3, "{r}");
     assert!(r["force_updates_per_s"].is_null());
     assert_eq!(r["dynamic"]["h"], 0.01);
+    drop(engine);
+    drop(board);
     assert_alive(&mut qemu);
 }
 
@@ -366,7 +397,7 @@ fn target_resident_dynamic_frames_follow_the_f64_stepper() {
     let mut qemu = Qemu::start(&QemuConfig::new(firmware_elf()).harts(8)).unwrap();
     let mut target = connect(&qemu);
     setup.start(&mut target).unwrap();
-    let mut host = <DynamicLive>::host(model, tools, spec, h).unwrap();
+    let mut host = <DynamicLive>::host(model, tools, DynamicModel::new(model, spec, h).unwrap());
     let n = model.n();
     let (mut peak, mut worst, mut cycles) = (0f64, 0f64, Vec::new());
     let mut bytes = Vec::new();
@@ -382,20 +413,21 @@ fn target_resident_dynamic_frames_follow_the_f64_stepper() {
             after.bytes_sent - before.bytes_sent,
             after.bytes_received - before.bytes_received,
         );
-        let want = host.frame(&tool).unwrap();
+        let want = host.advance(i, &tool).unwrap();
+        let want_u = &host.state().u;
         let got: Vec<Vec<f64>> = (0..3)
             .map(|d| target.read_direction_solution(d as u8, n).unwrap())
             .collect();
         peak = peak.max(want.max_u);
         let err = (0..3)
-            .map(|d| max_abs_diff(&got[d], &want.u[d]))
+            .map(|d| max_abs_diff(&got[d], &want_u[d]))
             .fold(0.0, f64::max)
             / peak.max(f64::MIN_POSITIVE);
         worst = worst.max(err);
         if i % 25 == 0 || i <= 3 {
             println!(
                 "frame {i}: tool z {:+.4}, {} iterations, {} cycles, {up} B up / {down} B down, error {err:.2e} of peak, force z {:+.4} (f64 {:+.4}), residual {:.1e}",
-                tool[0][2], report.iterations, report.cycles, report.force[2], want.force[2], report.residual
+                tool[0][2], report.iterations, report.cycles, report.force[2], want.answer[2], report.residual
             );
         }
         bytes.push((up, down));

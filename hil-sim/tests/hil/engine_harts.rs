@@ -6,7 +6,6 @@
 
 use crate::support;
 
-use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_host::encode::EncodedMatrix;
 use deform_shared::protocol::MAX_DIRECTIONS;
 use deform_shared::protocol::{SolveParams, SolveReport, Start};
@@ -14,12 +13,10 @@ use deform_shared::qformat::{block_exponent, choose_frac_bits, from_mantissa, to
 use deform_target_core::cg::{self, Matrix, System, Work};
 use deform_target_core::exec::Sequential;
 use deform_target_core::testkit::encode_rows;
-use support::{assert_alive, cholesky_solve, connect, decode_dense, encoded, max_relative_error};
-
-fn boot(harts: u8) -> Qemu {
-    Qemu::start(&QemuConfig::new(firmware_elf()).harts(harts))
-        .unwrap_or_else(|e| panic!("cannot boot the firmware: {e}"))
-}
+use support::{
+    assert_alive, boot_harts as boot, cholesky_solve, connect, decode_dense, encoded,
+    max_relative_error,
+};
 
 fn params(directions: u8) -> SolveParams {
     SolveParams {

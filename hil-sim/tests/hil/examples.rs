@@ -7,10 +7,9 @@ use crate::support;
 use std::path::Path;
 use std::time::Duration;
 
-use deform_host::board::BoardChoice;
-use deform_host::commands::solve::{prescribed_error, solve_model, SolvePlan};
 use deform_host::model::Model;
 use deform_host::scenario::Scenario;
+use deform_host::solve::{prescribed_error, solve_model, SolvePlan};
 
 use support::*;
 
@@ -25,18 +24,13 @@ fn run_example(name: &str) {
     let model = Model::build(&scenario.model).expect("the example builds");
     let mut qemu = boot();
     let plan = SolvePlan {
-        board: Some(BoardChoice::Port(
-            qemu.pty_path().to_string_lossy().into_owned(),
-        )),
-        tol: scenario.solver.tol.unwrap_or(1e-8),
         max_iter: scenario.solver.max_iter,
-        max_solves: scenario.solver.max_solves.unwrap_or(8),
-        solve_timeout: Duration::from_secs(120),
-        layout: Default::default(),
-        precondition: Default::default(),
-        fuse: true,
-        link: Default::default(),
-        logs: Default::default(),
+        ..plan(
+            port_of(&qemu),
+            scenario.solver.tol.unwrap_or(1e-8),
+            scenario.solver.max_solves.unwrap_or(8),
+            Duration::from_secs(120),
+        )
     };
     let solved = solve_model(&model, &plan).expect("solve on QEMU");
     assert_alive(&mut qemu);

@@ -9,8 +9,7 @@ use deform_host::inverse::regularise::Regularisation;
 use deform_host::inverse::synthetic::{forward, observe, Noise};
 use deform_host::inverse::{homogeneous, spring_field, Network, Observations, SpdSolver};
 use deform_host::model::{
-    Connection, Elasticity, FixedNodeSet, Grid, Inclusion, Model, ModelSpec, PointLoad,
-    StiffnessField,
+    Connection, Elasticity, FixedNodeSet, Grid, Inclusion, Model, ModelSpec, NodeField, PointLoad,
 };
 
 use support::*;
@@ -69,7 +68,7 @@ fn spring_field_normal_system_runs_on_the_target() {
             grid,
             connection: Connection::Axial,
             elasticity: Elasticity::isotropic(1.0).unwrap(),
-            field: Some(StiffnessField {
+            field: Some(NodeField {
                 background: 1.0,
                 inclusions: vec![Inclusion {
                     center: [5.0, 3.0, 4.0],

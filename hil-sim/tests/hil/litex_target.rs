@@ -12,13 +12,13 @@ use std::time::{Duration, Instant};
 
 use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim};
 use deform_host::board::{BiosChoice, Board, BoardChoice};
-use deform_host::cli_model::{ConnectionArg, ModelArgs};
-use deform_host::commands::solve::{solve_model, SolvePlan};
 use deform_host::flash::sfl::SflTimeouts;
 use deform_host::link::{open_serial, Link, Target, Timeouts};
+use deform_host::model::flags::{ConnectionArg, ModelFlags};
 use deform_host::model::{Grid, Node, PointLoad};
+use deform_host::solve::solve_model;
 
-use support::deviation_from_reference;
+use support::{build, deviation_from_reference, plan};
 
 fn start() -> LitexSim {
     LitexSim::start(&LitexConfig::new(litex_firmware_elf()))
@@ -38,9 +38,9 @@ fn timeouts() -> Timeouts {
 
 #[test]
 fn model_b_on_6_cubed_matches_f64_to_1e_8_with_refinement() {
-    let args = ModelArgs {
-        grid: Grid::new(6, 6, 6).unwrap(),
-        connection: ConnectionArg::B,
+    let args = ModelFlags {
+        grid: Some(Grid::new(6, 6, 6).unwrap()),
+        connection: Some(ConnectionArg::B),
         load: vec![
             PointLoad {
                 node: Node { i: 3, j: 3, k: 5 },
@@ -51,21 +51,15 @@ fn model_b_on_6_cubed_matches_f64_to_1e_8_with_refinement() {
                 force: [0.0, 0.25, -2.0],
             },
         ],
-        ..ModelArgs::default()
+        ..ModelFlags::default()
     };
-    let model = args.build().expect("model builds");
-    let plan = SolvePlan {
-        board: Some(BoardChoice::Litex { firmware: None }),
-        tol: 1e-10,
-        max_iter: None,
-        max_solves: 8,
-        solve_timeout: Duration::from_secs(600),
-        layout: Default::default(),
-        precondition: Default::default(),
-        fuse: true,
-        link: Default::default(),
-        logs: Default::default(),
-    };
+    let model = build(&args);
+    let plan = plan(
+        BoardChoice::Litex { firmware: None },
+        1e-10,
+        8,
+        Duration::from_secs(600),
+    );
     let started = Instant::now();
     let solved = solve_model(&model, &plan).expect("solve on the LiteX SoC");
     let (rel, scale) = deviation_from_reference(&solved);
@@ -200,12 +194,13 @@ fn dynamic_live_frames_on_the_soft_core_follow_the_f64_stepper() {
     let params = needle.params(1e-4, EncodeOptions::default());
     let (model, tools) = (&needle.setup.model, &needle.setup.tools);
     let (h, spec) = (needle.h, &needle.spec);
-    let mut live = DynamicLive::on_target(model, tools, spec, h, params, &mut target).unwrap();
+    let built = deform_host::dynamics::target::DynamicModel::for_target(model, spec, h).unwrap();
+    let mut live = DynamicLive::on_target(model, tools, built, params, &mut target).unwrap();
     for frame in 1..=2 {
         let tool = needle.tool(frame);
-        let f = live.frame(&tool).unwrap();
+        let f = live.advance(frame, &tool).unwrap();
         let err = f
-            .error_vs_reference
+            .error_vs_converged
             .expect("checked against the f64 stepper");
         println!(
             "LiteX dynamic frame {frame}: {} iterations, {:?} cycles, error {err:.2e}",

@@ -8,7 +8,7 @@ use crate::support;
 use std::path::Path;
 
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
-use deform_host::bench::board::{BenchBoard, BenchBoardChoice};
+use deform_host::board::{Board, BoardChoice};
 use deform_host::encode::EncodeOptions;
 use deform_host::link::LinkError;
 use deform_host::live::field::FieldChoice;
@@ -118,9 +118,11 @@ fn field_frames_are_exact_to_the_quantisation_and_compact() {
         ..EncodeOptions::default()
     };
     let setup = LiveSetup::new(&spec_at(&s, 0.0), &layout).unwrap();
-    let choice = BenchBoardChoice::Qemu { firmware: None };
-    let mut board = BenchBoard::open(&choice, 8, timeouts()).unwrap();
-    let wire = board.wire.clone();
+    let choice = BoardChoice::Qemu {
+        firmware: None,
+        harts: 8,
+    };
+    let mut board = Board::open(&choice, timeouts(), &Default::default()).unwrap();
     let mut link = LiveLink::start(&mut board.target, &setup, params(&setup)).unwrap();
     let tool = tool_at(&s, 0.5);
     link.frame(&tool).unwrap();
@@ -135,9 +137,8 @@ fn field_frames_are_exact_to_the_quantisation_and_compact() {
         (FieldChoice::Stride(3), n.div_ceil(3)),
         (FieldChoice::Surface, n - inside),
     ] {
-        let before = wire.read();
         let field = link.field(choice).unwrap();
-        let bytes = wire.read().since(before);
+        let bytes = field.bytes;
         assert_eq!(field.nodes.len(), nodes, "{choice}");
         for &(node, q) in &field.nodes {
             let p = setup.model.node(node);

@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
 use deform_hil_sim::firmware_elf;
+use deform_host::board::LogOptions;
 use deform_host::board::{Board, BoardChoice};
-use deform_host::cli_logs::LogOptions;
 use deform_host::firmware_logs::{FirmwareElf, FirmwareLogs, LogError, LogLevel, LogLine};
 use deform_host::link::{open_serial, Link, Target};
 use deform_shared::protocol::{SolveParams, Start};

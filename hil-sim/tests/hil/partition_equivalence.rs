@@ -4,11 +4,10 @@
 
 use crate::support;
 
-use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_host::encode::{encode_with, EncodeOptions, EncodedMatrix, Partition};
 use deform_host::link::Target;
 use deform_host::model::{
-    Axis, Connection, Grid, Inclusion, Model, ModelSpec, Node, PointLoad, StiffnessField,
+    Axis, Connection, Grid, Inclusion, Model, ModelSpec, Node, NodeField, PointLoad,
 };
 use deform_host::precondition::{self, Preconditioner};
 use deform_host::reference::{self, max_abs, max_abs_diff};
@@ -18,11 +17,6 @@ use support::*;
 
 /// The harts QEMU boots: the most MVUs a tile may name.
 const HARTS: u8 = 8;
-
-fn boot_harts(harts: u8) -> Qemu {
-    Qemu::start(&QemuConfig::new(firmware_elf()).harts(harts))
-        .unwrap_or_else(|e| panic!("cannot boot the firmware: {e}"))
-}
 
 /// A 6×6×6 model-B cube, corners fixed (so A is persymmetric), loads in all three directions.
 fn cube() -> Model {
@@ -203,7 +197,7 @@ fn jacobi_cuts_iterations_on_a_stiff_inclusion() {
     let model = Model::build(&ModelSpec {
         grid,
         connection: Connection::Axial,
-        field: Some(StiffnessField {
+        field: Some(NodeField {
             background: 1.0,
             inclusions: vec![Inclusion {
                 center: [4.0, 4.0, 4.0],

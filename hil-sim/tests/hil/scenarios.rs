@@ -6,33 +6,19 @@ use crate::support;
 
 use std::time::Duration;
 
-use deform_host::board::BoardChoice;
-use deform_host::cli_model::{ConnectionArg, ModelArgs};
-use deform_host::commands::solve::{solve_model, SolvePlan, Solved};
+use deform_host::model::flags::{ConnectionArg, ModelFlags};
 use deform_host::model::{Node, PointLoad};
+use deform_host::solve::{solve_model, Solved};
 
 use support::*;
 
 /// Fails above this deviation from the f64 reference, relative to max |u|.
 const MAX_DEVIATION: f64 = 1e-3;
 
-fn solve_on_qemu(args: &ModelArgs, tol: f64, max_solves: u32) -> Solved {
+fn solve_on_qemu(args: &ModelFlags, tol: f64, max_solves: u32) -> Solved {
     let mut qemu = boot();
-    let model = args.build().expect("model builds");
-    let plan = SolvePlan {
-        board: Some(BoardChoice::Port(
-            qemu.pty_path().to_string_lossy().into_owned(),
-        )),
-        tol,
-        max_iter: None,
-        max_solves,
-        solve_timeout: Duration::from_secs(120),
-        layout: Default::default(),
-        precondition: Default::default(),
-        fuse: true,
-        link: Default::default(),
-        logs: Default::default(),
-    };
+    let model = build(args);
+    let plan = plan(port_of(&qemu), tol, max_solves, Duration::from_secs(120));
     let solved = solve_model(&model, &plan).expect("solve on QEMU");
     assert_alive(&mut qemu);
     solved
@@ -49,7 +35,7 @@ fn deviation(label: &str, solved: &Solved) -> f64 {
 #[test]
 fn default_scenario_matches_f64_from_fixed_point_alone() {
     // One target solve per direction, no refinement: the fixed-point CG's own accuracy.
-    let solved = solve_on_qemu(&ModelArgs::default(), 1e-6, 1);
+    let solved = solve_on_qemu(&ModelFlags::default(), 1e-6, 1);
     let rel = deviation("thesis cube, model A", &solved);
     assert!(rel < MAX_DEVIATION, "deviation {rel:e}");
     let x = &solved.stats.directions[0];
@@ -63,8 +49,8 @@ fn default_scenario_matches_f64_from_fixed_point_alone() {
 
 #[test]
 fn model_b_with_loads_in_every_direction_matches_f64() {
-    let args = ModelArgs {
-        connection: ConnectionArg::B,
+    let args = ModelFlags {
+        connection: Some(ConnectionArg::B),
         load: vec![
             PointLoad {
                 node: Node { i: 5, j: 5, k: 9 },
@@ -75,7 +61,7 @@ fn model_b_with_loads_in_every_direction_matches_f64() {
                 force: [0.0, 0.25, -2.0],
             },
         ],
-        ..ModelArgs::default()
+        ..ModelFlags::default()
     };
     let solved = solve_on_qemu(&args, 1e-10, 8);
     let rel = deviation("10³ model B, three directions", &solved);

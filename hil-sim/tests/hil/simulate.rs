@@ -131,24 +131,21 @@ fn the_nonlinear_model_updates_values_only_and_matches_a_fresh_upload() {
 /// matches the f64 reference.
 #[test]
 fn the_needle_insertion_example_follows_its_keyframes() {
-    use clap::Parser;
-    use deform_host::commands::simulate::SimulateArgs;
     use deform_host::model::Node;
     use deform_host::scenario::value_at;
+    use deform_host::simulate::plan::{Overrides, SeriesPlan};
 
-    #[derive(Parser)]
-    struct Cli {
-        #[command(flatten)]
-        args: SimulateArgs,
-    }
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/../examples/needle-insertion.toml"
     );
-    let resolved = Cli::parse_from(["deform", path, "--steps", "6", "--dt", "0.25"])
-        .args
-        .resolve()
-        .expect("resolves");
+    let overrides = Overrides {
+        steps: Some(6),
+        dt: Some(0.25),
+        ..Overrides::default()
+    };
+    let resolved =
+        SeriesPlan::load(Some(std::path::Path::new(path)), &overrides).expect("resolves");
     assert_eq!(resolved.schedule, Schedule { steps: 6, dt: 0.25 });
     let sim = resolved.simulation.clone().expect("[simulation]");
     let model = Model::build(&resolved.spec).expect("model builds");

@@ -17,6 +17,45 @@ pub fn boot() -> Qemu {
     Qemu::start(&config).unwrap_or_else(|e| panic!("cannot boot the firmware: {e}"))
 }
 
+/// Boots the firmware with `harts` harts (one MVU each).
+pub fn boot_harts(harts: u8) -> Qemu {
+    Qemu::start(&QemuConfig::new(firmware_elf()).harts(harts))
+        .unwrap_or_else(|e| panic!("cannot boot the firmware: {e}"))
+}
+
+/// `deform solve`'s plan for `board`: refined to `tol` with at most `max_solves` target solves
+/// per direction, fused, default layout (every MVU), `timeout` per solve.
+pub fn plan(
+    board: deform_host::board::BoardChoice,
+    tol: f64,
+    max_solves: u32,
+    timeout: Duration,
+) -> deform_host::solve::SolvePlan {
+    deform_host::solve::SolvePlan {
+        board: Some(board),
+        mvus: None,
+        tol,
+        max_iter: None,
+        max_solves,
+        solve_timeout: timeout,
+        layout: Default::default(),
+        precondition: Default::default(),
+        fuse: true,
+        link: Default::default(),
+        logs: Default::default(),
+    }
+}
+
+/// The board on QEMU's pty, as a real board on a port is reached.
+pub fn port_of(qemu: &Qemu) -> deform_host::board::BoardChoice {
+    deform_host::board::BoardChoice::Port(qemu.pty_path().to_string_lossy().into_owned())
+}
+
+/// The model the model flags give (over the thesis example).
+pub fn build(flags: &deform_host::model::flags::ModelFlags) -> deform_host::model::Model {
+    deform_host::model::Model::build(&flags.spec_over(None)).expect("model builds")
+}
+
 /// Generous deadlines: CI machines are slow and QEMU notices the pty only once a second.
 pub fn timeouts() -> Timeouts {
     Timeouts {
@@ -143,7 +182,7 @@ impl Noise {
 }
 
 /// (max |u − u_ref| / max |u_ref|, max |u_ref|) over every node and direction of a solve.
-pub fn deviation_from_reference(solved: &deform_host::commands::solve::Solved) -> (f64, f64) {
+pub fn deviation_from_reference(solved: &deform_host::solve::Solved) -> (f64, f64) {
     use deform_host::reference::{max_abs, max_abs_diff};
     let scale = solved
         .reference
@@ -178,7 +217,7 @@ impl DynamicNeedle {
         let scenario = deform_host::scenario::Scenario::load(std::path::Path::new(path), None)
             .expect("the example loads");
         let simulation = scenario.simulation.clone().expect("a keyframed tool");
-        let spec = deform_host::cli_dynamics::DynamicFlags::default()
+        let spec = deform_host::dynamics::flags::DynamicFlags::default()
             .resolve(simulation.dynamic, scenario.dynamics.as_ref())
             .unwrap()
             .expect("the example is dynamic");

@@ -22,12 +22,12 @@ use anyhow::{bail, Context};
 use deform_shared::protocol::{SolveParams, Start};
 use serde::{Deserialize, Serialize};
 
-use super::board::BenchTarget;
 use super::BenchModel;
 use crate::encode::encode;
+use crate::link::Target;
 use crate::model::{Axis, Csr, Model};
 use crate::reference::{self, max_abs_diff, norm, residual};
-use crate::refine::FIXED_POINT_FLOOR;
+use deform_shared::qformat::FIXED_POINT_FLOOR;
 
 /// What to run.
 #[derive(Debug, Clone)]
@@ -44,9 +44,10 @@ pub struct ConvergenceConfig {
 }
 
 /// Which arithmetic a curve is for.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Arithmetic {
     /// The target: block-floating-point CG, refined on the host.
+    #[default]
     FixedPoint,
     /// The host's f64 reference CG.
     F64,
@@ -62,7 +63,7 @@ impl Arithmetic {
 }
 
 /// One curve of Fig. 2-9.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct ConvergenceSeries {
     pub model: BenchModel,
     pub arithmetic: Arithmetic,
@@ -139,7 +140,7 @@ pub fn f64_series(
 
 /// The target's curve, with refinement (see the module doc). `target` gets the cube's A.
 pub fn target_series(
-    target: &mut BenchTarget,
+    target: &mut Target,
     model: BenchModel,
     config: &ConvergenceConfig,
 ) -> anyhow::Result<ConvergenceSeries> {
@@ -147,7 +148,7 @@ pub fn target_series(
     target.upload_matrix(&encode(&p.a)?)?;
     let n = p.b.len();
     let b_norm = norm(&p.b);
-    let cap = (10 * n).min(u32::MAX as usize) as u32;
+    let cap = crate::refine::default_max_iterations(n);
     let params = |max_iterations| SolveParams {
         max_iterations,
         tolerance: config.tol.max(FIXED_POINT_FLOOR),

@@ -27,7 +27,7 @@ pub struct HostBaselineConfig {
 }
 
 /// One size.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct HostPoint {
     pub model: BenchModel,
     pub edge: usize,

@@ -20,17 +20,41 @@
 //! 100 MHz ([`NOMINAL_CLOCK_HZ`]) with one instruction per cycle, the rate of a simple in-order
 //! soft core; the instruction counts stay the primary figure.
 
-pub mod board;
 pub mod convergence;
 pub mod host_baseline;
+pub mod plan;
 pub mod plots;
 pub mod realtime;
 pub mod report;
 pub mod sweep;
 
+use std::time::Duration;
+
+use anyhow::bail;
 use serde::{Deserialize, Serialize};
 
+use crate::board::{session_timeouts, Board, TargetFlags};
 use crate::model::{Connection, Grid, ModelSpec};
+
+/// The bench's board with `mvus` MVUs (QEMU: as many harts), its logs decoded: what every
+/// target part opens.
+pub fn open_board(
+    target: &TargetFlags,
+    mvus: u8,
+    solve_timeout: Duration,
+) -> anyhow::Result<Board> {
+    if target.kind(None) == crate::board::TargetKind::Host && target.port.is_none() {
+        bail!("--target host: the bench measures a target; the host baseline alone is --only host");
+    }
+    let choice = target
+        .choice(Some(mvus), None)?
+        .expect("a board: the host was refused above");
+    Board::open(
+        &choice,
+        session_timeouts(solve_timeout),
+        &target.logs.options(),
+    )
+}
 
 /// The clock at which the thesis measured its accelerator (sec. 5.2), at which our cycle counts
 /// become times and MFLOPS (eq. 56 itself is [`crate::metrics::performance`]).
@@ -42,9 +66,12 @@ pub fn micros(cycles: f64) -> f64 {
 }
 
 /// The two spring networks of thesis Fig. 2-5, as the benchmark names them.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum,
+)]
 pub enum BenchModel {
     /// Model A: 6 axial neighbours.
+    #[default]
     A,
     /// Model B: all 26 neighbours.
     B,
@@ -119,6 +146,18 @@ pub mod thesis {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_host_is_no_board_to_measure() {
+        let host = TargetFlags {
+            kind: Some(crate::board::TargetKind::Host),
+            ..TargetFlags::default()
+        };
+        let e = open_board(&host, 1, Duration::from_secs(1))
+            .err()
+            .expect("refused");
+        assert!(e.to_string().contains("--only host"), "{e}");
+    }
 
     #[test]
     fn micros_at_the_nominal_clock() {

@@ -17,14 +17,13 @@
 //!   byte). Protocol handling on the target (framing, block-floating-point conversion) is in
 //!   neither: the firmware does not count it.
 
-use std::cell::Cell;
 use std::time::Duration;
 
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
-use super::board::{BenchBoard, BenchBoardChoice, WireBytes};
-use super::{BenchModel, NOMINAL_CLOCK_HZ};
+use super::{open_board, BenchModel, NOMINAL_CLOCK_HZ};
+use crate::board::{Board, TargetFlags};
 use crate::encode::{EncodeOptions, Partition};
 use crate::link::BAUD_RATE;
 use crate::model::Model;
@@ -49,7 +48,7 @@ pub struct RealtimeConfig {
 }
 
 /// One time step's cost.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct StepBudget {
     pub step: u32,
     /// CG iterations, summed over x, y and z.
@@ -61,7 +60,7 @@ pub struct StepBudget {
 }
 
 /// One scenario's steps and verdicts.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct RealtimeScenario {
     pub model: BenchModel,
     pub edge: usize,
@@ -86,16 +85,20 @@ pub struct RealtimeScenario {
 }
 
 /// Runs every (model, edge) scenario on its own fresh one-hart board.
-pub fn run(
-    config: &RealtimeConfig,
-    choice: &BenchBoardChoice,
-) -> anyhow::Result<Vec<RealtimeScenario>> {
-    let timeouts = super::board::timeouts(config.solve_timeout);
+pub fn run(config: &RealtimeConfig, target: &TargetFlags) -> anyhow::Result<Vec<RealtimeScenario>> {
     let mut out = Vec::new();
     for &mvus in &config.mvus {
         for &model in &config.models {
             for &edge in &config.edges {
-                let mut board = BenchBoard::open(choice, mvus, timeouts)?;
+                let mut board = match open_board(target, mvus, config.solve_timeout) {
+                    Ok(board) => board,
+                    // As in the sweep: one MVU must work, more depend on the board.
+                    Err(e) if mvus > 1 => {
+                        println!("budget {model} {edge}³ {mvus} MVUs: skipped, {e:#}");
+                        continue;
+                    }
+                    Err(e) => return Err(e),
+                };
                 let scenario = run_one(&mut board, model, edge, mvus, config)?;
                 println!(
                 "budget {} {}³ (n = {}), {} MVU(s): worst step {} cycles → {:.0} steps/s at 100 MHz (1 kHz: {}, 60 Hz: {}); {} B on the wire per step → {:.1} steps/s at {} baud",
@@ -147,7 +150,7 @@ fn rate(per_step: f64, units_per_second: f64) -> f64 {
 }
 
 fn run_one(
-    board: &mut BenchBoard,
+    board: &mut Board,
     model: BenchModel,
     edge: usize,
     mvus: u8,
@@ -164,7 +167,7 @@ fn run_one(
         predict: false,
         fuse: false,
         tol: config.tol,
-        max_iterations: (10 * n).min(u32::MAX as usize) as u32,
+        max_iterations: crate::refine::default_max_iterations(n),
         check_reference: false,
         layout: EncodeOptions {
             mvus,
@@ -172,10 +175,7 @@ fn run_one(
             use_symmetry: true,
         },
     };
-    let wire = board.wire.clone();
-    let start = wire.read();
-    let mark = Cell::new(start);
-    let upload = Cell::new(WireBytes::default());
+    let start = board.wire();
     let mut steps = Vec::new();
     simulate(
         &mut board.target,
@@ -183,15 +183,8 @@ fn run_one(
         schedule,
         None,
         params,
-        |p| {
-            if p.words_sent == p.words_total {
-                let now = wire.read();
-                upload.set(now.since(start));
-                mark.set(now);
-            }
-        },
+        |_| {},
         |r| {
-            let now = wire.read();
             let (mvu_cycles, svu_cycles) = step_cycles(&r.reports);
             steps.push(StepBudget {
                 step: r.step,
@@ -199,9 +192,8 @@ fn run_one(
                 mvu_cycles,
                 svu_cycles,
                 cycles: mvu_cycles + svu_cycles,
-                wire_bytes: now.since(mark.get()).total(),
+                wire_bytes: r.bytes.total(),
             });
-            mark.set(now);
         },
     )
     .with_context(|| format!("simulating {model} on a {edge}³ grid"))?;
@@ -210,6 +202,8 @@ fn run_one(
     let compute_rate_hz = rate(worst_step_cycles as f64, NOMINAL_CLOCK_HZ);
     let iterations: u64 = steps.iter().map(|s| s.iterations as u64).sum();
     let bytes: u64 = steps.iter().map(|s| s.wire_bytes).sum();
+    // Every byte before the first step is the upload of A.
+    let upload = board.wire().since(start).total() - bytes;
     Ok(RealtimeScenario {
         model,
         edge,
@@ -230,7 +224,7 @@ fn run_one(
         } else {
             0.0
         },
-        wire_bytes_matrix_upload: upload.get().total(),
+        wire_bytes_matrix_upload: upload,
         steps,
     })
 }

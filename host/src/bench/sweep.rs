@@ -22,8 +22,8 @@ use anyhow::Context;
 use deform_shared::protocol::{SolveParams, Start};
 use serde::{Deserialize, Serialize};
 
-use super::board::{BenchBoard, BenchBoardChoice};
-use super::{micros, BenchModel};
+use super::{micros, open_board, BenchModel};
+use crate::board::{Board, TargetFlags};
 use crate::encode::{encode_with, EncodeOptions, Partition};
 use crate::metrics::performance;
 use crate::model::{Axis, Model};
@@ -44,7 +44,7 @@ pub struct SweepConfig {
 }
 
 /// One measured point.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct SweepPoint {
     pub model: BenchModel,
     pub edge: usize,
@@ -102,15 +102,14 @@ pub struct SweepResult {
 }
 
 /// Runs the sweep, printing one line per point as it goes.
-pub fn run(config: &SweepConfig, choice: &BenchBoardChoice) -> anyhow::Result<SweepResult> {
+pub fn run(config: &SweepConfig, target: &TargetFlags) -> anyhow::Result<SweepResult> {
     anyhow::ensure!(
         config.iterations > 0,
         "the sweep needs at least one iteration"
     );
     let mut result = SweepResult::default();
-    let timeouts = super::board::timeouts(config.solve_timeout);
     for &mvus in &config.mvus {
-        let mut board = match BenchBoard::open(choice, mvus, timeouts) {
+        let mut board = match open_board(target, mvus, config.solve_timeout) {
             Ok(board) => board,
             // One hart must work; more depend on the firmware, so they are reported, not fatal.
             Err(e) if mvus > 1 => {
@@ -182,7 +181,7 @@ enum Measured {
 }
 
 fn measure(
-    board: &mut BenchBoard,
+    board: &mut Board,
     model: BenchModel,
     edge: usize,
     mvus: u8,
@@ -203,11 +202,11 @@ fn measure(
     if let Err(e) = board.target.check_matrix_fits(&encoding.matrix) {
         return Ok(Measured::Skipped(e.to_string()));
     }
-    let before = board.wire.read();
+    let before = board.wire();
     board.target.upload_matrix(&encoding.matrix)?;
-    let upload = board.wire.read().since(before);
+    let upload = board.wire().since(before);
     let rhs = built.scaled_rhs(Axis::X);
-    let before = board.wire.read();
+    let before = board.wire();
     let (report, _) = board.target.solve_for(
         &rhs,
         SolveParams {
@@ -219,7 +218,7 @@ fn measure(
             cycle_budget: 0,
         },
     )?;
-    let wire = board.wire.read().since(before);
+    let wire = board.wire().since(before);
     let (n, nnz) = (built.n(), a.nnz());
     let Some(perf) = performance(&report, &encoding.summary, n, nnz) else {
         return Ok(Measured::Skipped(format!(

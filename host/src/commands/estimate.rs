@@ -8,23 +8,23 @@ use std::time::Duration;
 
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
-use serde::Serialize;
 
-use crate::board::{Board, BoardChoice, DEFAULT_QEMU_HARTS};
-use crate::cli_logs::LogFlags;
-use crate::cli_model::ModelFlags;
-use crate::commands::solve::{
-    resolve_model, TargetKind, DEFAULT_MAX_SOLVES, DEFAULT_TIMEOUT_SECONDS,
-};
-use crate::inverse::homogeneous::{self, HomogeneousEstimate};
+use crate::board::{Board, BoardFlags};
+use crate::inverse::homogeneous;
 use crate::inverse::parametric::{self, ParametricEstimate};
 use crate::inverse::regularise::Regularisation;
+use crate::inverse::report::{EstimateReport, Homogeneous, ModelSummary, ObservationSummary};
 use crate::inverse::spring_field::{self, SpringFieldEstimate};
 use crate::inverse::{Network, Observations, SpdSolver};
+use crate::link::DEFAULT_SOLVE_TIMEOUT;
 use crate::link::{LinkFlags, Timeouts};
+use crate::model::flags::ModelFlags;
 use crate::model::Model;
+use crate::output::paths::Outputs;
 use crate::output::vtk::{write_vtk, VtkKind};
 use crate::output::{node_rows_with_stiffness, OutputFormat};
+use crate::refine::DEFAULT_MAX_SOLVES;
+use crate::scenario::resolve_model;
 
 /// The homogeneous estimator reported as `k`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -80,18 +80,9 @@ pub struct EstimateArgs {
     #[arg(long, value_name = "FILE.vtu|FILE.vts")]
     pub map: Option<PathBuf>,
 
-    /// Where the SPD solves run: `qemu` boots the firmware under QEMU, `host` uses the f64
-    /// reference CG. Ignored when --port names a real board.
-    #[arg(long, value_enum, default_value_t = TargetKind::Qemu)]
-    pub target: TargetKind,
-
-    /// Serial device of a real board running the deform firmware.
-    #[arg(long, value_name = "PATH")]
-    pub port: Option<String>,
-
-    /// Firmware ELF for --target qemu. Default: $DEFORM_FIRMWARE, else the release build.
-    #[arg(long, value_name = "ELF")]
-    pub firmware: Option<PathBuf>,
+    /// Where the SPD solves run (`host`: the f64 reference CG).
+    #[command(flatten)]
+    pub board: BoardFlags,
 
     /// True relative residual each SPD solve must reach (target solves are refined on the host).
     #[arg(long, default_value_t = 1e-10)]
@@ -102,47 +93,16 @@ pub struct EstimateArgs {
     pub max_solves: u32,
 
     /// Seconds one target solve may take.
-    #[arg(long, default_value_t = DEFAULT_TIMEOUT_SECONDS, value_parser = clap::value_parser!(u64).range(1..))]
+    #[arg(long, default_value_t = DEFAULT_SOLVE_TIMEOUT.as_secs(), value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout: u64,
 
     #[command(flatten)]
     pub link: LinkFlags,
 
-    #[command(flatten)]
-    pub logs: LogFlags,
-
     /// Print every estimate as one JSON document (the homogeneous one under `k`) instead of
     /// the summary.
     #[arg(long)]
     pub json: bool,
-}
-
-/// Everything `deform estimate` reports (the `--json` document).
-#[derive(Debug, Serialize)]
-pub struct EstimateReport {
-    /// The chosen homogeneous estimate (N/m) and its standard error.
-    pub k: f64,
-    pub k_standard_error: f64,
-    pub estimator: &'static str,
-    pub observations: ObservationSummary,
-    pub target: String,
-    pub homogeneous: Homogeneous,
-    pub parametric: Option<ParametricEstimate>,
-    pub spring_field: Option<SpringFieldEstimate>,
-}
-
-#[derive(Debug, Serialize)]
-pub struct Homogeneous {
-    pub output_error: HomogeneousEstimate,
-    pub equation_error: HomogeneousEstimate,
-}
-
-#[derive(Debug, Serialize)]
-pub struct ObservationSummary {
-    pub file: String,
-    pub sets: usize,
-    pub nodes: usize,
-    pub free_nodes: usize,
 }
 
 /// Runs the estimators on `obs` as `args` ask, solving on `solver`.
@@ -188,30 +148,6 @@ pub fn estimate_all<P: crate::link::Port>(
     ))
 }
 
-fn print_homogeneous(e: &HomogeneousEstimate, chosen: bool) {
-    let directions: Vec<String> = ["x", "y", "z"]
-        .iter()
-        .zip(e.k_by_direction)
-        .filter_map(|(axis, k)| k.map(|k| format!("{axis} {k:.6}")))
-        .collect();
-    println!(
-        "{:<15} k = {:.6} ± {:.2e} N/m{}, relative residual {:.3e} ({} equations; by direction: {})",
-        e.method,
-        e.k,
-        e.standard_error,
-        if chosen { " [k]" } else { "" },
-        e.relative_residual,
-        e.equations,
-        directions.join(", ")
-    );
-    if let Some(s) = e.solves {
-        println!(
-            "                {} forward system(s), {} target solve(s), {} CG iterations",
-            s.systems, s.target_solves, s.iterations
-        );
-    }
-}
-
 pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
     if let Some(map) = &args.map {
         if !matches!(
@@ -227,21 +163,16 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
     if !(args.tol.is_finite() && args.tol > 0.0 && args.tol < 1.0) {
         bail!("--tol {} must be a number in (0, 1)", args.tol);
     }
+    Outputs::new()
+        .input("scenario", args.scenario.as_deref())
+        .input("observations", Some(&args.observations))
+        .file("--map", args.map.as_deref())
+        .check()?;
     let (_, spec) = resolve_model(args.scenario.as_deref(), &args.model)?;
     let model = Model::build(&spec).context("building the model")?;
     let obs = Observations::read(&args.observations, model.grid())?;
 
-    let choice = match (&args.port, args.target) {
-        (Some(port), _) => Some(BoardChoice::Port(port.clone())),
-        (None, TargetKind::Qemu) => Some(BoardChoice::Qemu {
-            firmware: args.firmware.clone(),
-            harts: DEFAULT_QEMU_HARTS,
-        }),
-        (None, TargetKind::Litex) => Some(BoardChoice::Litex {
-            firmware: args.firmware.clone(),
-        }),
-        (None, TargetKind::Host) => None,
-    };
+    let choice = args.board.choice(None)?;
     let (target_name, (homogeneous, parametric, spring_field)) = match choice {
         None => {
             let mut host: SpdSolver<'_, Box<dyn serialport::SerialPort>> =
@@ -256,7 +187,7 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
                 solve: Duration::from_secs(args.timeout),
                 ..Timeouts::default()
             });
-            let mut board = Board::open(&choice, timeouts, &args.logs.options())?;
+            let mut board = Board::open(&choice, timeouts, &args.board.target.logs.options())?;
             let name = board.describe();
             let mut solver = SpdSolver::Target {
                 target: &mut board.target,
@@ -281,6 +212,12 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
             free_nodes: Network::of(&model).free_nodes().count(),
         },
         target: target_name,
+        model: ModelSummary {
+            grid: spec.grid.to_string(),
+            connection: spec.connection.to_string(),
+            fixed: model.fixed_count(),
+            prescribed: model.prescribed_count(),
+        },
         parametric,
         spring_field,
         homogeneous,
@@ -300,67 +237,7 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
         writeln!(out)?;
         return Ok(());
     }
-    println!("target          {}", report.target);
-    println!(
-        "model           {} grid, {}, {} fixed and {} prescribed node(s)",
-        spec.grid,
-        spec.connection,
-        model.fixed_count(),
-        model.prescribed_count()
-    );
-    println!(
-        "observations    {}: {} set(s) × {} nodes ({} free)",
-        report.observations.file,
-        report.observations.sets,
-        report.observations.nodes,
-        report.observations.free_nodes
-    );
-    print_homogeneous(
-        &report.homogeneous.output_error,
-        args.estimator == Estimator::OutputError,
-    );
-    print_homogeneous(
-        &report.homogeneous.equation_error,
-        args.estimator == Estimator::EquationError,
-    );
-    if let Some(p) = &report.parametric {
-        println!(
-            "parametric      α0 = {:.6}, α1 = {:.6}, α2 = {:.6}, relative residual {:.3e}",
-            p.alpha[0], p.alpha[1], p.alpha[2], p.relative_residual
-        );
-    }
-    if let Some(f) = &report.spring_field {
-        println!(
-            "springs         {} unknowns from {} equations ({} field(s)); H: {} nonzeros, half-band {}; {}",
-            f.unknowns,
-            f.equations,
-            f.fields,
-            f.normal_nnz,
-            f.normal_bandwidth,
-            if f.regularisation.is_empty() {
-                "no regularisation".to_string()
-            } else {
-                format!("regularised {}", f.regularisation.join(", "))
-            }
-        );
-        println!(
-            "                k̃ in [{:.4}, {:.4}], relative residual {:.3e}; {} target solve(s), {} CG iterations",
-            f.min_k, f.max_k, f.relative_residual, f.solves.target_solves, f.solves.iterations
-        );
-        let r = &f.stiff_region;
-        if r.max - r.median <= 0.01 * r.median.abs() {
-            println!(
-                "stiffest region none: the map is uniform (max {:.4} within 1% of the median {:.4})",
-                r.max, r.median
-            );
-        } else {
-            let c = r.centre;
-            println!(
-                "stiffest region {} node(s) with k ≥ {:.3} (median {:.3}, max {:.3}), centred at ({:.2}, {:.2}, {:.2})",
-                r.nodes, r.threshold, r.median, r.max, c[0], c[1], c[2]
-            );
-        }
-    }
+    print!("{report}");
     if let Some(map) = &args.map {
         println!("wrote           {}", map.display());
     }

@@ -1,16 +1,14 @@
 //! `deform flash`: upload a firmware ELF through the serial loader, have the loader verify the
 //! whole image, start it, and confirm that the started firmware is the one sent.
 
-use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
-use indicatif::{ProgressBar, ProgressStyle};
 
+use crate::board::LogFlags;
 use crate::board::{self, BiosChoice, Board, LoaderChoice};
-use crate::cli_logs::LogFlags;
 use crate::flash::sfl::{detect_bios, SflTimeouts};
 use crate::flash::{hex, FlashImage, LoaderTimeouts, IMAGE_ATTEMPTS};
 use crate::link::{open_serial, Timeouts};
@@ -81,23 +79,6 @@ fn parse_seconds(s: &str) -> Result<f64, String> {
     }
 }
 
-/// A byte progress bar on stderr when it is a terminal, else hidden.
-fn progress_bar(len: u64) -> ProgressBar {
-    if !std::io::stderr().is_terminal() {
-        return ProgressBar::hidden();
-    }
-    let bar = ProgressBar::new(len);
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{msg:>8} [{bar:40}] {bytes}/{total_bytes} {bytes_per_sec} {elapsed}",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar())
-        .progress_chars("=> "),
-    );
-    bar.set_message("flash");
-    bar
-}
-
 pub fn run(args: &FlashArgs) -> anyhow::Result<()> {
     let image = FlashImage::from_file(&args.firmware)
         .with_context(|| format!("reading {}", args.firmware.display()))?;
@@ -134,7 +115,7 @@ pub fn run(args: &FlashArgs) -> anyhow::Result<()> {
         retries: args.retries,
         ..LoaderTimeouts::default()
     };
-    let bar = progress_bar(image.bytes.len() as u64);
+    let bar = crate::progress::byte_bar(image.bytes.len() as u64, "flash");
     let mut last_attempt = 1;
     let (board, report) = Board::flash(
         &choice,
@@ -182,7 +163,7 @@ fn flash_litex_bios(args: &FlashArgs, bios: &BiosChoice, image: &FlashImage) -> 
         retries: args.retries,
         ..SflTimeouts::default()
     };
-    let bar = progress_bar(image.bytes.len() as u64);
+    let bar = crate::progress::byte_bar(image.bytes.len() as u64, "flash");
     let started = std::time::Instant::now();
     let (board, report) = Board::flash_litex_bios(
         bios,

@@ -2,19 +2,20 @@
 //! [`crate::inverse::synthetic`]) — the model's forward solution plus white noise, written in
 //! the observation CSV format that `deform estimate` reads.
 
-use std::fs::File;
 use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Args;
 
-use crate::cli_model::ModelFlags;
-use crate::commands::simulate::parse_alpha;
-use crate::commands::solve::resolve_model;
 use crate::inverse::synthetic::{forward, forward_displacement_dependent, observe, Noise};
 use crate::inverse::Observations;
+use crate::model::flags::ModelFlags;
 use crate::model::Model;
+use crate::output::file::write_atomic;
+use crate::output::paths::Outputs;
 use crate::reference::max_abs;
+use crate::scenario::resolve_model;
+use crate::simulate::plan::parse_alpha;
 
 /// Write observation sets: the model's displacements (solved by the f64 reference) plus white
 /// noise, one CSV row per node per set.
@@ -73,6 +74,11 @@ fn parse_variance(s: &str) -> Result<f64, String> {
 }
 
 pub fn run(args: &ObserveArgs) -> anyhow::Result<()> {
+    // (--append reads the file it writes on purpose: it is not counted as an input.)
+    Outputs::new()
+        .input("scenario", args.scenario.as_deref())
+        .file("--out", Some(&args.out))
+        .check()?;
     let (_, spec) = resolve_model(args.scenario.as_deref(), &args.model)?;
     let model = Model::build(&spec).context("building the model")?;
     let mut existing = if args.append && args.out.exists() {
@@ -101,10 +107,7 @@ pub fn run(args: &ObserveArgs) -> anyhow::Result<()> {
         grid: model.grid(),
         sets: existing,
     };
-    let file =
-        File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    all.write(file)
-        .with_context(|| format!("writing {}", args.out.display()))?;
+    write_atomic(&args.out, |out| Ok(all.write(out)?))?;
     match args.alpha {
         None => println!("model       {}", spec.describe()),
         Some([a0, a1, a2]) => println!(

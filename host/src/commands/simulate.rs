@@ -1,36 +1,29 @@
-//! `deform simulate`: quasi-static time steps of the model on the target (see
-//! [`crate::simulate`]), with per-step CSV, one VTK file per step plus a `.pvd` collection, and
-//! a progress bar on a terminal.
-//!
-//! Like `deform solve`, it takes an optional scenario file with flags overriding it. With a
-//! `[simulation]` table the steps, dt, keyframed loads and prescribed displacements and the
-//! displacement-dependent model come from the file (--steps, --dt, --alpha override them);
-//! without one, the model's loads are ramped linearly.
-//!
-//! With `--dynamic` (or `[simulation] dynamic = true`) the steps are elastodynamic instead:
-//! [`super::simulate_dynamic`] runs them (masses and dampers, [`crate::dynamics`]).
+//! `deform simulate`: a time series of the model on the target ([`crate::simulate`]:
+//! quasi-static steps, or elastodynamic ones with `--dynamic`, [`crate::dynamics`]), with
+//! per-step CSV, one VTK file per step plus a `.pvd` collection, and a progress bar on a
+//! terminal. Like `deform solve`, it takes an optional scenario file with flags over it.
 
-use std::fs::File;
-use std::io::{BufWriter, IsTerminal, Write};
 use std::path::PathBuf;
 use std::time::Duration;
 
-use anyhow::Context;
+use anyhow::{anyhow, Context};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
+use deform_shared::qformat::FIXED_POINT_FLOOR;
 
-use crate::board::{self, Board, BoardChoice};
-use crate::cli_dynamics::DynamicFlags;
-use crate::cli_logs::LogFlags;
-use crate::cli_model::ModelFlags;
-use crate::commands::solve::{resolve_model, LayoutFlags};
-use crate::dynamics::DynamicsSpec;
-use crate::link::{LinkFlags, Timeouts};
-use crate::model::{Model, ModelError, ModelSpec};
-use crate::output::node_rows;
-use crate::output::series::{SeriesTarget, SeriesWriter};
-use crate::scenario::Simulation;
-use crate::simulate::{simulate_with, Nonlinear, Schedule, StepParams, StepResult};
+use crate::board::{Board, BoardFlags};
+use crate::dynamics::flags::DynamicFlags;
+use crate::dynamics::target::{DynamicModel, DynamicParams};
+use crate::encode::EncodeOptions;
+use crate::link::{LinkFlags, Timeouts, DEFAULT_SOLVE_TIMEOUT};
+use crate::model::flags::ModelFlags;
+use crate::model::Model;
+use crate::output::paths::Outputs;
+use crate::refine::{default_max_iterations, parse_tolerance, DEFAULT_MAX_SOLVES};
+use crate::simulate::plan::{parse_alpha, Overrides, SeriesPlan};
+use crate::simulate::run::{self, Files};
+use crate::simulate::sink::Totals;
+use crate::simulate::StepParams;
+use crate::solve::LayoutFlags;
 
 /// Quasi-static time series solved step by step on the target with K resident: a scenario's
 /// `[simulation]` keyframes, or else the model's loads ramped linearly from 0 to full.
@@ -72,39 +65,28 @@ pub struct SimulateArgs {
     #[arg(long)]
     pub no_fuse: bool,
 
-    /// Target CG tolerance per solve (relative residual; floored at 1e-7). With --dynamic: the
-    /// true relative residual of each step's S·v₁ = b, reached by refinement on the host.
-    #[arg(long, default_value_t = 1e-7)]
+    /// Target CG tolerance per solve (relative residual, in (0, 1); floored at 1e-7, and a
+    /// step that ends above it is reported). With --dynamic: the true relative residual of
+    /// each step's S·v₁ = b, reached by refinement on the host.
+    #[arg(long, default_value_t = FIXED_POINT_FLOOR, value_parser = parse_tolerance)]
     pub tol: f64,
 
     /// CG iterations allowed per target solve. Default: 10·n.
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
     pub max_iter: Option<u32>,
 
-    /// Serial device of a real board. Default: boot the firmware in QEMU.
-    #[arg(long, value_name = "PATH")]
-    pub port: Option<String>,
-
-    /// The simulated board when no --port is given: `qemu`, or `litex` (the `--board litex`
-    /// firmware on a LiteX VexRiscv SoC under Verilator; slow, keep it small).
-    #[arg(long, value_enum, default_value_t = board::SimulatedBoard::Qemu)]
-    pub target: board::SimulatedBoard,
-
-    /// Firmware ELF for QEMU. Default: $DEFORM_FIRMWARE, else the release build.
-    #[arg(long, value_name = "ELF")]
-    pub firmware: Option<PathBuf>,
-
+    /// The board (`--target host` has none: a series runs on a target).
     #[command(flatten)]
-    pub logs: LogFlags,
+    pub board: BoardFlags,
 
     /// Seconds one target solve may take.
-    #[arg(long, default_value_t = super::solve::DEFAULT_TIMEOUT_SECONDS, value_parser = clap::value_parser!(u64).range(1..))]
+    #[arg(long, default_value_t = DEFAULT_SOLVE_TIMEOUT.as_secs(), value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout: u64,
 
     #[command(flatten)]
     pub link: LinkFlags,
 
-    /// Write one row per step to this CSV file: `step,t,iterations,residual,max_u`; with
+    /// Write one row per step to this CSV file: `step,t,iterations,residual,max_u,cycles`; with
     /// --dynamic `step,t,iterations,solves,fused_iterations,cycles,residual,max_u,energy,
     /// bytes_sent,bytes_received` (iterations summed over x, y and z; fused iterations of the
     /// target's solves; cycles on their critical path).
@@ -128,159 +110,58 @@ pub struct SimulateArgs {
     pub dynamics: DynamicFlags,
 }
 
-/// `A0,A1,A2` for `--alpha` (also `deform observe`'s).
-pub(crate) fn parse_alpha(s: &str) -> Result<[f64; 3], String> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|p| p.trim().parse::<f64>().map_err(|e| format!("{p:?}: {e}")))
-        .collect::<Result<_, _>>()?;
-    let a: [f64; 3] = v
-        .try_into()
-        .map_err(|_| "expected three numbers a0,a1,a2".to_string())?;
-    if a.iter().all(|x| x.is_finite()) && a[0] > 0.0 {
-        Ok(a)
-    } else {
-        Err("a0 must be positive and all three finite".into())
-    }
-}
-
-/// A progress bar on stderr (hidden unless it is a terminal); `deform live` uses it too.
-pub(crate) fn bar(len: u64, what: &str) -> ProgressBar {
-    if !std::io::stderr().is_terminal() {
-        return ProgressBar::hidden();
-    }
-    let bar = ProgressBar::new(len);
-    bar.set_style(
-        ProgressStyle::with_template("{msg:>10} [{bar:40}] {pos}/{len} {elapsed}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
-    bar.set_message(what.to_string());
-    bar
-}
-
-/// Moves `bar` with a matrix upload and clears it when the upload is done.
-pub(crate) fn upload_progress(bar: &ProgressBar) -> impl FnMut(crate::link::UploadProgress) + '_ {
-    |p| {
-        bar.set_length(p.words_total as u64);
-        bar.set_position(p.words_sent as u64);
-        if p.words_sent == p.words_total {
-            bar.finish_and_clear();
-        }
-    }
-}
-
-/// A simulation's inputs once flags, scenario file and defaults are merged.
-pub struct ResolvedSimulation {
-    /// The static model (a scenario's schedules at their final time).
-    pub spec: ModelSpec,
-    pub schedule: Schedule,
-    pub nonlinear: Option<Nonlinear>,
-    /// The scenario's `[simulation]`, whose keyframes drive the steps.
-    pub simulation: Option<Simulation>,
-    /// Masses and dampers, if the run is dynamic.
-    pub dynamics: Option<DynamicsSpec>,
-}
-
-impl ResolvedSimulation {
-    /// The model at time `t`: the keyframes evaluated at t, or the static model.
-    pub fn model_at(&self, t: f64) -> Result<Model, ModelError> {
-        match &self.simulation {
-            Some(sim) => Model::build(&sim.spec_at(&self.spec, t)),
-            None => Model::build(&self.spec),
-        }
-    }
-}
-
 impl SimulateArgs {
-    /// Reads the scenario file, if any (as `deform solve` does), and merges flags over it.
-    pub fn resolve(&self) -> anyhow::Result<ResolvedSimulation> {
-        let (scenario, spec) = resolve_model(self.scenario.as_deref(), &self.model)?;
-        let dynamics = self.dynamics.resolve(
-            scenario
-                .as_ref()
-                .and_then(|s| s.simulation.as_ref())
-                .is_some_and(|s| s.dynamic),
-            scenario.as_ref().and_then(|s| s.dynamics.as_ref()),
-        )?;
-        let simulation = scenario.and_then(|s| s.simulation);
-        let schedule = Schedule {
-            steps: self
-                .steps
-                .or(simulation.as_ref().map(|s| s.steps))
-                .unwrap_or(10),
-            dt: self.dt.or(simulation.as_ref().map(|s| s.dt)).unwrap_or(0.1),
-        };
-        if !(schedule.dt.is_finite() && schedule.dt > 0.0) {
-            anyhow::bail!(
-                "--dt {}: the time step must be finite and greater than 0",
-                schedule.dt
-            );
+    /// Where the steps go.
+    fn files(&self) -> Files<'_> {
+        Files {
+            steps_csv: self.steps_csv.as_deref(),
+            out: self.out.as_deref(),
         }
-        let nonlinear = self
-            .alpha
-            .or(simulation
-                .as_ref()
-                .and_then(|s| s.nonlinear.as_ref().map(|n| n.alpha)))
-            .map(|alpha| Nonlinear { alpha });
-        Ok(ResolvedSimulation {
-            spec,
-            schedule,
-            nonlinear,
-            simulation,
-            dynamics,
-        })
+    }
+
+    /// CG iterations per target solve for an n-node model.
+    fn max_iterations(&self, n: usize) -> u32 {
+        self.max_iter.unwrap_or(default_max_iterations(n))
+    }
+
+    /// Reads the scenario file, if any (as `deform solve` does), and merges flags over it.
+    pub fn resolve(&self) -> anyhow::Result<SeriesPlan> {
+        let overrides = Overrides {
+            model: self.model.clone(),
+            steps: self.steps,
+            dt: self.dt,
+            alpha: self.alpha,
+            dynamics: self.dynamics.clone(),
+        };
+        SeriesPlan::load(self.scenario.as_deref(), &overrides)
     }
 }
 
 pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
-    let resolved = args.resolve()?;
-    let model = Model::build(&resolved.spec).context("building the model")?;
-    if let Some(dynamics) = &resolved.dynamics {
-        // Refused before any board is opened or file created.
-        if resolved.nonlinear.is_some() {
-            anyhow::bail!(
-                "the displacement-dependent springs (--alpha) are not supported with --dynamic yet"
-            );
-        }
-        crate::dynamics::target::preflight(&model, dynamics, resolved.schedule.dt)?;
-    }
-    let n = model.n();
-    let mut series = match &args.out {
-        Some(path) => Some(SeriesWriter::create(SeriesTarget::of(path))?),
+    crate::interrupt::install();
+    let plan = args.resolve()?;
+    let model = Model::build(&plan.spec).context("building the model")?;
+    // Checked before any board is opened or file created.
+    let built = match &plan.dynamics {
+        Some(spec) => Some(DynamicModel::for_target(&model, spec, plan.schedule.dt)?),
         None => None,
     };
-    // The dynamic branch writes its own per-step CSV, with more columns.
-    let mut csv = match args
-        .steps_csv
-        .as_ref()
-        .filter(|_| resolved.dynamics.is_none())
-    {
-        Some(path) => {
-            let mut f = BufWriter::new(
-                File::create(path).with_context(|| format!("creating {}", path.display()))?,
-            );
-            writeln!(f, "step,t,iterations,residual,max_u")?;
-            Some(f)
-        }
-        None => None,
-    };
-    let choice = match (&args.port, args.target) {
-        (Some(port), _) => BoardChoice::Port(port.clone()),
-        (None, board::SimulatedBoard::Qemu) => BoardChoice::Qemu {
-            firmware: args.firmware.clone(),
-            harts: args.layout.qemu_harts(),
-        },
-        (None, board::SimulatedBoard::Litex) => BoardChoice::Litex {
-            firmware: args.firmware.clone(),
-        },
-    };
+    Outputs::new()
+        .input("scenario", args.scenario.as_deref())
+        .file("--steps-csv", args.steps_csv.as_deref())
+        .directory("--out", args.out.as_deref())
+        .check()?;
+    let choice = args.board.choice(None)?.ok_or_else(|| {
+        anyhow!("--target host: a series runs on a target (qemu, litex or --port)")
+    })?;
     let timeouts = args.link.apply(Timeouts {
         solve: Duration::from_secs(args.timeout),
         ..Timeouts::default()
     });
-    let mut board = Board::open(&choice, timeouts, &args.logs.options())?;
-    let layout = args.layout.encode_options(board.target.info().harts)?;
+    let mut board = Board::open(&choice, timeouts, &args.board.target.logs.options())?;
+    let layout = args
+        .layout
+        .encode_options(board.target.info().harts, args.board.mvus)?;
     println!("target      {}", board.describe());
     println!("model       {}", model.spec().describe());
     println!(
@@ -293,121 +174,84 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
             "off"
         }
     );
-    let schedule = resolved.schedule;
-    if let Some(dynamics) = &resolved.dynamics {
-        return super::simulate_dynamic::run(
-            args, &resolved, dynamics, &model, &mut board, layout, series,
+    let totals = match built {
+        Some(built) => dynamic(args, &plan, built, &model, &mut board, layout)?,
+        None => quasi_static(args, &plan, &model, &mut board, layout)?,
+    };
+    if crate::interrupt::requested() {
+        anyhow::bail!(
+            "interrupted after {} step(s); the files hold the steps so far",
+            totals.steps
         );
     }
+    Ok(())
+}
+
+/// The quasi-static steps; the closing lines.
+fn quasi_static(
+    args: &SimulateArgs,
+    plan: &SeriesPlan,
+    model: &Model,
+    board: &mut Board,
+    layout: EncodeOptions,
+) -> anyhow::Result<Totals> {
     let params = StepParams {
         warm_start: !args.cold,
         predict: !args.no_predict,
         fuse: !args.no_fuse,
         tol: args.tol,
-        max_iterations: args
-            .max_iter
-            .unwrap_or((10 * n).min(u32::MAX as usize) as u32),
+        max_iterations: args.max_iterations(model.n()),
         check_reference: args.check,
         layout,
     };
-    let nonlinear = resolved.nonlinear;
-    let steps_bar = bar(schedule.steps as u64, "steps");
-    // Firmware log lines print above the bar, not through it.
-    board::lock(board.logs()).set_progress(Some(steps_bar.clone()));
-    let upload_bar = bar(0, "upload");
-    let mut total_iterations = 0u64;
-    let mut saved = 0u64;
-    let mut written: anyhow::Result<()> = Ok(());
-    let mut on_step = |r: &StepResult| {
-        total_iterations += r.iterations as u64;
-        let mut line = format!(
-            "step {:>4}  t = {:<8.4} iterations {:>5}  residual {:.2e}  max |u| {:.4e}",
-            r.step, r.t, r.iterations, r.residual, r.max_u
-        );
-        if let Some(dev) = r.deviation {
-            line += &format!("  deviation {dev:.1e}");
-        }
-        if let Some(u) = &r.update {
-            saved += u.bytes_saved();
-            line += &format!(
-                "  values-only update {} B (full upload {} B, saved {} B)",
-                u.bytes_sent,
-                u.full_upload_bytes,
-                u.bytes_saved()
-            );
-        }
-        steps_bar.suspend(|| println!("{line}"));
-        steps_bar.inc(1);
-        let mut write = || -> anyhow::Result<()> {
-            if let Some(f) = csv.as_mut() {
-                writeln!(
-                    f,
-                    "{},{},{},{:e},{:e}",
-                    r.step, r.t, r.iterations, r.residual, r.max_u
-                )?;
-            }
-            if let Some(series) = series.as_mut() {
-                // The node stiffness shown is the model's (a displacement-dependent model's
-                // springs change per step; that per-spring field is not written).
-                series.write_step(r.step, r.t, &node_rows(&model, &r.u))?;
-            }
-            Ok(())
-        };
-        if written.is_ok() {
-            written = write();
-        }
-    };
-    let step_model = |t: f64| resolved.model_at(t);
-    let results = simulate_with(
-        &mut board.target,
-        &model,
-        schedule,
-        resolved
-            .simulation
-            .is_some()
-            .then_some(&step_model as crate::simulate::StepModel),
-        nonlinear,
-        params,
-        upload_progress(&upload_bar),
-        &mut on_step,
-    )
-    .context("simulating on the target")?;
-    steps_bar.finish_and_clear();
-    written?;
-    if let Some(mut f) = csv {
-        f.flush()?;
-    }
-    let cycles: Vec<u64> = results.iter().map(|r| r.cycles).collect();
-    println!(
-        "{} steps, {} CG iterations in all, {} critical-path cycles (worst step {}) ({})",
-        results.len(),
-        total_iterations,
-        cycles.iter().sum::<u64>(),
-        cycles.iter().max().unwrap_or(&0),
-        match (args.cold, args.no_fuse || args.no_predict) {
-            _ if results.iter().all(|r| r.reports.is_empty()) => {
-                "superposed live frames: the prescribed nodes' response columns"
-            }
-            (true, _) => "cold starts",
-            (false, true) => "warm starts from the previous step",
-            (false, false) => "fused, started from the target's prediction 2u(t−1) − u(t−2)",
-        }
+    let (totals, wrote) = run::quasi_static(board, plan, model, params, args.files())?;
+    print!(
+        "{}",
+        totals.quasi_static_lines(&params, plan.nonlinear.is_some())
     );
-    if nonlinear.is_some() {
-        println!("values-only updates saved {saved} bytes on the wire against full uploads");
+    if let Some(line) = totals.missed_line(args.tol) {
+        eprintln!("{line}");
     }
-    if let Some(series) = series {
-        println!("wrote       {}", series.finish()?);
+    for line in wrote {
+        println!("wrote       {line}");
     }
-    if let Some(path) = &args.steps_csv {
-        println!("wrote       {}", path.display());
+    Ok(totals)
+}
+
+/// The dynamic steps; the closing lines.
+fn dynamic(
+    args: &SimulateArgs,
+    plan: &SeriesPlan,
+    built: DynamicModel,
+    model: &Model,
+    board: &mut Board,
+    layout: EncodeOptions,
+) -> anyhow::Result<Totals> {
+    let spec = plan.dynamics.as_ref().expect("a dynamic plan");
+    println!(
+        "dynamics    {}, h = {} s",
+        spec.describe(),
+        plan.schedule.dt
+    );
+    let params = DynamicParams {
+        tol: args.tol,
+        max_solves: args.dynamics.max_solves.unwrap_or(DEFAULT_MAX_SOLVES),
+        max_iterations: args.max_iterations(model.n()),
+        check_reference: args.check,
+        layout,
+    };
+    let (totals, wrote) = run::dynamic(board, plan, built, model, params, args.files())?;
+    print!("{}", totals.dynamic_lines());
+    for line in wrote {
+        println!("wrote       {line}");
     }
-    Ok(())
+    Ok(totals)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::simulate::{Nonlinear, Schedule};
     use clap::Parser;
 
     #[derive(Debug, Parser)]
@@ -416,7 +260,7 @@ mod tests {
         args: SimulateArgs,
     }
 
-    fn resolve(argv: &[&str]) -> ResolvedSimulation {
+    fn resolve(argv: &[&str]) -> SeriesPlan {
         let argv = std::iter::once("deform").chain(argv.iter().copied());
         Cli::try_parse_from(argv).unwrap().args.resolve().unwrap()
     }

@@ -43,13 +43,14 @@
 //! mixed precision ([`crate::refine`]) from the prediction v₁ ≈ v₀. S is uploaded once; a
 //! new h or model replaces its values only (`BeginUpdate`/`UpdateValues`/`EndUpdate`).
 //!
-//! Submodules: [`params`] (what the user gives, checked), [`system`] (M, C, K and S),
+//! Submodules: [`params`] (what the user gives, checked), [`flags`] (the command line's), [`system`] (M, C, K and S),
 //! [`step`] (right-hand side and update, shared by both solvers), [`host`] (the f64
 //! reference stepper), [`target`] (the series on the target), [`fixed_point`] (whether the
 //! target can hold S), [`resident`] (frames whose right-hand side the target forms itself,
 //! protocol version 11).
 
 pub mod fixed_point;
+pub mod flags;
 pub mod host;
 pub mod params;
 pub mod resident;
@@ -60,6 +61,6 @@ pub mod target;
 #[cfg(test)]
 mod tests;
 
-pub use params::{Damping, DynamicsError, DynamicsSpec, Scheme};
+pub use params::{Damping, DynamicsError, DynamicsSettings, DynamicsSpec, Scheme};
 pub use step::{Forcing, Loads, State, StepMatrices};
 pub use system::DynamicSystem;

@@ -5,7 +5,7 @@
 use std::fmt;
 use std::str::FromStr;
 
-use crate::model::{Grid, StiffnessField};
+use crate::model::{Grid, NodeField};
 
 /// How a step advances u and v (see [`super`] for the equations).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -60,19 +60,28 @@ pub enum Damping {
     /// Homogeneous, one β per displacement direction, like k.
     PerDirection([f64; 3]),
     /// Per node; a damper takes the mean of its two end nodes' β, like k̃. One B for x, y, z.
-    Field(StiffnessField),
+    Field(NodeField),
 }
 
 /// Everything a dynamic simulation needs besides the static model.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DynamicsSpec {
     /// Lumped mass per node (kg): `background`, inclusions and per-node values as for the
-    /// stiffness field. A uniform mass is `StiffnessField::uniform(m)`.
-    pub mass: StiffnessField,
+    /// stiffness field. A uniform mass is `NodeField::uniform(m)`.
+    pub mass: NodeField,
     pub damping: Damping,
     /// Rayleigh damping C = a·M + b·K added to the dampers' B.
     pub rayleigh: Option<[f64; 2]>,
     pub scheme: Scheme,
+}
+
+/// A scenario's `[dynamics]` table, checked (`crate::scenario::dynamics`): every key optional (flags and defaults fill in the rest).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct DynamicsSettings {
+    pub mass: Option<NodeField>,
+    pub damping: Option<Damping>,
+    pub rayleigh: Option<[f64; 2]>,
+    pub scheme: Option<Scheme>,
 }
 
 /// Why a dynamic model or step is refused.
@@ -93,9 +102,9 @@ pub enum DynamicsError {
     Unrepresentable { h: f64, reason: String },
 }
 
-/// A field's value at every node, each finite and greater than 0. `StiffnessField`'s own
+/// A field's value at every node, each finite and greater than 0. `NodeField`'s own
 /// checks say "stiffness", so the values are checked here first to name the offender.
-fn field_values(field: &StiffnessField, grid: Grid) -> Result<Vec<f64>, String> {
+fn field_values(field: &NodeField, grid: Grid) -> Result<Vec<f64>, String> {
     let ok = |v: f64| v.is_finite() && v > 0.0;
     if !ok(field.background) {
         return Err(format!("the background value {}", field.background));
@@ -113,7 +122,7 @@ impl DynamicsSpec {
     /// A homogeneous model: mass m per node, β per direction, no Rayleigh term, backward Euler.
     pub fn uniform(mass: f64, damping: [f64; 3]) -> Self {
         Self {
-            mass: StiffnessField::uniform(mass),
+            mass: NodeField::uniform(mass),
             damping: Damping::PerDirection(damping),
             rayleigh: None,
             scheme: Scheme::BackwardEuler,

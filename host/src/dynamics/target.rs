@@ -15,13 +15,14 @@ use super::host::host_step;
 use super::params::{DynamicsError, DynamicsSpec};
 use super::step::{advance, rhs, Loads, State, StepMatrices};
 use super::system::DynamicSystem;
+use crate::board::WireBytes;
 use crate::encode::{encode_with, EncodeError, EncodeOptions, EncodedMatrix};
 use crate::link::{LinkError, Port, Target, UpdateError, UpdateReport, UploadProgress};
 use crate::model::{Axis, Model, ModelError};
 use crate::precondition::Scaled;
 use crate::reference::{self, max_abs, max_abs_diff, norm};
 use crate::refine::{critical_path_cycles, solve_refined, RefineError, RefineParams};
-use crate::simulate::{Schedule, StepModel, StepResult};
+use crate::series::{Schedule, StepModel, StepResult};
 
 /// How to solve each step.
 #[derive(Debug, Clone, Copy)]
@@ -39,16 +40,11 @@ pub struct DynamicParams {
 /// One step on the target.
 #[derive(Debug, Clone)]
 pub struct DynamicStep {
-    /// What every time series reports (u per direction, iterations, the target's reports…).
+    /// What every time series reports (u per direction, iterations, the target's reports,
+    /// cycles, bytes: vectors, solves, solutions, acknowledgements and any matrix update).
     pub result: StepResult,
     /// Kinetic + elastic energy after the step.
     pub energy: f64,
-    /// Bytes written to / read from the port during the step (vectors, solves, solutions,
-    /// acknowledgements; any matrix update included).
-    pub bytes_sent: u64,
-    pub bytes_received: u64,
-    /// Measured critical-path cycles of the step's solves (slowest MVU + SVU per iteration).
-    pub cycles: u64,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -113,15 +109,31 @@ fn encode_groups(
         .collect()
 }
 
-/// Everything [`DynamicRunner::new`] checks, without a target: the masses, dampers and h,
-/// and that the target's fixed point can hold S. Run before a board is opened.
-pub fn preflight(model: &Model, spec: &DynamicsSpec, h: f64) -> Result<(), DynamicsError> {
-    let system = DynamicSystem::new(model, spec)?;
-    let m = StepMatrices::new(&system, h, spec.scheme)?;
-    for g in &m.groups {
-        check_representable(m.matrix(g[0]), system.mass(), h)?;
+/// A dynamic model for one step h: M, C and K, and the step matrices S. Built once: the
+/// checks before a board opens, the target's runner and the f64 stepper all take this one.
+#[derive(Debug, Clone)]
+pub struct DynamicModel {
+    pub system: DynamicSystem,
+    pub matrices: StepMatrices,
+}
+
+impl DynamicModel {
+    /// Assembles the model; checks the masses, dampers and h.
+    pub fn new(model: &Model, spec: &DynamicsSpec, h: f64) -> Result<Self, DynamicsError> {
+        let system = DynamicSystem::new(model, spec)?;
+        let matrices = StepMatrices::new(&system, h, spec.scheme)?;
+        Ok(Self { system, matrices })
     }
-    Ok(())
+
+    /// Like [`DynamicModel::new`], and checks that the target's fixed point can hold every
+    /// S: run before a board is opened.
+    pub fn for_target(model: &Model, spec: &DynamicsSpec, h: f64) -> Result<Self, DynamicsError> {
+        let built = Self::new(model, spec, h)?;
+        for g in &built.matrices.groups {
+            check_representable(built.matrices.matrix(g[0]), built.system.mass(), h)?;
+        }
+        Ok(built)
+    }
 }
 
 /// A dynamic model on a target: the step matrices of the current h, which of them the target
@@ -149,8 +161,12 @@ impl DynamicRunner {
         h: f64,
         params: DynamicParams,
     ) -> Result<Self, DynamicRunError> {
-        let system = DynamicSystem::new(model, spec)?;
-        let matrices = StepMatrices::new(&system, h, spec.scheme)?;
+        Self::from_model(DynamicModel::new(model, spec, h)?, params)
+    }
+
+    /// The runner of a model already built (see [`DynamicModel`]).
+    pub fn from_model(built: DynamicModel, params: DynamicParams) -> Result<Self, DynamicRunError> {
+        let DynamicModel { system, matrices } = built;
         let encoded = encode_groups(&system, &matrices, &params.layout)?;
         let state = State::rest(system.n());
         Ok(Self {
@@ -166,6 +182,11 @@ impl DynamicRunner {
 
     pub fn system(&self) -> &DynamicSystem {
         &self.system
+    }
+
+    /// The step h.
+    pub fn h(&self) -> f64 {
+        self.matrices.h
     }
 
     /// A new step length: S's values change, its pattern does not, so the next step sends
@@ -217,8 +238,23 @@ impl DynamicRunner {
         Ok(update)
     }
 
-    /// One step from the loads `loads0` at t to `loads1` at t + h.
+    /// One step from the loads `loads0` at t to `loads1` at t + h; the result carries the new
+    /// displacements (a copy of [`DynamicRunner::state`]'s).
     pub fn step<P: Port>(
+        &mut self,
+        target: &mut Target<P>,
+        step: u32,
+        loads0: &Loads,
+        loads1: &Loads,
+        on_upload: impl FnMut(UploadProgress),
+    ) -> Result<DynamicStep, DynamicRunError> {
+        let mut out = self.advance(target, step, loads0, loads1, on_upload)?;
+        out.result.u = self.state.u.clone();
+        Ok(out)
+    }
+
+    /// [`DynamicRunner::step`] without the copy of u: read it from [`DynamicRunner::state`].
+    pub fn advance<P: Port>(
         &mut self,
         target: &mut Target<P>,
         step: u32,
@@ -227,7 +263,7 @@ impl DynamicRunner {
         mut on_upload: impl FnMut(UploadProgress),
     ) -> Result<DynamicStep, DynamicRunError> {
         let forcing = loads0.to(loads1);
-        let before = target.stats();
+        let before = WireBytes::of(&target.stats());
         let mut v1: [Vec<f64>; 3] = Default::default();
         let mut reports: Vec<SolveReport> = Vec::new();
         let (mut iterations, mut residual) = (0u32, 0.0f64);
@@ -296,45 +332,46 @@ impl DynamicRunner {
         } else {
             None
         };
-        let after = target.stats();
-        let cycles = critical_path_cycles(&reports);
         Ok(DynamicStep {
             energy: system.energy(&self.state.u, &self.state.v),
-            bytes_sent: after.bytes_sent - before.bytes_sent,
-            bytes_received: after.bytes_received - before.bytes_received,
-            cycles,
             result: StepResult {
                 step,
                 t: self.state.t,
                 iterations,
+                cycles: critical_path_cycles(&reports),
+                superposed: false,
                 reports,
-                cycles,
                 residual,
                 max_u: self.state.u.iter().map(|u| max_abs(u)).fold(0.0, f64::max),
                 deviation,
                 update,
-                u: self.state.u.clone(),
+                bytes: WireBytes::of(&target.stats()).since(before),
+                u: Default::default(),
             },
         })
     }
 }
 
-/// Runs `schedule.steps` steps of `schedule.dt` from rest on `target`.
+/// Runs `schedule.steps` steps of `schedule.dt` (the step `built` was made for) from rest on
+/// `target`.
 #[allow(clippy::too_many_arguments)]
 pub fn simulate_dynamic<P: Port>(
     target: &mut Target<P>,
     model: &Model,
     step_model: Option<StepModel>,
     schedule: Schedule,
-    spec: &DynamicsSpec,
+    built: DynamicModel,
     params: DynamicParams,
     mut on_upload: impl FnMut(UploadProgress),
     mut on_step: impl FnMut(&DynamicStep),
 ) -> Result<Vec<DynamicStep>, DynamicRunError> {
-    let mut runner = DynamicRunner::new(model, spec, schedule.dt, params)?;
+    let mut runner = DynamicRunner::from_model(built, params)?;
     let mut loads0 = model_at(model, step_model, 0.0)?;
     let mut out = Vec::new();
     for s in 1..=schedule.steps {
+        if crate::interrupt::requested() {
+            break;
+        }
         let loads1 = model_at(model, step_model, schedule.time(s))?;
         let step = runner.step(target, s, &loads0, &loads1, &mut on_upload)?;
         on_step(&step);

@@ -280,9 +280,9 @@ fn a_prescribed_node_moves_on_its_keyframes_and_drags_its_neighbour() {
 #[test]
 fn a_field_of_masses_and_dampers_is_assembled_like_the_stiffness_field() {
     let model = oscillator(1.0, 1.0);
-    let mut mass = crate::model::StiffnessField::uniform(1.0);
+    let mut mass = crate::model::NodeField::uniform(1.0);
     mass.nodes = vec![(Node::new(1, 0, 0), 3.0)];
-    let mut beta = crate::model::StiffnessField::uniform(2.0);
+    let mut beta = crate::model::NodeField::uniform(2.0);
     beta.nodes = vec![(Node::new(1, 0, 0), 4.0)];
     let spec = DynamicsSpec {
         mass,
@@ -318,7 +318,7 @@ fn bad_mass_damping_and_step_are_refused_with_what_is_wrong() {
         assert!(e.to_string().contains("time step"), "{e}");
     }
     let spec = DynamicsSpec {
-        damping: Damping::Field(crate::model::StiffnessField::uniform(0.0)),
+        damping: Damping::Field(crate::model::NodeField::uniform(0.0)),
         ..DynamicsSpec::uniform(1.0, [1.0; 3])
     };
     assert!(matches!(
@@ -365,7 +365,7 @@ fn the_dynamic_needle_example_lags_overshoots_and_relaxes() {
     let scenario = crate::scenario::Scenario::load(path, None).unwrap();
     let sim = scenario.simulation.clone().unwrap();
     assert!(sim.dynamic);
-    let cli = crate::cli_dynamics::DynamicFlags::default();
+    let cli = crate::dynamics::flags::DynamicFlags::default();
     let spec = cli
         .resolve(true, scenario.dynamics.as_ref())
         .unwrap()

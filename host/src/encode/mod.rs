@@ -21,6 +21,7 @@
 
 pub mod partition;
 pub mod persymmetry;
+pub mod report;
 pub mod tiling;
 
 use deform_shared::matrix::{validate_tile, MatrixError, TileHeader};

@@ -32,7 +32,7 @@ mod tests {
     use super::*;
     use crate::model::sparse::test_support::from_dense;
     use crate::model::{
-        Connection, FixedNodeSet, Grid, Inclusion, Model, ModelSpec, Node, StiffnessField,
+        Connection, FixedNodeSet, Grid, Inclusion, Model, ModelSpec, Node, NodeField,
     };
 
     fn quantized(model: &Model) -> QuantizedMatrix {
@@ -115,7 +115,7 @@ mod tests {
     #[test]
     fn heterogeneous_fields_are_not() {
         let field = ModelSpec {
-            field: Some(StiffnessField {
+            field: Some(NodeField {
                 background: 1.0,
                 inclusions: vec![Inclusion {
                     center: [1.0, 1.0, 1.0],

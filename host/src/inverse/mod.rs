@@ -30,6 +30,7 @@ pub mod homogeneous;
 pub mod observations;
 pub mod parametric;
 pub mod regularise;
+pub mod report;
 pub mod solver;
 pub mod spring_field;
 pub mod synthetic;

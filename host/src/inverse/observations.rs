@@ -98,38 +98,14 @@ impl Observations {
 
     /// Parses observation CSV from `reader`; `name` is used in messages.
     pub fn parse(reader: impl Read, name: &str, grid: Grid) -> Result<Self, ObservationsError> {
-        let malformed = |line: u64, what: String| ObservationsError::Malformed {
-            path: name.to_string(),
-            line,
-            what,
-        };
         let mut csv = csv::ReaderBuilder::new()
             .has_headers(true)
             .trim(csv::Trim::All)
             .from_reader(reader);
-        let csv_error = |e: csv::Error| {
-            let line = e.position().map_or(0, |p| p.line());
-            match e.into_kind() {
-                csv::ErrorKind::Io(error) => ObservationsError::Io {
-                    path: name.to_string(),
-                    error,
-                },
-                csv::ErrorKind::UnequalLengths {
-                    expected_len, len, ..
-                } => malformed(
-                    line,
-                    format!(
-                        "{len} fields, expected {expected_len} ({})",
-                        HEADER.join(",")
-                    ),
-                ),
-                csv::ErrorKind::Utf8 { .. } => malformed(line, "not valid UTF-8".into()),
-                other => malformed(line, format!("{other:?}")),
-            }
-        };
-        let header = csv.headers().map_err(csv_error)?.clone();
+        let header = csv.headers().map_err(|e| csv_error(name, e))?.clone();
         if header.iter().ne(HEADER.iter().copied()) {
             return Err(malformed(
+                name,
                 1,
                 format!(
                     "the header must be `{}`, found `{}`",
@@ -144,50 +120,23 @@ impl Observations {
         let mut found = [0usize; 3];
         let mut outside = false;
         let mut record = csv::StringRecord::new();
-        while csv.read_record(&mut record).map_err(csv_error)? {
-            let line = record.position().map_or(0, |p| p.line());
-            let field = |index: usize| record.get(index).unwrap_or("");
-            let integer = |index: usize| {
-                field(index).parse::<u64>().map_err(|_| {
-                    malformed(
-                        line,
-                        format!(
-                            "column `{}`: '{}' is not a non-negative integer",
-                            HEADER[index],
-                            field(index)
-                        ),
-                    )
-                })
-            };
-            let number = |index: usize| match field(index).parse::<f64>() {
-                Ok(v) if v.is_finite() => Ok(v),
-                _ => Err(malformed(
-                    line,
-                    format!(
-                        "column `{}`: '{}' is not a finite number",
-                        HEADER[index],
-                        field(index)
-                    ),
-                )),
-            };
-            let set = integer(0)?;
-            let [i, j, k] = [integer(1)?, integer(2)?, integer(3)?]
-                .map(|v| usize::try_from(v).unwrap_or(usize::MAX));
-            let u = [number(4)?, number(5)?, number(6)?];
-            let f = [number(7)?, number(8)?, number(9)?];
-            for (extent, index) in found.iter_mut().zip([i, j, k]) {
+        while csv
+            .read_record(&mut record)
+            .map_err(|e| csv_error(name, e))?
+        {
+            let row = Row::parse(&record, name)?;
+            for (extent, index) in found.iter_mut().zip([row.node.i, row.node.j, row.node.k]) {
                 *extent = (*extent).max(index.saturating_add(1));
             }
-            let node = Node::new(i, j, k);
-            let Some(p) = grid.index(node) else {
+            let Some(p) = grid.index(row.node) else {
                 outside = true;
                 continue;
             };
-            let (lines, values) = sets.entry(set).or_insert_with(|| {
+            let (lines, values) = sets.entry(row.set).or_insert_with(|| {
                 (
                     vec![0; n],
                     ObservationSet {
-                        id: set,
+                        id: row.set,
                         u: [(); 3].map(|_| vec![0.0; n]),
                         f: [(); 3].map(|_| vec![0.0; n]),
                     },
@@ -196,16 +145,16 @@ impl Observations {
             if lines[p] != 0 {
                 return Err(ObservationsError::Duplicate {
                     path: name.to_string(),
-                    line,
+                    line: row.line,
                     first: lines[p],
-                    set,
-                    node,
+                    set: row.set,
+                    node: row.node,
                 });
             }
-            lines[p] = line;
+            lines[p] = row.line;
             for d in 0..3 {
-                values.u[d][p] = u[d];
-                values.f[d][p] = f[d];
+                values.u[d][p] = row.u[d];
+                values.f[d][p] = row.f[d];
             }
         }
         if outside || (!sets.is_empty() && found != [grid.nx(), grid.ny(), grid.nz()]) {
@@ -215,26 +164,7 @@ impl Observations {
                 grid,
             });
         }
-        if sets.is_empty() {
-            return Err(ObservationsError::Empty {
-                path: name.to_string(),
-            });
-        }
-        let mut out = Vec::with_capacity(sets.len());
-        for (set, (lines, values)) in sets {
-            let missing = lines.iter().filter(|&&l| l == 0).count();
-            if let Some(p) = lines.iter().position(|&l| l == 0) {
-                return Err(ObservationsError::MissingNode {
-                    path: name.to_string(),
-                    set,
-                    node: grid.node(p),
-                    missing,
-                    grid,
-                });
-            }
-            out.push(values);
-        }
-        Ok(Self { grid, sets: out })
+        complete(name, grid, sets).map(|sets| Self { grid, sets })
     }
 
     /// Writes the observations as CSV (see the module doc), nodes in index order.
@@ -261,6 +191,117 @@ impl Observations {
         }
         out.flush()
     }
+}
+
+/// A malformed-row error of file `name` at `line`.
+fn malformed(name: &str, line: u64, what: String) -> ObservationsError {
+    ObservationsError::Malformed {
+        path: name.to_string(),
+        line,
+        what,
+    }
+}
+
+/// The CSV reader's error, said for people.
+fn csv_error(name: &str, e: csv::Error) -> ObservationsError {
+    let line = e.position().map_or(0, |p| p.line());
+    match e.into_kind() {
+        csv::ErrorKind::Io(error) => ObservationsError::Io {
+            path: name.to_string(),
+            error,
+        },
+        csv::ErrorKind::UnequalLengths {
+            expected_len, len, ..
+        } => malformed(
+            name,
+            line,
+            format!(
+                "{len} fields, expected {expected_len} ({})",
+                HEADER.join(",")
+            ),
+        ),
+        csv::ErrorKind::Utf8 { .. } => malformed(name, line, "not valid UTF-8".into()),
+        other => malformed(name, line, format!("{other:?}")),
+    }
+}
+
+/// One row of the file, its fields checked.
+struct Row {
+    line: u64,
+    set: u64,
+    node: Node,
+    u: [f64; 3],
+    f: [f64; 3],
+}
+
+impl Row {
+    fn parse(record: &csv::StringRecord, name: &str) -> Result<Self, ObservationsError> {
+        let line = record.position().map_or(0, |p| p.line());
+        let field = |index: usize| record.get(index).unwrap_or("");
+        let integer = |index: usize| {
+            field(index).parse::<u64>().map_err(|_| {
+                malformed(
+                    name,
+                    line,
+                    format!(
+                        "column `{}`: '{}' is not a non-negative integer",
+                        HEADER[index],
+                        field(index)
+                    ),
+                )
+            })
+        };
+        let number = |index: usize| match field(index).parse::<f64>() {
+            Ok(v) if v.is_finite() => Ok(v),
+            _ => Err(malformed(
+                name,
+                line,
+                format!(
+                    "column `{}`: '{}' is not a finite number",
+                    HEADER[index],
+                    field(index)
+                ),
+            )),
+        };
+        let set = integer(0)?;
+        let [i, j, k] = [integer(1)?, integer(2)?, integer(3)?]
+            .map(|v| usize::try_from(v).unwrap_or(usize::MAX));
+        Ok(Row {
+            line,
+            set,
+            node: Node::new(i, j, k),
+            u: [number(4)?, number(5)?, number(6)?],
+            f: [number(7)?, number(8)?, number(9)?],
+        })
+    }
+}
+
+/// The sets, each checked to have every node of `grid`.
+fn complete(
+    name: &str,
+    grid: Grid,
+    sets: BTreeMap<u64, (Vec<u64>, ObservationSet)>,
+) -> Result<Vec<ObservationSet>, ObservationsError> {
+    if sets.is_empty() {
+        return Err(ObservationsError::Empty {
+            path: name.to_string(),
+        });
+    }
+    let mut out = Vec::with_capacity(sets.len());
+    for (set, (lines, values)) in sets {
+        let missing = lines.iter().filter(|&&l| l == 0).count();
+        if let Some(p) = lines.iter().position(|&l| l == 0) {
+            return Err(ObservationsError::MissingNode {
+                path: name.to_string(),
+                set,
+                node: grid.node(p),
+                missing,
+                grid,
+            });
+        }
+        out.push(values);
+    }
+    Ok(out)
 }
 
 #[cfg(test)]

@@ -107,7 +107,7 @@ impl<P: Port> SpdSolver<'_, P> {
                 let params = RefineParams {
                     tol: *tol,
                     max_solves: *max_solves,
-                    max_iterations: (10 * n).min(u32::MAX as usize) as u32,
+                    max_iterations: crate::refine::default_max_iterations(n),
                     fuse: true,
                 };
                 let unscaled = Scaled {

@@ -126,6 +126,16 @@ struct Pattern {
     node_slots: Vec<Vec<usize>>,
 }
 
+impl Pattern {
+    /// Where row `a`'s diagonal sits in the values.
+    fn diagonal_slot(&self, a: usize) -> usize {
+        self.row_ptr[a]
+            + self.col[self.row_ptr[a]..self.row_ptr[a + 1]]
+                .binary_search(&a)
+                .expect("diagonal")
+    }
+}
+
 fn pattern(net: &Network, unknown_of: &[Option<usize>], m: usize) -> Pattern {
     let node_unknowns: Vec<Vec<usize>> = (0..net.n())
         .map(|p| {
@@ -222,101 +232,137 @@ pub fn stiff_region(net: &Network, map: &[f64]) -> StiffRegion {
     }
 }
 
-/// One k̃ per spring by least squares (eq. 54), optionally regularised, solved on `solver`.
-pub fn estimate<P: Port>(
-    net: &Network,
-    obs: &Observations,
-    regularisation: &[Regularisation],
-    solver: &mut SpdSolver<'_, P>,
-) -> Result<SpringFieldEstimate, EstimateError> {
-    if obs.sets.is_empty() {
-        return Err(EstimateError::NoSets);
-    }
-    let springs = net.springs();
-    // Each unknown's springs; anchors (springs to constrained nodes) grouped by free end.
-    let mut unknown_of = vec![None; springs.len()];
-    let mut springs_of: Vec<Vec<usize>> = Vec::new();
-    let mut anchor_of: HashMap<usize, usize> = HashMap::new();
-    for (s, &(p, q)) in springs.iter().enumerate() {
-        let unknown = match (net.is_constrained(p), net.is_constrained(q)) {
-            (true, true) => continue,
-            (false, false) => {
-                springs_of.push(Vec::new());
-                springs_of.len() - 1
-            }
-            (true, false) | (false, true) => {
-                let free = if net.is_constrained(p) { q } else { p };
-                *anchor_of.entry(free).or_insert_with(|| {
+/// Which unknown each spring is: a spring between two free nodes is its own; the springs
+/// from one free node to constrained ones (its anchors) share one.
+struct Unknowns {
+    /// Per spring, its unknown (`None`: both ends constrained).
+    of: Vec<Option<usize>>,
+    /// Per unknown, its springs.
+    springs: Vec<Vec<usize>>,
+}
+
+impl Unknowns {
+    fn of(net: &Network) -> Self {
+        let springs = net.springs();
+        let mut of = vec![None; springs.len()];
+        let mut springs_of: Vec<Vec<usize>> = Vec::new();
+        let mut anchor_of: HashMap<usize, usize> = HashMap::new();
+        for (s, &(p, q)) in springs.iter().enumerate() {
+            let unknown = match (net.is_constrained(p), net.is_constrained(q)) {
+                (true, true) => continue,
+                (false, false) => {
                     springs_of.push(Vec::new());
                     springs_of.len() - 1
-                })
-            }
-        };
-        unknown_of[s] = Some(unknown);
-        springs_of[unknown].push(s);
-    }
-    let m = springs_of.len();
-    let pat = pattern(net, &unknown_of, m);
-    let mut h = vec![0.0; pat.col.len()];
-    let mut b = vec![0.0; m];
-    let fields = pooled_fields(net, obs);
-    let (mut fg, mut gg, mut ff) = (0.0, 0.0, 0.0);
-    let mut coefficients = Vec::new();
-    for field in &fields {
-        for p in net.free_nodes() {
-            let unknowns = &pat.node_unknowns[p];
-            coefficients.clear();
-            coefficients.resize(unknowns.len(), 0.0);
-            for &s in net.incident(p) {
-                let a = unknown_of[s].expect("a spring at a free node is an unknown");
-                let slot = unknowns.binary_search(&a).expect("the node's unknowns");
-                coefficients[slot] += field.u[p] - field.u[net.other_end(s, p)];
-            }
-            let (w, f) = (field.weight, field.f[p]);
-            let slots = &pat.node_slots[p];
-            for (i, &ci) in coefficients.iter().enumerate() {
-                b[unknowns[i]] += w * ci * f;
-                for (j, &cj) in coefficients.iter().enumerate() {
-                    h[slots[i * unknowns.len() + j]] += w * ci * cj;
                 }
-            }
-            let g: f64 = coefficients.iter().sum();
-            fg += w * f * g;
-            gg += w * g * g;
-            ff += w * f * f;
+                (true, false) | (false, true) => {
+                    let free = if net.is_constrained(p) { q } else { p };
+                    *anchor_of.entry(free).or_insert_with(|| {
+                        springs_of.push(Vec::new());
+                        springs_of.len() - 1
+                    })
+                }
+            };
+            of[s] = Some(unknown);
+            springs_of[unknown].push(s);
+        }
+        Self {
+            of,
+            springs: springs_of,
         }
     }
-    let prior_k = if gg > 0.0 { fg / gg } else { 1.0 };
-    let diagonal_slot = |a: usize| {
-        pat.row_ptr[a]
-            + pat.col[pat.row_ptr[a]..pat.row_ptr[a + 1]]
-                .binary_search(&a)
-                .expect("diagonal")
-    };
-    let data_diagonal: Vec<f64> = (0..m).map(|a| h[diagonal_slot(a)]).collect();
-    let positive: Vec<f64> = data_diagonal.iter().copied().filter(|&d| d > 0.0).collect();
-    let mean_diagonal = if positive.is_empty() {
-        1.0
-    } else {
-        positive.iter().sum::<f64>() / positive.len() as f64
-    };
-    for r in regularisation {
-        let lambda = r.weight() * mean_diagonal;
-        match r {
-            Regularisation::Tikhonov(_) => {
-                for a in 0..m {
-                    h[diagonal_slot(a)] += lambda;
-                    b[a] += lambda * prior_k;
+
+    fn count(&self) -> usize {
+        self.springs.len()
+    }
+}
+
+/// The normal equations H·k = b of the pooled fields, on `pat`, and the sums of the
+/// homogeneous fit (Σ w·f·g, Σ w·g², Σ w·f²) that give the prior k and the misfit's scale.
+struct Normal {
+    h: Vec<f64>,
+    b: Vec<f64>,
+    fg: f64,
+    gg: f64,
+    ff: f64,
+}
+
+impl Normal {
+    fn assemble(net: &Network, fields: &[Field], unknowns: &Unknowns, pat: &Pattern) -> Self {
+        let mut out = Normal {
+            h: vec![0.0; pat.col.len()],
+            b: vec![0.0; unknowns.count()],
+            fg: 0.0,
+            gg: 0.0,
+            ff: 0.0,
+        };
+        let mut coefficients = Vec::new();
+        for field in fields {
+            for p in net.free_nodes() {
+                let node_unknowns = &pat.node_unknowns[p];
+                coefficients.clear();
+                coefficients.resize(node_unknowns.len(), 0.0);
+                for &s in net.incident(p) {
+                    let a = unknowns.of[s].expect("a spring at a free node is an unknown");
+                    let slot = node_unknowns
+                        .binary_search(&a)
+                        .expect("the node's unknowns");
+                    coefficients[slot] += field.u[p] - field.u[net.other_end(s, p)];
                 }
+                let (w, f) = (field.weight, field.f[p]);
+                let slots = &pat.node_slots[p];
+                for (i, &ci) in coefficients.iter().enumerate() {
+                    out.b[node_unknowns[i]] += w * ci * f;
+                    for (j, &cj) in coefficients.iter().enumerate() {
+                        out.h[slots[i * node_unknowns.len() + j]] += w * ci * cj;
+                    }
+                }
+                let g: f64 = coefficients.iter().sum();
+                out.fg += w * f * g;
+                out.gg += w * g * g;
+                out.ff += w * f * f;
             }
-            Regularisation::Smooth(_) => {
-                for (unknowns, slots) in pat.node_unknowns.iter().zip(&pat.node_slots) {
-                    let len = unknowns.len();
-                    for i in 0..len {
-                        for j in 0..len {
-                            if i != j {
-                                h[slots[i * len + i]] += lambda;
-                                h[slots[i * len + j]] -= lambda;
+        }
+        out
+    }
+
+    /// The homogeneous k the Tikhonov term pulls towards (and unknowns without data take).
+    fn prior_k(&self) -> f64 {
+        if self.gg > 0.0 {
+            self.fg / self.gg
+        } else {
+            1.0
+        }
+    }
+
+    /// Adds the regularisation terms, each weighted relative to the data's mean diagonal.
+    fn regularise(&mut self, pat: &Pattern, regularisation: &[Regularisation]) {
+        let m = self.b.len();
+        let prior_k = self.prior_k();
+        let positive: Vec<f64> = (0..m)
+            .map(|a| self.h[pat.diagonal_slot(a)])
+            .filter(|&d| d > 0.0)
+            .collect();
+        let mean_diagonal = if positive.is_empty() {
+            1.0
+        } else {
+            positive.iter().sum::<f64>() / positive.len() as f64
+        };
+        for r in regularisation {
+            let lambda = r.weight() * mean_diagonal;
+            match r {
+                Regularisation::Tikhonov(_) => {
+                    for a in 0..m {
+                        self.h[pat.diagonal_slot(a)] += lambda;
+                        self.b[a] += lambda * prior_k;
+                    }
+                }
+                Regularisation::Smooth(_) => {
+                    for (unknowns, slots) in pat.node_unknowns.iter().zip(&pat.node_slots) {
+                        let len = unknowns.len();
+                        for i in 0..len {
+                            for j in (0..len).filter(|&j| j != i) {
+                                self.h[slots[i * len + i]] += lambda;
+                                self.h[slots[i * len + j]] -= lambda;
                             }
                         }
                     }
@@ -324,13 +370,70 @@ pub fn estimate<P: Port>(
             }
         }
     }
+
+    /// Solves H·k = b on `solver` with symmetric diagonal scaling (unit diagonal, |entries|
+    /// ≤ 1); k, and H as scaled (its size for the report).
+    fn solve<P: Port>(
+        &self,
+        pat: &Pattern,
+        diagonal: &[f64],
+        solver: &mut SpdSolver<'_, P>,
+        solves: &mut SolveCount,
+    ) -> Result<(Vec<f64>, Csr), EstimateError> {
+        let m = self.b.len();
+        let scale: Vec<f64> = diagonal.iter().map(|d| 1.0 / d.sqrt()).collect();
+        let mut builder = CsrBuilder::new(m, self.h.len());
+        for a in 0..m {
+            let range = pat.row_ptr[a]..pat.row_ptr[a + 1];
+            builder
+                .push_row(
+                    pat.col[range.clone()]
+                        .iter()
+                        .zip(&self.h[range])
+                        .map(|(&c, &v)| (c, v * scale[a] * scale[c])),
+                )
+                .expect("columns are inside the matrix");
+        }
+        let scaled: Csr = builder.finish().expect("one row per unknown");
+        let rhs: Vec<f64> = self.b.iter().zip(&scale).map(|(b, s)| b * s).collect();
+        let y = solver
+            .solve_all(&scaled, &[rhs], solves)
+            .map_err(|e| match e {
+                super::solver::SpdSolveError::NotConverged { residual, .. } => {
+                    EstimateError::Singular {
+                        estimator: "spring-field",
+                        why: format!(
+                            "CG stalled at a relative residual of {residual:.3e}: the springs are not all determined by \
+                             these observations; observe under more load cases, or add --regularise"
+                        ),
+                    }
+                }
+                other => other.into(),
+            })?
+            .pop()
+            .expect("one right-hand side");
+        Ok((y.iter().zip(&scale).map(|(y, s)| y * s).collect(), scaled))
+    }
+}
+
+/// Refuses a system the observations do not determine: fewer equations than unknowns without
+/// regularisation, or an unknown spring that never stretches. The equations and the diagonal
+/// otherwise.
+fn determined(
+    net: &Network,
+    fields: &[Field],
+    unknowns: &Unknowns,
+    diagonal: &[f64],
+    regularised: bool,
+) -> Result<usize, EstimateError> {
+    let m = unknowns.count();
     // Fields that move at all: each gives one equation per free node.
     let moving = fields
         .iter()
         .filter(|field| net.free_nodes().any(|p| field.u[p] != 0.0))
         .count();
     let equations = moving * net.free_nodes().count();
-    if regularisation.is_empty() && equations < m {
+    if !regularised && equations < m {
         return Err(EstimateError::Singular {
             estimator: "spring-field",
             why: format!(
@@ -339,10 +442,9 @@ pub fn estimate<P: Port>(
             ),
         });
     }
-    let diagonal: Vec<f64> = (0..m).map(|a| h[diagonal_slot(a)]).collect();
     let idle: Vec<usize> = (0..m).filter(|&a| diagonal[a] <= 0.0).collect();
     if let Some(&a) = idle.first() {
-        let (p, q) = springs[springs_of[a][0]];
+        let (p, q) = net.springs()[unknowns.springs[a][0]];
         return Err(EstimateError::Singular {
             estimator: "spring-field",
             why: format!(
@@ -354,58 +456,57 @@ pub fn estimate<P: Port>(
             ),
         });
     }
+    Ok(equations)
+}
 
-    // Symmetric diagonal scaling: unit diagonal, |entries| ≤ 1.
-    let scale: Vec<f64> = diagonal.iter().map(|d| 1.0 / d.sqrt()).collect();
-    let mut builder = CsrBuilder::new(m, h.len());
-    for a in 0..m {
-        let range = pat.row_ptr[a]..pat.row_ptr[a + 1];
-        builder
-            .push_row(
-                pat.col[range.clone()]
-                    .iter()
-                    .zip(&h[range])
-                    .map(|(&c, &v)| (c, v * scale[a] * scale[c])),
-            )
-            .expect("columns are inside the matrix");
-    }
-    let scaled: Csr = builder.finish().expect("one row per unknown");
-    let rhs: Vec<f64> = b.iter().zip(&scale).map(|(b, s)| b * s).collect();
-    let mut solves = SolveCount::default();
-    let y = solver
-        .solve_all(&scaled, &[rhs], &mut solves)
-        .map_err(|e| match e {
-            super::solver::SpdSolveError::NotConverged { residual, .. } => {
-                EstimateError::Singular {
-                    estimator: "spring-field",
-                    why: format!(
-                        "CG stalled at a relative residual of {residual:.3e}: the springs are not all determined by \
-                         these observations; observe under more load cases, or add --regularise"
-                    ),
-                }
-            }
-            other => other.into(),
-        })?
-        .pop()
-        .expect("one right-hand side");
-    let k: Vec<f64> = y.iter().zip(&scale).map(|(y, s)| y * s).collect();
-
-    // Data misfit of the pooled fields.
+/// Σ w·(f − K(k)·u)² over the pooled fields: the data misfit of the estimate.
+fn misfit(net: &Network, fields: &[Field], unknowns: &Unknowns, k: &[f64]) -> f64 {
     let mut rss = 0.0;
-    for field in &fields {
+    for field in fields {
         for p in net.free_nodes() {
             let predicted: f64 = net
                 .incident(p)
                 .iter()
                 .map(|&s| {
-                    let a = unknown_of[s].expect("a spring at a free node is an unknown");
+                    let a = unknowns.of[s].expect("a spring at a free node is an unknown");
                     k[a] * (field.u[p] - field.u[net.other_end(s, p)])
                 })
                 .sum();
             rss += field.weight * (field.f[p] - predicted).powi(2);
         }
     }
-    let node_stiffness = node_map(net, &unknown_of, &k, prior_k);
+    rss
+}
+
+/// One k̃ per spring by least squares (eq. 54), optionally regularised, solved on `solver`.
+pub fn estimate<P: Port>(
+    net: &Network,
+    obs: &Observations,
+    regularisation: &[Regularisation],
+    solver: &mut SpdSolver<'_, P>,
+) -> Result<SpringFieldEstimate, EstimateError> {
+    if obs.sets.is_empty() {
+        return Err(EstimateError::NoSets);
+    }
+    let unknowns = Unknowns::of(net);
+    let m = unknowns.count();
+    let pat = pattern(net, &unknowns.of, m);
+    let fields = pooled_fields(net, obs);
+    let mut normal = Normal::assemble(net, &fields, &unknowns, &pat);
+    let prior_k = normal.prior_k();
+    normal.regularise(&pat, regularisation);
+    let diagonal: Vec<f64> = (0..m).map(|a| normal.h[pat.diagonal_slot(a)]).collect();
+    let equations = determined(
+        net,
+        &fields,
+        &unknowns,
+        &diagonal,
+        !regularisation.is_empty(),
+    )?;
+    let mut solves = SolveCount::default();
+    let (k, scaled) = normal.solve(&pat, &diagonal, solver, &mut solves)?;
+    let rss = misfit(net, &fields, &unknowns, &k);
+    let node_stiffness = node_map(net, &unknowns.of, &k, prior_k);
     let stiff_region = stiff_region(net, &node_stiffness);
     let node_coords = |p: usize| {
         let n = net.node(p);
@@ -419,14 +520,19 @@ pub fn estimate<P: Port>(
         normal_bandwidth: scaled.bandwidth(),
         prior_k,
         regularisation: regularisation.iter().map(|r| r.to_string()).collect(),
-        relative_residual: if ff > 0.0 { (rss / ff).sqrt() } else { 0.0 },
+        relative_residual: if normal.ff > 0.0 {
+            (rss / normal.ff).sqrt()
+        } else {
+            0.0
+        },
         solves,
         min_k: k.iter().copied().fold(f64::INFINITY, f64::min),
         max_k: k.iter().copied().fold(f64::NEG_INFINITY, f64::max),
         stiff_region,
-        springs: springs
+        springs: net
+            .springs()
             .iter()
-            .zip(&unknown_of)
+            .zip(&unknowns.of)
             .filter_map(|(&(p, q), a)| {
                 a.map(|a| SpringValue {
                     a: node_coords(p),

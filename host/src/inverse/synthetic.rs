@@ -49,26 +49,7 @@ pub enum SyntheticError {
 
 /// The model's displacements u_x, u_y, u_z, by the f64 reference CG.
 pub fn forward(model: &Model) -> Result<[Vec<f64>; 3], SyntheticError> {
-    let mut u: [Vec<f64>; 3] = Default::default();
-    for axis in Axis::ALL {
-        let n = model.n();
-        let sol = reference::solve(
-            model.unit_matrix(),
-            &model.scaled_rhs(axis),
-            None,
-            1e-13,
-            40 * n.max(100),
-        )
-        .map_err(|source| SyntheticError::Solve { axis, source })?;
-        if !sol.converged {
-            return Err(SyntheticError::NotConverged {
-                axis,
-                residual: sol.relative_residual,
-            });
-        }
-        u[axis.position()] = sol.x;
-    }
-    Ok(u)
+    solve_directions(model.unit_matrix(), |axis| model.scaled_rhs(axis), 1e-13)
 }
 
 /// K·u = f solved for the model's loads with every K assembled as the f64 reference solves.
@@ -77,9 +58,18 @@ fn solve_all(
     k: &crate::model::Csr,
     tol: f64,
 ) -> Result<[Vec<f64>; 3], SyntheticError> {
+    solve_directions(k, |axis| model.load(axis).to_vec(), tol)
+}
+
+/// `k`·u_d = `rhs(d)` for the three directions by the f64 reference CG, to `tol`.
+fn solve_directions(
+    k: &crate::model::Csr,
+    rhs: impl Fn(Axis) -> Vec<f64>,
+    tol: f64,
+) -> Result<[Vec<f64>; 3], SyntheticError> {
     let mut u: [Vec<f64>; 3] = Default::default();
     for axis in Axis::ALL {
-        let sol = reference::solve(k, model.load(axis), None, tol, 40 * model.n().max(100))
+        let sol = reference::solve(k, &rhs(axis), None, tol, 40 * k.n().max(100))
             .map_err(|source| SyntheticError::Solve { axis, source })?;
         if !sol.converged {
             return Err(SyntheticError::NotConverged {

@@ -5,8 +5,8 @@
 use super::synthetic::{forward, observe, Noise};
 use super::Observations;
 use crate::model::{
-    Axis, Connection, Elasticity, FixedNodeSet, Grid, Inclusion, Model, ModelSpec, PointLoad, Side,
-    StiffnessField,
+    Axis, Connection, Elasticity, FixedNodeSet, Grid, Inclusion, Model, ModelSpec, NodeField,
+    PointLoad, Side,
 };
 
 /// Where the inclusion really is.
@@ -19,7 +19,7 @@ pub fn tumour_model(loads: Vec<PointLoad>) -> Model {
     Model::build(&ModelSpec {
         grid,
         connection: Connection::Axial,
-        field: Some(StiffnessField {
+        field: Some(NodeField {
             background: 1.0,
             inclusions: vec![Inclusion {
                 center: TRUE_CENTRE,

@@ -4,10 +4,9 @@
 
 use serde::Serialize;
 
-use super::dynamic::DynamicFrame;
-use super::headless::{
-    force_error, per_second, percentile, sorted, IterationSpread, Rate, Spread, BAUDS,
-};
+use super::engine::Frame;
+use super::session::force_error;
+use super::stats::{per_second, percentile, sorted, IterationSpread, Rate, Spread, BAUDS};
 use crate::dynamics::{Damping, DynamicsSpec};
 
 /// Why `force_updates_per_s` is null for dynamic frames.
@@ -102,7 +101,9 @@ pub struct DynamicReport {
     pub error_vs_converged_of_peak_max: Option<f64>,
     /// max |F − F_ref| / max |F_ref| over the frames.
     pub force_error_max: Option<f64>,
-    /// Median over the frames after the first (whole vectors: a residual up, a correction down).
+    /// Median over the frames after the first: whole vectors where the host forms the steps (a
+    /// residual up, a correction down), the tool's motion up and its force down where the
+    /// target does ([`super::resident`]).
     pub bytes_up_per_frame: f64,
     pub bytes_down_per_frame: f64,
     pub bytes_up_per_frame_max: u64,
@@ -126,19 +127,19 @@ pub struct Header {
 }
 
 /// The largest force error of the frames, on the scale of the largest reference force.
-fn force_errors(records: &[DynamicFrame]) -> f64 {
+fn force_errors(records: &[Frame]) -> f64 {
     let scale = records
         .iter()
-        .flat_map(|r| r.force_reference)
+        .flat_map(|r| r.reference)
         .fold(0.0f64, |m, v| m.max(v.abs()));
     records
         .iter()
-        .map(|r| force_error(&r.force, &r.force_reference, scale))
+        .map(|r| force_error(&r.answer, &r.reference, scale))
         .fold(0.0, f64::max)
 }
 
 /// The report over `records` (every frame of the session, in order).
-pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
+pub fn report(header: Header, records: &[Frame]) -> DynamicReport {
     let on_target = records.iter().any(|r| r.cycles.is_some());
     let hart0 = sorted(
         records
@@ -151,9 +152,10 @@ pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
     };
     let iterations = sorted(records.iter().map(|r| f64::from(r.iterations)));
     let later = records.get(1..).unwrap_or_default();
-    let up = percentile(&sorted(later.iter().map(|r| r.bytes_up as f64)), 0.5);
-    let down = percentile(&sorted(later.iter().map(|r| r.bytes_down as f64)), 0.5);
+    let up = percentile(&sorted(later.iter().map(|r| r.bytes.sent as f64)), 0.5);
+    let down = percentile(&sorted(later.iter().map(|r| r.bytes.received as f64)), 0.5);
     let last = records.last();
+    let last_motion = last.and_then(|r| r.motion).unwrap_or_default();
     DynamicReport {
         frames: records.len() as u32,
         grid: header.grid,
@@ -172,7 +174,7 @@ pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
         error_vs_converged_max: on_target.then(|| {
             records
                 .iter()
-                .filter_map(|r| r.error_vs_reference)
+                .filter_map(|r| r.error_vs_converged)
                 .fold(0.0, f64::max)
         }),
         error_vs_converged_of_peak_max: on_target.then(|| {
@@ -186,11 +188,11 @@ pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
         force_error_max: on_target.then(|| force_errors(records)),
         bytes_up_per_frame: up,
         bytes_down_per_frame: down,
-        bytes_up_per_frame_max: later.iter().map(|r| r.bytes_up).max().unwrap_or(0),
-        bytes_down_per_frame_max: later.iter().map(|r| r.bytes_down).max().unwrap_or(0),
+        bytes_up_per_frame_max: later.iter().map(|r| r.bytes.sent).max().unwrap_or(0),
+        bytes_down_per_frame_max: later.iter().map(|r| r.bytes.received).max().unwrap_or(0),
         first_frame: FirstFrame {
-            bytes_up: records.first().map_or(0, |r| r.bytes_up),
-            bytes_down: records.first().map_or(0, |r| r.bytes_down),
+            bytes_up: records.first().map_or(0, |r| r.bytes.sent),
+            bytes_down: records.first().map_or(0, |r| r.bytes.received),
         },
         link_rates: BAUDS
             .into_iter()
@@ -202,10 +204,71 @@ pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
         motion: Motion {
             max_u: records.iter().map(|r| r.max_u).fold(0.0, f64::max),
             last_max_u: last.map_or(0.0, |r| r.max_u),
-            last_max_v: last.map_or(0.0, |r| r.max_v),
-            last_energy: last.map_or(0.0, |r| r.energy),
+            last_max_v: last_motion.max_v,
+            last_energy: last_motion.energy,
         },
         dynamic: header.dynamic,
+    }
+}
+
+impl DynamicReport {
+    /// The lines a person reads after the session.
+    pub fn summary(&self) -> String {
+        use std::fmt::Write;
+        let mut out = String::new();
+
+        if let (Some(c), Some(r)) = (self.frame_cycles, self.frames_per_s_at_100mhz) {
+            writeln!(
+                out,
+            "frames      {}: cycles p50 {:.0}, p99 {:.0}, max {:.0} → {:.0} frames/s at 100 MHz (worst {:.0})",
+            self.frames, c.p50, c.p99, c.max, r.p50, r.worst
+        ).unwrap();
+            if let Some(h) = self.frame_hart0_cycles {
+                writeln!(
+                out,
+                "hart 0      mcycle over the MVU and SVU phases p50 {:.0}, p99 {:.0}, max {:.0} (real cycles on LiteX; the harts' sum under QEMU)",
+                h.p50, h.p99, h.max
+            ).unwrap();
+            }
+            writeln!(
+                out,
+            "accuracy    error vs the f64 stepper ≤ {:.2e} of the frame's max |u| ({:.2e} of the session's), force ≤ {:.2e}, residual ≤ {:.2e}, iterations p50 {} max {}, ≤ {} solve(s) per frame",
+            self.error_vs_converged_max.unwrap_or(0.0),
+            self.error_vs_converged_of_peak_max.unwrap_or(0.0),
+            self.force_error_max.unwrap_or(0.0),
+            self.residual_max,
+            self.iterations.p50,
+            self.iterations.max,
+            self.solves_max
+        ).unwrap();
+            writeln!(
+                out,
+            "line        {} B up / {} B down per frame (median; max {} / {}; the first {} / {} with S)",
+            self.bytes_up_per_frame,
+            self.bytes_down_per_frame,
+            self.bytes_up_per_frame_max,
+            self.bytes_down_per_frame_max,
+            self.first_frame.bytes_up,
+            self.first_frame.bytes_down
+        ).unwrap();
+            for r in &self.link_rates {
+                writeln!(out, "  {:>9} baud: {:.1} frames/s", r.baud, r.frames_per_s).unwrap();
+            }
+        } else {
+            writeln!(
+                out,
+                "frames      {} steps by the host's f64 stepper",
+                self.frames
+            )
+            .unwrap();
+        }
+        let m = self.motion;
+        writeln!(
+                out,
+        "motion      max |u| {:.4e}; at the last frame max |u| {:.4e}, max |v| {:.4e}, energy {:.4e}",
+        m.max_u, m.last_max_u, m.last_max_v, m.last_energy
+    ).unwrap();
+        out
     }
 }
 
@@ -213,27 +276,31 @@ pub fn report(header: Header, records: &[DynamicFrame]) -> DynamicReport {
 mod tests {
     use super::*;
     use crate::dynamics::DynamicsSpec;
+    use crate::live::engine::Motion as FrameMotion;
 
-    fn frame(i: u32, cycles: Option<u64>, hart0: Option<u64>, bytes: u64) -> DynamicFrame {
-        DynamicFrame {
+    fn frame(i: u32, cycles: Option<u64>, hart0: Option<u64>, bytes: u64) -> Frame {
+        Frame {
             frame: i,
             t: f64::from(i) * 0.01,
             tool: vec![[0.0; 3]],
-            u: Default::default(),
-            force: [0.0, 0.0, 2.0],
-            force_reference: [0.0, 0.0, 2.0],
+            answer: [0.0, 0.0, 2.0],
+            reference: [0.0, 0.0, 2.0],
             max_u: 1.0,
-            energy: 1.0,
-            max_v: 0.5,
+            motion: Some(FrameMotion {
+                energy: 1.0,
+                max_v: 0.5,
+            }),
             iterations: i,
             solves: 1,
             cycles,
             hart0_cycles: hart0,
             residual: 1e-5,
-            error_vs_reference: cycles.map(|_| 1e-6),
+            error_vs_converged: cycles.map(|_| 1e-6),
             error_abs: cycles.map(|_| 1e-6),
-            bytes_up: bytes,
-            bytes_down: bytes,
+            bytes: crate::board::WireBytes {
+                sent: bytes,
+                received: bytes,
+            },
         }
     }
 

@@ -1,8 +1,8 @@
 //! The interactive session behind `deform live --serve`: the tool goes where the browser puts
-//! it instead of along the keyframes. The solver loop owns the target; it takes the newest
-//! position from the [`Mailbox`], solves one full frame for it over the same [`LiveLink`] the
-//! headless session uses (`LiveFrame`, then the quantised field with `ReadField`) and
-//! publishes the frame for the browsers.
+//! it instead of along the keyframes. The loop owns the [`Engine`] (the same the headless
+//! session drives); it takes the newest position from the [`Mailbox`], solves one full frame
+//! for it (on a target: `LiveFrame`, then the quantised field with `ReadField`) and publishes
+//! the frame for the browsers.
 //!
 //! With a force tool the browser's position is the load instead (1 grid unit = 1 N, every tool
 //! node loaded alike) and a frame's `force` is the answer, the tool's mean displacement; the
@@ -13,87 +13,32 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
+use super::engine::Engine;
 use super::field::FieldChoice;
-use super::headless::CLOCK_HZ;
-use super::link::LiveLink;
 use super::serve::Mailbox;
 use super::LiveSetup;
-use crate::link::Port;
+use crate::metrics::NOMINAL_CLOCK_HZ as CLOCK_HZ;
 
-/// One solved frame, as the page shows it.
-pub struct ViewFrame {
-    pub force: [f64; 3],
-    /// Per node, in the model's node order.
-    pub u: Vec<[f64; 3]>,
-    pub iterations: u32,
-    /// Target cycles of the frame's solve (none on the host).
-    pub cycles: Option<u32>,
-    pub residual: f64,
-}
-
-/// Where the frames are solved.
-pub trait FrameSolver {
-    fn solve(&mut self, tool: &[[f64; 3]]) -> anyhow::Result<ViewFrame>;
-    fn name(&self) -> &'static str;
-    /// Whether frames go on while the tool rests: a dynamic tissue keeps moving (it relaxes
-    /// after the tool stops), a quasi-static one is solved only for a new tool position.
-    fn keeps_moving(&self) -> bool {
-        false
-    }
-}
-
-/// The target: a full frame (`LiveFrame`), then its field frame (`ReadField`).
-pub struct TargetSolver<'l, 'a, P: Port> {
-    pub link: &'l mut LiveLink<'a, P>,
-    /// The nodes the field frames carry; the others are drawn at rest.
-    pub field: FieldChoice,
-    pub n: usize,
-}
-
-impl<P: Port> FrameSolver for TargetSolver<'_, '_, P> {
-    fn solve(&mut self, tool: &[[f64; 3]]) -> anyhow::Result<ViewFrame> {
-        let answer = self.link.frame(tool)?;
-        let mut u = vec![[0.0; 3]; self.n];
-        for (node, q) in self.link.field(self.field)?.nodes {
-            u[node] = q;
+/// The displacement field the page draws after a frame: the line's quantised field at the
+/// nodes `field` selects where the engine reads one (a target; the other nodes are drawn at
+/// rest), else the engine's own solution.
+fn view(engine: &mut dyn Engine, field: FieldChoice, n: usize) -> anyhow::Result<Vec<[f64; 3]>> {
+    let mut u = vec![[0.0; 3]; n];
+    match engine.field(field)? {
+        Some(frame) => {
+            for (node, q) in frame.nodes {
+                u[node] = q;
+            }
         }
-        Ok(ViewFrame {
-            force: answer.value.map(f64::from),
-            u,
-            iterations: u32::from(answer.iterations),
-            cycles: Some(answer.cycles),
-            residual: f64::from(answer.residual),
-        })
+        None => {
+            if let Some(x) = engine.solution() {
+                for (i, ui) in u.iter_mut().enumerate() {
+                    *ui = [x[0][i], x[1][i], x[2][i]];
+                }
+            }
+        }
     }
-    fn name(&self) -> &'static str {
-        "target"
-    }
-}
-
-/// The f64 reference alone (`--target host`), warm-started from the previous frame.
-pub struct HostSolver<'a> {
-    pub setup: &'a LiveSetup,
-    pub warm: Option<[Vec<f64>; 3]>,
-}
-
-impl FrameSolver for HostSolver<'_> {
-    fn solve(&mut self, tool: &[[f64; 3]]) -> anyhow::Result<ViewFrame> {
-        let (u, force) = self.setup.converged(tool, self.warm.as_ref())?;
-        let nodes = (0..u[0].len())
-            .map(|i| [u[0][i], u[1][i], u[2][i]])
-            .collect();
-        self.warm = Some(u);
-        Ok(ViewFrame {
-            force,
-            u: nodes,
-            iterations: 0,
-            cycles: None,
-            residual: 0.0,
-        })
-    }
-    fn name(&self) -> &'static str {
-        "host"
-    }
+    Ok(u)
 }
 
 /// Sent once on every connection: what the page draws the frames on. `shown`: per node,
@@ -152,20 +97,26 @@ fn reach(setup: &LiveSetup) -> f64 {
     g.nx().max(g.ny()).max(g.nz()) as f64 / 2.0
 }
 
-/// Runs the loop until the solver fails (the server threads end with the process).
+/// Runs the loop until the engine fails or a SIGINT or SIGTERM comes (the server threads end
+/// with the process). A dynamic engine's frames go on while the tool rests (the tissue keeps
+/// moving) at one h of tissue time per h of wall clock at most, so it moves at its own speed;
+/// a quasi-static one solves a frame for each new tool position.
 pub fn run(
     setup: &LiveSetup,
-    solver: &mut dyn FrameSolver,
+    engine: &mut dyn Engine,
+    field: FieldChoice,
     mailbox: &Arc<Mailbox>,
 ) -> anyhow::Result<()> {
     let limit = reach(setup);
     let mut tool = [0.0; 3];
-    let mut frame = 0u64;
+    let mut frame = 0u32;
     let mut recent: Vec<Instant> = Vec::new();
     let mut arrived = Instant::now();
     let mut paused = false;
-    loop {
-        let moving = solver.keeps_moving() && !paused;
+    let mut next_at: Option<Instant> = None;
+    let started = Instant::now();
+    while !crate::interrupt::requested() {
+        let moving = engine.step().is_some() && !paused;
         let (dropped, solve) = {
             let idle = if moving { 0 } else { 250 };
             let mut inbox = mailbox.wait(Duration::from_millis(idle));
@@ -198,35 +149,43 @@ pub fn run(
         if !solve {
             continue;
         }
+        if let (Some(h), Some(at)) = (engine.step(), next_at) {
+            std::thread::sleep(at.saturating_duration_since(Instant::now()));
+            next_at = Some(Instant::now() + Duration::from_secs_f64(h));
+        } else if let Some(h) = engine.step() {
+            next_at = Some(Instant::now() + Duration::from_secs_f64(h));
+        }
         let tools = vec![tool; setup.tools.len()];
-        let view = solver.solve(&tools)?;
         frame += 1;
+        let solved = engine.frame(frame, started.elapsed().as_secs_f64(), &tools)?;
+        let u = view(engine, field, setup.model.n())?;
         let now = Instant::now();
         recent.retain(|t| now.duration_since(*t) < Duration::from_secs(1));
         recent.push(now);
-        let u_max = view
-            .u
+        let u_max = u
             .iter()
             .map(|v| v.iter().fold(0.0f64, |m, x| m.max(x.abs())))
             .fold(0.0, f64::max);
+        let cycles = solved.cycles.map(|c| c.min(u64::from(u32::MAX)) as u32);
         let message = FrameMessage {
             kind: "frame",
-            frame,
-            solver: solver.name(),
+            frame: u64::from(frame),
+            solver: engine.name(),
             tool,
-            force: view.force,
-            force_norm: view.force.iter().map(|f| f * f).sum::<f64>().sqrt(),
-            iterations: view.iterations,
-            cycles: view.cycles,
-            frames_per_s_at_100mhz: view.cycles.map(|c| CLOCK_HZ / f64::from(c.max(1))),
-            residual: view.residual,
+            force: solved.answer,
+            force_norm: solved.answer.iter().map(|f| f * f).sum::<f64>().sqrt(),
+            iterations: solved.iterations,
+            cycles,
+            frames_per_s_at_100mhz: cycles.map(|c| CLOCK_HZ / f64::from(c.max(1))),
+            residual: solved.residual,
             fps: recent.len() as f64,
             dropped,
             lag_ms: now.duration_since(arrived).as_secs_f64() * 1e3,
             paused,
             u_max,
-            u: view.u.iter().flatten().map(|&v| v as f32).collect(),
+            u: u.iter().flatten().map(|&v| v as f32).collect(),
         };
         mailbox.publish(serde_json::to_string(&message)?);
     }
+    Ok(())
 }

@@ -8,23 +8,32 @@
 //!
 //! - [`setup`]: what the target needs once: the matrix, each tool node's row of the
 //!   unconstrained K, the static loads, and the f64 pieces the host checks against.
-//! - [`link`]: the live requests over a [`Target`](crate::link::Target), with bytes counted on
-//!   the line and a target reset answered by uploading everything again.
+//! - [`engine`]: the one trait every kind of frame is solved through, quasi-static
+//!   ([`quasi_static`]: on a target over [`link`], or on the host) or dynamic ([`dynamic`]:
+//!   one time step h of [`crate::dynamics`] per frame, S resident on the target).
+//! - [`session`]: the scripted session behind `--headless`, over any engine; [`sink`] writes
+//!   its frames (`--frames-csv`, `--out`); [`report`] and [`dynamic_report`] are its JSON, over
+//!   the figures of [`stats`].
+//! - [`interactive`]: the session behind `--serve`, the tool where the browser puts it, over
+//!   any engine; [`serve`] carries the page and the frames to the browsers.
 //! - [`field`]: which nodes a field frame carries (`--field all|surface|stride:K`).
-//! - [`headless`]: the scripted session behind `--headless` and its JSON report.
-//! - [`dynamic`]: dynamic frames (a dynamic scenario): one time step h of
-//!   [`crate::dynamics`] per frame, S resident on the target, u and v held on the host;
-//!   [`dynamic_report`] is their JSON report.
-//! - [`interactive`]: the session behind `--serve`, the tool where the browser puts it;
-//!   [`serve`] carries the page and the frames to the browsers.
+//! - [`start`]: a session from a scenario and its options: the set-up, the engine on a board or
+//!   the host, the checks that come before anything starts.
 
 pub mod dynamic;
 pub mod dynamic_report;
+pub mod engine;
 pub mod field;
-pub mod headless;
 pub mod interactive;
 pub mod link;
+pub mod quasi_static;
+pub mod report;
+pub mod resident;
 pub mod serve;
+pub mod session;
 pub mod setup;
+pub mod sink;
+pub mod start;
+pub mod stats;
 
 pub use setup::{LiveSetup, SetupError};

@@ -38,18 +38,18 @@ pub enum SetupError {
     #[error("encoding K: {0}")]
     Encode(#[from] crate::encode::EncodeError),
     #[error(
-        "tool node {node:?} has {count} springs to free nodes; a tool row holds {MAX_TOOL_ROW}"
+        "tool node ({}, {}, {}) has {count} springs to free nodes; a tool row holds {MAX_TOOL_ROW}", .node.i, .node.j, .node.k
     )]
     RowTooLong { node: Node, count: usize },
     #[error("a tool row value does not fit the matrix's Q-format: {0}")]
     Quantize(#[from] deform_shared::qformat::QFormatError),
     #[error("f64 reference: {0}")]
     Reference(#[from] reference::SolveError),
-    #[error("force tool node {0:?} is fixed or prescribed: a load there moves nothing")]
+    #[error("force tool node ({}, {}, {}) is fixed or prescribed: a load there moves nothing", .0.i, .0.j, .0.k)]
     FixedToolNode(Node),
-    #[error("force tool node {0:?} is outside the grid")]
+    #[error("force tool node ({}, {}, {}) is outside the grid", .0.i, .0.j, .0.k)]
     ToolOutsideGrid(Node),
-    #[error("force tool node {0:?} is loaded by two schedules; give one")]
+    #[error("force tool node ({}, {}, {}) is loaded by two schedules; give one", .0.i, .0.j, .0.k)]
     DuplicateToolNode(Node),
     #[error(
         "both [[simulation.displace]] and [[simulation.load]] keyframes: a live tool either moves \

@@ -30,7 +30,7 @@ impl Inclusion {
 
 /// The per-node stiffness of heterogeneous tissue.
 #[derive(Debug, Clone, PartialEq)]
-pub struct StiffnessField {
+pub struct NodeField {
     pub background: f64,
     pub inclusions: Vec<Inclusion>,
     /// Explicit values, applied last (a later entry for the same node wins).
@@ -59,7 +59,7 @@ fn positive(v: f64) -> bool {
     v.is_finite() && v > 0.0
 }
 
-impl StiffnessField {
+impl NodeField {
     /// A field with the same value everywhere.
     pub fn uniform(k: f64) -> Self {
         Self {
@@ -118,7 +118,7 @@ mod tests {
     #[test]
     fn inclusions_and_node_values_override_the_background() {
         let grid = Grid::new(3, 3, 3).unwrap();
-        let field = StiffnessField {
+        let field = NodeField {
             background: 1.0,
             inclusions: vec![Inclusion {
                 center: [1.0, 1.0, 1.0],
@@ -138,14 +138,14 @@ mod tests {
     #[test]
     fn refuses_bad_values() {
         let grid = Grid::new(2, 2, 2).unwrap();
-        assert!(StiffnessField::uniform(0.0).values(grid).is_err());
-        let mut f = StiffnessField::uniform(1.0);
+        assert!(NodeField::uniform(0.0).values(grid).is_err());
+        let mut f = NodeField::uniform(1.0);
         f.nodes.push((Node::new(2, 0, 0), 1.0));
         assert!(matches!(
             f.values(grid),
             Err(FieldError::NodeOutsideGrid { .. })
         ));
-        let mut f = StiffnessField::uniform(1.0);
+        let mut f = NodeField::uniform(1.0);
         f.inclusions.push(Inclusion {
             center: [0.0; 3],
             radius: -1.0,

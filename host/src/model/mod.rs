@@ -22,6 +22,7 @@ pub mod boundary;
 pub mod components;
 pub mod elasticity;
 pub mod field;
+pub mod flags;
 pub mod grid;
 pub mod loads;
 pub mod matrix_market;
@@ -36,7 +37,7 @@ use springs::{MeanOfEndNodes, SpringStiffness, Uniform};
 
 pub use boundary::{Face, FixedNodeSet, Side};
 pub use elasticity::Elasticity;
-pub use field::{FieldError, Inclusion, StiffnessField};
+pub use field::{FieldError, Inclusion, NodeField};
 pub use grid::{Axis, Grid, Node};
 pub use loads::{FacePressure, PointLoad};
 pub use prescribed::PrescribedDisplacement;
@@ -53,7 +54,7 @@ pub struct ModelSpec {
     pub elasticity: Elasticity,
     /// Heterogeneous tissue: a per-node stiffness; each spring takes the mean of its end nodes
     /// and K is the same for all three directions. `None`: homogeneous (`elasticity`).
-    pub field: Option<StiffnessField>,
+    pub field: Option<NodeField>,
     /// Named node sets to fix (their union is fixed).
     pub fixed_sets: Vec<FixedNodeSet>,
     /// Individual nodes to fix, in addition to `fixed_sets`.
@@ -181,44 +182,9 @@ impl Model {
     /// Checks `spec` and assembles the system. Linear in the number of springs.
     pub fn build(spec: &ModelSpec) -> Result<Self, ModelError> {
         let grid = spec.grid;
-        let outside = |role, node| ModelError::NodeOutsideGrid { role, node, grid };
-        if let Some(&node) = spec.fixed_nodes.iter().find(|&&n| !grid.contains(n)) {
-            return Err(outside(NodeRole::FixedNode, node));
-        }
-        for load in &spec.loads {
-            if !grid.contains(load.node) {
-                return Err(outside(NodeRole::Load, load.node));
-            }
-            if load.force.iter().any(|f| !f.is_finite()) {
-                return Err(ModelError::NonFiniteLoad { node: load.node });
-            }
-        }
-        if let Some(p) = spec
-            .pressures
-            .iter()
-            .find(|p| p.force.iter().any(|f| !f.is_finite()))
-        {
-            return Err(ModelError::NonFinitePressure { face: p.face });
-        }
+        check_loads(spec)?;
         let fixed = fixed_node_mask(grid, &spec.fixed_sets, &spec.fixed_nodes);
-        let mut prescribed: Vec<Option<[f64; 3]>> = vec![None; grid.node_count()];
-        for d in &spec.prescribed {
-            let p = grid
-                .index(d.node)
-                .ok_or_else(|| outside(NodeRole::Prescribed, d.node))?;
-            if d.u.iter().any(|u| !u.is_finite()) {
-                return Err(ModelError::NonFiniteDisplacement { node: d.node });
-            }
-            if fixed[p] {
-                return Err(ModelError::PrescribedNodeFixed { node: d.node });
-            }
-            match prescribed[p] {
-                Some(u) if u != d.u => {
-                    return Err(ModelError::ConflictingDisplacements { node: d.node })
-                }
-                _ => prescribed[p] = Some(d.u),
-            }
-        }
+        let prescribed = prescribed_values(spec, &fixed)?;
         let constrained: Vec<bool> = fixed
             .iter()
             .zip(&prescribed)
@@ -227,7 +193,6 @@ impl Model {
         if !constrained.contains(&true) {
             return Err(ModelError::NoFixedNode);
         }
-
         let node_stiffness = match &spec.field {
             None => None,
             Some(field) => Some(field.values(grid)?),
@@ -236,21 +201,7 @@ impl Model {
             None => Self::free_matrix(spec, &Uniform(1.0))?,
             Some(values) => Self::free_matrix(spec, &MeanOfEndNodes(values.clone()))?,
         };
-        // Every connected part of the spring network needs a node held in place.
-        let (label, count) = components::components(&free);
-        let mut anchored = vec![false; count];
-        let mut size = vec![0usize; count];
-        for (p, &c) in label.iter().enumerate() {
-            anchored[c] |= constrained[p];
-            size[c] += 1;
-        }
-        if let Some(c) = anchored.iter().position(|&a| !a) {
-            let p = label.iter().position(|&l| l == c).expect("non-empty");
-            return Err(ModelError::UnanchoredComponent {
-                node: grid.node(p),
-                size: size[c],
-            });
-        }
+        check_anchored(grid, &free, &constrained)?;
         let unit_matrix = eliminate_fixed_nodes(&free, &constrained);
         // A node with no spring at all (only a 1×1×1 grid) has an all-zero row.
         if let Some(p) = unit_matrix.diagonal().iter().position(|&d| d <= 0.0) {
@@ -259,7 +210,6 @@ impl Model {
                 grid,
             });
         }
-
         let mut loads = loads::load_vectors(grid, &spec.loads);
         loads::add_pressures(grid, &spec.pressures, &mut loads);
         let mut loads_on_fixed_nodes = Vec::new();
@@ -271,29 +221,7 @@ impl Model {
                 f[p] = 0.0;
             }
         }
-
-        let scales = Axis::ALL.map(|axis| match spec.field {
-            None => spec.elasticity.along(axis),
-            Some(_) => 1.0,
-        });
-        let mut rhs = [0, 1, 2].map(|d| loads[d].iter().map(|f| f / scales[d]).collect::<Vec<_>>());
-        for (j, u) in prescribed
-            .iter()
-            .enumerate()
-            .filter_map(|(j, u)| u.map(|u| (j, u)))
-        {
-            // K is symmetric, so column j of the free matrix is its row j.
-            let (cols, vals) = free.row(j);
-            for (&i, &kij) in cols.iter().zip(vals) {
-                for d in 0..3 {
-                    if i == j {
-                        rhs[d][j] = kij * u[d];
-                    } else if !constrained[i] {
-                        rhs[d][i] -= kij * u[d];
-                    }
-                }
-            }
-        }
+        let rhs = scaled_rhs(spec, &free, &loads, &prescribed, &constrained);
         Ok(Self {
             spec: spec.clone(),
             fixed,
@@ -429,6 +357,117 @@ impl Model {
     pub fn loads_on_fixed_nodes(&self) -> &[Node] {
         &self.loads_on_fixed_nodes
     }
+}
+
+/// Every fixed node and load inside the grid, every load and pressure finite.
+fn check_loads(spec: &ModelSpec) -> Result<(), ModelError> {
+    let grid = spec.grid;
+    let outside = |role, node| ModelError::NodeOutsideGrid { role, node, grid };
+    if let Some(&node) = spec.fixed_nodes.iter().find(|&&n| !grid.contains(n)) {
+        return Err(outside(NodeRole::FixedNode, node));
+    }
+    for load in &spec.loads {
+        if !grid.contains(load.node) {
+            return Err(outside(NodeRole::Load, load.node));
+        }
+        if load.force.iter().any(|f| !f.is_finite()) {
+            return Err(ModelError::NonFiniteLoad { node: load.node });
+        }
+    }
+    if let Some(p) = spec
+        .pressures
+        .iter()
+        .find(|p| p.force.iter().any(|f| !f.is_finite()))
+    {
+        return Err(ModelError::NonFinitePressure { face: p.face });
+    }
+    Ok(())
+}
+
+/// Each node's prescribed displacement, checked: inside the grid, finite, not on a fixed
+/// node, and one value per node.
+fn prescribed_values(
+    spec: &ModelSpec,
+    fixed: &[bool],
+) -> Result<Vec<Option<[f64; 3]>>, ModelError> {
+    let grid = spec.grid;
+    let mut prescribed: Vec<Option<[f64; 3]>> = vec![None; grid.node_count()];
+    for d in &spec.prescribed {
+        let p = grid.index(d.node).ok_or(ModelError::NodeOutsideGrid {
+            role: NodeRole::Prescribed,
+            node: d.node,
+            grid,
+        })?;
+        if d.u.iter().any(|u| !u.is_finite()) {
+            return Err(ModelError::NonFiniteDisplacement { node: d.node });
+        }
+        if fixed[p] {
+            return Err(ModelError::PrescribedNodeFixed { node: d.node });
+        }
+        match prescribed[p] {
+            Some(u) if u != d.u => {
+                return Err(ModelError::ConflictingDisplacements { node: d.node })
+            }
+            _ => prescribed[p] = Some(d.u),
+        }
+    }
+    Ok(prescribed)
+}
+
+/// Every connected part of the spring network needs a node held in place.
+fn check_anchored(grid: Grid, free: &Csr, constrained: &[bool]) -> Result<(), ModelError> {
+    let (label, count) = components::components(free);
+    let mut anchored = vec![false; count];
+    let mut size = vec![0usize; count];
+    for (p, &c) in label.iter().enumerate() {
+        anchored[c] |= constrained[p];
+        size[c] += 1;
+    }
+    match anchored.iter().position(|&a| !a) {
+        None => Ok(()),
+        Some(c) => {
+            let p = label.iter().position(|&l| l == c).expect("non-empty");
+            Err(ModelError::UnanchoredComponent {
+                node: grid.node(p),
+                size: size[c],
+            })
+        }
+    }
+}
+
+/// The right-hand sides of the unit matrix: the loads over k_d (a heterogeneous field's K is
+/// the unit matrix itself), each prescribed displacement moved over (b_i −= K_ij·u_j for free
+/// i, b_j = K_jj·u_j).
+fn scaled_rhs(
+    spec: &ModelSpec,
+    free: &Csr,
+    loads: &[Vec<f64>; 3],
+    prescribed: &[Option<[f64; 3]>],
+    constrained: &[bool],
+) -> [Vec<f64>; 3] {
+    let scales = Axis::ALL.map(|axis| match spec.field {
+        None => spec.elasticity.along(axis),
+        Some(_) => 1.0,
+    });
+    let mut rhs = [0, 1, 2].map(|d| loads[d].iter().map(|f| f / scales[d]).collect::<Vec<_>>());
+    for (j, u) in prescribed
+        .iter()
+        .enumerate()
+        .filter_map(|(j, u)| u.map(|u| (j, u)))
+    {
+        // K is symmetric, so column j of the free matrix is its row j.
+        let (cols, vals) = free.row(j);
+        for (&i, &kij) in cols.iter().zip(vals) {
+            for d in 0..3 {
+                if i == j {
+                    rhs[d][j] = kij * u[d];
+                } else if !constrained[i] {
+                    rhs[d][i] -= kij * u[d];
+                }
+            }
+        }
+    }
+    rhs
 }
 
 #[cfg(test)]
@@ -584,7 +623,7 @@ mod tests {
     fn heterogeneous_2x2x2_model_a_by_hand() {
         let mut s = spec((2, 2, 2), Connection::Axial);
         s.fixed_sets = vec!["x-".parse().unwrap()];
-        s.field = Some(StiffnessField {
+        s.field = Some(NodeField {
             background: 1.0,
             inclusions: Vec::new(),
             nodes: vec![(Node::new(1, 1, 1), 3.0)],
@@ -620,7 +659,7 @@ mod tests {
     fn inclusion_3x3x3_model_b_by_hand() {
         let mut s = spec((3, 3, 3), Connection::AxialShear);
         s.fixed_sets = vec!["z-".parse().unwrap()];
-        s.field = Some(StiffnessField {
+        s.field = Some(NodeField {
             background: 1.0,
             inclusions: vec![Inclusion {
                 center: [1.0, 1.0, 1.0],

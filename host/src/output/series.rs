@@ -1,15 +1,23 @@
-//! A time series' displacements, as `deform simulate --out` writes them:
+//! A time series' displacements, as `deform simulate --out` and `deform live --out` write
+//! them:
 //!
 //! - `FILE.csv`: every step's every node, `step,t,i,j,k,ux,uy,uz`;
 //! - `FILE.pvd`: that ParaView collection, with one `FILE_NNNN.vtu` per step beside it;
-//! - any other path: a directory with `step_NNNN.vtu` per step and `series.pvd`.
+//! - any other path: a directory with `step_NNNN.vtu` (live: `frame_NNNNN.vtu`) per step and
+//!   `series.pvd`.
+//!
+//! An interrupted run leaves a readable series: every `.vtu` appears whole, the `.pvd` is
+//! rewritten as the steps come (at most once a second, and at the end), and the CSV grows under
+//! its temporary name (see [`super::file`]).
 
-use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 use anyhow::Context;
 
+use super::csv::{CsvRow, CsvTable};
+use super::file::StreamedFile;
 use super::vtk::{write_pvd, write_vtk, VtkKind};
 use super::{write_csv_row, NodeDisplacement};
 
@@ -36,25 +44,49 @@ impl SeriesTarget {
     }
 }
 
+/// How a directory series names its files: `step_0001.vtu` or `frame_00001.vtu`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Numbering {
+    pub word: &'static str,
+    pub digits: usize,
+}
+
+impl Numbering {
+    /// `deform simulate`'s steps.
+    pub const STEPS: Numbering = Numbering {
+        word: "step",
+        digits: 4,
+    };
+    /// `deform live`'s frames.
+    pub const FRAMES: Numbering = Numbering {
+        word: "frame",
+        digits: 5,
+    };
+}
+
+/// How often a growing series' `.pvd` is rewritten at most.
+const PVD_EVERY: Duration = Duration::from_secs(1);
+
 /// Writes the steps as they come.
 #[derive(Debug)]
 pub struct SeriesWriter {
     target: SeriesTarget,
-    csv: Option<BufWriter<File>>,
+    numbering: Numbering,
+    csv: Option<StreamedFile>,
     /// (t, .vtu name relative to the .pvd; empty for CSV) so far.
     steps: Vec<(f64, String)>,
+    pvd_written: Option<Instant>,
 }
 
 impl SeriesWriter {
     /// Creates the CSV file (with its header) or the directory, before any step is solved.
-    pub fn create(target: SeriesTarget) -> anyhow::Result<Self> {
+    pub fn create(target: SeriesTarget, numbering: Numbering) -> anyhow::Result<Self> {
         let csv = match &target {
             SeriesTarget::Csv(path) => {
-                let file =
-                    File::create(path).with_context(|| format!("creating {}", path.display()))?;
-                let mut out = BufWriter::new(file);
-                writeln!(out, "step,t,i,j,k,ux,uy,uz")?;
-                Some(out)
+                let mut file = StreamedFile::create(path)?;
+                writeln!(file.writer(), "{},t,i,j,k,ux,uy,uz", numbering.word)?;
+                file.flush()?;
+                Some(file)
             }
             SeriesTarget::Pvd(path) => {
                 if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -71,9 +103,20 @@ impl SeriesWriter {
         };
         Ok(Self {
             target,
+            numbering,
             csv,
             steps: Vec::new(),
+            pvd_written: None,
         })
+    }
+
+    /// The collection file of a `.pvd` or directory series.
+    fn pvd(&self) -> Option<PathBuf> {
+        match &self.target {
+            SeriesTarget::Csv(_) => None,
+            SeriesTarget::Pvd(path) => Some(path.clone()),
+            SeriesTarget::Directory(dir) => Some(dir.join("series.pvd")),
+        }
     }
 
     /// Step `step` at time `t`.
@@ -83,13 +126,15 @@ impl SeriesWriter {
         t: f64,
         rows: &[NodeDisplacement],
     ) -> anyhow::Result<()> {
+        let Numbering { word, digits } = self.numbering;
         let (dir, name) = match &self.target {
             SeriesTarget::Csv(_) => {
                 let out = self.csv.as_mut().expect("created with the file");
                 let prefix = format!("{step},{t},");
                 for r in rows {
-                    write_csv_row(out, &prefix, r)?;
+                    write_csv_row(out.writer(), &prefix, r)?;
                 }
+                out.flush()?;
                 self.steps.push((t, String::new()));
                 return Ok(());
             }
@@ -100,43 +145,100 @@ impl SeriesWriter {
                     .unwrap_or("series");
                 (
                     path.parent().map(Path::to_path_buf).unwrap_or_default(),
-                    format!("{stem}_{step:04}.vtu"),
+                    format!("{stem}_{step:0digits$}.vtu"),
                 )
             }
-            SeriesTarget::Directory(dir) => (dir.clone(), format!("step_{step:04}.vtu")),
+            SeriesTarget::Directory(dir) => (dir.clone(), format!("{word}_{step:0digits$}.vtu")),
         };
         write_vtk(&dir.join(&name), rows, VtkKind::Unstructured)?;
         self.steps.push((t, name));
+        if self.pvd_written.is_none_or(|at| at.elapsed() >= PVD_EVERY) {
+            if let Some(pvd) = self.pvd() {
+                write_pvd(&pvd, &self.steps)?;
+                self.pvd_written = Some(Instant::now());
+            }
+        }
         Ok(())
     }
 
     /// Flushes the CSV or writes the .pvd; returns a line saying what was written.
     pub fn finish(self) -> anyhow::Result<String> {
-        match self.target {
-            SeriesTarget::Csv(path) => {
-                let mut out = self.csv.expect("created with the file");
-                out.flush()
-                    .with_context(|| format!("writing {}", path.display()))?;
-                Ok(format!("{} ({} steps)", path.display(), self.steps.len()))
+        let count = self.steps.len();
+        let what = if self.numbering == Numbering::STEPS {
+            "steps"
+        } else {
+            "frames"
+        };
+        let pvd = self.pvd();
+        match (self.csv, pvd) {
+            (Some(csv), _) => Ok(format!("{} ({count} {what})", csv.finish()?.display())),
+            (None, Some(pvd)) => {
+                write_pvd(&pvd, &self.steps)?;
+                let beside = match self.target {
+                    SeriesTarget::Pvd(_) => " beside it",
+                    _ => "",
+                };
+                Ok(format!("{} (+{count} .vtu files{beside})", pvd.display()))
             }
-            SeriesTarget::Pvd(path) => {
-                write_pvd(&path, &self.steps)?;
-                Ok(format!(
-                    "{} (+{} .vtu files beside it)",
-                    path.display(),
-                    self.steps.len()
-                ))
-            }
-            SeriesTarget::Directory(dir) => {
-                let path = dir.join("series.pvd");
-                write_pvd(&path, &self.steps)?;
-                Ok(format!(
-                    "{} (+{} .vtu files)",
-                    path.display(),
-                    self.steps.len()
-                ))
+            (None, None) => unreachable!("a CSV series has its file"),
+        }
+    }
+}
+
+/// What a run writes as it goes: its per-step (or per-frame) CSV table and its series of
+/// displacement fields, either or both. `deform simulate` and `deform live` each write
+/// through one.
+pub struct RunFiles {
+    csv: Option<CsvTable>,
+    series: Option<SeriesWriter>,
+}
+
+impl RunFiles {
+    /// Creates the table (`template`'s header) and the series, before the run starts.
+    pub fn create(
+        csv: Option<&Path>,
+        template: &dyn CsvRow,
+        series: Option<&Path>,
+        numbering: Numbering,
+    ) -> anyhow::Result<Self> {
+        Ok(Self {
+            csv: csv.map(|p| CsvTable::create(p, template)).transpose()?,
+            series: series
+                .map(|p| SeriesWriter::create(SeriesTarget::of(p), numbering))
+                .transpose()?,
+        })
+    }
+
+    /// Step `step` at `t`: its row, and its field if the series wants one (`rows` is called
+    /// only then).
+    pub fn write(
+        &mut self,
+        row: &dyn CsvRow,
+        step: u32,
+        t: f64,
+        rows: impl FnOnce() -> Option<Vec<NodeDisplacement>>,
+    ) -> anyhow::Result<()> {
+        if let Some(csv) = self.csv.as_mut() {
+            csv.write(row)?;
+        }
+        if let Some(series) = self.series.as_mut() {
+            if let Some(rows) = rows() {
+                series.write_step(step, t, &rows)?;
             }
         }
+        Ok(())
+    }
+
+    /// Gives the files their real names and writes the series' collection; the lines to print.
+    pub fn finish(self) -> anyhow::Result<Vec<String>> {
+        let mut wrote = Vec::new();
+        if let Some(series) = self.series {
+            wrote.push(series.finish()?);
+        }
+        if let Some(csv) = self.csv {
+            wrote.push(csv.finish()?.display().to_string());
+        }
+        Ok(wrote)
     }
 }
 
@@ -169,7 +271,7 @@ mod tests {
     fn a_pvd_path_is_a_file_with_its_vtu_files_beside_it() {
         let dir = temp("pvd");
         let path = dir.join("needle.pvd");
-        let mut w = SeriesWriter::create(SeriesTarget::of(&path)).unwrap();
+        let mut w = SeriesWriter::create(SeriesTarget::of(&path), Numbering::STEPS).unwrap();
         w.write_step(1, 0.5, &rows()).unwrap();
         w.write_step(2, 1.0, &rows()).unwrap();
         w.finish().unwrap();
@@ -178,7 +280,7 @@ mod tests {
         let pvd = std::fs::read_to_string(&path).unwrap();
         assert!(pvd.contains(r#"file="needle_0002.vtu""#), "{pvd}");
         let dir_out = dir.join("series");
-        let mut w = SeriesWriter::create(SeriesTarget::of(&dir_out)).unwrap();
+        let mut w = SeriesWriter::create(SeriesTarget::of(&dir_out), Numbering::STEPS).unwrap();
         w.write_step(1, 0.5, &rows()).unwrap();
         w.finish().unwrap();
         assert!(dir_out.join("series.pvd").is_file() && dir_out.join("step_0001.vtu").is_file());
@@ -188,7 +290,7 @@ mod tests {
     fn a_csv_path_gets_every_step_and_node() {
         let dir = temp("csv");
         let path = dir.join("u.csv");
-        let mut w = SeriesWriter::create(SeriesTarget::of(&path)).unwrap();
+        let mut w = SeriesWriter::create(SeriesTarget::of(&path), Numbering::STEPS).unwrap();
         w.write_step(1, 0.5, &rows()).unwrap();
         w.write_step(2, 1.0, &rows()).unwrap();
         w.finish().unwrap();

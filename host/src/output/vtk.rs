@@ -9,8 +9,7 @@
 //! tissue), `magnitude` = |u| and `stiffness` (the node's stiffness in N/m). A time series is a
 //! `.pvd` collection of one file per step ([`write_pvd`]), which ParaView plays as an animation.
 
-use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::Write;
 use std::path::Path;
 
 use anyhow::{bail, Context};
@@ -19,6 +18,7 @@ use vtkio::model::{
     StructuredGridPiece, UnstructuredGridPiece, Version, VertexNumbers, Vtk,
 };
 
+use super::file::write_atomic;
 use super::NodeDisplacement;
 
 /// Which VTK XML flavour to write.
@@ -145,16 +145,20 @@ pub fn data_set(rows: &[NodeDisplacement], kind: VtkKind) -> anyhow::Result<Vtk>
 
 /// Writes `rows` as a `.vtu` or `.vts` file.
 pub fn write_vtk(path: &Path, rows: &[NodeDisplacement], kind: VtkKind) -> anyhow::Result<()> {
-    data_set(rows, kind)?
-        .export(path)
-        .with_context(|| format!("writing {}", path.display()))
+    let data = data_set(rows, kind)?;
+    write_atomic(path, |out| {
+        data.write_xml(out)
+            .with_context(|| format!("writing {}", path.display()))
+    })
 }
 
 /// Writes a ParaView collection (`.pvd`) of `(time, file)` pairs; file names are written as
 /// given, so make them relative to the `.pvd`'s directory.
 pub fn write_pvd(path: &Path, steps: &[(f64, String)]) -> anyhow::Result<()> {
-    let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
-    let mut out = BufWriter::new(file);
+    write_atomic(path, |out| write_collection(out, steps))
+}
+
+fn write_collection(out: &mut impl Write, steps: &[(f64, String)]) -> anyhow::Result<()> {
     writeln!(out, r#"<?xml version="1.0"?>"#)?;
     writeln!(
         out,
@@ -173,8 +177,7 @@ pub fn write_pvd(path: &Path, steps: &[(f64, String)]) -> anyhow::Result<()> {
     }
     writeln!(out, "  </Collection>")?;
     writeln!(out, "</VTKFile>")?;
-    out.flush()
-        .with_context(|| format!("writing {}", path.display()))
+    Ok(())
 }
 
 #[cfg(test)]

@@ -10,23 +10,14 @@
 //! scheme = "backward-euler"    # or "trapezoidal"
 //! ```
 
-use std::path::Path;
-
 use serde::Deserialize;
 use toml::Spanned;
 
-use super::{read_field_csv, Ctx, ScenarioError};
-use crate::dynamics::{Damping, Scheme};
-use crate::model::{Grid, Inclusion, StiffnessField};
-
-/// `[dynamics]`, checked: every key optional (flags and defaults fill in the rest).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct DynamicsSettings {
-    pub mass: Option<StiffnessField>,
-    pub damping: Option<Damping>,
-    pub rayleigh: Option<[f64; 2]>,
-    pub scheme: Option<Scheme>,
-}
+use super::field::{FieldParts, InclusionAt, Quantity, DAMPING, MASS};
+use super::{Ctx, ScenarioError};
+use crate::dynamics::Damping;
+pub use crate::dynamics::DynamicsSettings;
+use crate::model::{Grid, NodeField};
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -67,43 +58,33 @@ fn positive(v: f64) -> bool {
     v.is_finite() && v > 0.0
 }
 
-/// A field's values checked like the stiffness field's (every value finite and > 0).
+/// A `{ background, inclusion, field }` table, through the one node-field parser.
 fn field(
     cx: &Ctx<'_>,
-    path: &Path,
     grid: Grid,
     f: &FieldToml,
     span: std::ops::Range<usize>,
     key: &str,
-) -> Result<StiffnessField, ScenarioError> {
-    if !positive(f.background) {
-        return Err(cx.err(span, key, "background must be finite and greater than 0"));
+    quantity: Quantity,
+) -> Result<NodeField, ScenarioError> {
+    FieldParts {
+        key,
+        subkeys: false,
+        quantity,
+        background: (f.background, span.clone()),
+        inclusions: f
+            .inclusion
+            .iter()
+            .map(|inc| InclusionAt {
+                center: inc.center,
+                radius: inc.radius,
+                value: inc.value,
+                span: span.clone(),
+            })
+            .collect(),
+        csv: f.field.as_deref().map(|csv| (csv, span.clone())),
     }
-    let mut out = StiffnessField::uniform(f.background);
-    for inc in &f.inclusion {
-        let ok = positive(inc.value)
-            && inc.radius.is_finite()
-            && inc.radius >= 0.0
-            && inc.center.iter().all(|c| c.is_finite());
-        if !ok {
-            return Err(cx.err(
-                span,
-                key,
-                "inclusion: value must be finite and greater than 0, radius finite and \
-                 non-negative, center finite",
-            ));
-        }
-        out.inclusions.push(Inclusion {
-            center: inc.center,
-            radius: inc.radius,
-            k: inc.value,
-        });
-    }
-    if let Some(csv) = &f.field {
-        let csv = path.parent().unwrap_or(Path::new("")).join(csv);
-        out.nodes = read_field_csv(&csv, grid).map_err(|m| cx.err(span, key, m))?;
-    }
-    Ok(out)
+    .resolve(cx, grid)
 }
 
 pub(super) fn resolve_dynamics(
@@ -114,8 +95,8 @@ pub(super) fn resolve_dynamics(
     let mut out = DynamicsSettings::default();
     if let Some(m) = &d.mass {
         out.mass = Some(match m.get_ref() {
-            QuantityToml::One(v) if positive(*v) => StiffnessField::uniform(*v),
-            QuantityToml::Field(f) => field(cx, cx.path, grid, f, m.span(), "dynamics.mass")?,
+            QuantityToml::One(v) if positive(*v) => NodeField::uniform(*v),
+            QuantityToml::Field(f) => field(cx, grid, f, m.span(), "dynamics.mass", MASS)?,
             QuantityToml::One(_) => {
                 return Err(cx.err(
                     m.span(),
@@ -144,7 +125,7 @@ pub(super) fn resolve_dynamics(
             QuantityToml::One(v) if positive(*v) => Damping::PerDirection([*v; 3]),
             QuantityToml::Three(v) if v.iter().all(|x| positive(*x)) => Damping::PerDirection(*v),
             QuantityToml::Field(f) => {
-                Damping::Field(field(cx, cx.path, grid, f, b.span(), "dynamics.damping")?)
+                Damping::Field(field(cx, grid, f, b.span(), "dynamics.damping", DAMPING)?)
             }
             _ => return Err(bad()),
         });

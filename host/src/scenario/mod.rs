@@ -26,7 +26,7 @@
 //! tol = 1e-8
 //! max_iter = 10000
 //! max_solves = 8
-//! target = "qemu"              # or "host"
+//! target = "qemu"              # or "litex", "host"
 //! timeout = 300                # seconds per target solve
 //!
 //! [output]
@@ -46,6 +46,7 @@
 //! non-positive stiffness, unsorted keyframes) from spans kept while parsing.
 
 pub mod dynamics;
+pub mod field;
 pub mod simulation;
 
 use std::fmt;
@@ -56,10 +57,12 @@ use serde::Deserialize;
 use toml::Spanned;
 
 use crate::model::{
-    Connection, Elasticity, FacePressure, FixedNodeSet, Grid, Inclusion, ModelSpec, Node,
-    PointLoad, PrescribedDisplacement, StiffnessField,
+    Connection, Elasticity, FacePressure, FixedNodeSet, Grid, ModelSpec, Node, PointLoad,
+    PrescribedDisplacement,
 };
 pub use dynamics::DynamicsSettings;
+pub use field::{read_node_field_csv, Quantity};
+use field::{FieldParts, InclusionAt};
 pub use simulation::{value_at, Keyframe, NodeSchedule, Nonlinear, Simulation};
 use simulation::{ScheduleToml, SimulationToml};
 
@@ -77,14 +80,6 @@ pub struct ScenarioError {
     pub message: String,
 }
 
-/// Where CG runs, as a scenario names it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum TargetName {
-    Qemu,
-    Host,
-}
-
 /// `[solver]`: every field optional (a flag or the built-in default fills it in).
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -92,7 +87,8 @@ pub struct SolverSettings {
     pub tol: Option<f64>,
     pub max_iter: Option<u32>,
     pub max_solves: Option<u32>,
-    pub target: Option<TargetName>,
+    /// `qemu`, `litex` or `host`.
+    pub target: Option<crate::board::TargetKind>,
     pub timeout: Option<u64>,
 }
 
@@ -200,6 +196,20 @@ struct PressureToml {
 #[serde(deny_unknown_fields)]
 struct OutputToml {
     out: Option<PathBuf>,
+}
+
+/// Reads the scenario file at `path`, if any, and merges the model `flags` over it over the
+/// defaults: the model every command that builds one starts from.
+pub fn resolve_model(
+    path: Option<&Path>,
+    flags: &crate::model::flags::ModelFlags,
+) -> Result<(Option<Scenario>, ModelSpec), ScenarioError> {
+    let scenario = match path {
+        Some(path) => Some(Scenario::load(path, flags.grid)?),
+        None => None,
+    };
+    let spec = flags.spec_over(scenario.as_ref().map(|s| &s.model));
+    Ok((scenario, spec))
 }
 
 /// 1-based line and column (in characters) of byte `offset` in `src`.
@@ -334,174 +344,35 @@ impl Scenario {
         if let Some(grid) = grid_override {
             spec.grid = grid;
         }
-        let grid = spec.grid;
         if let Some(m) = file.model {
             spec.connection = match m {
                 ModelName::A => Connection::Axial,
                 ModelName::B => Connection::AxialShear,
             };
         }
-
         if let Some(e) = &file.elasticity {
-            let mut single_k = None;
-            if let Some(k) = &e.k {
-                let el = match k.get_ref() {
-                    KToml::One(v) => {
-                        single_k = Some(*v);
-                        Elasticity::isotropic(*v)
-                    }
-                    KToml::Three([x, y, z]) => Elasticity::new(*x, *y, *z),
-                };
-                spec.elasticity = el.map_err(|err| cx.err(k.span(), "elasticity.k", err))?;
-            }
-            let heterogeneous =
-                e.background.is_some() || !e.inclusion.is_empty() || e.field.is_some();
-            if heterogeneous {
-                let background = match (&e.background, single_k) {
-                    (Some(b), _) => {
-                        let v = *b.get_ref();
-                        if !(v.is_finite() && v > 0.0) {
-                            return Err(cx.err(
-                                b.span(),
-                                "elasticity.background",
-                                "the background stiffness must be finite and greater than 0",
-                            ));
-                        }
-                        v
-                    }
-                    (None, Some(k)) => k,
-                    (None, None) => {
-                        let span =
-                            e.k.as_ref()
-                                .map(|k| k.span())
-                                .or_else(|| e.inclusion.first().map(|i| i.span()))
-                                .or_else(|| e.field.as_ref().map(|f| f.span()))
-                                .unwrap_or(0..0);
-                        return Err(cx.err(
-                            span,
-                            "elasticity.background",
-                            "a heterogeneous field (inclusion or field) needs one background stiffness: set background = K, or k = K (a single number)",
-                        ));
-                    }
-                };
-                let mut field = StiffnessField::uniform(background);
-                for inc in &e.inclusion {
-                    let v = inc.get_ref();
-                    let ok = v.k.is_finite()
-                        && v.k > 0.0
-                        && v.radius.is_finite()
-                        && v.radius >= 0.0
-                        && v.center.iter().all(|c| c.is_finite());
-                    if !ok {
-                        return Err(cx.err(
-                            inc.span(),
-                            "elasticity.inclusion",
-                            "k must be finite and greater than 0, radius finite and non-negative, center finite",
-                        ));
-                    }
-                    field.inclusions.push(Inclusion {
-                        center: v.center,
-                        radius: v.radius,
-                        k: v.k,
-                    });
-                }
-                if let Some(f) = &e.field {
-                    let csv = path.parent().unwrap_or(Path::new("")).join(f.get_ref());
-                    field.nodes = read_field_csv(&csv, grid)
-                        .map_err(|m| cx.err(f.span(), "elasticity.field", m))?;
-                }
-                spec.field = Some(field);
-            }
+            cx.elasticity(e, &mut spec)?;
         }
-
         if let Some(b) = &file.boundary {
-            if let Some(fix) = &b.fix {
-                spec.fixed_sets = fix
-                    .iter()
-                    .map(|s| {
-                        s.get_ref()
-                            .parse::<FixedNodeSet>()
-                            .map_err(|e| cx.err(s.span(), "boundary.fix", e))
-                    })
-                    .collect::<Result<_, _>>()?;
-            }
-            for n in &b.fix_nodes {
-                spec.fixed_nodes
-                    .push(cx.node(grid, n, "boundary.fix_nodes")?);
-            }
-            for d in &b.displace {
-                spec.prescribed.push(PrescribedDisplacement {
-                    node: cx.node(grid, &d.node, "boundary.displace")?,
-                    u: cx.finite(&d.u, "boundary.displace")?,
-                });
-            }
+            cx.boundary(b, &mut spec)?;
         }
         if let Some(l) = &file.loads {
-            for p in &l.point {
-                spec.loads.push(PointLoad {
-                    node: cx.node(grid, &p.node, "loads.point")?,
-                    force: cx.finite(&p.force, "loads.point")?,
-                });
-            }
-            for p in &l.pressure {
-                spec.pressures.push(FacePressure {
-                    face: p
-                        .face
-                        .get_ref()
-                        .parse()
-                        .map_err(|e| cx.err(p.face.span(), "loads.pressure", e))?,
-                    force: cx.finite(&p.force, "loads.pressure")?,
-                });
-            }
+            cx.loads(l, &mut spec)?;
         }
-
         let solver = match file.solver {
             None => SolverSettings::default(),
-            Some(s) => {
-                let span = s.span();
-                let s = s.into_inner();
-                if let Some(t) = s.tol {
-                    if !(t.is_finite() && t > 0.0 && t < 1.0) {
-                        return Err(cx.err(
-                            span,
-                            "solver.tol",
-                            "the tolerance must be a number in (0, 1)",
-                        ));
-                    }
-                }
-                if s.max_solves == Some(0) {
-                    return Err(cx.err(span, "solver.max_solves", "must be at least 1"));
-                }
-                if s.timeout == Some(0) {
-                    return Err(cx.err(span, "solver.timeout", "must be at least 1 second"));
-                }
-                s
-            }
+            Some(s) => cx.solver(s)?,
         };
-
         let simulation = match &file.simulation {
             None => None,
-            Some(sim) => Some(resolve_simulation(&cx, grid, sim)?),
+            Some(sim) => Some(resolve_simulation(&cx, spec.grid, sim)?),
         };
         if let Some(sim) = &simulation {
-            let t = sim.end_time();
-            for s in &sim.displace {
-                let u = s.value_at(t);
-                spec.prescribed.retain(|d| d.node != s.node);
-                spec.prescribed
-                    .push(PrescribedDisplacement { node: s.node, u });
-            }
-            for s in &sim.load {
-                spec.loads.push(PointLoad {
-                    node: s.node,
-                    force: s.value_at(t),
-                });
-            }
+            sim.apply_at_end(&mut spec);
         }
-
         let dynamics = match &file.dynamics {
             None => None,
-            Some(d) => Some(dynamics::resolve_dynamics(&cx, grid, d)?),
+            Some(d) => Some(dynamics::resolve_dynamics(&cx, spec.grid, d)?),
         };
         Ok(Scenario {
             path: path.to_path_buf(),
@@ -511,6 +382,132 @@ impl Scenario {
             simulation,
             dynamics,
         })
+    }
+}
+
+impl Ctx<'_> {
+    /// `[elasticity]`: the homogeneous k, and a heterogeneous field if any part of one is given.
+    fn elasticity(&self, e: &ElasticityToml, spec: &mut ModelSpec) -> Result<(), ScenarioError> {
+        let mut single_k = None;
+        if let Some(k) = &e.k {
+            let el = match k.get_ref() {
+                KToml::One(v) => {
+                    single_k = Some(*v);
+                    Elasticity::isotropic(*v)
+                }
+                KToml::Three([x, y, z]) => Elasticity::new(*x, *y, *z),
+            };
+            spec.elasticity = el.map_err(|err| self.err(k.span(), "elasticity.k", err))?;
+        }
+        if e.background.is_none() && e.inclusion.is_empty() && e.field.is_none() {
+            return Ok(());
+        }
+        let background = match (&e.background, single_k) {
+            (Some(b), _) => (*b.get_ref(), b.span()),
+            (None, Some(k)) => (k, e.k.as_ref().map_or(0..0, |k| k.span())),
+            (None, None) => {
+                let span = e
+                    .inclusion
+                    .first()
+                    .map(|i| i.span())
+                    .or_else(|| e.k.as_ref().map(|k| k.span()))
+                    .or_else(|| e.field.as_ref().map(|f| f.span()))
+                    .unwrap_or(0..0);
+                return Err(self.err(
+                    span,
+                    "elasticity.background",
+                    "a heterogeneous field (inclusion or field) needs one background stiffness: set background = K, or k = K (a single number)",
+                ));
+            }
+        };
+        let parts = FieldParts {
+            key: "elasticity",
+            subkeys: true,
+            quantity: field::STIFFNESS,
+            background,
+            inclusions: e
+                .inclusion
+                .iter()
+                .map(|inc| InclusionAt {
+                    center: inc.get_ref().center,
+                    radius: inc.get_ref().radius,
+                    value: inc.get_ref().k,
+                    span: inc.span(),
+                })
+                .collect(),
+            csv: e.field.as_ref().map(|f| (f.get_ref().as_str(), f.span())),
+        };
+        spec.field = Some(parts.resolve(self, spec.grid)?);
+        Ok(())
+    }
+
+    /// `[boundary]`: fixed sets and nodes, prescribed displacements.
+    fn boundary(&self, b: &BoundaryToml, spec: &mut ModelSpec) -> Result<(), ScenarioError> {
+        let grid = spec.grid;
+        if let Some(fix) = &b.fix {
+            spec.fixed_sets = fix
+                .iter()
+                .map(|s| {
+                    s.get_ref()
+                        .parse::<FixedNodeSet>()
+                        .map_err(|e| self.err(s.span(), "boundary.fix", e))
+                })
+                .collect::<Result<_, _>>()?;
+        }
+        for n in &b.fix_nodes {
+            spec.fixed_nodes
+                .push(self.node(grid, n, "boundary.fix_nodes")?);
+        }
+        for d in &b.displace {
+            spec.prescribed.push(PrescribedDisplacement {
+                node: self.node(grid, &d.node, "boundary.displace")?,
+                u: self.finite(&d.u, "boundary.displace")?,
+            });
+        }
+        Ok(())
+    }
+
+    /// `[loads]`: point loads and face pressures.
+    fn loads(&self, l: &LoadsToml, spec: &mut ModelSpec) -> Result<(), ScenarioError> {
+        for p in &l.point {
+            spec.loads.push(PointLoad {
+                node: self.node(spec.grid, &p.node, "loads.point")?,
+                force: self.finite(&p.force, "loads.point")?,
+            });
+        }
+        for p in &l.pressure {
+            spec.pressures.push(FacePressure {
+                face: p
+                    .face
+                    .get_ref()
+                    .parse()
+                    .map_err(|e| self.err(p.face.span(), "loads.pressure", e))?,
+                force: self.finite(&p.force, "loads.pressure")?,
+            });
+        }
+        Ok(())
+    }
+
+    /// `[solver]`, checked as the flags are.
+    fn solver(&self, s: Spanned<SolverSettings>) -> Result<SolverSettings, ScenarioError> {
+        let span = s.span();
+        let s = s.into_inner();
+        if let Some(t) = s.tol {
+            if !(t.is_finite() && t > 0.0 && t < 1.0) {
+                return Err(self.err(
+                    span,
+                    "solver.tol",
+                    "the tolerance must be a number in (0, 1)",
+                ));
+            }
+        }
+        if s.max_solves == Some(0) {
+            return Err(self.err(span, "solver.max_solves", "must be at least 1"));
+        }
+        if s.timeout == Some(0) {
+            return Err(self.err(span, "solver.timeout", "must be at least 1 second"));
+        }
+        Ok(s)
     }
 }
 
@@ -560,6 +557,7 @@ fn resolve_simulation(
                     Ok(NodeSchedule {
                         node,
                         keyframes: frames.clone(),
+                        line: line_column(cx.src, s.node.span().start).0,
                     })
                 })
                 .collect()
@@ -572,50 +570,4 @@ fn resolve_simulation(
         nonlinear: sim.nonlinear.clone(),
         dynamic: sim.dynamic.unwrap_or(false),
     })
-}
-
-/// Reads a stiffness map: one `i,j,k,k` row per node (blank lines, `#` comments and a first
-/// header line that does not parse are skipped). Errors name the CSV file and line.
-pub fn read_field_csv(path: &Path, grid: Grid) -> Result<Vec<(Node, f64)>, String> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    let mut out = Vec::new();
-    for (number, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let where_ = || format!("{}:{}", path.display(), number + 1);
-        let parts: Vec<&str> = line.split(',').map(str::trim).collect();
-        let parsed = (parts.len() == 4)
-            .then(|| {
-                let idx: Option<Vec<usize>> = parts[..3].iter().map(|p| p.parse().ok()).collect();
-                Some((idx?, parts[3].parse::<f64>().ok()?))
-            })
-            .flatten();
-        let Some((idx, k)) = parsed else {
-            if out.is_empty() && number == 0 {
-                continue; // a header
-            }
-            return Err(format!(
-                "{}: expected a row i,j,k,k (three node indices and a stiffness in N/m), got '{line}'",
-                where_()
-            ));
-        };
-        let node = Node::new(idx[0], idx[1], idx[2]);
-        if !grid.contains(node) {
-            return Err(format!(
-                "{}: node {node} is outside the {grid} grid",
-                where_()
-            ));
-        }
-        if !(k.is_finite() && k > 0.0) {
-            return Err(format!(
-                "{}: stiffness {k} must be finite and greater than 0",
-                where_()
-            ));
-        }
-        out.push((node, k));
-    }
-    Ok(out)
 }

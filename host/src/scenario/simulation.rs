@@ -69,6 +69,34 @@ impl Simulation {
         self.steps as f64 * self.dt
     }
 
+    /// The file line of the schedule at `node`, if a file gave one.
+    pub fn line_of(&self, node: Node) -> Option<usize> {
+        self.displace
+            .iter()
+            .chain(&self.load)
+            .find(|s| s.node == node && s.line > 0)
+            .map(|s| s.line)
+    }
+
+    /// Puts the schedules' values at [`Simulation::end_time`] into `spec`, the static state
+    /// `deform solve` solves: a scheduled displacement replaces a static one at the same node,
+    /// scheduled loads add to the static ones.
+    pub fn apply_at_end(&self, spec: &mut ModelSpec) {
+        let t = self.end_time();
+        for s in &self.displace {
+            let u = s.value_at(t);
+            spec.prescribed.retain(|d| d.node != s.node);
+            spec.prescribed
+                .push(crate::model::PrescribedDisplacement { node: s.node, u });
+        }
+        for s in &self.load {
+            spec.loads.push(crate::model::PointLoad {
+                node: s.node,
+                force: s.value_at(t),
+            });
+        }
+    }
+
     /// The model at time `t`, from `final_spec`, the static model a scenario gives (the
     /// schedules evaluated at [`Simulation::end_time`], see [`super`]) with any command-line
     /// flags merged over it: each scheduled displacement and point load that is still there
@@ -109,6 +137,8 @@ impl Simulation {
 pub struct NodeSchedule {
     pub node: Node,
     pub keyframes: Vec<Keyframe>,
+    /// The scenario file's line that names the node (0: not from a file), for messages.
+    pub line: usize,
 }
 
 impl NodeSchedule {
@@ -194,10 +224,12 @@ mod tests {
             displace: vec![NodeSchedule {
                 node: tip,
                 keyframes: vec![[0.0, 0.0, 0.0, 0.0], [2.0, 0.0, 0.0, 2.0]],
+                line: 0,
             }],
             load: vec![NodeSchedule {
                 node: side,
                 keyframes: vec![[0.0, 0.0, 0.0, 0.0], [1.0, 4.0, 0.0, 0.0]],
+                line: 0,
             }],
             nonlinear: None,
             dynamic: false,

@@ -265,7 +265,10 @@ fn next_frame<S: std::io::Read + std::io::Write>(
 /// the next position.
 #[test]
 fn deform_live_serve_keeps_stepping_a_dynamic_scenario_while_the_tool_rests() {
-    for (target, solver) in [("host", "host (dynamic)"), ("qemu", "target (dynamic)")] {
+    for (target, solver) in [
+        ("host", "host (dynamic)"),
+        ("qemu", "target (dynamic, resident)"),
+    ] {
         serve_dynamic(target, solver);
     }
 }
@@ -276,10 +279,20 @@ fn serve_dynamic(target: &str, solver: &str) {
     use tungstenite::Message;
 
     let example = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/needle-dynamic-8b.toml");
-    /// Stops the server however the test ends.
+    /// Stops the server however the test ends: SIGTERM, which it answers by closing its board
+    /// (QEMU with it), then SIGKILL if it has not ended within 10 s.
     struct Server(std::process::Child);
     impl Drop for Server {
         fn drop(&mut self) {
+            // SAFETY: a signal to our own child.
+            unsafe { libc::kill(self.0.id() as i32, libc::SIGTERM) };
+            let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+            while std::time::Instant::now() < deadline {
+                if let Ok(Some(_)) = self.0.try_wait() {
+                    return;
+                }
+                std::thread::sleep(std::time::Duration::from_millis(50));
+            }
             let _ = self.0.kill();
             let _ = self.0.wait();
         }

@@ -9,5 +9,7 @@ mod link_target_loss;
 mod live_browser;
 mod live_cli;
 mod live_field;
+mod live_host;
 mod model_cli;
 mod scenario_files;
+mod target_logs;

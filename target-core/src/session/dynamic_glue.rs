@@ -242,6 +242,7 @@ impl<E: Executor> Session<'_, E> {
         for (a, b) in st.tool_u.iter_mut().zip(tool) {
             *a = *b;
         }
+        st.field_exponent = None;
         if !force.iter().all(|&v| (v as f32).is_finite()) {
             return Err(ErrorCode::Live(LiveError::NotFinite));
         }

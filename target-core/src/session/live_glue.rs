@@ -24,7 +24,7 @@ use deform_shared::qformat::ldexp;
 
 /// The Schur columns' tolerance: the fixed-point CG's floor, which the host's refinement
 /// also uses.
-const MODEL_TOLERANCE: f64 = 1e-7;
+const MODEL_TOLERANCE: f64 = deform_shared::qformat::FIXED_POINT_FLOOR;
 
 fn live(e: LiveError) -> ErrorCode {
     ErrorCode::Live(e)
@@ -597,8 +597,9 @@ impl<E: Executor> Session<'_, E> {
         ))
     }
 
-    /// A chunk of the last frame's field, quantised (see [`FieldChunk`]): the selection's
-    /// nodes `offset`, `offset + stride`, …, checked against the resident matrix first.
+    /// A chunk of the last frame's field (a live frame's or a dynamic step's), quantised (see
+    /// [`FieldChunk`]): the selection's nodes `offset`, `offset + stride`, …, checked against
+    /// the resident matrix first.
     pub(super) fn read_field(
         &mut self,
         offset: u32,
@@ -619,13 +620,19 @@ impl<E: Executor> Session<'_, E> {
         for (d, e) in exponents.iter_mut().enumerate() {
             *e = self.solution[d].ok_or(out_of_order(SessionStep::NoSolution))?;
         }
-        let (_, started) = self.live.parts().map_err(live)?;
+        // A live session's frame, or a dynamic session's step: each fixes its field's
+        // exponent at the first chunk.
+        let slot = match self.live.parts() {
+            Ok((_, started)) => &mut started.field_exponent,
+            Err(e) => match self.dynamic.parts() {
+                Ok((_, stepping)) => &mut stepping.field_exponent,
+                Err(_) => return Err(live(e)),
+            },
+        };
         let dirs = &self.store.directions;
         let solutions: [(&[i32], i32); MAX_DIRECTIONS] =
             core::array::from_fn(|d| (dirs[d].x.get(..n).unwrap_or(&[]), exponents[d]));
-        let exponent = *started
-            .field_exponent
-            .get_or_insert_with(|| field_exponent(&solutions));
+        let exponent = *slot.get_or_insert_with(|| field_exponent(&solutions));
         let values = pack_field(&solutions, selection.chunk(offset), exponent);
         let cycles = self.exec.now().cycles.wrapping_sub(t0.cycles);
         Ok(Response::Field(FieldChunk {

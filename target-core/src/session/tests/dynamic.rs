@@ -3,9 +3,10 @@
 //! tool's force too, and every refusal is clear.
 
 use deform_shared::dynamics::{DynamicError, DynamicParams, DynamicTool};
+use deform_shared::field::FieldSelection;
 use deform_shared::live::{Coupling, FrameReport, LiveError, ToolRow};
 use deform_shared::matrix::words_crc;
-use deform_shared::qformat::quantize;
+use deform_shared::qformat::{ldexp, quantize};
 use deform_shared::word::VALUE_MASK;
 
 use super::*;
@@ -222,11 +223,44 @@ fn dynamic_frames_follow_the_f64_stepper() {
             );
         }
         iterations.push(report.iterations);
+        if step % 50 == 0 {
+            field_matches_the_state(&mut s, &references, step);
+        }
     }
     // After the release the tissue is still moving; the start v₁ ≈ v₀ leaves a few
     // iterations per step.
     assert!(references[0].v.iter().any(|v| v.abs() > 1e-6));
     assert!(iterations.iter().all(|&i| i <= 6), "{iterations:?}");
+}
+
+/// The step's field frames (`ReadField`, every node) carry u quantised: each component within
+/// one quantum of the reference's u, with one exponent for every chunk of the step.
+fn field_matches_the_state(
+    s: &mut Session<'_, Sequential>,
+    references: &[Reference; 3],
+    step: usize,
+) {
+    let selection = FieldSelection::new(N as u32, 1, None).unwrap();
+    let mut exponent = None;
+    for offset in selection.chunk_offsets() {
+        let request = Request::ReadField {
+            offset,
+            stride: 1,
+            surface: None,
+        };
+        let chunk = match s.handle(request) {
+            Response::Field(chunk) => chunk,
+            other => panic!("step {step}: {other:?}"),
+        };
+        assert_eq!(*exponent.get_or_insert(chunk.exponent), chunk.exponent);
+        let quantum = ldexp(1.0, i32::from(chunk.exponent));
+        for (node, q) in selection.chunk(offset).zip(chunk.displacements()) {
+            for (d, reference) in references.iter().enumerate() {
+                let err = (q[d] - reference.u[node as usize]).abs();
+                assert!(err <= quantum, "step {step} node {node} d {d}: {err:e}");
+            }
+        }
+    }
 }
 
 #[test]

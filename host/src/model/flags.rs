@@ -1,6 +1,6 @@
 //! The model flags, shared by every subcommand that builds a model (`deform model`,
-//! `deform solve`): flatten [`ModelArgs`] into a subcommand's clap `Args` and call
-//! [`ModelArgs::build`].
+//! `deform solve`, `simulate`, `observe`, `estimate`): flatten [`ModelFlags`] into a
+//! subcommand's clap `Args`; [`crate::scenario::resolve_model`] merges them over a scenario file.
 //!
 //! Each flag value parses through the `FromStr` of its model type, so a malformed value is
 //! refused by clap with the flag's name and the expected form; checks that need the whole
@@ -10,8 +10,8 @@
 use clap::{Args, ValueEnum};
 
 use crate::model::{
-    Connection, Elasticity, FacePressure, FixedNodeSet, Grid, Model, ModelError, ModelSpec, Node,
-    PointLoad, PrescribedDisplacement,
+    Connection, Elasticity, FacePressure, FixedNodeSet, Grid, ModelSpec, Node, PointLoad,
+    PrescribedDisplacement,
 };
 
 /// `--model`: the thesis's letters for the two spring networks.
@@ -32,133 +32,12 @@ impl From<ConnectionArg> for Connection {
     }
 }
 
-/// The tissue model: grid, spring network, elasticity, fixed nodes and loads.
-#[derive(Debug, Clone, PartialEq, Args)]
-pub struct ModelArgs {
-    /// Nodes along x, y and z. Nodes are numbered x fastest, then y, then z:
-    /// index = i + NX·(j + NY·k). At most 2^24 nodes in all.
-    #[arg(
-        help_heading = "Model",
-        long,
-        value_name = "NX,NY,NZ",
-        default_value = "10,10,10",
-        allow_hyphen_values = true
-    )]
-    pub grid: Grid,
-
-    /// Spring network: `a` joins each node to its 6 axial neighbours, `b` to all 26 neighbours
-    /// (axial, edge and corner diagonals).
-    #[arg(help_heading = "Model", long = "model", value_name = "MODEL", value_enum, default_value_t = ConnectionArg::A)]
-    pub connection: ConnectionArg,
-
-    /// Spring elasticity in N/m: one value K for every direction, or KX,KY,KZ for the x-, y- and
-    /// z-displacement systems. Each must be finite and greater than 0.
-    #[arg(
-        help_heading = "Model",
-        long = "k",
-        value_name = "K|KX,KY,KZ",
-        default_value = "1,2,0.5",
-        allow_hyphen_values = true
-    )]
-    pub elasticity: Elasticity,
-
-    /// Node sets held at zero displacement, a comma-separated union of: `corners` (the 8
-    /// corners), faces `x-`, `x+`, `y-`, `y+`, `z-`, `z+` (e.g. `x-` is every node with i = 0),
-    /// or `none` (fix only the --fix-node nodes). At least one node must end up fixed.
-    #[arg(
-        long,
-        value_name = "SETS",
-        value_delimiter = ',',
-        default_value = "corners"
-    )]
-    pub fix: Vec<FixedNodeSet>,
-
-    /// Also fix node (I,J,K), 0-based grid indices. Repeatable; adds to --fix.
-    #[arg(
-        help_heading = "Model",
-        long = "fix-node",
-        value_name = "I,J,K",
-        allow_hyphen_values = true
-    )]
-    pub fix_node: Vec<Node>,
-
-    /// A point load: force (FX,FY,FZ) in N at node (I,J,K). Repeatable; loads at one node add
-    /// up; loads on fixed nodes are dropped. Default (if no --load is given): 1 N in +x at the
-    /// middle of the x = 0 face, node (0, NY/2, NZ/2) with integer division.
-    #[arg(
-        help_heading = "Model",
-        long,
-        value_name = "I,J,K:FX,FY,FZ",
-        allow_hyphen_values = true
-    )]
-    pub load: Vec<PointLoad>,
-
-    /// Prescribed displacement (UX,UY,UZ) of node (I,J,K), e.g. a needle tip pushing tissue.
-    /// Repeatable. The node is held at exactly that value. Default: none.
-    #[arg(
-        help_heading = "Model",
-        long,
-        value_name = "I,J,K:UX,UY,UZ",
-        allow_hyphen_values = true
-    )]
-    pub displace: Vec<PrescribedDisplacement>,
-
-    /// A uniform face pressure: the total force (FX,FY,FZ) in N spread equally over the nodes
-    /// of FACE (x-, x+, y-, y+, z-, z+). Repeatable. Default: none.
-    #[arg(
-        help_heading = "Model",
-        long,
-        value_name = "FACE:FX,FY,FZ",
-        allow_hyphen_values = true
-    )]
-    pub pressure: Vec<FacePressure>,
-}
-
 /// Adds the thesis default load when nothing at all loads or moves the tissue.
 fn with_default_load(mut spec: ModelSpec) -> ModelSpec {
     if spec.loads.is_empty() && spec.pressures.is_empty() && spec.prescribed.is_empty() {
         spec.loads = vec![ModelSpec::default_load(spec.grid)];
     }
     spec
-}
-
-impl Default for ModelArgs {
-    /// The flags' defaults, i.e. what an empty command line gives.
-    fn default() -> Self {
-        let example = ModelSpec::thesis_example();
-        Self {
-            grid: example.grid,
-            connection: ConnectionArg::A,
-            elasticity: example.elasticity,
-            fix: example.fixed_sets,
-            fix_node: Vec::new(),
-            load: Vec::new(),
-            displace: Vec::new(),
-            pressure: Vec::new(),
-        }
-    }
-}
-
-impl ModelArgs {
-    /// The model these flags describe.
-    pub fn spec(&self) -> ModelSpec {
-        with_default_load(ModelSpec {
-            grid: self.grid,
-            connection: self.connection.into(),
-            elasticity: self.elasticity,
-            field: None,
-            fixed_sets: self.fix.clone(),
-            fixed_nodes: self.fix_node.clone(),
-            prescribed: self.displace.clone(),
-            loads: self.load.clone(),
-            pressures: self.pressure.clone(),
-        })
-    }
-
-    /// Checks the flags together and assembles the model.
-    pub fn build(&self) -> Result<Model, ModelError> {
-        Model::build(&self.spec())
-    }
 }
 
 /// The model flags of `deform solve` and `deform model`, which may also read a scenario file:
@@ -295,15 +174,9 @@ mod tests {
     use clap::error::ErrorKind;
     use clap::Parser;
 
-    #[derive(Debug, Parser)]
-    struct TestCli {
-        #[command(flatten)]
-        model: ModelArgs,
-    }
-
-    fn parse(args: &[&str]) -> Result<ModelArgs, clap::Error> {
+    fn parse(args: &[&str]) -> Result<ModelFlags, clap::Error> {
         let argv = std::iter::once("deform").chain(args.iter().copied());
-        TestCli::try_parse_from(argv).map(|cli| cli.model)
+        FlagsCli::try_parse_from(argv).map(|cli| cli.model)
     }
 
     fn error_text(args: &[&str]) -> String {
@@ -328,7 +201,7 @@ mod tests {
         assert_eq!(flags(&[]).spec_over(None), ModelSpec::thesis_example());
         let mut file = ModelSpec::thesis_example();
         file.grid = Grid::new(4, 4, 4).unwrap();
-        file.field = Some(crate::model::StiffnessField::uniform(3.0));
+        file.field = Some(crate::model::NodeField::uniform(3.0));
         file.prescribed = vec!["1,1,3:0,0,-1".parse().unwrap()];
         file.loads = Vec::new();
         // No flags: the file as it is (no default load, since something moves the tissue).
@@ -349,8 +222,8 @@ mod tests {
     #[test]
     fn no_flags_is_the_thesis_example() {
         let args = parse(&[]).unwrap();
-        assert_eq!(args, ModelArgs::default());
-        assert_eq!(args.spec(), ModelSpec::thesis_example());
+        assert_eq!(args, ModelFlags::default());
+        assert_eq!(args.spec_over(None), ModelSpec::thesis_example());
     }
 
     #[test]
@@ -376,7 +249,7 @@ mod tests {
             "2,2,2:1,0,0",
         ])
         .unwrap();
-        let spec = args.spec();
+        let spec = args.spec_over(None);
         assert_eq!(spec.grid, Grid::new(4, 5, 6).unwrap());
         assert_eq!(spec.connection, Connection::AxialShear);
         assert_eq!(spec.elasticity, Elasticity::isotropic(3.0).unwrap());
@@ -394,7 +267,7 @@ mod tests {
 
     #[test]
     fn default_load_follows_the_given_grid() {
-        let spec = parse(&["--grid", "6,7,9"]).unwrap().spec();
+        let spec = parse(&["--grid", "6,7,9"]).unwrap().spec_over(None);
         assert_eq!(spec.loads, vec![ModelSpec::default_load(spec.grid)]);
         assert_eq!(spec.loads[0].node, Node::new(0, 3, 4));
     }
@@ -435,6 +308,15 @@ mod tests {
 
     #[test]
     fn model_level_errors_come_from_build() {
+        use crate::model::{Model, ModelError};
+        trait Build {
+            fn build(&self) -> Result<Model, ModelError>;
+        }
+        impl Build for ModelFlags {
+            fn build(&self) -> Result<Model, ModelError> {
+                Model::build(&self.spec_over(None))
+            }
+        }
         let outside = parse(&["--grid", "3,3,3", "--load", "3,0,0:1,0,0"]).unwrap();
         assert!(matches!(
             outside.build(),

@@ -33,42 +33,23 @@
 //! only the new values go to the target ([`Target::update_values`]); the bytes saved against a
 //! full upload are reported per step.
 
-use deform_shared::live::{LiveParams, MAX_TOOL_NODES};
-use deform_shared::protocol::{SolveParams, SolveReport, Start, VectorSlot};
+pub mod plan;
+pub mod run;
+pub mod sink;
+mod superposed;
 
+use deform_shared::protocol::{SolveParams, Start, VectorSlot};
+
+pub use crate::series::{Schedule, StepModel, StepResult};
+
+use crate::board::WireBytes;
 use crate::encode::{encode_with, EncodeOptions};
 use crate::link::{LinkError, Port, Target, UpdateReport, UploadProgress};
-use crate::live::link::LiveLink;
-use crate::live::LiveSetup;
 use crate::model::assembly::assemble_laplacian;
 use crate::model::boundary::eliminate_fixed_nodes;
 use crate::model::{Axis, Csr, Model};
 use crate::reference::{self, max_abs, max_abs_diff};
-use crate::refine::FIXED_POINT_FLOOR;
-
-/// The time steps and how the loads follow them.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Schedule {
-    pub steps: u32,
-    pub dt: f64,
-}
-
-impl Schedule {
-    /// t of step `s` (1-based).
-    pub fn time(&self, s: u32) -> f64 {
-        s as f64 * self.dt
-    }
-
-    /// The fraction of the model's loads applied at time `t`: a linear ramp to 1 at the end.
-    pub fn load_factor(&self, t: f64) -> f64 {
-        let end = self.steps as f64 * self.dt;
-        if end > 0.0 {
-            (t / end).clamp(0.0, 1.0)
-        } else {
-            1.0
-        }
-    }
-}
+use deform_shared::qformat::FIXED_POINT_FLOOR;
 
 /// Displacement-dependent spring stiffness k̃ = α0 + α1·Σ_d Δl^d + α2·Σ_d (Δl^d)².
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -110,30 +91,6 @@ impl StepParams {
     }
 }
 
-/// What one step produced.
-#[derive(Debug, Clone)]
-pub struct StepResult {
-    pub step: u32,
-    pub t: f64,
-    /// Target CG iterations, summed over the three directions (fused too: the fused loop's own
-    /// count is each report's `iterations`).
-    pub iterations: u32,
-    /// The target's report of each solve this step made (one per direction with a load), with
-    /// its cycle and instruction counters; none for a superposed step (see [`simulate_with`]).
-    pub reports: Vec<SolveReport>,
-    /// The step's cycles on the target's critical path: its solves' (`whole_solve`), or a
-    /// superposed step's frame cycles (the first also carrying the response columns' solve).
-    pub cycles: u64,
-    /// Largest true relative residual ‖b − K·u‖/‖b‖ over the directions.
-    pub residual: f64,
-    pub max_u: f64,
-    /// max |u − u_ref| / max |u_ref| against the f64 reference, if asked.
-    pub deviation: Option<f64>,
-    /// Nonlinear model: how K reached the target this step (`None`: full upload).
-    pub update: Option<UpdateReport>,
-    pub u: [Vec<f64>; 3],
-}
-
 #[derive(Debug, thiserror::Error)]
 pub enum SimulateError {
     #[error(transparent)]
@@ -160,9 +117,6 @@ pub enum SimulateError {
     #[error("setting up the superposed steps: {0}")]
     Setup(#[from] crate::live::SetupError),
 }
-
-/// The model at time t, for [`simulate_with`].
-pub type StepModel<'a> = &'a dyn Fn(f64) -> Result<Model, crate::model::ModelError>;
 
 /// K for the nonlinear model after displacements `u` (fixed nodes eliminated).
 pub fn nonlinear_matrix(
@@ -198,6 +152,7 @@ pub fn simulate<P: Port>(
 
 /// Like [`simulate`], but with `step_model` given the loads and prescribed displacements of
 /// each step come from `step_model(t)` (whose matrix must equal `model`'s) instead of a ramp.
+/// A SIGINT or SIGTERM ends the series after the step under way ([`crate::interrupt`]).
 #[allow(clippy::too_many_arguments)]
 pub fn simulate_with<P: Port>(
     target: &mut Target<P>,
@@ -213,9 +168,9 @@ pub fn simulate_with<P: Port>(
         return Err(SimulateError::PrescribedNonlinear);
     }
     if let Some(step_model) =
-        step_model.filter(|f| superposable(model, schedule, *f, nonlinear, &params))
+        step_model.filter(|f| superposed::superposable(model, schedule, *f, nonlinear, &params))
     {
-        return simulate_superposed(
+        return superposed::simulate_superposed(
             target, model, schedule, step_model, params, on_upload, on_step,
         );
     }
@@ -227,50 +182,29 @@ pub fn simulate_with<P: Port>(
         target.upload_matrix_with_progress(&encoding.matrix, &mut on_upload)?;
     }
     for s in 1..=schedule.steps {
+        if crate::interrupt::requested() {
+            break;
+        }
         let t = schedule.time(s);
-        let at_t = match step_model {
-            None => None,
-            Some(f) => {
-                let m = f(t).map_err(|source| SimulateError::StepModel { t, source })?;
-                if m.unit_matrix() != model.unit_matrix() {
-                    return Err(SimulateError::MatrixChanged(t));
-                }
-                Some(m)
-            }
-        };
+        let before = WireBytes::of(&target.stats());
+        let at_t = model_at(model, step_model, t)?;
         // The ramp, or the step's own model at full value.
         let (factor, step) = match &at_t {
             None => (schedule.load_factor(t), model),
             Some(m) => (1.0, m),
         };
-        let (k, update, rhs): (Csr, Option<UpdateReport>, Vec<Vec<f64>>) = match nonlinear {
-            None => (
-                model.unit_matrix().clone(),
-                None,
-                Axis::ALL
-                    .iter()
-                    .map(|&d| step.scaled_rhs(d).iter().map(|b| b * factor).collect())
-                    .collect(),
-            ),
-            Some(Nonlinear { alpha }) => {
-                let k = nonlinear_matrix(model, alpha, &previous)?;
-                let layout = EncodeOptions {
-                    use_symmetry: false,
-                    ..params.layout
-                };
-                let encoded = encode_with(&k, &layout)?.matrix;
-                let update = if target.pattern_matches(&encoded) {
-                    Some(target.update_values(&encoded)?)
-                } else {
-                    target.upload_matrix_with_progress(&encoded, &mut on_upload)?;
-                    None
-                };
-                let rhs = Axis::ALL
-                    .iter()
-                    .map(|&d| step.load(d).iter().map(|f| f * factor).collect())
-                    .collect();
-                (k, update, rhs)
-            }
+        let system = match nonlinear {
+            None => StepSystem::linear(model, step, factor),
+            Some(Nonlinear { alpha }) => StepSystem::nonlinear(
+                target,
+                model,
+                step,
+                factor,
+                alpha,
+                &previous,
+                &params,
+                &mut on_upload,
+            )?,
         };
         let mut result = StepResult {
             step: s,
@@ -278,142 +212,130 @@ pub fn simulate_with<P: Port>(
             iterations: 0,
             reports: Vec::new(),
             cycles: 0,
+            superposed: false,
             residual: 0.0,
             max_u: 0.0,
             deviation: None,
-            update,
+            update: system.update,
+            bytes: WireBytes::default(),
             u: Default::default(),
         };
         let solutions = if params.fuse {
-            solve_fused_step(target, &rhs, &previous, s, params, &mut result)?
+            solve_fused_step(target, &system.rhs, &previous, s, params, &mut result)?
         } else {
-            solve_step_separately(target, &rhs, &previous, params, &mut result)?
+            solve_step_separately(target, &system.rhs, &previous, params, &mut result)?
         };
+        system.check(solutions, params.check_reference, &mut result)?;
         result.cycles = crate::refine::critical_path_cycles(&result.reports);
-        check_step(&mut result, &k, &rhs, solutions, params.check_reference)?;
-        previous = result.u.clone();
+        result.bytes = WireBytes::of(&target.stats()).since(before);
+        previous.clone_from(&result.u);
         on_step(&result);
         results.push(result);
     }
     Ok(results)
 }
 
-/// Takes a step's solutions into `result` with their true relative residual against K (`k`)
-/// and the right-hand sides, and, if asked, their deviation from the f64 reference.
-fn check_step(
-    result: &mut StepResult,
-    k: &Csr,
-    rhs: &[Vec<f64>],
-    solutions: Vec<Vec<f64>>,
-    check_reference: bool,
-) -> Result<(), SimulateError> {
-    let n = k.n();
-    let mut deviation: Option<f64> = None;
-    for ((d, b), x) in Axis::ALL.iter().zip(rhs).zip(solutions) {
-        if max_abs(b) > 0.0 {
-            result.residual = result.residual.max(reference::relative_residual(k, b, &x));
-            if check_reference {
-                let want = reference::solve(k, b, None, 1e-12, 10 * n.max(100))?;
-                let scale = max_abs(&want.x);
-                let dev = max_abs_diff(&x, &want.x) / if scale > 0.0 { scale } else { 1.0 };
-                deviation = Some(deviation.map_or(dev, |m| m.max(dev)));
-            }
-        }
-        result.u[d.position()] = x;
-    }
-    result.deviation = deviation;
-    result.max_u = result.u.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
-    Ok(())
-}
-
-/// Whether the series can run as superposed live frames ([`simulate_superposed`]): linear
-/// springs, fused predicted warm steps, at most [`MAX_TOOL_NODES`] prescribed nodes, and every
-/// step's loads the first model's (only the prescribed displacements move).
-fn superposable(
+/// The model at `t` from `step_model`, checked to keep `model`'s matrix (`None`: no
+/// keyframes, the ramp applies).
+fn model_at(
     model: &Model,
-    schedule: Schedule,
-    step_model: StepModel,
-    nonlinear: Option<Nonlinear>,
-    params: &StepParams,
-) -> bool {
-    let eligible = nonlinear.is_none()
-        && params.fuse
-        && params.predict
-        && params.warm_start
-        && (1..=MAX_TOOL_NODES).contains(&model.prescribed_count());
-    eligible
-        && (1..=schedule.steps).all(|s| {
-            step_model(schedule.time(s)).is_ok_and(|m| {
-                m.unit_matrix() == model.unit_matrix()
-                    && Axis::ALL.iter().all(|&d| m.load(d) == model.load(d))
-            })
-        })
-}
-
-/// The series as the live loop's frames ([`crate::live`]): the target solves one response
-/// column per prescribed node once (`LiveStart`), then every step starts from the
-/// superposition of those columns (exact for linear springs) and skips even the exact r₀
-/// pass where its residual estimate allows; only the prescribed displacements go down per
-/// step, and the solutions come up for the output. The extrapolation of [`Start::Predicted`]
-/// stays the fallback where this does not apply ([`superposable`]).
-fn simulate_superposed<P: Port>(
-    target: &mut Target<P>,
-    model: &Model,
-    schedule: Schedule,
-    step_model: StepModel,
-    params: StepParams,
-    mut on_upload: impl FnMut(UploadProgress),
-    mut on_step: impl FnMut(&StepResult),
-) -> Result<Vec<StepResult>, SimulateError> {
-    let setup = LiveSetup::new(model.spec(), &params.layout)?;
-    // The live set-up streams the matrix itself: the whole of it, then the tool rows.
-    on_upload(UploadProgress {
-        words_sent: 0,
-        words_total: setup.matrix.words.len(),
-    });
-    let live_params = LiveParams {
-        tolerance: params.tol.max(FIXED_POINT_FLOOR) as f32,
-        max_iterations: params.max_iterations,
-        cycle_budget: 0,
-        scale: setup.scale.map(|k| k as f32),
+    step_model: Option<StepModel>,
+    t: f64,
+) -> Result<Option<Model>, SimulateError> {
+    let Some(f) = step_model else {
+        return Ok(None);
     };
-    let mut link = LiveLink::start(target, &setup, live_params)?;
-    let mut start_cycles = link.model.cycles;
-    let mut results = Vec::new();
-    for s in 1..=schedule.steps {
-        let t = schedule.time(s);
-        let at_t = step_model(t).map_err(|source| SimulateError::StepModel { t, source })?;
-        let tool: Vec<[f64; 3]> = setup
-            .tools
-            .iter()
-            .map(|&p| at_t.prescribed()[p].unwrap_or([0.0; 3]))
-            .collect();
-        let frame = link.frame(&tool)?;
-        let solutions = link.solution()?.to_vec();
-        let rhs: Vec<Vec<f64>> = Axis::ALL.iter().map(|&d| at_t.scaled_rhs(d)).collect();
-        let mut result = StepResult {
-            step: s,
-            t,
-            iterations: u32::from(frame.iterations),
-            reports: Vec::new(),
-            cycles: u64::from(frame.cycles) + std::mem::take(&mut start_cycles),
-            residual: 0.0,
-            max_u: 0.0,
-            deviation: None,
-            update: None,
-            u: Default::default(),
-        };
-        check_step(
-            &mut result,
-            at_t.unit_matrix(),
-            &rhs,
-            solutions,
-            params.check_reference,
-        )?;
-        on_step(&result);
-        results.push(result);
+    let m = f(t).map_err(|source| SimulateError::StepModel { t, source })?;
+    if m.unit_matrix() != model.unit_matrix() {
+        return Err(SimulateError::MatrixChanged(t));
     }
-    Ok(results)
+    Ok(Some(m))
+}
+
+/// One step's system: the matrix its residual is measured with, how it reached the target
+/// and the right-hand sides.
+struct StepSystem<'m> {
+    k: std::borrow::Cow<'m, Csr>,
+    update: Option<UpdateReport>,
+    rhs: Vec<Vec<f64>>,
+}
+
+impl<'m> StepSystem<'m> {
+    /// The resident K and `step`'s loads at `factor` (scaled by 1/k_d: the unit matrix).
+    fn linear(model: &'m Model, step: &Model, factor: f64) -> Self {
+        StepSystem {
+            k: std::borrow::Cow::Borrowed(model.unit_matrix()),
+            update: None,
+            rhs: Axis::ALL
+                .iter()
+                .map(|&d| step.scaled_rhs(d).iter().map(|b| b * factor).collect())
+                .collect(),
+        }
+    }
+
+    /// K after the `previous` displacements, sent as values only where its pattern allows.
+    #[allow(clippy::too_many_arguments)]
+    fn nonlinear<P: Port>(
+        target: &mut Target<P>,
+        model: &Model,
+        step: &Model,
+        factor: f64,
+        alpha: [f64; 3],
+        previous: &[Vec<f64>; 3],
+        params: &StepParams,
+        on_upload: &mut impl FnMut(UploadProgress),
+    ) -> Result<Self, SimulateError> {
+        let k = nonlinear_matrix(model, alpha, previous)?;
+        let layout = EncodeOptions {
+            use_symmetry: false,
+            ..params.layout
+        };
+        let encoded = encode_with(&k, &layout)?.matrix;
+        let update = if target.pattern_matches(&encoded) {
+            Some(target.update_values(&encoded)?)
+        } else {
+            target.upload_matrix_with_progress(&encoded, on_upload)?;
+            None
+        };
+        let rhs = Axis::ALL
+            .iter()
+            .map(|&d| step.load(d).iter().map(|f| f * factor).collect())
+            .collect();
+        Ok(StepSystem {
+            k: std::borrow::Cow::Owned(k),
+            update,
+            rhs,
+        })
+    }
+
+    /// Puts the step's `solutions` into `result` with their true residual, its largest |u|
+    /// and, if asked, the deviation from the f64 reference.
+    fn check(
+        &self,
+        solutions: Vec<Vec<f64>>,
+        check_reference: bool,
+        result: &mut StepResult,
+    ) -> Result<(), SimulateError> {
+        let n = self.k.n();
+        let mut deviation: Option<f64> = None;
+        for ((d, b), x) in Axis::ALL.iter().zip(&self.rhs).zip(solutions) {
+            if max_abs(b) > 0.0 {
+                result.residual = result
+                    .residual
+                    .max(reference::relative_residual(&self.k, b, &x));
+                if check_reference {
+                    let want = reference::solve(&self.k, b, None, 1e-12, 10 * n.max(100))?;
+                    let scale = max_abs(&want.x);
+                    let dev = max_abs_diff(&x, &want.x) / if scale > 0.0 { scale } else { 1.0 };
+                    deviation = Some(deviation.map_or(dev, |m| m.max(dev)));
+                }
+            }
+            result.u[d.position()] = x;
+        }
+        result.deviation = deviation;
+        result.max_u = result.u.iter().map(|v| max_abs(v)).fold(0.0, f64::max);
+        Ok(())
+    }
 }
 
 /// One target run for all three directions of a step (a zero right-hand side gives 0 on the

@@ -5,7 +5,15 @@
 //! dropped).
 //!
 //! Every board's firmware logs ([`crate::firmware_logs`]) are decoded and printed as they arrive:
-//! the link hands each `Log` notice to the board's [`FirmwareLogs`].
+//! the link hands each `Log` notice to the board's [`FirmwareLogs`], and the firmware's build id
+//! is checked against the ELF that decodes them. Every command that talks to a target opens
+//! its board here, so none drops the logs. The bytes a board moved are the link's own count
+//! ([`Board::wire`]): what the benchmark and the live reports quote.
+//!
+//! [`flags`] is the command line's side: `--target`, `--port`, `--firmware`, `--mvus` and the
+//! log flags, and the one method that turns them into a [`BoardChoice`].
+
+pub mod flags;
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -14,29 +22,18 @@ use anyhow::Context;
 use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim};
 use deform_hil_sim::{firmware_elf, loader_elf, Qemu, QemuConfig};
 
-use crate::cli_logs::LogOptions;
 use crate::firmware_logs::{FirmwareElf, FirmwareLogs};
 use crate::flash::sfl::{SflClient, SflReport, SflTimeouts};
 use crate::flash::{
     check_build_id, flash, FlashError, FlashImage, FlashProgress, FlashReport, LoaderLink,
     LoaderTimeouts,
 };
-use crate::link::{open_serial, Link, Target, Timeouts};
+use crate::link::{open_serial, Link, LinkStats, Target, Timeouts};
+pub use flags::{BoardFlags, LogFlags, LogOptions, TargetFlags, TargetKind};
 
 /// Harts a QEMU board gets when `--mvus` does not say: the most a target may have
 /// ([`deform_shared::protocol::MAX_HARTS`]), so that by default every MVU is used.
 pub const DEFAULT_QEMU_HARTS: u8 = deform_shared::protocol::MAX_HARTS as u8;
-
-/// Which simulated board to boot when no `--port` names a real one (`deform simulate` and
-/// `deform bench`; `deform solve` has its own `--target` with `host` besides).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
-pub enum SimulatedBoard {
-    /// QEMU's riscv32 `virt` machine: exact instruction counts, up to 8 harts.
-    #[default]
-    Qemu,
-    /// A LiteX VexRiscv SoC under Verilator: real cycles, one hart, ~0.8 M cycles/s.
-    Litex,
-}
 
 /// Where to run.
 #[derive(Debug, Clone)]
@@ -247,6 +244,12 @@ impl Board {
         })
     }
 
+    /// Bytes this board's link has moved so far, both ways (framing and retransmissions
+    /// included): readings apart give a message's or a step's cost on the line.
+    pub fn wire(&self) -> WireBytes {
+        WireBytes::of(&self.target.stats())
+    }
+
     /// The decoder of this board's logs: to suspend a progress bar while they print, or for
     /// their counts.
     pub fn logs(&self) -> &Arc<Mutex<FirmwareLogs>> {
@@ -273,6 +276,49 @@ impl Board {
                 None => "serial board".to_string(),
             },
         }
+    }
+}
+
+/// Bytes moved on a board's line, as the link counts them: every byte written to and read from
+/// the port, retransmissions and framing included.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct WireBytes {
+    /// Host → target.
+    pub sent: u64,
+    /// Target → host.
+    pub received: u64,
+}
+
+impl WireBytes {
+    /// The byte counts in a link's statistics.
+    pub fn of(stats: &LinkStats) -> WireBytes {
+        WireBytes {
+            sent: stats.bytes_sent,
+            received: stats.bytes_received,
+        }
+    }
+
+    pub fn total(&self) -> u64 {
+        self.sent + self.received
+    }
+
+    /// `self − earlier`.
+    pub fn since(&self, earlier: WireBytes) -> WireBytes {
+        WireBytes {
+            sent: self.sent - earlier.sent,
+            received: self.received - earlier.received,
+        }
+    }
+}
+
+/// Deadlines for long sessions (`deform bench`, `deform live`): `solve` per solve, and a
+/// handshake long enough for QEMU on a busy machine (QEMU notices the pty only once a second,
+/// and CI shares its cores).
+pub fn session_timeouts(solve: std::time::Duration) -> Timeouts {
+    Timeouts {
+        handshake: std::time::Duration::from_secs(30),
+        solve,
+        ..Timeouts::default()
     }
 }
 

@@ -1,12 +1,11 @@
-//! The flags of `deform simulate --dynamic` (issue 14, [`crate::dynamics`]), merged over a
-//! scenario's `[dynamics]` table, which is merged over the defaults.
+//! The flags of `deform simulate --dynamic` and dynamic `deform live` sessions (issue 14,
+//! [`crate::dynamics`]), merged over a scenario's `[dynamics]` table, which is merged over the
+//! defaults.
 
 use clap::Args;
 
-use crate::commands::solve::DEFAULT_MAX_SOLVES;
-use crate::dynamics::{Damping, DynamicsSpec, Scheme};
-use crate::model::StiffnessField;
-use crate::scenario::DynamicsSettings;
+use crate::dynamics::{Damping, DynamicsSettings, DynamicsSpec, Scheme};
+use crate::model::NodeField;
 
 /// Mass per node (kg) when neither a flag nor the scenario gives one.
 pub const DEFAULT_MASS: f64 = 0.01;
@@ -42,8 +41,9 @@ pub struct DynamicFlags {
     pub scheme: Option<Scheme>,
 
     /// Dynamic mode: target solves per step at most (mixed-precision refinement to --tol).
-    #[arg(long, default_value_t = DEFAULT_MAX_SOLVES, value_parser = clap::value_parser!(u32).range(1..))]
-    pub max_solves: u32,
+    /// [default: 8]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_solves: Option<u32>,
 }
 
 impl Default for DynamicFlags {
@@ -55,7 +55,7 @@ impl Default for DynamicFlags {
             damping: None,
             rayleigh: None,
             scheme: None,
-            max_solves: DEFAULT_MAX_SOLVES,
+            max_solves: None,
         }
     }
 }
@@ -104,10 +104,12 @@ impl DynamicFlags {
                 || self.damping.is_some()
                 || self.rayleigh.is_some()
                 || self.scheme.is_some()
+                || self.max_solves.is_some()
             {
                 anyhow::bail!(
-                    "--mass, --damping, --rayleigh and --scheme describe a dynamic simulation: \
-                     add --dynamic (or `dynamic = true` under [simulation] in the scenario)"
+                    "--mass, --damping, --rayleigh, --scheme and --max-solves describe a dynamic \
+                     simulation: add --dynamic (or `dynamic = true` under [simulation] in the \
+                     scenario)"
                 );
             }
             return Ok(None);
@@ -116,9 +118,9 @@ impl DynamicFlags {
         Ok(Some(DynamicsSpec {
             mass: self
                 .mass
-                .map(StiffnessField::uniform)
+                .map(NodeField::uniform)
                 .or(file.mass)
-                .unwrap_or_else(|| StiffnessField::uniform(DEFAULT_MASS)),
+                .unwrap_or_else(|| NodeField::uniform(DEFAULT_MASS)),
             damping: self
                 .damping
                 .map(Damping::PerDirection)
