@@ -612,21 +612,11 @@ impl<'a, E: Executor> Session<'a, E> {
             return Err(out_of_order(SessionStep::NoUpdate));
         };
         let end = chunk_end(done, offset, values.len(), shape.words)?;
-        if let Some(&bad) = values
-            .iter()
-            .find(|&&v| !(VALUE_MIN..=VALUE_MAX).contains(&v))
-        {
-            return Err(ErrorCode::ValueOutOfRange(bad));
-        }
         // `shape.words ≤ word_capacity ≤ words.len()` was checked when the matrix was announced.
-        let dst = self
-            .store
-            .words
-            .get_mut(to_usize(offset)..to_usize(end))
-            .ok_or(ErrorCode::ChunkTooLong)?;
-        for (d, &v) in dst.iter_mut().zip(values) {
-            *d = (*d & !VALUE_MASK) | (v as u32 & VALUE_MASK);
-        }
+        replace_values(
+            self.store.words.get_mut(to_usize(offset)..to_usize(end)),
+            values,
+        )?;
         self.matrix = MatrixState::Updating {
             shape,
             frac_bits,
@@ -952,6 +942,23 @@ fn chunk_end(expected: u32, offset: u32, len: usize, limit: u32) -> Result<u32, 
         .and_then(|len| offset.checked_add(len))
         .filter(|&end| end <= limit)
         .ok_or(ErrorCode::ChunkTooLong)
+}
+
+/// Replaces the values of the words `dst` (a value update's chunk: the matrix's, or the
+/// stiffness copy's) with `values`, each checked to fit the 21-bit value field; `None` is a
+/// chunk beyond the store.
+fn replace_values(dst: Option<&mut [u32]>, values: &[i32]) -> Result<(), ErrorCode> {
+    if let Some(&bad) = values
+        .iter()
+        .find(|&&v| !(VALUE_MIN..=VALUE_MAX).contains(&v))
+    {
+        return Err(ErrorCode::ValueOutOfRange(bad));
+    }
+    let dst = dst.ok_or(ErrorCode::ChunkTooLong)?;
+    for (d, &v) in dst.iter_mut().zip(values) {
+        *d = (*d & !VALUE_MASK) | (v as u32 & VALUE_MASK);
+    }
+    Ok(())
 }
 
 mod dynamic_glue;

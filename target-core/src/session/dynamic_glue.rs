@@ -139,20 +139,12 @@ impl<E: Executor> Session<'_, E> {
             return Err(out_of_order(SessionStep::NoUpdate));
         };
         let end = chunk_end(done, offset, values.len(), shape.words)?;
-        if let Some(&bad) = values
-            .iter()
-            .find(|&&v| !(VALUE_MIN..=VALUE_MAX).contains(&v))
-        {
-            return Err(ErrorCode::ValueOutOfRange(bad));
-        }
-        let dst = self
-            .store
-            .stiffness
-            .get_mut(to_usize(offset)..to_usize(end))
-            .ok_or(ErrorCode::ChunkTooLong)?;
-        for (d, &v) in dst.iter_mut().zip(values) {
-            *d = (*d & !VALUE_MASK) | (v as u32 & VALUE_MASK);
-        }
+        replace_values(
+            self.store
+                .stiffness
+                .get_mut(to_usize(offset)..to_usize(end)),
+            values,
+        )?;
         self.stiffness = StiffnessState::Updating {
             frac_bits,
             done: end,
