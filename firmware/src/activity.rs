@@ -111,19 +111,22 @@ fn log_response(response: &Response, was_end_matrix: bool) {
         ),
         Response::Ack if was_end_matrix => defmt::info!("matrix accepted and resident"),
         Response::Solved(report) => defmt::info!(
-            "solved in {=u32} iterations (converged: {=bool}), residual {=f64}; MVU {=u64} cycles, SVU {=u64} cycles",
+            "solved in {=u32} iterations (converged: {=bool}), residual {=f64}; MVU {=u64} cycles / {=u64} instructions, SVU {=u64} cycles / {=u64} instructions (hart 0)",
             report.iterations,
             report.converged,
             report.residual,
             report.mvu.cycles,
-            report.svu.cycles
+            report.mvu.instructions,
+            report.svu.cycles,
+            report.svu.instructions
         ),
         Response::Error(code) => defmt::warn!("refused: {}", defmt::Debug2Format(code)),
         Response::LiveReady(model) => defmt::info!(
-            "live session ready: local force model from {=u8} solve(s), {=u32} iterations, {=u64} cycles",
+            "live session ready: local force model from {=u8} solve(s), {=u32} iterations, {=u64} cycles, {=u64} stall cycles",
             model.solves,
             model.iterations,
-            model.cycles
+            model.cycles,
+            model.stall_cycles
         ),
         Response::Ack
         | Response::Solution { .. }

@@ -71,7 +71,9 @@ struct Dispatch {
     only: AtomicUsize,
     done: AtomicUsize,
     task: UnsafeCell<Option<Task<'static>>>,
+    /// Each hart's retired instructions and cycles over its last measured task.
     counts: [AtomicU32; MAX_HARTS],
+    cycles: [AtomicU32; MAX_HARTS],
 }
 
 // SAFETY: `task` is written only by hart 0 while no worker runs a phase (before the generation
@@ -85,6 +87,7 @@ static DISPATCH: Dispatch = Dispatch {
     done: AtomicUsize::new(0),
     task: UnsafeCell::new(None),
     counts: [const { AtomicU32::new(0) }; MAX_HARTS],
+    cycles: [const { AtomicU32::new(0) }; MAX_HARTS],
 };
 
 /// Sends hart `hart` a software interrupt.
@@ -174,10 +177,11 @@ pub fn worker(hart: usize) -> ! {
         let task = unsafe { *DISPATCH.task.get() };
         if let Some(task) = task {
             if only == hart {
-                let start = riscv::register::minstret::read64();
+                let start = counters();
                 task(hart);
-                let spent = riscv::register::minstret::read64().wrapping_sub(start);
-                DISPATCH.counts[hart].store(spent as u32, Ordering::Relaxed);
+                let spent = counters().since(start);
+                DISPATCH.counts[hart].store(spent.instructions as u32, Ordering::Relaxed);
+                DISPATCH.cycles[hart].store(spent.cycles as u32, Ordering::Relaxed);
             } else {
                 task(hart);
             }
@@ -223,12 +227,20 @@ impl Harts {
     }
 }
 
+/// This hart's `mcycle` and `minstret`. Never inlined: every reading then runs the same
+/// instructions between the two counters, so a delta of `mcycle` and one of `minstret` cover the
+/// same stretch of work (under QEMU `-icount`, where both count instructions, they are equal).
+#[inline(never)]
+fn counters() -> PhaseCounters {
+    PhaseCounters {
+        cycles: riscv::register::mcycle::read64(),
+        instructions: riscv::register::minstret::read64(),
+    }
+}
+
 impl PhaseClock for Harts {
     fn now(&self) -> PhaseCounters {
-        PhaseCounters {
-            cycles: riscv::register::mcycle::read64(),
-            instructions: riscv::register::minstret::read64(),
-        }
+        counters()
     }
 }
 
@@ -248,16 +260,19 @@ impl Executor for Harts {
         }
     }
 
-    fn run_measured(&self, harts: usize, task: Task<'_>) -> [u64; MAX_HARTS] {
+    fn run_measured(&self, harts: usize, task: Task<'_>) -> [PhaseCounters; MAX_HARTS] {
         let harts = harts.clamp(1, self.count);
-        let mut counts = [0u64; MAX_HARTS];
-        let start = riscv::register::minstret::read64();
+        let mut counts = [PhaseCounters::default(); MAX_HARTS];
+        let start = counters();
         task(0);
-        counts[0] = riscv::register::minstret::read64().wrapping_sub(start);
+        counts[0] = counters().since(start);
         for (hart, count) in counts.iter_mut().enumerate().take(harts).skip(1) {
             self.publish(task, harts, hart);
             self.finish(1);
-            *count = u64::from(DISPATCH.counts[hart].load(Ordering::Relaxed));
+            *count = PhaseCounters {
+                cycles: u64::from(DISPATCH.cycles[hart].load(Ordering::Relaxed)),
+                instructions: u64::from(DISPATCH.counts[hart].load(Ordering::Relaxed)),
+            };
         }
         counts
     }

@@ -145,24 +145,24 @@ fn main() -> anyhow::Result<()> {
     println!("MVU instructions per nonzero (1 MVU, whole MVU phase incl. row ends and Kp max):");
     println!(
         "  one direction      {:6.2} per word",
-        one.per_iteration.mvu_critical as f64 / w
+        one.per_iteration.mvu_critical.instructions as f64 / w
     );
     println!(
         "  three fused        {:6.2} per word, {:5.2} per multiply-accumulate",
-        one_fused.per_iteration.mvu_critical as f64 / w,
-        one_fused.per_iteration.mvu_critical as f64 / (3.0 * w)
+        one_fused.per_iteration.mvu_critical.instructions as f64 / w,
+        one_fused.per_iteration.mvu_critical.instructions as f64 / (3.0 * w)
     );
     println!(
         "SVU instructions per element and direction (1 hart): {:.1} (one direction), {:.1} (fused)\n",
-        one.per_iteration.svu_critical as f64 / n as f64,
-        one_fused.per_iteration.svu_critical as f64 / (3.0 * n as f64)
+        one.per_iteration.svu_critical.instructions as f64 / n as f64,
+        one_fused.per_iteration.svu_critical.instructions as f64 / (3.0 * n as f64)
     );
     let (_, _, eight, eight_fused) = &table[table.len() - 1];
     println!(
         "SVU scalar work on hart 0 per iteration and direction (first iteration, {} MVUs): {} (one direction), {} (fused)\n",
         eight.mvus,
-        eight.first_iteration_scalar,
-        eight_fused.first_iteration_scalar / 3
+        eight.first_iteration_scalar.instructions,
+        eight_fused.first_iteration_scalar.instructions / 3
     );
     println!(
         "whole solves as measured ({} iterations; every phase's slowest hart + hart 0's serial work, set-up included):",
@@ -172,11 +172,11 @@ fn main() -> anyhow::Result<()> {
         println!(
             "  {harts} MVUs: one direction {} (MVU {} + SVU {}), three fused {} (MVU {} + SVU {})",
             whole(single),
-            single.whole_solve.mvu_critical,
-            single.whole_solve.svu_critical,
+            single.whole_solve.mvu_critical.instructions,
+            single.whole_solve.svu_critical.instructions,
             whole(fused),
-            fused.whole_solve.mvu_critical,
-            fused.whole_solve.svu_critical,
+            fused.whole_solve.mvu_critical.instructions,
+            fused.whole_solve.svu_critical.instructions,
         );
     }
     println!();
@@ -190,8 +190,8 @@ fn main() -> anyhow::Result<()> {
         let mflops = (2.0 * m * n as f64 + 6.0 * n as f64 + 2.0) / (t as f64 / 100e6) / 1e6;
         println!(
             "  {harts:<5}  {:<9}  {:<9}  {t:<9}  {:>7.2}×  {mflops:>12.1}   {:<7}  {}",
-            single.per_iteration.mvu_critical,
-            single.per_iteration.svu_critical,
+            single.per_iteration.mvu_critical.instructions,
+            single.per_iteration.svu_critical.instructions,
             t1 as f64 / t as f64,
             single.overlapping,
             single.saturations,
@@ -203,8 +203,8 @@ fn main() -> anyhow::Result<()> {
         let t = total(fused);
         println!(
             "  {harts:<5}  T_MVU {:<9} T_SVU {:<9} T {t:<9} speed-up {:>5.2}×, vs three separate solves {:.2}×",
-            fused.per_iteration.mvu_critical,
-            fused.per_iteration.svu_critical,
+            fused.per_iteration.mvu_critical.instructions,
+            fused.per_iteration.svu_critical.instructions,
             f1 as f64 / t as f64,
             3.0 * total(&table.iter().find(|r| r.0 == *harts).map(|r| r.2.clone()).unwrap_or_else(|| fused.clone())) as f64
                 / t as f64,
@@ -214,9 +214,9 @@ fn main() -> anyhow::Result<()> {
 }
 
 fn whole(report: &SolveReport) -> u64 {
-    report.whole_solve.mvu_critical + report.whole_solve.svu_critical
+    report.whole_solve.mvu_critical.instructions + report.whole_solve.svu_critical.instructions
 }
 
 fn total(report: &SolveReport) -> u64 {
-    report.per_iteration.mvu_critical + report.per_iteration.svu_critical
+    report.per_iteration.mvu_critical.instructions + report.per_iteration.svu_critical.instructions
 }

@@ -87,7 +87,6 @@ fn main() -> anyhow::Result<()> {
     };
     let timeouts = Timeouts {
         handshake: Duration::from_secs(120),
-        hello_retry: Duration::from_secs(5),
         request: Duration::from_secs(120),
         solve: Duration::from_secs(1800),
         ..Timeouts::default()

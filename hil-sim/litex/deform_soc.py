@@ -22,6 +22,13 @@ flow control reaches back through socat to the host's writes).
 --bus-bursting (issue 19) lets the CPU's caches fill a line in one Wishbone burst (CTI
 incrementing) instead of one single access per word; the CSR map does not change.
 
+With --uart-baud (on by default for the BIOS shape) the module also paces what it hands the
+SoC: one received byte per sys_clk/(baud/10) clocks, as a UART at that baud rate would, instead
+of one per clock. The stock BIOS's interrupt handler moves every byte into a 128-byte ring that
+its serial boot empties far slower than one byte per clock, so an unpaced line overflowed it
+under litex_term's 128 frames in flight (`Got unexpected response from device 'E'`); a real
+board's line is slow enough. Bytes to the host are not paced.
+
 Both shapes have the same CSR map (ctrl, identifier, timer0, uart; no sim_debug registers), so
 one firmware build runs on either. The script only writes the gateware and build_sim.sh; the
 caller runs that (the Verilator build) and the simulator itself.
@@ -40,8 +47,51 @@ from litex.tools.litex_sim import SimSoC
 FLOW_MODULE = "serial2tcp_flow"
 
 
+# The SoC's nominal clock (litex_sim's): the UART pacing counts its cycles.
+SYS_CLK_HZ = int(1e6)
+
+# The BIOS shape's default line rate. At the SoC's nominal 1 MHz, 38,400 baud gives the BIOS 260
+# cycles per received byte (a 100 MHz board has 868 at 115,200 baud): measured enough for its
+# serial boot under litex_term's default mode, and fast enough to load a 150 KB image in under a
+# minute of simulation.
+BIOS_UART_BAUD = 38400
+
+
+def pace_rx(source):
+    """serial2tcp handing the SoC at most one byte per `pace` clocks, `pace` being a module
+    argument in sim_config.js (0 or absent: one per clock, as the stock module)."""
+    patches = [
+        (
+            "  int fd;\n};",
+            "  int fd;\n  int pace; /* deform: clocks per received byte */\n"
+            "  int pause; /* clocks until the next byte may go in */\n};",
+        ),
+        (
+            "  memset(s, 0, sizeof(struct session_s));\n",
+            "  memset(s, 0, sizeof(struct session_s));\n"
+            "  if(RC_OK == litex_sim_module_get_args(args, \"pace\", &cport) && cport) {\n"
+            "    sscanf(cport, \"%d\", &s->pace);\n"
+            "    free(cport);\n"
+            "  }\n",
+        ),
+        (
+            "  *s->rx_valid=0;\n  if(s->datalen) {",
+            "  *s->rx_valid=0;\n  if(s->pause) {\n    s->pause--;\n  } else if(s->datalen) {",
+        ),
+        (
+            "      s->datalen--;\n",
+            "      s->datalen--;\n      s->pause = s->pace > 1 ? s->pace - 1 : 0;\n",
+        ),
+    ]
+    for old, new in patches:
+        if source.count(old) != 1:
+            raise SystemExit("serial2tcp.c is not the version this script paces")
+        source = source.replace(old, new)
+    return source
+
+
 def write_flow_module(out):
-    """serial2tcp, reading no more than its ring buffer has room for (see above)."""
+    """serial2tcp, reading no more than its ring buffer has room for, pacing (see above)."""
     core = os.path.join(os.path.dirname(litex.build.sim.__file__), "core", "modules", "serial2tcp")
     with open(os.path.join(core, "serial2tcp.c")) as f:
         source = f.read()
@@ -54,6 +104,7 @@ def write_flow_module(out):
     if source.count(unbounded) != 1 or source.count(name) != 1:
         raise SystemExit("serial2tcp.c is not the version this script patches")
     source = source.replace(unbounded, bounded).replace(name, '"%s",' % FLOW_MODULE)
+    source = pace_rx(source)
     folder = os.path.join(out, "extra_mods")
     os.makedirs(os.path.join(folder, FLOW_MODULE), exist_ok=True)
     with open(os.path.join(folder, FLOW_MODULE, FLOW_MODULE + ".c"), "w") as f:
@@ -76,7 +127,16 @@ def main():
         action="store_true",
         help="Wishbone burst cycles: a cache line fills in one incrementing burst from main RAM",
     )
+    parser.add_argument(
+        "--uart-baud",
+        type=int,
+        default=None,
+        help="pace received bytes at this baud rate (0: one per clock; default: %d with --bios, "
+        "else 0)" % BIOS_UART_BAUD,
+    )
     args = parser.parse_args()
+    baud = args.uart_baud if args.uart_baud is not None else (BIOS_UART_BAUD if args.bios else 0)
+    pace_cycles = round(SYS_CLK_HZ * 10 / baud) if baud else 0
 
     soc_args = dict(
         cpu_type="vexriscv",
@@ -107,9 +167,10 @@ def main():
         soc.add_config("MAIN_RAM_INIT")
 
     sim_config = SimConfig()
-    sim_config.add_clocker("sys_clk", freq_hz=int(1e6))
-    # The port is a placeholder: the caller writes sim_config.js anew for every run.
-    sim_config.add_module(FLOW_MODULE, "serial", args={"port": 1})
+    sim_config.add_clocker("sys_clk", freq_hz=SYS_CLK_HZ)
+    # The port is a placeholder: the caller writes sim_config.js anew for every run (the pace
+    # stays; it comes first, so that the placeholder's line is the last of the arguments).
+    sim_config.add_module(FLOW_MODULE, "serial", args={"pace": pace_cycles, "port": 1})
 
     builder = Builder(
         soc,

@@ -19,6 +19,7 @@
 //! virtual nanosecond), which is what lets the firmware's `mcycle`/`minstret` reports be compared
 //! between runs.
 
+pub mod child;
 pub mod litex;
 pub mod relay;
 
@@ -267,21 +268,21 @@ impl Qemu {
             });
         }
         let binary = config.qemu.to_string_lossy().into_owned();
-        let mut child = Command::new(&config.qemu)
+        let mut command = Command::new(&config.qemu);
+        command
             .args(config.args())
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .map_err(|source| match source.kind() {
-                std::io::ErrorKind::NotFound => HilError::QemuMissing {
-                    binary: binary.clone(),
-                },
-                _ => HilError::Spawn {
-                    binary: binary.clone(),
-                    source,
-                },
-            })?;
+            .stderr(Stdio::piped());
+        let mut child = child::spawn(command).map_err(|source| match source.kind() {
+            std::io::ErrorKind::NotFound => HilError::QemuMissing {
+                binary: binary.clone(),
+            },
+            _ => HilError::Spawn {
+                binary: binary.clone(),
+                source,
+            },
+        })?;
 
         let stdout = Arc::new(Mutex::new(String::new()));
         let stderr = Arc::new(Mutex::new(String::new()));

@@ -15,7 +15,9 @@
 //!   connects to it (retrying until it listens) and offers a pty at [`LitexSim::serial_path`].
 //!   The simulator drops UART output while no client is connected, and models no baud rate.
 //! - **Clean-up** is by PID: dropping a [`LitexSim`] kills and reaps socat and the simulator it
-//!   started, and removes the run folder. A port that another process took between our probe and
+//!   started, and removes the run folder. Both die with the process that started them however it
+//!   ends ([`crate::child`]); the folder of a run whose process is gone is removed at the next
+//!   start. A port that another process took between our probe and
 //!   the simulator's bind makes the simulator exit at once; the start is then retried on a new
 //!   port.
 
@@ -30,7 +32,7 @@ use std::time::{Duration, Instant};
 
 use object::{Object, ObjectSection, ObjectSegment, SectionKind};
 
-use crate::workspace_root;
+use crate::{child, workspace_root};
 
 /// Overrides where the LiteX builds and the venv live ([`litex_dir`]).
 pub const LITEX_DIR_ENV: &str = "DEFORM_LITEX_DIR";
@@ -461,31 +463,37 @@ impl LitexSim {
         timeout: Duration,
     ) -> Result<LitexSim, LitexError> {
         let n = RUNS.fetch_add(1, Ordering::Relaxed);
-        let run_dir = soc
-            .dir
-            .join("runs")
-            .join(format!("{}-{n}", std::process::id()));
+        let runs = soc.dir.join("runs");
+        remove_stale_runs(&runs);
+        let run_dir = runs.join(format!("{}-{n}", std::process::id()));
         let _ = fs::remove_dir_all(&run_dir);
         fs::create_dir_all(&run_dir).map_err(io(format!("creating {}", run_dir.display())))?;
         let port = free_port()?;
         prepare_run(soc, &run_dir, image, port)?;
         let log = File::create(run_dir.join("sim.log")).map_err(io("creating sim.log"))?;
-        let sim = Command::new(soc.gateware().join("obj_dir/Vsim"))
-            .current_dir(&run_dir)
+        let mut sim = Command::new(soc.gateware().join("obj_dir/Vsim"));
+        sim.current_dir(&run_dir)
             .stdin(Stdio::null())
             .stdout(log.try_clone().map_err(io("duplicating sim.log"))?)
-            .stderr(log)
-            .spawn()
-            .map_err(io("starting the simulator"))?;
+            .stderr(log);
+        let sim = child::spawn(sim).map_err(io("starting the simulator"))?;
         let serial = run_dir.join("tty");
-        let bridge = Command::new("socat")
+        let mut bridge = Command::new("socat");
+        bridge
             .arg(format!("tcp:127.0.0.1:{port},retry=600,interval=0.05"))
             .arg(format!("pty,link={},raw,echo=0", serial.display()))
             .stdin(Stdio::null())
             .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .map_err(io("starting socat"))?;
+            .stderr(Stdio::null());
+        let bridge = match child::spawn(bridge) {
+            Ok(bridge) => bridge,
+            Err(e) => {
+                let mut sim = sim;
+                let _ = sim.kill();
+                let _ = sim.wait();
+                return Err(io("starting socat")(e));
+            }
+        };
         let mut sim = LitexSim {
             sim,
             bridge,
@@ -542,6 +550,25 @@ impl Drop for LitexSim {
             let _ = child.wait();
         }
         let _ = fs::remove_dir_all(&self.run_dir);
+    }
+}
+
+/// Removes the run folders (`PID-N`) of processes that are gone: a process killed by a signal
+/// drops no [`LitexSim`] (its simulator and socat die with it, see [`child`]), so its folder
+/// stays until the next start cleans it here.
+fn remove_stale_runs(runs: &Path) {
+    let Ok(entries) = fs::read_dir(runs) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let owner = name
+            .to_str()
+            .and_then(|n| n.split_once('-'))
+            .and_then(|(pid, _)| pid.parse::<u32>().ok());
+        if owner.is_some_and(|pid| !child::is_running(pid)) {
+            let _ = fs::remove_dir_all(entry.path());
+        }
     }
 }
 

@@ -15,7 +15,7 @@
 //! the residual goes in as s⊙r and the correction comes back as s⊙d, while the residual is
 //! still measured against A itself.
 
-use deform_shared::protocol::{SolveParams, SolveReport, Start, MAX_DIRECTIONS};
+use deform_shared::protocol::{PhaseCounters, SolveParams, SolveReport, Start, MAX_DIRECTIONS};
 // The target never gets an inner tolerance tighter than this: below it refinement does better.
 use deform_shared::qformat::FIXED_POINT_FLOOR;
 
@@ -114,24 +114,34 @@ impl Refined {
         critical_path_cycles(&self.reports)
     }
 
-    /// Hart 0's `mcycle` over the MVU and SVU phases of all solves. Under QEMU `-icount` every
-    /// hart's counter follows one machine-wide instruction count, so with several harts this is
-    /// their sum, not the parallel time: see [`Refined::critical_path_cycles`] for that.
-    pub fn cycles(&self) -> u64 {
+    /// The same critical path in cycles and in retired instructions.
+    pub fn critical_path(&self) -> PhaseCounters {
+        critical_path(&self.reports)
+    }
+
+    /// Hart 0's `mcycle` and `minstret` over the MVU and SVU phases of all solves. Under QEMU
+    /// `-icount` every hart's counters follow one machine-wide instruction count, so with several
+    /// harts this is their sum, not the parallel time: see [`Refined::critical_path`] for that.
+    pub fn hart0(&self) -> PhaseCounters {
         self.reports
             .iter()
-            .map(|r| r.mvu.cycles + r.svu.cycles)
-            .sum()
+            .fold(PhaseCounters::default(), |sum, r| {
+                sum.saturating_add(r.mvu).saturating_add(r.svu)
+            })
     }
 }
 
 /// Critical-path cycles of `reports`, as the target measured them over each whole solve
 /// (`SolveReport::whole_solve`: every phase's slowest hart plus hart 0's serial work), summed.
 pub fn critical_path_cycles(reports: &[SolveReport]) -> u64 {
-    reports
-        .iter()
-        .map(|r| r.whole_solve.mvu_critical + r.whole_solve.svu_critical)
-        .sum()
+    critical_path(reports).cycles
+}
+
+/// [`critical_path_cycles`] with the retired instructions beside the cycles.
+pub fn critical_path(reports: &[SolveReport]) -> PhaseCounters {
+    reports.iter().fold(PhaseCounters::default(), |sum, r| {
+        sum.saturating_add(r.whole_solve.critical())
+    })
 }
 
 #[derive(Debug, thiserror::Error)]

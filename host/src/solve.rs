@@ -17,7 +17,7 @@ use serde::Serialize;
 use crate::board::{Board, BoardChoice, LogOptions};
 use crate::encode::{encode_with, EncodeOptions, Encoding, EncodingSummary, Partition};
 use crate::link::{LinkFlags, Timeouts};
-use crate::metrics::{performance, Performance};
+use crate::metrics::{performance, Counts, Performance};
 use crate::model::{Axis, Csr, Model};
 use crate::precondition::{self, Preconditioner, Scaled};
 use crate::reference::{self, max_abs, max_abs_diff};
@@ -94,11 +94,13 @@ pub struct EngineStats {
     pub words_fetched: u64,
     /// What the same iterations fetch with every direction solved on its own.
     pub words_fetched_unfused: u64,
-    /// Critical-path cycles over all solves, measured on the target phase by phase (slowest
-    /// hart per parallel phase + hart 0's serial work), not extrapolated from one iteration.
-    pub critical_path_cycles: u64,
-    /// Hart 0's MVU + SVU `mcycle` over all solves (under QEMU -icount: all harts' sum).
-    pub cycles: u64,
+    /// The critical path over all solves, measured on the target phase by phase (slowest hart
+    /// per parallel phase + hart 0's serial work), not extrapolated from one iteration: cycles
+    /// and instructions.
+    pub critical_path: Counts,
+    /// Hart 0's MVU + SVU `mcycle` and `minstret` over all solves (under QEMU -icount: all
+    /// harts' sum).
+    pub hart0: Counts,
 }
 
 /// Everything a solve reports (the JSON `stats` object).
@@ -347,8 +349,8 @@ fn target_directions(
         target_solves: refined.reports.len(),
         words_fetched: refined.words_fetched(),
         words_fetched_unfused: refined.words_fetched_unfused(),
-        critical_path_cycles: refined.critical_path_cycles(),
-        cycles: refined.cycles(),
+        critical_path: refined.critical_path().into(),
+        hart0: refined.hart0().into(),
     });
     Ok(u)
 }
@@ -420,25 +422,23 @@ impl std::fmt::Display for SolveStats {
         if let Some(e) = &stats.engine {
             writeln!(
                 f,
-            "runs        {} target solve(s), {}; {} matrix words fetched ({} if solved one direction at a time); {} critical-path cycles in all (measured)",
+            "runs        {} target solve(s), {}; {} matrix words fetched ({} if solved one direction at a time); critical path in all {} (measured)",
             e.target_solves,
             if e.fused { "directions fused" } else { "one direction at a time" },
             e.words_fetched,
             e.words_fetched_unfused,
-            e.critical_path_cycles
+            e.critical_path
         )?;
             if let Some(p) = &e.performance {
                 writeln!(
                 f,
                 "1st iter.   {} MVU(s) × {} direction(s): {:.2} MVU instructions per word, {:.2} per multiply-accumulate; \
-                 critical path {} cycles (MVU {} + SVU {}); {:.1} MFLOPS at 100 MHz by eq. 56 (m = {:.2}, n = {})",
+                 {}; {:.1} MFLOPS at 100 MHz by eq. 56 (m = {:.2}, n = {})",
                 p.mvus,
                 p.directions,
                 p.mvu_instructions_per_word,
                 p.mvu_instructions_per_product,
-                p.critical_path_cycles,
-                p.mvu_critical_cycles,
-                p.svu_critical_cycles,
+                p.critical_path_text(),
                 p.mflops,
                 p.m,
                 p.n

@@ -38,6 +38,10 @@ let mesh = null;       // the grid: rest positions, springs, tool nodes
 let tissue = null;     // { points, lines, positions, colours }
 let last = null;       // the newest frame
 let toolU = [0, 0, 0]; // where the user wants the tool (sent), grid units
+// Whether this page has moved the tool since it connected. Until it has, the handle follows the
+// server's tool: after a reload, or in a second tab, the tool is where the frames say, not at
+// rest (the mesh and the readout already show it moved).
+let moved = false;
 let paused = false;
 let socket = null;
 const toolGroup = new THREE.Group();
@@ -143,6 +147,7 @@ function paint() {
   }
   const t = rest(mesh.tools[0]);
   toolGroup.position.set(t[0] + toolU[0], t[1] + toolU[1], t[2] + toolU[2]);
+  readout.dataset.handle = toolU.join(',');
   if (last) {
     // Displacement tool: the force at the tool. Force tool: the load at the moved tool.
     const force = forceTool();
@@ -160,6 +165,7 @@ const fmt = (v) => v.map((x) => x.toFixed(3)).join(', ');
 const forceTool = () => mesh && mesh.kind === 'force';
 function show(f) {
   last = f;
+  if (!moved) toolU = f.tool.slice();
   const unit = forceTool() ? 'm' : 'N';
   $('solver').textContent = (f.solver.startsWith('host') ? 'host f64 reference' : 'target (QEMU / board)')
     + (f.solver.endsWith('(dynamic)') ? ', dynamic: one time step per frame' : '');
@@ -186,6 +192,7 @@ function send(message) {
   if (socket && socket.readyState === WebSocket.OPEN) socket.send(JSON.stringify(message));
 }
 function moveTool(u) {
+  moved = true;
   toolU = u;
   readout.dataset.requested = u.join(',');
   paint();
@@ -194,6 +201,7 @@ function moveTool(u) {
 
 function connect() {
   socket = new WebSocket(`ws://${location.hostname}:${wsPort}/`);
+  moved = false;
   socket.onopen = () => { $('status').textContent = 'connected'; readout.dataset.connected = 'true'; };
   socket.onclose = () => {
     $('status').textContent = 'disconnected — reconnecting…';
@@ -213,7 +221,7 @@ function connect() {
 connect();
 
 $('pause').onclick = () => send({ type: 'pause', paused: !paused });
-$('reset').onclick = () => { toolU = [0, 0, 0]; paint(); send({ type: 'reset' }); };
+$('reset').onclick = () => { moved = true; toolU = [0, 0, 0]; paint(); send({ type: 'reset' }); };
 const KEYS = {
   ArrowLeft: [0, -STEP], a: [0, -STEP], ArrowRight: [0, STEP], d: [0, STEP],
   s: [1, -STEP], w: [1, STEP], ArrowDown: [2, -STEP], ArrowUp: [2, STEP],

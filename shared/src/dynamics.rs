@@ -1,4 +1,4 @@
-//! Target-resident dynamic frames (protocol version 11): the target keeps the displacements u
+//! Target-resident dynamic frames (protocol version 12): the target keeps the displacements u
 //! and velocities v of a backward-Euler elastodynamic model and forms each step's right-hand
 //! side itself, so a frame carries only the tool's prescribed displacements up and its force
 //! down, as a quasi-static frame does ([`crate::live`]).
@@ -105,6 +105,7 @@ mod tests {
                 residual: 1e-5,
                 iterations: u16::MAX,
                 cycles: u32::MAX,
+                stall_cycles: u32::MAX,
             }),
         };
         assert!(encoded_len(&down) <= 64, "{}", encoded_len(&down));

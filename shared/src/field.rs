@@ -42,6 +42,9 @@ pub struct FieldChunk {
     /// Hart 0's cycles for building this chunk; the first chunk after a frame also finds the
     /// frame's exponent (a pass over all 3n components).
     pub cycles: u32,
+    /// (Version 11.) `cycles` minus hart 0's retired instructions for building this chunk (see
+    /// [`crate::live::FrameReport::stall_cycles`]).
+    pub stall_cycles: u32,
     /// q per component, node by node: x, y, z of the first node, then the next.
     #[serde(with = "self::delta")]
     pub values: Vec<i16, FIELD_COMPONENTS>,
@@ -290,6 +293,7 @@ mod tests {
             offset: u32::MAX,
             exponent: i8::MIN,
             cycles: u32::MAX,
+            stall_cycles: u32::MAX,
             values: values.into_iter().collect(),
         }
     }
@@ -326,6 +330,7 @@ mod tests {
             offset: 0,
             exponent: -4,
             cycles: 0,
+            stall_cycles: 0,
             values: [1i16, -2, i16::MAX, i16::MIN, 0, 300].into_iter().collect(),
         };
         let (_, back) = on_the_line(&c);

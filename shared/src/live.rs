@@ -86,6 +86,9 @@ pub struct ModelReport {
     pub cycles: u64,
     /// Every column converged.
     pub converged: bool,
+    /// (Version 11.) `cycles` minus the retired instructions counted the same way (see
+    /// [`FrameReport::stall_cycles`]).
+    pub stall_cycles: u64,
 }
 
 /// The answer to a full frame.
@@ -100,6 +103,11 @@ pub struct FrameReport {
     /// Hart 0's cycles for the whole frame: right-hand side, prediction, solve, force; with
     /// several MVUs the solve counted at its measured critical path.
     pub cycles: u32,
+    /// (Version 11.) `cycles` minus the retired instructions counted the same way: the cycles
+    /// in which no instruction retired (instructions = `cycles − stall_cycles`). Sent as the
+    /// difference, not the count, because it is 0 under QEMU `-icount` (CPI 1) and so costs one
+    /// byte of the 32-byte frame budget; on the LiteX VexRiscv it is the RTL's stalls.
+    pub stall_cycles: u32,
 }
 
 /// The answer to a force query from the local model.
@@ -108,6 +116,9 @@ pub struct ForceReport {
     pub force: [f32; 3],
     /// Hart 0's cycles for the query.
     pub cycles: u32,
+    /// (Version 11.) `cycles` minus hart 0's retired instructions (see
+    /// [`FrameReport::stall_cycles`]).
+    pub stall_cycles: u32,
 }
 
 /// The answer to a full frame of a force tool (version 9): the mean displacement of the tool
@@ -123,6 +134,9 @@ pub struct MotionReport {
     pub iterations: u16,
     /// Hart 0's cycles for the whole frame (on the critical path with several MVUs).
     pub cycles: u32,
+    /// (Version 11.) `cycles` minus the retired instructions (see
+    /// [`FrameReport::stall_cycles`]).
+    pub stall_cycles: u32,
 }
 
 /// The answer to a displacement query of a force tool from the compliance model (version 9).
@@ -132,6 +146,9 @@ pub struct MotionQuery {
     pub displacement: [f32; 3],
     /// Hart 0's cycles for the query.
     pub cycles: u32,
+    /// (Version 11.) `cycles` minus hart 0's retired instructions (see
+    /// [`FrameReport::stall_cycles`]).
+    pub stall_cycles: u32,
 }
 
 /// Why the target refused a live request.
@@ -202,6 +219,7 @@ mod tests {
             residual: 1e-5,
             iterations: 120,
             cycles: 2_000_000,
+            stall_cycles: 0,
         };
         let down = Uplink::Reply {
             seq: u16::MAX,
@@ -225,10 +243,12 @@ mod tests {
             residual: 1e-5,
             iterations: 120,
             cycles: 2_000_000,
+            stall_cycles: 0,
         };
         let query = MotionQuery {
             displacement: [f32::MIN, -0.5, 3.25e-3],
             cycles: u32::MAX,
+            stall_cycles: 0,
         };
         for body in [
             Response::LiveMotion(motion),

@@ -66,9 +66,13 @@ use crate::matrix::{MatrixError, TileHeader};
 /// `LiveLoadQuery`; `LiveMotion`, `LiveMotionQuery`; three more `LiveError`s).
 /// Version 10 (field): compact field frames: `ReadField::surface`, difference-coded
 /// `FieldChunk` values and their build cycles ([`crate::field`]).
-/// Version 11 (engine): target-resident dynamic frames (`BeginStiffness`, `DynamicTool`,
+/// Version 11 (hardening): cycles beside instructions wherever the target reads `mcycle`:
+/// `IterationCost`'s four counts and `first_iteration_scalar` become [`PhaseCounters`], and the
+/// live reports (`ModelReport`, `FrameReport`, `ForceReport`, `MotionReport`, `MotionQuery`,
+/// `FieldChunk`) gain `stall_cycles` (cycles minus instructions) beside `cycles`.
+/// Version 12 (engine): target-resident dynamic frames (`BeginStiffness`, `DynamicTool`,
 /// `DynamicStart`, `DynamicFrame`, `ErrorCode::Dynamic`; [`crate::dynamics`]).
-pub const PROTOCOL_VERSION: u16 = 11;
+pub const PROTOCOL_VERSION: u16 = 12;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -261,17 +265,17 @@ pub enum Request {
     LiveLoadQuery {
         load: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
     },
-    /// Version 11 ([`crate::dynamics`]): starts a values-only upload of K into the resident
+    /// Version 12 ([`crate::dynamics`]): starts a values-only upload of K into the resident
     /// matrix's stiffness copy (its words, K's values in Q-format `frac_bits`); `UpdateValues`
     /// and `EndUpdate` continue it as for `BeginUpdate`.
     BeginStiffness {
         frac_bits: u8,
     },
-    /// Version 11: a dynamic session's tool node, its rows of S and K.
+    /// Version 12: a dynamic session's tool node, its rows of S and K.
     DynamicTool(crate::dynamics::DynamicTool),
-    /// Version 11: starts the dynamic session at rest; answered `Ack`.
+    /// Version 12: starts the dynamic session at rest; answered `Ack`.
     DynamicStart(crate::dynamics::DynamicParams),
-    /// Version 11: one time step with the tool nodes at `tool` at its end (in the order of the
+    /// Version 12: one time step with the tool nodes at `tool` at its end (in the order of the
     /// `DynamicTool`s); answered by [`Response::LiveFrame`].
     DynamicFrame {
         tool: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
@@ -331,10 +335,73 @@ pub struct TargetInfo {
 }
 
 /// Cycle and retired-instruction counts of one phase (`mcycle`/`minstret` deltas).
+///
+/// Both, always: on a real core (the LiteX VexRiscv, a hardware MVU) they differ, and a report
+/// that gave one for the other would be wrong by the CPI; under QEMU `-icount shift=0` they are
+/// equal by construction.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct PhaseCounters {
     pub cycles: u64,
     pub instructions: u64,
+}
+
+impl PhaseCounters {
+    /// The counts from `earlier` to `self`, two readings of free-running counters.
+    pub fn since(self, earlier: PhaseCounters) -> PhaseCounters {
+        PhaseCounters {
+            cycles: self.cycles.wrapping_sub(earlier.cycles),
+            instructions: self.instructions.wrapping_sub(earlier.instructions),
+        }
+    }
+
+    pub fn saturating_add(self, other: PhaseCounters) -> PhaseCounters {
+        PhaseCounters {
+            cycles: self.cycles.saturating_add(other.cycles),
+            instructions: self.instructions.saturating_add(other.instructions),
+        }
+    }
+
+    pub fn saturating_sub(self, other: PhaseCounters) -> PhaseCounters {
+        PhaseCounters {
+            cycles: self.cycles.saturating_sub(other.cycles),
+            instructions: self.instructions.saturating_sub(other.instructions),
+        }
+    }
+
+    /// Each count's own maximum (the slowest hart by cycles need not retire the most
+    /// instructions).
+    pub fn max_each(self, other: PhaseCounters) -> PhaseCounters {
+        PhaseCounters {
+            cycles: self.cycles.max(other.cycles),
+            instructions: self.instructions.max(other.instructions),
+        }
+    }
+
+    /// Cycles per instruction; `None` with no instruction counted.
+    pub fn cpi(self) -> Option<f64> {
+        (self.instructions > 0).then(|| self.cycles as f64 / self.instructions as f64)
+    }
+
+    /// Cycles in which no instruction retired: `cycles − instructions` (0 if fewer), what the
+    /// live reports send beside `cycles`.
+    pub fn stall_cycles(self) -> u64 {
+        self.cycles.saturating_sub(self.instructions)
+    }
+
+    /// The counts a live report's `cycles` and `stall_cycles` give.
+    pub fn from_stalls(cycles: u64, stall_cycles: u64) -> PhaseCounters {
+        PhaseCounters {
+            cycles,
+            instructions: cycles.saturating_sub(stall_cycles),
+        }
+    }
+}
+
+impl core::ops::AddAssign for PhaseCounters {
+    /// Saturating: a count never wraps into a small one.
+    fn add_assign(&mut self, other: PhaseCounters) {
+        *self = self.saturating_add(other);
+    }
 }
 
 /// How one direction of a (possibly fused) solve ended.
@@ -347,23 +414,33 @@ pub struct DirectionReport {
     pub residual: f64,
 }
 
-/// Retired instructions of one CG iteration (or, in `SolveReport::whole_solve`, of a whole
-/// solve), measured hart by hart.
+/// Cycles and retired instructions of one CG iteration (or, in `SolveReport::whole_solve`, of a
+/// whole solve), measured hart by hart (protocol version 11: cycles beside instructions; before,
+/// instructions only).
 ///
-/// Under QEMU `-icount` every hart's `minstret` reads one machine-wide instruction count, so the
+/// Under QEMU `-icount` every hart's `minstret` and `mcycle` read one machine-wide count, so the
 /// target runs every parallel phase one hart at a time (the others asleep in `wfi`): each
-/// hart's delta is then exactly its own work, barrier waits excluded.
+/// hart's delta is then exactly its own work, barrier waits excluded. There cycles equal
+/// instructions; on the LiteX VexRiscv (one hart) the cycles are the RTL's.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct IterationCost {
-    /// Σ over the MVU phase's steps of the slowest hart's instructions (thesis T_MVU).
-    pub mvu_critical: u64,
-    /// Σ over the SVU's steps of the slowest hart's instructions, plus hart 0's scalar work
+    /// Σ over the MVU phase's steps of the slowest hart's counts (thesis T_MVU), each count's
+    /// own slowest hart.
+    pub mvu_critical: PhaseCounters,
+    /// Σ over the SVU's steps of the slowest hart's counts, plus hart 0's scalar work
     /// (thesis T_SVU).
-    pub svu_critical: u64,
-    /// All harts' MVU-phase instructions together.
-    pub mvu_total: u64,
-    /// All harts' SVU-phase instructions together.
-    pub svu_total: u64,
+    pub svu_critical: PhaseCounters,
+    /// All harts' MVU-phase counts together.
+    pub mvu_total: PhaseCounters,
+    /// All harts' SVU-phase counts together.
+    pub svu_total: PhaseCounters,
+}
+
+impl IterationCost {
+    /// T = T_MVU + T_SVU (thesis eq. 55): the critical path, in cycles and in instructions.
+    pub fn critical(&self) -> PhaseCounters {
+        self.mvu_critical.saturating_add(self.svu_critical)
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -400,10 +477,10 @@ pub struct SolveReport {
     /// from the start of the solve to its end. `mvu_critical + svu_critical` is the solve's
     /// critical path, measured, not extrapolated from `per_iteration`.
     pub whole_solve: IterationCost,
-    /// (Protocol version 6.) Hart 0's serial (scalar) instructions in the first iteration: α,
-    /// β, block exponents and combining the harts' partial results. Part of
+    /// (Protocol version 6; cycles since 11.) Hart 0's serial (scalar) work in the first
+    /// iteration: α, β, block exponents and combining the harts' partial results. Part of
     /// `per_iteration.svu_critical`.
-    pub first_iteration_scalar: u64,
+    pub first_iteration_scalar: PhaseCounters,
 }
 
 /// Why CG stopped without an answer.
@@ -456,7 +533,7 @@ pub enum ErrorCode {
     OverlapTooLarge { rows: u32, capacity: u32 },
     #[error("live loop: {0}")]
     Live(crate::live::LiveError),
-    /// Version 11.
+    /// Version 12.
     #[error("dynamic frames: {0}")]
     Dynamic(crate::dynamics::DynamicError),
 }
@@ -580,6 +657,10 @@ mod tests {
             converged: false,
             residual: f64::MAX,
         };
+        let max = PhaseCounters {
+            cycles: u64::MAX,
+            instructions: u64::MAX,
+        };
         let report = SolveReport {
             iterations: u32::MAX,
             converged: false,
@@ -597,19 +678,19 @@ mod tests {
                 instructions: u64::MAX,
             },
             per_iteration: IterationCost {
-                mvu_critical: u64::MAX,
-                svu_critical: u64::MAX,
-                mvu_total: u64::MAX,
-                svu_total: u64::MAX,
+                mvu_critical: max,
+                svu_critical: max,
+                mvu_total: max,
+                svu_total: max,
             },
             saturations: u32::MAX,
             whole_solve: IterationCost {
-                mvu_critical: u64::MAX,
-                svu_critical: u64::MAX,
-                mvu_total: u64::MAX,
-                svu_total: u64::MAX,
+                mvu_critical: max,
+                svu_critical: max,
+                mvu_total: max,
+                svu_total: max,
             },
-            first_iteration_scalar: u64::MAX,
+            first_iteration_scalar: max,
         };
         let resp = crate::transport::Uplink::Reply {
             seq: u16::MAX,

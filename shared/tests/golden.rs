@@ -99,19 +99,26 @@ fn report() -> SolveReport {
             instructions: 66,
         },
         per_iteration: IterationCost {
-            mvu_critical: 1000,
-            svu_critical: 200,
-            mvu_total: 4000,
-            svu_total: 800,
+            mvu_critical: counters(2_000, 1_000),
+            svu_critical: counters(390, 200),
+            mvu_total: counters(8_000, 4_000),
+            svu_total: counters(1_500, 800),
         },
         saturations: 1,
         whole_solve: IterationCost {
-            mvu_critical: 41_000,
-            svu_critical: 8_100,
-            mvu_total: 160_000,
-            svu_total: 32_000,
+            mvu_critical: counters(82_000, 41_000),
+            svu_critical: counters(16_000, 8_100),
+            mvu_total: counters(320_000, 160_000),
+            svu_total: counters(64_000, 32_000),
         },
-        first_iteration_scalar: 3_012,
+        first_iteration_scalar: counters(6_000, 3_012),
+    }
+}
+
+fn counters(cycles: u64, instructions: u64) -> PhaseCounters {
+    PhaseCounters {
+        cycles,
+        instructions,
     }
 }
 
@@ -285,21 +292,25 @@ impl Golden for Response {
                 iterations: 412,
                 cycles: 1 << 33,
                 converged: true,
+                stall_cycles: 1 << 32,
             }),
             Response::LiveFrame(FrameReport {
                 force: [-0.5, 0.0, 3.25],
                 residual: 1e-5,
                 iterations: 23,
                 cycles: 281_000,
+                stall_cycles: 140_000,
             }),
             Response::LiveForce(ForceReport {
                 force: [1.0, -1.0, 0.125],
                 cycles: 900,
+                stall_cycles: 0,
             }),
             Response::Field(FieldChunk {
                 offset: 6,
                 exponent: -12,
                 cycles: 21_000,
+                stall_cycles: 9_000,
                 values: [1, 0, -255, 3, i16::MIN, i16::MAX].into_iter().collect(),
             }),
             Response::LiveMotion(MotionReport {
@@ -307,10 +318,12 @@ impl Golden for Response {
                 residual: 1e-5,
                 iterations: 23,
                 cycles: 281_000,
+                stall_cycles: 140_000,
             }),
             Response::LiveMotionQuery(MotionQuery {
                 displacement: [1.0, -1.0, 0.125],
                 cycles: 900,
+                stall_cycles: 450,
             }),
         ]
     }

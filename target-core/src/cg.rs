@@ -37,8 +37,8 @@
 //!
 //! # Measured, not extrapolated
 //!
-//! Every parallel phase runs through [`Executor::run_measured`], so every hart's instructions
-//! in every phase are known exactly; the report carries the first iteration's breakdown
+//! Every parallel phase runs through [`Executor::run_measured`], so every hart's cycles and
+//! instructions in every phase are known exactly; the report carries the first iteration's breakdown
 //! (`per_iteration`) and the whole solve's critical path (`whole_solve`: per phase the slowest
 //! hart, plus all of hart 0's serial work).
 
@@ -388,23 +388,25 @@ impl Direction {
     }
 }
 
-/// The measured instruction counts of a solve: the first iteration's breakdown and the whole
-/// solve's critical path, phase by phase.
+/// The measured counts (cycles and instructions) of a solve: the first iteration's breakdown
+/// and the whole solve's critical path, phase by phase.
 #[derive(Default)]
 struct Costs {
     /// The first CG iteration is running: its counts also go to `first`.
     first_iteration: bool,
     first: IterationCost,
-    /// Hart 0's serial (scalar) instructions of the first iteration, part of `first`.
-    first_scalar: u64,
+    /// Hart 0's serial (scalar) work of the first iteration, part of `first`.
+    first_scalar: PhaseCounters,
     whole: IterationCost,
 }
 
 impl Costs {
-    fn parallel(&mut self, counts: [u64; MAX_HARTS], harts: usize, mvu: bool) {
+    fn parallel(&mut self, counts: [PhaseCounters; MAX_HARTS], harts: usize, mvu: bool) {
         let counts = &counts[..harts.min(MAX_HARTS)];
-        let max = counts.iter().copied().max().unwrap_or(0);
-        let sum: u64 = counts.iter().sum();
+        let max = crate::exec::slowest(counts);
+        let sum = counts
+            .iter()
+            .fold(PhaseCounters::default(), |s, &c| s.saturating_add(c));
         for (cost, on) in [
             (&mut self.whole, true),
             (&mut self.first, self.first_iteration),
@@ -422,13 +424,13 @@ impl Costs {
         }
     }
 
-    fn serial(&mut self, instructions: u64) {
-        self.whole.svu_critical += instructions;
-        self.whole.svu_total += instructions;
+    fn serial(&mut self, counts: PhaseCounters) {
+        self.whole.svu_critical += counts;
+        self.whole.svu_total += counts;
         if self.first_iteration {
-            self.first.svu_critical += instructions;
-            self.first.svu_total += instructions;
-            self.first_scalar += instructions;
+            self.first.svu_critical += counts;
+            self.first.svu_total += counts;
+            self.first_scalar += counts;
         }
     }
 }
@@ -799,8 +801,7 @@ impl Clock {
     /// Charges hart 0's serial work since the last parallel phase (or flush) to the costs.
     fn flush_serial(&mut self, clock: &impl PhaseClock) {
         let now = clock.now();
-        self.costs
-            .serial(now.instructions.wrapping_sub(self.last.instructions));
+        self.costs.serial(now.since(self.last));
         self.last = now;
     }
 }
@@ -819,13 +820,12 @@ struct Solver<'s, 'e, 'a, E: Executor> {
 
 impl<E: Executor> Solver<'_, '_, '_, E> {
     /// The cycle budget (`SolveParams::cycle_budget`, 0 for none): no new iteration starts
-    /// once the critical path measured since the solve began (every parallel phase's slowest
-    /// hart plus hart 0's serial work, as in `SolveReport::whole_solve`) reaches it, so a
+    /// once the critical path's cycles measured since the solve began (every parallel phase's
+    /// slowest hart plus hart 0's serial work, as in `SolveReport::whole_solve`) reach it, so a
     /// budgeted step ends within one iteration of its budget with the residual it reached.
     fn within_budget(&self) -> bool {
-        let whole = &self.clock.costs.whole;
         self.params.cycle_budget == 0
-            || whole.mvu_critical.saturating_add(whole.svu_critical) < self.params.cycle_budget
+            || self.clock.costs.whole.critical().cycles < self.params.cycle_budget
     }
 
     fn f(&self) -> i32 {
@@ -1209,7 +1209,7 @@ pub fn solve(
 pub struct Product {
     pub or: [u64; MAX_DIRECTIONS],
     pub on_hart0: PhaseCounters,
-    pub critical: u64,
+    pub critical: PhaseCounters,
 }
 
 /// K·v for up to three vectors at once, `vectors[k]` into lane k of `work.kp` as exact `i64` row
@@ -1278,11 +1278,8 @@ pub fn product(
     let now = exec.now();
     Ok(Product {
         or,
-        on_hart0: PhaseCounters {
-            cycles: now.cycles.wrapping_sub(t0.cycles),
-            instructions: now.instructions.wrapping_sub(t0.instructions),
-        },
-        critical: clock.costs.whole.mvu_critical + clock.costs.whole.svu_critical,
+        on_hart0: now.since(t0),
+        critical: clock.costs.whole.critical(),
     })
 }
 
@@ -1392,9 +1389,7 @@ unsafe fn carry(y: *mut Sums, part: Sums, directions: usize) {
 }
 
 fn charge(total: &mut PhaseCounters, since: PhaseCounters, clock: &impl PhaseClock) {
-    let now = clock.now();
-    total.cycles += now.cycles.wrapping_sub(since.cycles);
-    total.instructions += now.instructions.wrapping_sub(since.instructions);
+    *total += clock.now().since(since);
 }
 
 #[cfg(test)]

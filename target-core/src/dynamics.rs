@@ -1,4 +1,4 @@
-//! Target-resident dynamic frames ([`deform_shared::dynamics`], protocol version 11): the
+//! Target-resident dynamic frames ([`deform_shared::dynamics`], protocol version 12): the
 //! target's half. The tool set and the state's bookkeeping, and the integer passes of a
 //! backward-Euler step S·v₁ = M·v₀ − h·K·u₀ (tool velocities moved over), u₁ = u₀ + h·v₁. The
 //! session (`dynamic_glue.rs`) owns the vectors and runs the passes on its harts:

@@ -43,9 +43,18 @@ pub trait Executor: PhaseClock + Sync {
     fn run(&self, harts: usize, task: Task<'_>);
 
     /// Like [`run`](Self::run), but one hart at a time while the others sleep, so that each
-    /// hart's retired-instruction count over its own task is exact; returns those counts
-    /// (zero where the executor cannot count).
-    fn run_measured(&self, harts: usize, task: Task<'_>) -> [u64; MAX_HARTS];
+    /// hart's cycle and retired-instruction counts over its own task are exact; returns those
+    /// counts (zero where the executor cannot count).
+    fn run_measured(&self, harts: usize, task: Task<'_>) -> [PhaseCounters; MAX_HARTS];
+}
+
+/// The slowest of `harts`' counts from [`Executor::run_measured`], each count its own slowest
+/// hart's (the hart with the most cycles need not retire the most instructions): a parallel
+/// phase's critical path.
+pub fn slowest(counts: &[PhaseCounters]) -> PhaseCounters {
+    counts
+        .iter()
+        .fold(PhaseCounters::default(), |m, &c| m.max_each(c))
 }
 
 /// Runs every hart's task in turn on the calling thread: the host's stand-in for N MVUs.
@@ -70,9 +79,9 @@ impl Executor for Sequential {
         }
     }
 
-    fn run_measured(&self, harts: usize, task: Task<'_>) -> [u64; MAX_HARTS] {
+    fn run_measured(&self, harts: usize, task: Task<'_>) -> [PhaseCounters; MAX_HARTS] {
         self.run(harts, task);
-        [0; MAX_HARTS]
+        [PhaseCounters::default(); MAX_HARTS]
     }
 }
 

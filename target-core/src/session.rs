@@ -177,7 +177,7 @@ enum MatrixState {
     },
 }
 
-/// The stiffness copy of the resident matrix (protocol version 11).
+/// The stiffness copy of the resident matrix (protocol version 12).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum StiffnessState {
     Empty,
@@ -229,7 +229,7 @@ pub struct Session<'a, E: Executor> {
     kept: [Option<i32>; MAX_DIRECTIONS],
     /// The live loop's tool set and local force model ([`crate::live`]).
     live: Live,
-    /// The stiffness copy's state (protocol version 11).
+    /// The stiffness copy's state (protocol version 12).
     stiffness: StiffnessState,
     /// A dynamic session's tools and state ([`crate::dynamics`]).
     dynamic: Dynamic,

@@ -343,7 +343,7 @@ fn deform_live_runs_dynamic_frames_over_a_port() {
         mvus: 1,
     };
     // The needle is a tool-driven, backward-Euler, isotropic tissue of one mass: the target
-    // forms its steps (protocol 11), so a frame is the tool's motion up and its force down.
+    // forms its steps (protocol 12), so a frame is the tool's motion up and its force down.
     assert_eq!(engine.name(), "target (dynamic, resident)");
     let report = SessionReport::of(&live, &*engine, &options, place, &frames, &summary);
     let r = serde_json::to_value(&report).unwrap();
@@ -367,7 +367,7 @@ fn deform_live_runs_dynamic_frames_over_a_port() {
     assert_alive(&mut qemu);
 }
 
-/// Target-resident dynamic frames (protocol version 11, issue 19 item 3) on 8 MVUs: the needle
+/// Target-resident dynamic frames (protocol version 12, issue 19 item 3) on 8 MVUs: the needle
 /// of examples/needle-dynamic-8b.toml at h = 1 ms, the target forming every step's right-hand
 /// side itself. The displacements stay
 /// within 1e-4 of the session's peak |u| of the host's f64 stepper (fed the tool's positions

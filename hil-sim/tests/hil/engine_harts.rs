@@ -242,11 +242,26 @@ fn one_to_eight_mvus_agree_bit_for_bit_and_with_f64() {
     }
     let one = costs[0].1;
     let eight = costs[3].1;
-    assert!(one.mvu_critical > 0 && one.svu_critical > 0, "{one:?}");
     assert!(
-        eight.mvu_critical * 4 < one.mvu_critical,
-        "8 MVUs {} vs 1 MVU {} instructions",
-        eight.mvu_critical,
-        one.mvu_critical
+        one.mvu_critical.instructions > 0 && one.svu_critical.instructions > 0,
+        "{one:?}"
     );
+    assert!(
+        eight.mvu_critical.instructions * 4 < one.mvu_critical.instructions,
+        "8 MVUs {} vs 1 MVU {} instructions",
+        eight.mvu_critical.instructions,
+        one.mvu_critical.instructions
+    );
+    // Under `-icount shift=0` every hart retires one instruction per cycle: the target's
+    // `mcycle` and `minstret` agree phase by phase, on one hart and on eight.
+    for (harts, cost) in &costs {
+        for phase in [
+            cost.mvu_critical,
+            cost.svu_critical,
+            cost.mvu_total,
+            cost.svu_total,
+        ] {
+            assert_eq!(phase.cycles, phase.instructions, "{harts} harts: {cost:?}");
+        }
+    }
 }

@@ -130,9 +130,10 @@ fn a_solve_logs_decoded_lines_with_level_and_location_and_info_hides_debug() {
             report.iterations
         ),
     );
-    assert!(solved
-        .message
-        .contains(&format!("MVU {} cycles", report.mvu.cycles)));
+    assert!(solved.message.contains(&format!(
+        "MVU {} cycles / {} instructions",
+        report.mvu.cycles, report.mvu.instructions
+    )));
     assert!(solved
         .location
         .as_deref()

@@ -129,9 +129,9 @@ fn every_layout_matches_f64_and_each_other() {
                      per iteration MVU critical {} / total {}, SVU critical {}",
                     got.directions.iter().map(|d| d.iterations).collect::<Vec<_>>(),
                     got.reports.len(),
-                    cost.mvu_critical,
-                    cost.mvu_total,
-                    cost.svu_critical
+                    cost.mvu_critical.instructions,
+                    cost.mvu_total.instructions,
+                    cost.svu_critical.instructions
                 );
                 let xs: Vec<Vec<f64>> = got.directions.iter().map(|d| d.x.clone()).collect();
                 for (d, (x, want)) in xs.iter().zip(&reference).enumerate() {

@@ -41,7 +41,7 @@ fn default_scenario_matches_f64_from_fixed_point_alone() {
     let x = &solved.stats.directions[0];
     assert_eq!(x.solves, 1);
     let engine = solved.stats.engine.as_ref().expect("a target run");
-    assert!(x.iterations > 0 && engine.cycles > 0, "{x:?}");
+    assert!(x.iterations > 0 && engine.hart0.cycles > 0, "{x:?}");
     // The load pushes the loaded node in +x.
     let loaded = 5 * 10 + 5 * 100;
     assert!(solved.u[0][loaded] > 0.0);

@@ -60,7 +60,6 @@ pub fn build(flags: &deform_host::model::flags::ModelFlags) -> deform_host::mode
 pub fn timeouts() -> Timeouts {
     Timeouts {
         handshake: Duration::from_secs(20),
-        hello_retry: Duration::from_secs(2),
         request: Duration::from_secs(20),
         solve: Duration::from_secs(120),
         ..Timeouts::default()

@@ -134,8 +134,8 @@ fn yes_no(b: bool) -> &'static str {
 fn step_cycles(reports: &[SolveReport]) -> (u64, u64) {
     reports.iter().fold((0, 0), |(mvu, svu), r| {
         (
-            mvu + r.whole_solve.mvu_critical,
-            svu + r.whole_solve.svu_critical,
+            mvu + r.whole_solve.mvu_critical.cycles,
+            svu + r.whole_solve.svu_critical.cycles,
         )
     })
 }

@@ -63,10 +63,15 @@ pub struct SweepPoint {
     pub partition: String,
     /// Only half of A was stored (conjugate symmetry).
     pub symmetry_used: bool,
-    /// Critical-path cycles of one iteration: T_MVU (slowest MVU), T_SVU and T = their sum.
+    /// Critical-path cycles of one iteration: T_MVU (slowest MVU), T_SVU and T = their sum
+    /// (the target's `mcycle`: equal to the instructions under QEMU `-icount`, the RTL's
+    /// cycles on the LiteX SoC).
     pub mvu_cycles_per_iteration: f64,
     pub svu_cycles_per_iteration: f64,
     pub cycles_per_iteration: f64,
+    /// T in retired instructions, and cycles per instruction.
+    pub critical_instructions_per_iteration: f64,
+    pub cpi: Option<f64>,
     /// All harts' instructions of one iteration, by phase.
     pub mvu_instructions_per_iteration: f64,
     pub svu_instructions_per_iteration: f64,
@@ -227,7 +232,7 @@ fn measure(
         )));
     };
     let cost = report.per_iteration;
-    let cycles = perf.critical_path_cycles as f64;
+    let cycles = perf.critical_path.cycles as f64;
     Ok(Measured::Point(SweepPoint {
         model,
         edge,
@@ -239,11 +244,13 @@ fn measure(
         mvus_used: report.mvus,
         partition: encoding.summary.partition.to_string(),
         symmetry_used: encoding.summary.symmetry_used,
-        mvu_cycles_per_iteration: perf.mvu_critical_cycles as f64,
-        svu_cycles_per_iteration: perf.svu_critical_cycles as f64,
+        mvu_cycles_per_iteration: perf.mvu_critical.cycles as f64,
+        svu_cycles_per_iteration: perf.svu_critical.cycles as f64,
         cycles_per_iteration: cycles,
-        mvu_instructions_per_iteration: cost.mvu_total as f64,
-        svu_instructions_per_iteration: cost.svu_total as f64,
+        critical_instructions_per_iteration: perf.critical_path.instructions as f64,
+        cpi: perf.critical_path.cpi,
+        mvu_instructions_per_iteration: cost.mvu_total.instructions as f64,
+        svu_instructions_per_iteration: cost.svu_total.instructions as f64,
         instructions_per_nonzero: perf.mvu_instructions_per_word,
         instructions_per_product: perf.mvu_instructions_per_product,
         microseconds_per_iteration: micros(cycles),

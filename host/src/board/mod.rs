@@ -323,11 +323,10 @@ pub fn session_timeouts(solve: std::time::Duration) -> Timeouts {
 }
 
 /// The simulated SoC runs about 0.8 M cycles per second and boots in about one: the handshake
-/// gets at least a minute, and each `Hello` some seconds before it is resent.
+/// gets at least a minute.
 pub fn litex_timeouts(timeouts: Timeouts) -> Timeouts {
     Timeouts {
         handshake: timeouts.handshake.max(std::time::Duration::from_secs(60)),
-        hello_retry: timeouts.hello_retry.max(std::time::Duration::from_secs(5)),
         ..timeouts
     }
 }

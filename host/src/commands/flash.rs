@@ -9,6 +9,7 @@ use clap::{Args, ValueEnum};
 
 use crate::board::LogFlags;
 use crate::board::{self, BiosChoice, Board, LoaderChoice};
+use crate::flash::boards;
 use crate::flash::sfl::{detect_bios, SflTimeouts};
 use crate::flash::{hex, FlashImage, LoaderTimeouts, IMAGE_ATTEMPTS};
 use crate::link::{open_serial, Timeouts};
@@ -101,6 +102,7 @@ pub fn run(args: &FlashArgs) -> anyhow::Result<()> {
         }
         _ => None,
     };
+    check_board(&image, bios.as_ref(), args.port.is_some())?;
     if let Some(bios) = bios {
         return flash_litex_bios(args, &bios, &image);
     }
@@ -156,6 +158,21 @@ pub fn run(args: &FlashArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Checks, before anything is started or sent, that the image lies in the RAM of the board it
+/// goes to: the simulated LiteX SoC's or QEMU's; on a port, only that a LiteX BIOS is not sent
+/// a QEMU build (the board's RAM is its own; deform's loader checks the range itself).
+fn check_board(image: &FlashImage, bios: Option<&BiosChoice>, on_port: bool) -> anyhow::Result<()> {
+    let board = match (bios, on_port) {
+        (Some(BiosChoice::Simulated), _) => boards::litex_soc(),
+        (Some(BiosChoice::Port(_)), _) if boards::built_for(image) == Some(boards::QEMU_VIRT) => {
+            boards::litex_soc()
+        }
+        (None, false) => boards::QEMU_VIRT,
+        _ => return Ok(()),
+    };
+    Ok(boards::check(image, &board)?)
+}
+
 /// Boots the image through a stock LiteX BIOS (SFL) and reports as [`run`] does.
 fn flash_litex_bios(args: &FlashArgs, bios: &BiosChoice, image: &FlashImage) -> anyhow::Result<()> {
     let sfl_timeouts = SflTimeouts {
@@ -163,6 +180,10 @@ fn flash_litex_bios(args: &FlashArgs, bios: &BiosChoice, image: &FlashImage) -> 
         retries: args.retries,
         ..SflTimeouts::default()
     };
+    if matches!(bios, BiosChoice::Simulated) {
+        // The simulated SoC takes tens of seconds to start and boot its BIOS before the bar moves.
+        eprintln!("starting the simulated LiteX SoC and its BIOS…");
+    }
     let bar = crate::progress::byte_bar(image.bytes.len() as u64, "flash");
     let started = std::time::Instant::now();
     let (board, report) = Board::flash_litex_bios(

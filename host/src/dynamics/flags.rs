@@ -26,7 +26,8 @@ pub struct DynamicFlags {
     pub mass: Option<f64>,
 
     /// Damper coefficient β beside every spring, N·s/m: one value, or BX,BY,BZ per direction
-    /// like k. [default: the scenario's `[dynamics] damping`, else 0.05]
+    /// like k; 0 is an undamped model (whose energy `--scheme trapezoidal` keeps). [default: the
+    /// scenario's `[dynamics] damping`, else 0.05]
     #[arg(long, value_name = "B|BX,BY,BZ", value_parser = parse_damping)]
     pub damping: Option<[f64; 3]>,
 
@@ -69,8 +70,21 @@ fn parse_positive(s: &str) -> Result<f64, String> {
     }
 }
 
+/// β ≥ 0: an undamped model (β = 0) is what the trapezoidal scheme keeps the energy of.
+fn parse_non_negative(s: &str) -> Result<f64, String> {
+    let v: f64 = s.trim().parse().map_err(|e| format!("{s:?}: {e}"))?;
+    if v.is_finite() && v >= 0.0 {
+        Ok(v)
+    } else {
+        Err(format!("{v} must be finite and not negative"))
+    }
+}
+
 fn parse_damping(s: &str) -> Result<[f64; 3], String> {
-    let v: Vec<f64> = s.split(',').map(parse_positive).collect::<Result<_, _>>()?;
+    let v: Vec<f64> = s
+        .split(',')
+        .map(parse_non_negative)
+        .collect::<Result<_, _>>()?;
     match v[..] {
         [b] => Ok([b; 3]),
         [x, y, z] => Ok([x, y, z]),

@@ -47,7 +47,7 @@
 //! [`step`] (right-hand side and update, shared by both solvers), [`host`] (the f64
 //! reference stepper), [`target`] (the series on the target), [`fixed_point`] (whether the
 //! target can hold S), [`resident`] (frames whose right-hand side the target forms itself,
-//! protocol version 11).
+//! protocol version 12).
 
 pub mod fixed_point;
 pub mod flags;

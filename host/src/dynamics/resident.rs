@@ -1,4 +1,4 @@
-//! Target-resident dynamic frames (protocol version 11, [`deform_shared::dynamics`]): the host
+//! Target-resident dynamic frames (protocol version 12, [`deform_shared::dynamics`]): the host
 //! half. Once per session the host uploads S = M + h·C + h²·K (scaled up by a power of two so
 //! that its entries use all 21 bits of the value field), K's values into the target's copy of
 //! S's words, and each tool node's rows of S and K; then every frame carries the tool's

@@ -7,6 +7,7 @@
 //! [`IMAGE_ATTEMPTS`] times. [`flash_and_connect`] then shakes hands with the started
 //! application and checks that it is the image just sent (its build id).
 
+pub mod boards;
 mod client;
 mod image;
 pub mod sfl;

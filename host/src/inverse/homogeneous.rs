@@ -101,15 +101,25 @@ pub fn equation_error(
     }
     let equations = obs.sets.len() * 3 * free_count(net);
     let variance = rss / (equations.saturating_sub(1).max(1)) as f64;
+    let standard_error = (variance / gg_all).sqrt();
+    let relative_residual = if ff_all > 0.0 {
+        (rss / ff_all).sqrt()
+    } else {
+        0.0
+    };
+    super::ensure_finite(
+        "equation-error",
+        &[
+            ("k", k),
+            ("its standard error", standard_error),
+            ("the relative residual", relative_residual),
+        ],
+    )?;
     Ok(HomogeneousEstimate {
         method: "equation-error",
         k,
-        standard_error: (variance / gg_all).sqrt(),
-        relative_residual: if ff_all > 0.0 {
-            (rss / ff_all).sqrt()
-        } else {
-            0.0
-        },
+        standard_error,
+        relative_residual,
         // A direction without loads says nothing about k̃ by itself.
         k_by_direction: [0, 1, 2].map(|d| (gg[d] > 0.0 && ff[d] > 0.0).then(|| fg[d] / gg[d])),
         equations,
@@ -223,11 +233,20 @@ pub fn output_error<P: Port>(
     let equations = obs.sets.len() * 3 * free.iter().filter(|&&f| f).count();
     let variance = rss / (equations.saturating_sub(1).max(1)) as f64;
     let se_c = (variance / ww_all).sqrt();
+    let relative_residual = if yy > 0.0 { (rss / yy).sqrt() } else { 0.0 };
+    super::ensure_finite(
+        "output-error",
+        &[
+            ("k", 1.0 / c),
+            ("its standard error", se_c / (c * c)),
+            ("the relative residual", relative_residual),
+        ],
+    )?;
     Ok(HomogeneousEstimate {
         method: "output-error",
         k: 1.0 / c,
         standard_error: se_c / (c * c),
-        relative_residual: if yy > 0.0 { (rss / yy).sqrt() } else { 0.0 },
+        relative_residual,
         k_by_direction: [0, 1, 2].map(|d| (ww[d] > 0.0 && wy[d] > 0.0).then(|| ww[d] / wy[d])),
         equations,
         solves: Some(count),

@@ -39,6 +39,21 @@ pub mod tumour;
 use crate::model::{Grid, Model, Node};
 
 pub use observations::{ObservationSet, Observations, ObservationsError};
+
+/// Refuses an estimate any of whose `values` (name, value) is NaN or infinite: a silent
+/// `k = 0.000000 ± NaN` is a wrong result, not a result.
+pub(crate) fn ensure_finite(
+    estimator: &'static str,
+    values: &[(&str, f64)],
+) -> Result<(), EstimateError> {
+    match values.iter().find(|(_, v)| !v.is_finite()) {
+        Some((name, value)) => Err(EstimateError::NotFinite {
+            estimator,
+            what: format!("{name} = {value}"),
+        }),
+        None => Ok(()),
+    }
+}
 pub use solver::{SolveCount, SpdSolver};
 
 /// Why an estimate could not be made.
@@ -51,6 +66,14 @@ pub enum EstimateError {
     },
     #[error("the observations hold no set")]
     NoSets,
+    #[error(
+        "the {estimator} estimate is not a finite number ({what}): the observations' values \
+         overflow or cancel in f64 arithmetic; check the file's displacements and loads"
+    )]
+    NotFinite {
+        estimator: &'static str,
+        what: String,
+    },
     #[error(transparent)]
     Solve(#[from] solver::SpdSolveError),
 }

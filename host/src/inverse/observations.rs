@@ -24,6 +24,10 @@ use std::path::Path;
 
 use crate::model::{Grid, Node};
 
+/// The largest magnitude a displacement or load may have: the estimators sum squares of products
+/// of them over up to 2²⁴ nodes, which overflows f64 (into ∞ and then NaN) beyond about 1e150.
+pub const MAX_MAGNITUDE: f64 = 1e100;
+
 /// The columns of an observation file, in order.
 pub const HEADER: [&str; 10] = ["set", "i", "j", "k", "ux", "uy", "uz", "fx", "fy", "fz"];
 
@@ -63,6 +67,16 @@ pub enum ObservationsError {
         first: u64,
         set: u64,
         node: Node,
+    },
+    #[error(
+        "{path}:{line}: node {node} is outside the {grid} grid the model flags give; fix the \
+         row, or pass the grid the observations were taken on (--grid)"
+    )]
+    OutsideGrid {
+        path: String,
+        line: u64,
+        node: Node,
+        grid: Grid,
     },
     #[error(
         "{path}: the observations cover a {}×{}×{} grid but the model flags give {grid}; \
@@ -118,7 +132,6 @@ impl Observations {
         // Per set: the line of each node's row (0 = none yet) and the values.
         let mut sets: BTreeMap<u64, (Vec<u64>, ObservationSet)> = BTreeMap::new();
         let mut found = [0usize; 3];
-        let mut outside = false;
         let mut record = csv::StringRecord::new();
         while csv
             .read_record(&mut record)
@@ -129,8 +142,12 @@ impl Observations {
                 *extent = (*extent).max(index.saturating_add(1));
             }
             let Some(p) = grid.index(row.node) else {
-                outside = true;
-                continue;
+                return Err(ObservationsError::OutsideGrid {
+                    path: name.to_string(),
+                    line: row.line,
+                    node: row.node,
+                    grid,
+                });
             };
             let (lines, values) = sets.entry(row.set).or_insert_with(|| {
                 (
@@ -157,7 +174,7 @@ impl Observations {
                 values.f[d][p] = row.f[d];
             }
         }
-        if outside || (!sets.is_empty() && found != [grid.nx(), grid.ny(), grid.nz()]) {
+        if !sets.is_empty() && found != [grid.nx(), grid.ny(), grid.nz()] {
             return Err(ObservationsError::GridMismatch {
                 path: name.to_string(),
                 found,
@@ -252,7 +269,16 @@ impl Row {
             })
         };
         let number = |index: usize| match field(index).parse::<f64>() {
-            Ok(v) if v.is_finite() => Ok(v),
+            Ok(v) if v.abs() <= MAX_MAGNITUDE => Ok(v),
+            Ok(v) if v.is_finite() => Err(malformed(
+                name,
+                line,
+                format!(
+                    "column `{}`: {v:e} is beyond ±{MAX_MAGNITUDE:e}, where the estimators' \
+                     sums of squares would overflow",
+                    HEADER[index]
+                ),
+            )),
             _ => Err(malformed(
                 name,
                 line,
@@ -354,6 +380,12 @@ mod tests {
         assert!(e.contains("obs.csv:4:") && e.contains("`set`"), "{e}");
         let e = error(&GOOD.replace("2e-3", "inf"));
         assert!(e.contains("obs.csv:5:") && e.contains("finite"), "{e}");
+        // Finite, but its square overflows the estimators' sums.
+        let e = error(&GOOD.replace("2e-3", "1e308"));
+        assert!(
+            e.contains("obs.csv:5:") && e.contains("`uz`: 1e308 is beyond"),
+            "{e}"
+        );
         let e = error("set,i,j,k,ux,uy,uz,fx,fy,fz\n");
         assert!(e.contains("no observation rows"), "{e}");
     }
@@ -367,10 +399,11 @@ mod tests {
             e.contains("obs.csv:3: node (1,0,0) appears twice in set 3 (first at line 2)"),
             "{e}"
         );
-        let e = error(&format!("{GOOD}1,2,0,0,0,0,0,0,0,0\n"));
+        // A row outside the grid is named by its line: a typo, not a larger grid.
+        let e = error(&format!("{GOOD}1,30,0,0,0,0,0,0,0,0\n"));
         assert!(
-            e.contains("cover a 3×1×1 grid but the model flags give 2×1×1")
-                && e.contains("--grid 3,1,1"),
+            e.contains("obs.csv:6: node (30,0,0) is outside the 2×1×1 grid")
+                && !e.contains("--grid 31"),
             "{e}"
         );
         let small = "set,i,j,k,ux,uy,uz,fx,fy,fz\n0,0,0,0,0,0,0,0,0,0\n";

@@ -506,6 +506,21 @@ pub fn estimate<P: Port>(
     let mut solves = SolveCount::default();
     let (k, scaled) = normal.solve(&pat, &diagonal, solver, &mut solves)?;
     let rss = misfit(net, &fields, &unknowns, &k);
+    let relative_residual = if normal.ff > 0.0 {
+        (rss / normal.ff).sqrt()
+    } else {
+        0.0
+    };
+    super::ensure_finite(
+        "per-spring",
+        &[
+            ("the relative residual", relative_residual),
+            (
+                "a spring's k",
+                k.iter().copied().find(|v| !v.is_finite()).unwrap_or(0.0),
+            ),
+        ],
+    )?;
     let node_stiffness = node_map(net, &unknowns.of, &k, prior_k);
     let stiff_region = stiff_region(net, &node_stiffness);
     let node_coords = |p: usize| {
@@ -520,11 +535,7 @@ pub fn estimate<P: Port>(
         normal_bandwidth: scaled.bandwidth(),
         prior_k,
         regularisation: regularisation.iter().map(|r| r.to_string()).collect(),
-        relative_residual: if normal.ff > 0.0 {
-            (rss / normal.ff).sqrt()
-        } else {
-            0.0
-        },
+        relative_residual,
         solves,
         min_k: k.iter().copied().fold(f64::INFINITY, f64::min),
         max_k: k.iter().copied().fold(f64::NEG_INFINITY, f64::max),

@@ -17,8 +17,9 @@ pub enum LinkError {
     #[error("serial I/O with the target failed: {0}")]
     Io(#[from] std::io::Error),
     #[error(
-        "no answer to {request} within {after:.1?} ({retries} retransmissions; is the target \
-         running, on this port, and the line not too noisy? see --link-timeout and --retries)"
+        "no answer to {request}: nothing acknowledged for {after:.1?} ({retries} \
+         retransmissions; is the target running, on this port, and the line not too noisy? see \
+         --link-timeout and --retries)"
     )]
     Timeout {
         request: &'static str,

@@ -7,20 +7,25 @@ use super::{LinkConfig, Timeouts, DEFAULT_REQUEST_TIMEOUT};
 /// How patiently the host talks to the target (`deform solve`, `deform simulate`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::Args)]
 pub struct LinkFlags {
-    /// Seconds a request may wait for its reply, retransmissions included, before the command
-    /// fails (the solve itself has its own --timeout). Also bounds the handshake.
+    /// Seconds the link may go without progress (nothing acknowledged by the target) before the
+    /// command fails: a noisy line that keeps moving is never given up on, a dead one fails this
+    /// long after its last answer (the solve itself has its own --timeout). Also bounds the
+    /// handshake.
     #[arg(long, value_name = "SECS", default_value_t = DEFAULT_REQUEST_TIMEOUT.as_secs(),
           value_parser = clap::value_parser!(u64).range(1..))]
     pub link_timeout: u64,
 
     /// Most milliseconds a frame waits for its reply before it is sent again (the wait adapts
     /// to the target's measured answer time and its variation, at least 20 ms); doubled after
-    /// each retry of the same frame, up to 8× this.
+    /// each retry of the same frame with no sign of a damaged line (NAK, corrupt frame) since,
+    /// up to 8× this.
     #[arg(long, value_name = "MS", default_value_t = LinkConfig::default().retransmit.as_millis() as u64,
           value_parser = clap::value_parser!(u64).range(1..))]
     pub retransmit_ms: u64,
 
-    /// Retransmissions of one frame before the command fails. Raise it on a very noisy line.
+    /// Retransmissions of one frame in a row with no sign of a damaged line between them (a
+    /// target that is not there) before the command fails; on a noisy line the link waits as
+    /// long as it makes progress (--link-timeout).
     #[arg(long, value_name = "N", default_value_t = LinkConfig::default().retries)]
     pub retries: u32,
 }

@@ -1,4 +1,4 @@
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use deform_shared::frame;
 use deform_shared::matrix::{validate_tile, words_crc, MatrixError};
@@ -12,7 +12,7 @@ use deform_shared::word::{Word, VALUE_MASK};
 use serialport::SerialPort;
 
 use super::adapt::ChunkSize;
-use super::transport::{Exchange, LinkConfig, DEFAULT_REQUEST_TIMEOUT};
+use super::transport::{LinkConfig, DEFAULT_REQUEST_TIMEOUT};
 use super::{open_serial, Capacity, Link, LinkError, LinkStats, Port};
 use crate::encode::EncodedMatrix;
 
@@ -21,10 +21,6 @@ use crate::encode::EncodedMatrix;
 pub struct Timeouts {
     /// The whole handshake, retries included.
     pub handshake: Duration,
-    /// How long one `Hello` waits before it is sent again. A QEMU pty passes the host's bytes to
-    /// the guest only once it notices the pty was opened (it polls once a second), and a board
-    /// may still be booting: a resent `Hello` is harmless, since `Hello` just resets the session.
-    pub hello_retry: Duration,
     /// How long every request but `Solve` may wait for its reply, retransmissions included.
     pub request: Duration,
     /// `Solve`: CG on the target may take far longer than a round trip.
@@ -56,7 +52,6 @@ impl Default for Timeouts {
     fn default() -> Self {
         Timeouts {
             handshake: Duration::from_secs(10),
-            hello_retry: Duration::from_secs(2),
             request: DEFAULT_REQUEST_TIMEOUT,
             solve: DEFAULT_SOLVE_TIMEOUT,
             retransmit: LinkConfig::default().retransmit,
@@ -538,51 +533,43 @@ fn expect_ack_reply(request: &Request, reply: Response) -> Result<(), LinkError>
 }
 
 /// `Hello` until an answer arrives within `timeouts.handshake`; checks the version.
+///
+/// One `Hello`, retransmitted with its own number like any request: the target answers a copy of
+/// the `Hello` it last handled from its reply cache, without resetting the session again, so an
+/// answer to any copy counts and the copies may follow as quickly as any request's (the
+/// retransmit timeout, doubled while the line stays silent: a QEMU pty or a booting board may
+/// hold the first for a second). On a noisy line that is what gets the handshake through:
+/// waiting seconds between fresh `Hello`s left five tries in ten seconds, each lost half the time
+/// at a byte-error rate of 1e-2.
 fn hello<P: Port>(link: &mut Link<P>, timeouts: &Timeouts) -> Result<TargetInfo, LinkError> {
     let request = Request::Hello {
         protocol_version: PROTOCOL_VERSION,
     };
-    let deadline = Instant::now() + timeouts.handshake;
-    loop {
-        let left = deadline.saturating_duration_since(Instant::now());
-        let attempt = left.min(timeouts.hello_retry);
-        match link.exchange(&request, attempt, Exchange::Handshake) {
-            Ok(Response::Hello(info)) if info.protocol_version == PROTOCOL_VERSION => {
-                return Ok(info)
-            }
-            Ok(Response::Hello(info)) => {
-                return Err(LinkError::VersionMismatch {
-                    host: PROTOCOL_VERSION,
-                    target: info.protocol_version,
-                })
-            }
-            Ok(other) => return Err(unexpected(&request, "Hello", &other)),
-            Err(LinkError::Target {
-                code: ErrorCode::VersionMismatch { target },
-                ..
-            }) => {
-                return Err(LinkError::VersionMismatch {
-                    host: PROTOCOL_VERSION,
-                    target,
-                })
-            }
-            Err(LinkError::Timeout { .. }) if Instant::now() < deadline => continue,
-            Err(LinkError::Timeout { request, .. }) => {
-                let undecodable = link.stats().undecodable;
-                if undecodable > 0 {
-                    return Err(LinkError::Incompatible {
-                        frames: undecodable,
-                        host: PROTOCOL_VERSION,
-                    });
-                }
-                return Err(LinkError::Timeout {
-                    request,
-                    after: timeouts.handshake,
-                    retries: link.stats().requests.saturating_sub(1) as u32,
-                });
-            }
-            Err(e) => return Err(e),
+    let request_timeout = link.timeout();
+    link.set_timeout(timeouts.handshake);
+    let answer = link.request(&request);
+    link.set_timeout(request_timeout);
+    match answer {
+        Ok(Response::Hello(info)) if info.protocol_version == PROTOCOL_VERSION => Ok(info),
+        Ok(Response::Hello(info)) => Err(LinkError::VersionMismatch {
+            host: PROTOCOL_VERSION,
+            target: info.protocol_version,
+        }),
+        Ok(other) => Err(unexpected(&request, "Hello", &other)),
+        Err(LinkError::Target {
+            code: ErrorCode::VersionMismatch { target },
+            ..
+        }) => Err(LinkError::VersionMismatch {
+            host: PROTOCOL_VERSION,
+            target,
+        }),
+        Err(LinkError::Timeout { .. }) if link.stats().undecodable > 0 => {
+            Err(LinkError::Incompatible {
+                frames: link.stats().undecodable,
+                host: PROTOCOL_VERSION,
+            })
         }
+        Err(e) => Err(e),
     }
 }
 

@@ -3,15 +3,22 @@
 //! delivered in order, retransmission on NAK or timeout (with exponential back-off), and
 //! bounded waiting everywhere.
 //!
-//! The host owns every timer. A request's frame is sent again when the target NAKs it, or when
-//! no reply came within the retransmit timeout: the smoothed time the target takes per request
-//! plus four times its variation (RFC 6298; at least 20 ms, at most
-//! [`LinkConfig::retransmit`]), doubled after each retry of the same frame up to 8×
-//! [`LinkConfig::retransmit`]. A request
-//! fails with [`LinkError::Timeout`] after [`LinkConfig::retries`] retransmissions or once it has
-//! waited [`Link::timeout`] in all, whichever comes first; a long-running request (`Solve`) that
-//! the target acknowledged may wait its own, longer, deadline. Nothing here can block longer
-//! than those bounds: every read and write on the port is bounded by the time left.
+//! The host owns every timer. A request's frame is sent again when the target NAKs it, when the
+//! target shows it handled the request but its reply was lost (a later reply, or a NAK naming a
+//! later number), or when no reply came within the retransmit timeout: the smoothed time the
+//! target takes per request plus four times its variation (RFC 6298; at least 20 ms, at most
+//! [`LinkConfig::retransmit`]). The timeout doubles (up to 8× [`LinkConfig::retransmit`]) only
+//! while the line shows no *damage*: with no NAK and no corrupt frame since the frame went out,
+//! the target is slow (or absent) and resending sooner would only load it; with damage, the line
+//! is noisy, the target there, and waiting longer would only lose time.
+//!
+//! The deadline follows **progress**: a run fails with [`LinkError::Timeout`] only once nothing
+//! has been acknowledged for [`Link::timeout`] (no reply, no `Ack`, no NAK naming a later number),
+//! or once one frame went [`LinkConfig::retries`] retransmissions without a sign of damage;
+//! a long-running request (`Solve`) that the target acknowledged may wait its own, longer,
+//! deadline. So a noisy line that keeps moving is never given up on, however many frames it
+//! damages, while a dead one fails within the timeout. Nothing here can block longer than those
+//! bounds: every read and write on the port is bounded by the time left.
 
 use std::collections::VecDeque;
 use std::io::ErrorKind;
@@ -25,7 +32,8 @@ use serialport::SerialPort;
 use super::adapt::{Adaptive, ChunkSize};
 use super::{open_serial, FrameEvent, FrameReader, LinkError, Port};
 
-/// How long a request may wait for its reply, retransmissions included, unless told otherwise.
+/// How long the link may go without progress (nothing acknowledged) before it fails, unless told
+/// otherwise.
 pub const DEFAULT_REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// The least retransmit timeout, however fast the target answers.
@@ -36,10 +44,12 @@ const MIN_RETRANSMIT: Duration = Duration::from_millis(20);
 pub struct LinkConfig {
     /// The longest a frame waits for its reply (or an ACK) before it is sent again, and the
     /// wait until the link has measured how fast the target answers (it then waits that time
-    /// plus four times its variation, at least 20 ms, at most this); doubled after every retransmission of the same
-    /// frame, up to 8× this.
+    /// plus four times its variation, at least 20 ms, at most this); doubled after every
+    /// retransmission of the same frame with no sign of a damaged line (no NAK, no corrupt frame)
+    /// since it went out, up to 8× this.
     pub retransmit: Duration,
-    /// Retransmissions of one frame before the request fails.
+    /// Retransmissions of one frame in a row with no sign of a damaged line between them before
+    /// the request fails: a target that is not there (or hangs), rather than a noisy line.
     pub retries: u32,
     /// Requests in flight (1 ..= [`WINDOW`]).
     pub window: u16,
@@ -47,8 +57,8 @@ pub struct LinkConfig {
 
 impl Default for LinkConfig {
     /// 250 ms is ~25 round trips of a full frame through a QEMU pty and far more than a
-    /// 115200-baud line needs for one; 16 retries make a request's failure on a line with a
-    /// byte-error rate of 1e-3 (40 % of full frames lost) a one-in-a-million event.
+    /// 115200-baud line needs for one. 16 undamaged retries with the doubling take longer than
+    /// [`DEFAULT_REQUEST_TIMEOUT`], which therefore decides by default.
     fn default() -> Self {
         LinkConfig {
             retransmit: Duration::from_millis(250),
@@ -56,16 +66,6 @@ impl Default for LinkConfig {
             window: WINDOW,
         }
     }
-}
-
-/// Which answers an exchange takes as its own.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Exchange {
-    /// A sequenced request: see [`Link::run`].
-    Request,
-    /// A `Hello`: sent once, and only its own `Hello` reply (or a version complaint) is taken.
-    /// Everything else on the line (noise, a previous session's replies, NAKs) is skipped.
-    Handshake,
 }
 
 /// Counters of what a [`Link`] saw, for diagnostics, reports and tests.
@@ -102,7 +102,6 @@ struct InFlight {
     seq: u16,
     request: Request,
     frame: Vec<u8>,
-    first_sent: Instant,
     last_sent: Instant,
     /// When the retransmit timer started: the last send, or the moment the request became the
     /// oldest without a reply, whichever is later.
@@ -113,6 +112,14 @@ struct InFlight {
     reply: Option<Response>,
     /// Whether a NAK already reported this send of it as damaged (see [`Adaptive`]).
     damage_counted: bool,
+    /// Whether the target has shown it handled the request (a later reply, or a NAK naming a
+    /// later number) though its reply has not arrived.
+    handled: bool,
+    /// Retransmissions in a row with no sign of damage since the send before: the back-off's
+    /// exponent.
+    quiet: u32,
+    /// [`Link::damage_seen`] at the last send, to tell a slow target from a noisy line.
+    damage_at_send: u64,
 }
 
 /// Something the target says besides replies, handed to the notice handler.
@@ -265,6 +272,8 @@ impl<P: Port> Link<P> {
         let mut window: VecDeque<InFlight> = VecDeque::new();
         let mut failure: Option<LinkError> = None;
         let mut exhausted = false;
+        // When the target last acknowledged anything new: the deadline counts from here.
+        let mut progress = Instant::now();
         loop {
             // Fill the window, unless a failure stops new requests.
             while !exhausted && failure.is_none() && window.len() < usize::from(self.adapt.window())
@@ -282,13 +291,15 @@ impl<P: Port> Link<P> {
                     seq,
                     request,
                     frame,
-                    first_sent: now,
                     last_sent: now,
                     timer: now,
                     retries: 0,
                     accepted: None,
                     reply: None,
                     damage_counted: false,
+                    handled: false,
+                    quiet: 0,
+                    damage_at_send: self.damage_seen(),
                 });
             }
             // Deliver the replies that are in order.
@@ -326,11 +337,11 @@ impl<P: Port> Link<P> {
                 if entry.reply.is_some() {
                     continue;
                 }
-                let deadline = self.deadline(entry, long_timeout);
+                let deadline = self.deadline(entry, progress, long_timeout);
                 if now >= deadline {
                     return Err(LinkError::Timeout {
                         request: entry.request.name(),
-                        after: deadline - entry.first_sent,
+                        after: now - entry.accepted.unwrap_or(progress),
                         retries: entry.retries,
                     });
                 }
@@ -344,9 +355,12 @@ impl<P: Port> Link<P> {
                 wake = wake.min(window[i].timer + self.backoff(&window[i]));
             }
             let (corrupt, received) = (self.stats.corrupt_frames, self.stats.bytes_received);
-            match self.receive(wake)? {
-                None => {}
+            let progressed = match self.receive(wake)? {
+                None => false,
                 Some(up) => self.on_frame(up, &mut window)?,
+            };
+            if progressed {
+                progress = Instant::now();
             }
             // What the line did, for the chunk and window (see `adapt`).
             self.adapt
@@ -358,11 +372,19 @@ impl<P: Port> Link<P> {
             let now = Instant::now();
             if let Some(i) = window.iter().position(|e| e.reply.is_none()) {
                 if now >= window[i].timer + self.backoff(&window[i]) {
-                    let entry = &window[i];
-                    if entry.accepted.is_none() && entry.retries >= self.config.retries {
+                    let damage = self.damage_seen();
+                    let entry = &mut window[i];
+                    // No damage since the last send: back off (a slow or absent target); damage:
+                    // the line is noisy, the target there, and waiting longer only loses time.
+                    if damage == entry.damage_at_send {
+                        entry.quiet += 1;
+                    } else {
+                        entry.quiet = 0;
+                    }
+                    if entry.accepted.is_none() && entry.quiet > self.config.retries {
                         return Err(LinkError::Timeout {
                             request: entry.request.name(),
-                            after: now - entry.first_sent,
+                            after: now - progress,
                             retries: entry.retries,
                         });
                     }
@@ -373,21 +395,21 @@ impl<P: Port> Link<P> {
         }
     }
 
-    /// When a request without reply fails.
-    fn deadline(&self, entry: &InFlight, long_timeout: Duration) -> Instant {
+    /// When a request without reply fails: [`Link::timeout`] after the last progress, or for a
+    /// long-running request the target acknowledged, `long_timeout` after its `Ack`.
+    fn deadline(&self, entry: &InFlight, progress: Instant, long_timeout: Duration) -> Instant {
         match entry.accepted {
             Some(at) => at + long_timeout,
-            None => entry.first_sent + self.timeout,
+            None => progress + self.timeout,
         }
     }
 
     /// The retransmit timeout for an entry's next retransmission.
     fn backoff(&self, entry: &InFlight) -> Duration {
-        // Doubling from the adaptive base up to 8× the configured timeout: a target that is
-        // merely slow (a long CRC check, a loaded host) is not given up on after a few quick
-        // resends; the request's overall timeout still bounds the wait.
-        let rto =
-            (self.base_rto() * (1u32 << entry.retries.min(10))).min(self.config.retransmit * 8);
+        // Doubling from the adaptive base, while the line shows no damage, up to 8× the configured
+        // timeout: a target that is merely slow (a long CRC check, a loaded host) is not flooded
+        // with resends; the deadline still bounds the wait.
+        let rto = (self.base_rto() * (1u32 << entry.quiet.min(10))).min(self.config.retransmit * 8);
         if entry.accepted.is_some() {
             // The target is working on it; resend only to recover a lost reply.
             rto.max(Duration::from_secs(1))
@@ -399,6 +421,7 @@ impl<P: Port> Link<P> {
     fn retransmit(&mut self, entry: &mut InFlight) -> Result<(), LinkError> {
         self.write(&entry.frame)?;
         self.stats.bytes_resent += entry.frame.len() as u64;
+        entry.damage_at_send = self.damage_seen();
         entry.last_sent = Instant::now();
         entry.timer = entry.last_sent;
         entry.damage_counted = false;
@@ -409,71 +432,18 @@ impl<P: Port> Link<P> {
         Ok(())
     }
 
-    fn on_frame(&mut self, up: Uplink, window: &mut VecDeque<InFlight>) -> Result<(), LinkError> {
+    /// Takes one frame from the target; whether it acknowledged anything new (progress).
+    fn on_frame(&mut self, up: Uplink, window: &mut VecDeque<InFlight>) -> Result<bool, LinkError> {
         match up {
-            Uplink::Reply { seq, body } => {
-                match window.iter_mut().position(|e| e.seq == seq) {
-                    Some(i) if window[i].reply.is_none() => {
-                        let was_oldest = window.iter().position(|e| e.reply.is_none()) == Some(i);
-                        window[i].reply = Some(body);
-                        let now = Instant::now();
-                        if was_oldest && window[i].retries == 0 && window[i].accepted.is_none() {
-                            // How long the target took for it once it was the oldest: its frame's
-                            // time on the line and its handling, without the queue before it.
-                            let sample = now - window[i].timer;
-                            self.measure(sample);
-                        }
-                        // The next request without a reply starts its timer now.
-                        if was_oldest {
-                            if let Some(next) = window.iter_mut().find(|e| e.reply.is_none()) {
-                                next.timer = next.timer.max(now);
-                            }
-                        }
-                        // A reply acknowledges every request before it: those still without a
-                        // reply were handled but their replies lost; resend them now (the target
-                        // answers from its reply cache).
-                        let guard = self.nak_guard();
-                        for entry in window.iter_mut().take(i) {
-                            if entry.reply.is_none() && now >= entry.last_sent + guard {
-                                self.retransmit(entry)?;
-                            }
-                        }
-                    }
-                    _ => self.stats.stale_answers += 1,
-                }
-            }
+            Uplink::Reply { seq, body } => return self.on_reply(seq, body, window),
             Uplink::Ack { seq } => {
                 if let Some(entry) = window.iter_mut().find(|e| e.seq == seq) {
+                    let new = entry.accepted.is_none();
                     entry.accepted.get_or_insert_with(Instant::now);
+                    return Ok(new);
                 }
             }
-            Uplink::Nak { expected } => {
-                self.stats.naks += 1;
-                let guard = self.nak_guard();
-                if let Some(entry) = window
-                    .iter_mut()
-                    .find(|e| e.seq == expected && e.reply.is_none() && !e.damage_counted)
-                {
-                    // One damaged frame however many NAKs name it before it is sent again.
-                    entry.damage_counted = true;
-                    self.adapt.damage();
-                }
-                if let Some(entry) = window.iter_mut().find(|e| e.seq == expected) {
-                    // Several NAKs may name the same frame (each corrupt frame that follows
-                    // the loss draws one); resend it at once, then at most once per round trip.
-                    let resent_lately = entry.retries > 0 && entry.last_sent.elapsed() < guard;
-                    if entry.reply.is_none() && !resent_lately {
-                        if entry.retries >= self.config.retries {
-                            return Err(LinkError::Timeout {
-                                request: entry.request.name(),
-                                after: entry.first_sent.elapsed(),
-                                retries: entry.retries,
-                            });
-                        }
-                        self.retransmit(entry)?;
-                    }
-                }
-            }
+            Uplink::Nak { expected } => return self.on_nak(expected, window),
             Uplink::NotSynced { seq } => {
                 if window.iter().any(|e| e.seq == seq) {
                     return Err(LinkError::TargetReset);
@@ -487,7 +457,117 @@ impl<P: Port> Link<P> {
                 })
             }
         }
+        Ok(false)
+    }
+
+    /// A reply: delivered to its request, and an acknowledgement of every request before it.
+    fn on_reply(
+        &mut self,
+        seq: u16,
+        body: Response,
+        window: &mut VecDeque<InFlight>,
+    ) -> Result<bool, LinkError> {
+        // A handshake takes only a `Hello` (or a version complaint) as its answer: anything else
+        // with its number is a previous session's.
+        let Some(i) = window.iter().position(|e| {
+            e.seq == seq
+                && e.reply.is_none()
+                && (!matches!(e.request, Request::Hello { .. }) || is_handshake_answer(&body))
+        }) else {
+            self.stats.stale_answers += 1;
+            return Ok(false);
+        };
+        let was_oldest = window.iter().position(|e| e.reply.is_none()) == Some(i);
+        window[i].reply = Some(body);
+        let now = Instant::now();
+        // Not the handshake's `Hello`: a QEMU pty passes it on only once QEMU notices the pty
+        // was opened (up to a second), which says nothing about the line's round trip.
+        let handshake = matches!(window[i].request, Request::Hello { .. });
+        if was_oldest && window[i].retries == 0 && window[i].accepted.is_none() && !handshake {
+            // How long the target took for it once it was the oldest: its frame's time on the
+            // line and its handling, without the queue before it.
+            let sample = now - window[i].timer;
+            self.measure(sample);
+        }
+        // The next request without a reply starts its timer now.
+        if was_oldest {
+            if let Some(next) = window.iter_mut().find(|e| e.reply.is_none()) {
+                next.timer = next.timer.max(now);
+            }
+        }
+        self.fetch_lost_replies(window, i)?;
+        Ok(true)
+    }
+
+    /// A NAK: resends the frame it names, and, since the target handles requests in order and
+    /// names the one it waits for, acknowledges every request before that one.
+    fn on_nak(
+        &mut self,
+        expected: u16,
+        window: &mut VecDeque<InFlight>,
+    ) -> Result<bool, LinkError> {
+        self.stats.naks += 1;
+        // The requests before `expected`; a NAK naming a number older than them all (a stale
+        // one, or a target answering something outside this window) acknowledges nothing.
+        let handled = window
+            .iter()
+            .take_while(|e| {
+                let distance = expected.wrapping_sub(e.seq);
+                distance != 0 && distance <= 2 * WINDOW
+            })
+            .count();
+        let progress = window
+            .iter()
+            .take(handled)
+            .any(|e| e.reply.is_none() && !e.handled);
+        self.fetch_lost_replies(window, handled)?;
+        let guard = self.nak_guard();
+        if let Some(entry) = window
+            .iter_mut()
+            .find(|e| e.seq == expected && e.reply.is_none() && !e.damage_counted)
+        {
+            // One damaged frame however many NAKs name it before it is sent again.
+            entry.damage_counted = true;
+            self.adapt.damage();
+        }
+        if let Some(entry) = window.iter_mut().find(|e| e.seq == expected) {
+            // Several NAKs may name the same frame (each corrupt frame that follows the loss
+            // draws one); resend it at once, then at most once per round trip.
+            let resent_lately = entry.retries > 0 && entry.last_sent.elapsed() < guard;
+            if entry.reply.is_none() && !resent_lately {
+                self.retransmit(entry)?;
+            }
+        }
+        Ok(progress)
+    }
+
+    /// The first `handled` requests of the window were handled by the target: those still without
+    /// a reply lost it (the target sends its replies in order, before whatever told us), so they
+    /// are resent and the target answers them from its reply cache: at once when we learn it,
+    /// then at most once per [`Self::nak_guard`] (the cached reply may be on its way).
+    fn fetch_lost_replies(
+        &mut self,
+        window: &mut VecDeque<InFlight>,
+        handled: usize,
+    ) -> Result<(), LinkError> {
+        let now = Instant::now();
+        let guard = self.nak_guard();
+        for entry in window.iter_mut().take(handled) {
+            if entry.reply.is_some() {
+                continue;
+            }
+            let news = !entry.handled;
+            entry.handled = true;
+            if news || now >= entry.last_sent + guard {
+                self.retransmit(entry)?;
+            }
+        }
         Ok(())
+    }
+
+    /// Signs of a damaged line so far: NAKs and frames from the target that did not decode.
+    fn damage_seen(&self) -> u64 {
+        self.stats.naks + self.stats.corrupt_frames
     }
 
     /// Folds one service-time sample into `srtt` and `rttvar` (RFC 6298's estimator).
@@ -547,56 +627,6 @@ impl<P: Port> Link<P> {
 
     pub fn port_mut(&mut self) -> &mut P {
         &mut self.port
-    }
-
-    /// One `Hello` (or another request) sent once, waiting up to `timeout` for its own reply
-    /// and skipping everything else: the handshake, which retries with fresh numbers itself.
-    pub(crate) fn exchange(
-        &mut self,
-        request: &Request,
-        timeout: Duration,
-        kind: Exchange,
-    ) -> Result<Response, LinkError> {
-        if kind == Exchange::Request {
-            return self.request_within(request, timeout);
-        }
-        let name = request.name();
-        let seq = self.take_seq();
-        let frame = self.encode(seq, request)?;
-        self.write(&frame)?;
-        self.stats.requests += 1;
-        let deadline = Instant::now() + timeout;
-        loop {
-            match self.receive(deadline)? {
-                None if Instant::now() >= deadline => {
-                    return Err(LinkError::Timeout {
-                        request: name,
-                        after: timeout,
-                        retries: 0,
-                    })
-                }
-                None => {}
-                Some(Uplink::Reply { seq: got, body })
-                    if got == seq && is_handshake_answer(&body) =>
-                {
-                    return match body {
-                        Response::Error(code) => Err(LinkError::Target {
-                            request: name,
-                            code,
-                        }),
-                        body => Ok(body),
-                    }
-                }
-                Some(Uplink::Notice { seq, body }) => self.on_notice(seq, body),
-                Some(Uplink::Panic { message }) => {
-                    return Err(LinkError::TargetPanicked {
-                        message: message.to_string(),
-                    })
-                }
-                Some(Uplink::Nak { .. }) => self.stats.naks += 1,
-                Some(_) => self.stats.stale_answers += 1,
-            }
-        }
     }
 
     fn encode(&self, seq: u16, request: &Request) -> Result<Vec<u8>, LinkError> {

@@ -293,6 +293,7 @@ mod tests {
             iterations: i,
             solves: 1,
             cycles,
+            instructions: None,
             hart0_cycles: hart0,
             residual: 1e-5,
             error_vs_converged: cycles.map(|_| 1e-6),

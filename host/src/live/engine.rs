@@ -38,6 +38,8 @@ pub struct Frame {
     pub solves: u32,
     /// The target's cycles for the frame (`None` on the host).
     pub cycles: Option<u64>,
+    /// The retired instructions counted as `cycles` is (equal to it under QEMU `-icount`).
+    pub instructions: Option<u64>,
     /// Hart 0's `mcycle` over a dynamic frame's solves (real cycles on the LiteX SoC).
     pub hart0_cycles: Option<u64>,
     /// max |u − u_ref| / max |u_ref| against the f64 reference (`None` where the frame is the
@@ -70,6 +72,8 @@ pub struct Query {
     /// A converged f64 solve's at the same tool input.
     pub reference: [f64; 3],
     pub cycles: u32,
+    /// The retired instructions counted as `cycles` is.
+    pub instructions: u32,
     pub bytes: WireBytes,
 }
 

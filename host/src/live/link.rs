@@ -44,6 +44,8 @@ pub struct FrameAnswer {
     pub residual: f32,
     pub iterations: u16,
     pub cycles: u32,
+    /// The retired instructions counted as `cycles` is (`cycles − stall_cycles` on the wire).
+    pub instructions: u32,
 }
 
 /// A query's answer from the local model (`LiveForce` or `LiveMotionQuery`).
@@ -51,6 +53,7 @@ pub struct FrameAnswer {
 pub struct QueryAnswer {
     pub value: [f32; 3],
     pub cycles: u32,
+    pub instructions: u32,
 }
 
 /// The tool displacements (or loads) as a frame carries them.
@@ -75,6 +78,7 @@ impl<'a, P: Port> LiveLink<'a, P> {
                 iterations: 0,
                 cycles: 0,
                 converged: false,
+                stall_cycles: 0,
             },
         };
         link.begin()?;
@@ -162,12 +166,14 @@ impl<'a, P: Port> LiveLink<'a, P> {
                 residual: r.residual,
                 iterations: r.iterations,
                 cycles: r.cycles,
+                instructions: r.cycles.saturating_sub(r.stall_cycles),
             }),
             Response::LiveMotion(r) => Ok(FrameAnswer {
                 value: r.displacement,
                 residual: r.residual,
                 iterations: r.iterations,
                 cycles: r.cycles,
+                instructions: r.cycles.saturating_sub(r.stall_cycles),
             }),
             other => Err(unexpected(name, name, other)),
         }
@@ -194,10 +200,12 @@ impl<'a, P: Port> LiveLink<'a, P> {
             Response::LiveForce(r) => Ok(QueryAnswer {
                 value: r.force,
                 cycles: r.cycles,
+                instructions: r.cycles.saturating_sub(r.stall_cycles),
             }),
             Response::LiveMotionQuery(r) => Ok(QueryAnswer {
                 value: r.displacement,
                 cycles: r.cycles,
+                instructions: r.cycles.saturating_sub(r.stall_cycles),
             }),
             other => Err(unexpected(name, name, other)),
         }
@@ -261,6 +269,7 @@ pub fn read_field<P: Port>(
                 let nodes = selection.chunk(offset).map(|p| p as usize);
                 frame.nodes.extend(nodes.zip(chunk.displacements()));
                 frame.cycles += u64::from(chunk.cycles);
+                frame.instructions += u64::from(chunk.cycles.saturating_sub(chunk.stall_cycles));
                 Ok(())
             }
             other => Err(unexpected(
@@ -281,6 +290,8 @@ pub struct FieldFrame {
     pub nodes: Vec<(usize, [f64; 3])>,
     /// The target's cycles for building the frame: its chunks' together.
     pub cycles: u64,
+    /// The retired instructions counted as `cycles` is.
+    pub instructions: u64,
     /// Its bytes on the line, both ways.
     pub bytes: WireBytes,
 }

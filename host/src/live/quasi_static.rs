@@ -54,6 +54,7 @@ impl<P: Port> Engine for TargetEngine<'_, P> {
             residual: f64::from(answer.residual),
             iterations: u32::from(answer.iterations),
             cycles: Some(u64::from(answer.cycles)),
+            instructions: Some(u64::from(answer.instructions)),
             bytes,
             ..Frame::default()
         };
@@ -82,6 +83,7 @@ impl<P: Port> Engine for TargetEngine<'_, P> {
             answer: answer.value.map(f64::from),
             reference,
             cycles: answer.cycles,
+            instructions: answer.instructions,
             bytes,
         }))
     }

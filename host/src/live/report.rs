@@ -5,6 +5,7 @@
 //! the tool nodes' mean displacement (`tool` and `answer` say which). A session on the host
 //! gets [`HostReport`], a dynamic one [`super::dynamic_report`].
 
+use deform_shared::protocol::PhaseCounters;
 use serde::Serialize;
 
 use super::engine::Frame;
@@ -29,8 +30,9 @@ pub struct DownBytes {
     /// Nodes one field frame carried.
     pub field_nodes: usize,
     /// The target's cycles for building one field frame (all its chunks; the largest over
-    /// the session).
+    /// the session), and its retired instructions.
     pub field_build_cycles: u64,
+    pub field_build_instructions: u64,
 }
 
 /// Frames per second the serial line itself allows at a baud rate (8N1: 10 bits per byte).
@@ -74,11 +76,17 @@ pub struct Report {
     /// With a budget: the frames over it (none: 0 and 0).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub over_budget: Option<OverBudget>,
+    /// The frames' cycles (the target's `mcycle`) and their retired instructions, and the
+    /// cycles per instruction over all frames: equal under QEMU `-icount` (CPI 1), the RTL's on
+    /// the LiteX SoC.
     pub frame_cycles: Spread,
+    pub frame_instructions: Spread,
+    pub frame_cpi: Option<f64>,
     pub frames_per_s_at_100mhz: Rate,
     /// Force updates per second at 100 MHz from the local model's measured cycles (worst).
     pub force_updates_per_s: f64,
     pub force_query_cycles_max: u64,
+    pub force_query_instructions_max: u64,
     pub iterations: IterationSpread,
     pub residual_max: f64,
     pub error_vs_converged_max: f64,
@@ -90,6 +98,7 @@ pub struct Report {
     /// The quantised field against the frame's own solution, relative to max |u|.
     pub field_quantisation_error_max: f64,
     pub model_cycles: u64,
+    pub model_instructions: u64,
     pub model_iterations: u32,
     /// Median over the frames, on the line (a frame's request).
     pub bytes_up_per_frame: f64,
@@ -115,6 +124,7 @@ pub struct Report {
 pub struct Session {
     pub header: Header,
     pub model_cycles: u64,
+    pub model_instructions: u64,
     pub model_iterations: u32,
     pub resets: u32,
     pub paced: bool,
@@ -126,6 +136,7 @@ pub struct Session {
 /// The report over `records`.
 pub fn report(session: Session, records: &[Frame], summary: &Summary) -> Report {
     let cycles = sorted(records.iter().map(|r| r.cycles.unwrap_or(0) as f64));
+    let instructions = sorted(records.iter().map(|r| r.instructions.unwrap_or(0) as f64));
     let iterations = sorted(records.iter().map(|r| f64::from(r.iterations)));
     let force_scale = records
         .iter()
@@ -168,6 +179,12 @@ pub fn report(session: Session, records: &[Frame], summary: &Summary) -> Report 
         header: session.header,
         over_budget,
         frame_cycles: Spread::of(&cycles),
+        frame_instructions: Spread::of(&instructions),
+        frame_cpi: PhaseCounters {
+            cycles: records.iter().filter_map(|r| r.cycles).sum(),
+            instructions: records.iter().filter_map(|r| r.instructions).sum(),
+        }
+        .cpi(),
         frames_per_s_at_100mhz: Rate::of(&cycles),
         force_updates_per_s: if summary.force_cycles > 0 {
             CLOCK_HZ / summary.force_cycles as f64
@@ -175,6 +192,7 @@ pub fn report(session: Session, records: &[Frame], summary: &Summary) -> Report 
             0.0
         },
         force_query_cycles_max: summary.force_cycles,
+        force_query_instructions_max: summary.force_instructions,
         iterations: IterationSpread::of(&iterations),
         residual_max: records.iter().map(|r| r.residual).fold(0.0, f64::max),
         error_vs_converged_max: records
@@ -185,6 +203,7 @@ pub fn report(session: Session, records: &[Frame], summary: &Summary) -> Report 
         model_force_error_max: summary.model_force_error,
         field_quantisation_error_max: summary.field_error,
         model_cycles: session.model_cycles,
+        model_instructions: session.model_instructions,
         model_iterations: session.model_iterations,
         bytes_up_per_frame: up,
         bytes_up_per_frame_max: records.iter().map(|r| r.bytes.sent).max().unwrap_or(0),
@@ -200,6 +219,7 @@ pub fn report(session: Session, records: &[Frame], summary: &Summary) -> Report 
             field_selection: session.field.to_string(),
             field_nodes: field_components / 3,
             field_build_cycles: summary.field_cycles,
+            field_build_instructions: summary.field_instructions,
         },
         bytes_up_per_force_query: force_bytes.sent as f64,
         bytes_down_per_force_query: force_bytes.received as f64,
@@ -223,6 +243,21 @@ pub fn model_label(kind: ToolKind) -> &'static str {
 }
 
 impl Report {
+    /// The frames' retired instructions beside their cycles: the CPI, or that the two are equal
+    /// (QEMU `-icount`: one instruction per cycle by construction).
+    pub fn instructions_line(&self) -> String {
+        let i = &self.frame_instructions;
+        match self.frame_cpi {
+            Some(cpi) if self.frame_cycles.max != i.max || self.frame_cycles.p50 != i.p50 => {
+                format!(
+                    "instructions p50 {:.0}, p99 {:.0}, max {:.0}: CPI {cpi:.2} over the frames",
+                    i.p50, i.p99, i.max
+                )
+            }
+            _ => "(cycles = instructions retired: one per cycle under QEMU -icount)".to_string(),
+        }
+    }
+
     /// The lines a person reads after the session.
     pub fn summary(&self, kind: ToolKind) -> String {
         use std::fmt::Write;
@@ -237,6 +272,7 @@ impl Report {
         self.frames_per_s_at_100mhz.p50,
         self.frames_per_s_at_100mhz.worst
     ).unwrap();
+        writeln!(out, "            {}", self.instructions_line()).unwrap();
         let (answer, unit) = match kind {
             ToolKind::Displacement => ("force", "F"),
             ToolKind::Force => ("tool motion", "ū"),
@@ -437,6 +473,7 @@ impl SessionReport {
                 cycle_budget: options.cycle_budget(),
             },
             model_cycles: built.map_or(0, |m| m.cycles),
+            model_instructions: built.map_or(0, |m| m.cycles.saturating_sub(m.stall_cycles)),
             model_iterations: built.map_or(0, |m| m.iterations),
             resets: engine.resets(),
             paced: options.pace.is_some(),

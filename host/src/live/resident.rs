@@ -1,4 +1,4 @@
-//! Target-resident dynamic frames (issue 19 item 3, protocol version 11): the target keeps u
+//! Target-resident dynamic frames (issue 19 item 3, protocol version 12): the target keeps u
 //! and v and forms each step's right-hand side b = M·v₀ − h·K·u₀ (with the tool's rows) itself,
 //! so a frame carries only the tool's displacements up and the force holding the tool on its
 //! path down, a few dozen bytes each way ([`crate::dynamics::resident`]). The host's f64

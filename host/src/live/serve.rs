@@ -6,15 +6,26 @@
 //! and counted as dropped (the lag the page shows). The solver's frames go out the same way:
 //! every connection sends the newest frame it has not sent yet, so a slow or vanished browser
 //! never holds the solver up, and a browser that reconnects simply starts from the newest.
+//!
+//! Only the page itself may drive the tool. A browser sends every WebSocket handshake with the
+//! `Origin` of the page that opens it, so a page from another site open in the same browser is
+//! refused by its `Origin` ([`Guard`]); and every request must name the server by an IP address
+//! or `localhost` in its `Host` header, so a site whose DNS name an attacker re-points at this
+//! machine (DNS rebinding: the browser then calls the attacker's page same-origin) is refused
+//! too. A client that is not a browser sends no `Origin` and is let in: it could open the
+//! local port anyway.
 
 use std::io::ErrorKind;
-use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::net::{IpAddr, SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context};
 use serde::Deserialize;
+use tungstenite::handshake::server::{ErrorResponse, Request, Response};
+use tungstenite::http::uri::{Authority, Uri};
+use tungstenite::http::StatusCode;
 use tungstenite::{Message, WebSocket};
 
 const INDEX_HTML: &str = include_str!("../../web/index.html");
@@ -153,6 +164,70 @@ impl Mailbox {
     }
 }
 
+/// Who may talk to the server: requests that name it by IP address or `localhost` on its own
+/// port (`Host`), and, for the WebSocket, only from a page this server served (`Origin`).
+#[derive(Debug, Clone, Copy)]
+pub struct Guard {
+    pub http_port: u16,
+    pub ws_port: u16,
+}
+
+impl Guard {
+    /// Checks a request's `Host` header against `port`: the host must be an IP address or
+    /// `localhost` (a DNS name could be re-pointed at this machine), the port this server's.
+    fn host(&self, host: Option<&str>, port: u16) -> Result<String, String> {
+        let host = host.ok_or("no Host header")?;
+        let authority: Authority = host
+            .parse()
+            .map_err(|_| format!("Host {host:?} is not host:port"))?;
+        let name = authority
+            .host()
+            .trim_start_matches('[')
+            .trim_end_matches(']');
+        if name != "localhost" && name.parse::<IpAddr>().is_err() {
+            return Err(format!(
+                "Host {host:?} is a DNS name; open the page by IP address or localhost"
+            ));
+        }
+        if authority.port_u16() != Some(port) {
+            return Err(format!("Host {host:?} is not this server's port {port}"));
+        }
+        Ok(name.to_ascii_lowercase())
+    }
+
+    /// Checks a WebSocket handshake: `Host` as [`Guard::host`], and an `Origin`, when there is
+    /// one (browsers always send it), that is the page's: `http://` the same host, the HTTP port.
+    pub fn websocket(&self, host: Option<&str>, origin: Option<&str>) -> Result<(), String> {
+        let name = self.host(host, self.ws_port)?;
+        let Some(origin) = origin else {
+            return Ok(());
+        };
+        let uri: Uri = origin
+            .parse()
+            .map_err(|_| format!("Origin {origin:?} is not a URL"))?;
+        let origin_name = uri.host().map(|h| {
+            h.trim_start_matches('[')
+                .trim_end_matches(']')
+                .to_ascii_lowercase()
+        });
+        if uri.scheme_str() != Some("http")
+            || origin_name.as_deref() != Some(name.as_str())
+            || uri.port_u16() != Some(self.http_port)
+        {
+            return Err(format!(
+                "Origin {origin:?} is not this server's page (http://{name}:{})",
+                self.http_port
+            ));
+        }
+        Ok(())
+    }
+
+    /// Checks a page request's `Host` (DNS rebinding).
+    pub fn page(&self, host: Option<&str>) -> Result<(), String> {
+        self.host(host, self.http_port).map(|_| ())
+    }
+}
+
 /// Where the server listens.
 pub struct Bound {
     pub http: SocketAddr,
@@ -171,20 +246,33 @@ pub fn start(addr: SocketAddr, mailbox: Arc<Mailbox>) -> anyhow::Result<Bound> {
         .with_context(|| format!("cannot open a WebSocket port on {}", addr.ip()))?;
     let ws_addr = ws.local_addr()?;
     let index = INDEX_HTML.replace("__WS_PORT__", &ws_addr.port().to_string());
+    let guard = Guard {
+        http_port: http_addr.port(),
+        ws_port: ws_addr.port(),
+    };
     std::thread::Builder::new()
         .name("live-http".into())
-        .spawn(move || serve_http(http, index))?;
+        .spawn(move || serve_http(http, index, guard))?;
     std::thread::Builder::new()
         .name("live-ws".into())
-        .spawn(move || accept_websockets(ws, mailbox))?;
+        .spawn(move || accept_websockets(ws, mailbox, guard))?;
     Ok(Bound {
         http: http_addr,
         websocket: ws_addr,
     })
 }
 
-fn serve_http(server: tiny_http::Server, index: String) {
+fn serve_http(server: tiny_http::Server, index: String, guard: Guard) {
     for request in server.incoming_requests() {
+        let host = request
+            .headers()
+            .iter()
+            .find(|h| h.field.equiv("Host"))
+            .map(|h| h.value.as_str().to_string());
+        if let Err(why) = guard.page(host.as_deref()) {
+            let _ = request.respond(tiny_http::Response::from_string(why).with_status_code(403));
+            continue;
+        }
         let (body, mime) = match request.url() {
             "/" | "/index.html" => (index.as_str(), "text/html; charset=utf-8"),
             "/live.js" => (LIVE_JS, "text/javascript"),
@@ -203,7 +291,7 @@ fn serve_http(server: tiny_http::Server, index: String) {
     }
 }
 
-fn accept_websockets(listener: TcpListener, mailbox: Arc<Mailbox>) {
+fn accept_websockets(listener: TcpListener, mailbox: Arc<Mailbox>, guard: Guard) {
     let open = Arc::new(AtomicUsize::new(0));
     for stream in listener.incoming().flatten() {
         if open.load(Ordering::SeqCst) >= MAX_CONNECTIONS {
@@ -215,7 +303,7 @@ fn accept_websockets(listener: TcpListener, mailbox: Arc<Mailbox>) {
         let spawned = std::thread::Builder::new()
             .name("live-browser".into())
             .spawn(move || {
-                if let Err(e) = connection(stream, &mailbox) {
+                if let Err(e) = connection(stream, &mailbox, guard) {
                     eprintln!("live: browser connection ended: {e:#}");
                 }
                 open.fetch_sub(1, Ordering::SeqCst);
@@ -231,11 +319,25 @@ fn is_timeout(e: &tungstenite::Error) -> bool {
 }
 
 /// One browser: its commands into the mailbox, the newest frames out.
-fn connection(stream: TcpStream, mailbox: &Mailbox) -> anyhow::Result<()> {
+fn connection(stream: TcpStream, mailbox: &Mailbox, guard: Guard) -> anyhow::Result<()> {
     stream.set_read_timeout(Some(WRITE_TIMEOUT))?;
     stream.set_write_timeout(Some(WRITE_TIMEOUT))?;
+    // The closure's signature is tungstenite's handshake callback's (its error is a whole HTTP
+    // response).
+    #[allow(clippy::result_large_err)]
+    let check = |request: &Request, response: Response| -> Result<Response, ErrorResponse> {
+        let header = |name: &str| request.headers().get(name).and_then(|v| v.to_str().ok());
+        match guard.websocket(header("Host"), header("Origin")) {
+            Ok(()) => Ok(response),
+            Err(why) => {
+                let mut refusal = ErrorResponse::new(Some(why));
+                *refusal.status_mut() = StatusCode::FORBIDDEN;
+                Err(refusal)
+            }
+        }
+    };
     let mut ws: WebSocket<TcpStream> =
-        tungstenite::accept(stream).map_err(|e| anyhow!("WebSocket handshake: {e}"))?;
+        tungstenite::accept_hdr(stream, check).map_err(|e| anyhow!("WebSocket handshake: {e}"))?;
     ws.get_ref().set_read_timeout(Some(POLL))?;
     ws.send(Message::text(mailbox.mesh.clone()))?;
     let mut seen = 0;
@@ -271,6 +373,63 @@ fn connection(stream: TcpStream, mailbox: &Mailbox) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn only_the_pages_origin_and_an_address_or_localhost_host_are_let_in() {
+        let guard = Guard {
+            http_port: 8080,
+            ws_port: 9000,
+        };
+        for (host, origin) in [
+            ("127.0.0.1:9000", Some("http://127.0.0.1:8080")),
+            ("localhost:9000", Some("http://localhost:8080")),
+            ("[::1]:9000", Some("http://[::1]:8080")),
+            ("10.0.0.5:9000", Some("http://10.0.0.5:8080")),
+            ("127.0.0.1:9000", None),
+        ] {
+            guard
+                .websocket(Some(host), origin)
+                .unwrap_or_else(|e| panic!("{host} {origin:?}: {e}"));
+        }
+        for (host, origin, why) in [
+            (
+                "127.0.0.1:9000",
+                Some("http://evil.example"),
+                "not this server's page",
+            ),
+            (
+                "127.0.0.1:9000",
+                Some("http://127.0.0.1:8081"),
+                "not this server's page",
+            ),
+            (
+                "127.0.0.1:9000",
+                Some("https://127.0.0.1:8080"),
+                "not this server's page",
+            ),
+            (
+                "127.0.0.1:9000",
+                Some("http://localhost:8080"),
+                "not this server's page",
+            ),
+            ("127.0.0.1:9000", Some("null"), "not"),
+            (
+                "evil.example:9000",
+                Some("http://evil.example:8080"),
+                "DNS name",
+            ),
+            ("127.0.0.1:9001", Some("http://127.0.0.1:8080"), "port 9000"),
+        ] {
+            let e = guard.websocket(Some(host), origin).unwrap_err();
+            assert!(e.contains(why), "{host} {origin:?}: {e}");
+        }
+        assert!(guard.websocket(None, None).is_err());
+        guard.page(Some("127.0.0.1:8080")).unwrap();
+        assert!(guard
+            .page(Some("rebound.example:8080"))
+            .unwrap_err()
+            .contains("DNS name"));
+    }
 
     #[test]
     fn a_newer_tool_position_replaces_the_unsolved_one_and_counts_as_dropped() {

@@ -94,11 +94,13 @@ pub struct Summary {
     /// its largest |answer|.
     pub model_force_error: f64,
     pub force_cycles: u64,
+    pub force_instructions: u64,
     pub force_bytes: Option<WireBytes>,
     /// The last field frame's bytes and components.
     pub field: Option<(WireBytes, usize)>,
     pub field_error: f64,
     pub field_cycles: u64,
+    pub field_instructions: u64,
     pub lag: Lag,
     /// A signal stopped the session before its last frame.
     pub interrupted: bool,
@@ -218,6 +220,9 @@ fn queries(
         let error = force_error(&query.answer, &query.reference, scale.max(1e-12));
         summary.model_force_error = summary.model_force_error.max(error);
         summary.force_cycles = summary.force_cycles.max(u64::from(query.cycles));
+        summary.force_instructions = summary
+            .force_instructions
+            .max(u64::from(query.instructions));
         summary.force_bytes = Some(query.bytes);
     }
     Ok(())
@@ -243,5 +248,6 @@ fn sample_field(
     }
     summary.field = Some((field.bytes, 3 * field.nodes.len()));
     summary.field_cycles = summary.field_cycles.max(field.cycles);
+    summary.field_instructions = summary.field_instructions.max(field.instructions);
     Ok(())
 }

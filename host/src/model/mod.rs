@@ -158,6 +158,20 @@ pub enum ModelError {
     Field(#[from] FieldError),
     #[error(transparent)]
     Assembly(#[from] AssemblyError),
+    #[error(
+        "a {grid} grid of {connection} has {nodes} nodes and {nonzeros} nonzeros in K: building \
+         it needs about {}, and this machine has {} available; give a smaller --grid",
+        crate::memory::human(*needs),
+        crate::memory::human(*available)
+    )]
+    TooLarge {
+        grid: Grid,
+        connection: Connection,
+        nodes: u64,
+        nonzeros: u64,
+        needs: u64,
+        available: u64,
+    },
 }
 
 /// An assembled model: the matrix to send (A for homogeneous tissue, K for heterogeneous), the
@@ -178,10 +192,33 @@ pub struct Model {
     loads_on_fixed_nodes: Vec<Node>,
 }
 
+/// Refuses a model whose [`crate::memory::model_estimate`] exceeds `available` bytes (`None`: unknown,
+/// nothing refused).
+pub fn check_memory(
+    grid: Grid,
+    connection: Connection,
+    available: Option<u64>,
+) -> Result<(), ModelError> {
+    let need = crate::memory::model_estimate(grid, connection);
+    match available {
+        Some(available) if need.bytes > available => Err(ModelError::TooLarge {
+            grid,
+            connection,
+            nodes: need.nodes,
+            nonzeros: need.nonzeros,
+            needs: need.bytes,
+            available,
+        }),
+        _ => Ok(()),
+    }
+}
+
 impl Model {
-    /// Checks `spec` and assembles the system. Linear in the number of springs.
+    /// Checks `spec` and assembles the system. Linear in the number of springs. A model the
+    /// machine's memory cannot hold is refused before anything is allocated ([`crate::memory`]).
     pub fn build(spec: &ModelSpec) -> Result<Self, ModelError> {
         let grid = spec.grid;
+        check_memory(grid, spec.connection, crate::memory::available())?;
         check_loads(spec)?;
         let fixed = fixed_node_mask(grid, &spec.fixed_sets, &spec.fixed_nodes);
         let prescribed = prescribed_values(spec, &fixed)?;

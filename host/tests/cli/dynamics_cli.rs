@@ -35,7 +35,10 @@ fn bad_mass_damping_and_step_are_refused() {
     for bad in ["0", "-1", "nan", "inf"] {
         // `--flag=value`: clap takes "-1" after a space for a flag of its own.
         refused(&["--dynamic", &format!("--mass={bad}")], "--mass");
-        refused(&["--dynamic", &format!("--damping={bad}")], "--damping");
+        if bad != "0" {
+            // β = 0 is an undamped model (below).
+            refused(&["--dynamic", &format!("--damping={bad}")], "--damping");
+        }
         refused(&["--dynamic", &format!("--dt={bad}")], "time step");
     }
     refused(&["--dynamic", "--damping", "1,2"], "--damping");
@@ -54,6 +57,55 @@ fn bad_mass_damping_and_step_are_refused() {
         ],
         "cannot be represented in the target's 21-bit fixed point",
     );
+}
+
+/// The max |u| column of a `--steps-csv` file.
+fn max_u_column(path: &Path) -> Vec<f64> {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let column = header.iter().position(|&h| h == "max_u").unwrap();
+    lines
+        .map(|l| l.split(',').nth(column).unwrap().parse().unwrap())
+        .collect()
+}
+
+/// The trapezoidal scheme keeps an undamped model's energy, so `--damping 0` is allowed (it was
+/// refused as "must be greater than 0"): on QEMU the undamped cube keeps oscillating about its
+/// static shape through 40 steps, where the default β = 0.05 settles to it.
+#[test]
+fn an_undamped_model_keeps_oscillating_under_the_trapezoidal_scheme() {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("undamped");
+    std::fs::create_dir_all(&dir).unwrap();
+    let run = |damping: &str| {
+        let csv = dir.join(format!("steps-{damping}.csv"));
+        let out = Command::new(env!("CARGO_BIN_EXE_deform"))
+            .args(["simulate", "--dynamic", "--scheme", "trapezoidal"])
+            .args(["--damping", damping, "--grid", "3,3,3", "--steps", "40"])
+            .arg("--steps-csv")
+            .arg(&csv)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "--damping {damping}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        max_u_column(&csv)
+    };
+    let spread = |u: &[f64]| {
+        let last = &u[u.len() - 20..];
+        last.iter().copied().fold(f64::MIN, f64::max)
+            - last.iter().copied().fold(f64::MAX, f64::min)
+    };
+    let undamped = run("0");
+    let damped = run("0.05");
+    assert_eq!((undamped.len(), damped.len()), (40, 40));
+    let static_u = damped[damped.len() - 1];
+    // Undamped: still swinging by more than half the static displacement; damped: at rest.
+    assert!(spread(&undamped) > 0.5 * static_u, "{undamped:?}");
+    assert!(spread(&damped) < 0.05 * static_u, "{damped:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 fn parse(src: &str) -> Result<Scenario, deform_host::scenario::ScenarioError> {
@@ -297,15 +349,13 @@ fn serve_dynamic(target: &str, solver: &str) {
             let _ = self.0.wait();
         }
     }
-    let mut server = Server(
-        Command::new(env!("CARGO_BIN_EXE_deform"))
-            .arg("live")
-            .arg(&example)
-            .args(["--serve", "--target", target, "--addr", "127.0.0.1:0"])
-            .stdout(Stdio::piped())
-            .spawn()
-            .unwrap(),
-    );
+    let mut command = Command::new(env!("CARGO_BIN_EXE_deform"));
+    command
+        .arg("live")
+        .arg(&example)
+        .args(["--serve", "--target", target, "--addr", "127.0.0.1:0"])
+        .stdout(Stdio::piped());
+    let mut server = Server(deform_hil_sim::child::spawn(command).unwrap());
     let mut out = BufReader::new(server.0.stdout.take().unwrap());
     let mut serving = String::new();
     while !serving.contains("WebSocket on port ") {

@@ -64,3 +64,39 @@ fn an_elf_without_a_log_table_is_refused_for_logs() {
         stderr(&out)
     );
 }
+
+/// A QEMU build sent to the LiteX SoC is refused at once, before the SoC is started, naming the
+/// board it was built for and how to build for LiteX (it failed after 19 s of CRC errors); the
+/// QEMU board checks the same way.
+#[test]
+fn an_image_for_another_board_is_refused_before_anything_starts() {
+    let elf = deform_hil_sim::firmware_elf();
+    let elf = elf.to_str().unwrap();
+    let started = std::time::Instant::now();
+    let out = deform(&["flash", elf, "--target", "litex"]);
+    let text = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "{text}");
+    for needle in [
+        "outside the LiteX VexRiscv SoC's RAM (0x40000000..0x40200000)",
+        "it was built for QEMU's riscv32 virt board",
+        "cargo xtask firmware --board litex",
+    ] {
+        assert!(text.contains(needle), "'{needle}' not in {text}");
+    }
+    assert!(!text.contains("starting the simulated LiteX SoC"), "{text}");
+    assert!(started.elapsed() < std::time::Duration::from_secs(5));
+    // The same through a BIOS on a port: refused before the port is opened for SFL.
+    let out = deform(&[
+        "flash",
+        elf,
+        "--port",
+        "/nonexistent/tty",
+        "--protocol",
+        "litex",
+    ]);
+    assert!(
+        stderr(&out).contains("built for QEMU's riscv32 virt board"),
+        "{}",
+        stderr(&out)
+    );
+}

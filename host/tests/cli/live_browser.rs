@@ -24,7 +24,8 @@ use tungstenite::{Message, WebSocket};
 const SCENARIO: &str = "../examples/needle-insertion.toml";
 const FORCE_SCENARIO: &str = "../examples/probe-force-8b.toml";
 
-/// A process and the process group it leads (QEMU and Chromium's helpers), killed on drop.
+/// A process and the process group it leads (QEMU and Chromium's helpers), killed on drop; and,
+/// should this test process die first, killed by the kernel with it (hil-sim's `child::spawn`).
 pub(crate) struct Group(Child);
 
 impl Drop for Group {
@@ -35,12 +36,12 @@ impl Drop for Group {
     }
 }
 
-fn spawn_group(cmd: &mut Command) -> Group {
+fn spawn_group(mut cmd: Command) -> Group {
     use std::os::unix::process::CommandExt;
     let program = format!("{:?}", cmd.get_program());
+    cmd.process_group(0);
     Group(
-        cmd.process_group(0)
-            .spawn()
+        deform_hil_sim::child::spawn(cmd)
             .unwrap_or_else(|e| panic!("{program} does not start: {e}")),
     )
 }
@@ -205,15 +206,15 @@ fn reference(u: [f64; 3]) -> ([f64; 3], f64) {
 /// `deform live SCENARIO --serve` on a free port with `args` added: the server (killed on
 /// drop), the page's address and the WebSocket's port, once it serves.
 pub(crate) fn serve(scenario: &Path, args: &[&str]) -> (Group, String, u16) {
-    let mut server = spawn_group(
-        Command::new(env!("CARGO_BIN_EXE_deform"))
-            .arg("live")
-            .arg(scenario)
-            .args(["--serve", "--addr", "127.0.0.1:0"])
-            .args(args)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit()),
-    );
+    let mut command = Command::new(env!("CARGO_BIN_EXE_deform"));
+    command
+        .arg("live")
+        .arg(scenario)
+        .args(["--serve", "--addr", "127.0.0.1:0"])
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit());
+    let mut server = spawn_group(command);
     let out = lines(server.0.stdout.take().unwrap());
     let serving = wait_for(
         &out,
@@ -237,30 +238,30 @@ fn open(page: &str, profile: &str) -> (Group, Cdp) {
     let profile = Path::new(env!("CARGO_TARGET_TMPDIR")).join(profile);
     let _ = std::fs::remove_dir_all(&profile);
     std::fs::create_dir_all(&profile).unwrap();
-    let mut browser = spawn_group(
-        Command::new(chromium())
-            .args([
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--disable-quic",
-                "--no-first-run",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
-                // Containers often have a small /dev/shm.
-                "--disable-dev-shm-usage",
-                // WebGL in software, since there is no GPU.
-                "--use-angle=swiftshader",
-                "--enable-unsafe-swiftshader",
-                "--window-size=1200,800",
-                "--remote-debugging-port=0",
-            ])
-            .arg(format!("--user-data-dir={}", profile.display()))
-            .arg("about:blank")
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped()),
-    );
+    let mut command = Command::new(chromium());
+    command
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            // Containers often have a small /dev/shm.
+            "--disable-dev-shm-usage",
+            // WebGL in software, since there is no GPU.
+            "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader",
+            "--window-size=1200,800",
+            "--remote-debugging-port=0",
+        ])
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .arg("about:blank")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    let mut browser = spawn_group(command);
     let err = lines(browser.0.stderr.take().unwrap());
     let devtools = wait_for(&err, "ws://", Duration::from_secs(60), "chromium");
     let mut cdp = Cdp::connect(devtools.trim());
@@ -400,6 +401,15 @@ fn the_page_shows_the_targets_force_for_the_tool_the_keys_moved() {
         );
     }
 
+    // A reload (as a second tab) starts from the server's state: the handle where the frames
+    // say the tool is, not at rest under a mesh and readout that show it moved.
+    cdp.call("Page.reload", json!({}));
+    let reloaded = cdp.until(Duration::from_secs(60), "frames after a reload", |r| {
+        r["frame"].is_string() && r["connected"] == json!("true") && r["handle"].is_string()
+    });
+    assert_eq!(reloaded["handle"], dragged["tool"], "{reloaded}");
+    assert_ne!(reloaded["handle"], json!("0,0,0"));
+
     // Reset puts the tool back at rest: no force.
     cdp.key("r", 82);
     let rest = cdp.until(Duration::from_secs(60), "the reset frame", |r| {
@@ -473,4 +483,79 @@ fn the_page_shows_the_targets_motion_for_the_load_the_keys_set() {
     }
     println!("force tool: load (0.4, 0, -1) N, motion {shown:?} m (host {want:?})");
     drop(browser);
+}
+
+/// Only the page itself drives the tool: a WebSocket handshake whose `Origin` is another site's
+/// (a page open in the same browser) is refused, and so is one that names the server by a DNS
+/// name (DNS rebinding), and the page by such a name; the page's own origin, by IP address or
+/// `localhost`, is let in. No browser needed: the handshakes are made by hand.
+#[test]
+fn the_websocket_refuses_other_origins_and_dns_names() {
+    use tungstenite::client::IntoClientRequest;
+    let (_server, page, ws_port) = serve(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join(SCENARIO),
+        &["--target", "host"],
+    );
+    let http_port: u16 = page
+        .trim_end_matches('/')
+        .rsplit(':')
+        .next()
+        .and_then(|p| p.parse().ok())
+        .unwrap_or_else(|| panic!("no port in {page}"));
+    let handshake = |host: &str, origin: Option<&str>| {
+        let mut request = format!("ws://127.0.0.1:{ws_port}/")
+            .into_client_request()
+            .unwrap();
+        request.headers_mut().insert("Host", host.parse().unwrap());
+        if let Some(origin) = origin {
+            request
+                .headers_mut()
+                .insert("Origin", origin.parse().unwrap());
+        }
+        let stream = TcpStream::connect(("127.0.0.1", ws_port)).unwrap();
+        // The refusal's HTTP status, if refused.
+        match tungstenite::client(request, stream) {
+            Ok(_) => Ok(()),
+            Err(tungstenite::HandshakeError::Failure(tungstenite::Error::Http(response))) => {
+                Err(Some(response.status().as_u16()))
+            }
+            Err(_) => Err(None),
+        }
+    };
+    let own = format!("http://127.0.0.1:{http_port}");
+    let host = format!("127.0.0.1:{ws_port}");
+    handshake(&host, Some(&own)).expect("the page's own origin");
+    handshake(
+        &format!("localhost:{ws_port}"),
+        Some(&format!("http://localhost:{http_port}")),
+    )
+    .expect("localhost");
+    for (host, origin) in [
+        (host.clone(), Some("http://evil.example".to_string())),
+        (
+            host.clone(),
+            Some(format!("http://127.0.0.1:{}", http_port + 1)),
+        ),
+        (
+            format!("evil.example:{ws_port}"),
+            Some(format!("http://evil.example:{http_port}")),
+        ),
+    ] {
+        assert_eq!(
+            handshake(&host, origin.as_deref()),
+            Err(Some(403)),
+            "{host} {origin:?}"
+        );
+    }
+    // The page, asked for by a DNS name that points here.
+    let mut stream = TcpStream::connect(("127.0.0.1", http_port)).unwrap();
+    std::io::Write::write_all(
+        &mut stream,
+        format!("GET / HTTP/1.1\r\nHost: rebound.example:{http_port}\r\nConnection: close\r\n\r\n")
+            .as_bytes(),
+    )
+    .unwrap();
+    let mut answer = String::new();
+    stream.read_to_string(&mut answer).unwrap();
+    assert!(answer.starts_with("HTTP/1.1 403"), "{answer:.200}");
 }

@@ -136,3 +136,48 @@ fn a_band_wider_than_one_window_encodes_in_halves() {
         "{text}"
     );
 }
+
+/// The advertised limit of 2²⁴ nodes (a 256³ grid) is refused before anything is allocated, with
+/// what it would need and what the machine has: `model` and `solve` both allocated past 5 GB
+/// and died in the allocator (exit 134). Model B needs ~29 GB, more than this machine has; model
+/// A (~10 GB) is run under an address-space limit of 2 GB (`ulimit -v`), which counts as what the
+/// process may take.
+#[test]
+fn the_largest_grid_is_refused_before_allocating_with_what_it_needs() {
+    let refused = |out: &Output, what: &str| {
+        let message = stderr(out);
+        assert_eq!(out.status.code(), Some(1), "{what}: {message}");
+        for needle in [
+            "256×256×256",
+            "needs about",
+            "GB",
+            "available",
+            "smaller --grid",
+        ] {
+            assert!(
+                message.contains(needle),
+                "{what}: '{needle}' not in {message}"
+            );
+        }
+        assert!(!message.contains("panicked"), "{what}: {message}");
+    };
+    for command in ["model", "solve"] {
+        let started = std::time::Instant::now();
+        let out = deform(&[command, "--grid", "256,256,256", "--model", "b"]);
+        refused(&out, command);
+        assert!(
+            stderr(&out).contains("16777216 nodes and 449455096 nonzeros"),
+            "{}",
+            stderr(&out)
+        );
+        assert!(started.elapsed() < std::time::Duration::from_secs(20));
+        let limited = Command::new("sh")
+            .arg("-c")
+            .arg(r#"ulimit -v 2000000 && exec "$0" "$@""#)
+            .arg(env!("CARGO_BIN_EXE_deform"))
+            .args([command, "--grid", "256,256,256", "--model", "a"])
+            .output()
+            .expect("sh runs");
+        refused(&limited, &format!("{command} (model A, ulimit -v)"));
+    }
+}

@@ -217,6 +217,18 @@ fn run_fused(
     tol: f64,
     harts: usize,
 ) -> Result<Run, SolveFailure> {
+    run_fused_on(m, bs, x0, tol, &Sequential { harts }, 0)
+}
+
+/// [`run_fused`] on `exec`, with a cycle budget.
+fn run_fused_on(
+    m: &Encoded,
+    bs: &[&[f64]],
+    x0: Option<&[&[f64]]>,
+    tol: f64,
+    exec: &impl Executor,
+    cycle_budget: u64,
+) -> Result<Run, SolveFailure> {
     let n = m.n;
     let mut kp = vec![[0i64; MAX_DIRECTIONS]; n];
     let mut partial = vec![[0i64; MAX_DIRECTIONS]; 4 * n];
@@ -261,14 +273,14 @@ fn run_fused(
             Start::Zero
         },
         directions: bs.len() as u8,
-        cycle_budget: 0,
+        cycle_budget,
     };
     let work = Work {
         p: &mut p,
         kp: &mut kp,
         partial: &mut partial,
     };
-    let report = solve(&matrix, &mut systems, work, &params, &Sequential { harts })?;
+    let report = solve(&matrix, &mut systems, work, &params, exec)?;
     Ok(Run {
         x: systems
             .iter()
@@ -803,4 +815,86 @@ fn a_given_residual_is_started_from_and_the_end_verified() {
         );
         assert!(true_residual(&m.rows, &x, &b) < 2e-7, "{factor}");
     }
+}
+
+/// A sequential executor on a core with a CPI of 3: its clock gains 3 cycles per instruction,
+/// one instruction per read, and each hart's measured task costs 30 cycles, 10 instructions.
+struct CpiThree {
+    instructions: std::sync::atomic::AtomicU64,
+    harts: usize,
+}
+
+impl PhaseClock for CpiThree {
+    fn now(&self) -> PhaseCounters {
+        let i = self
+            .instructions
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        PhaseCounters {
+            cycles: 3 * i,
+            instructions: i,
+        }
+    }
+}
+
+impl Executor for CpiThree {
+    fn harts(&self) -> usize {
+        self.harts
+    }
+    fn run(&self, harts: usize, task: crate::exec::Task<'_>) {
+        Sequential { harts: self.harts }.run(harts, task)
+    }
+    fn run_measured(
+        &self,
+        harts: usize,
+        task: crate::exec::Task<'_>,
+    ) -> [PhaseCounters; MAX_HARTS] {
+        self.run(harts, task);
+        let mut counts = [PhaseCounters::default(); MAX_HARTS];
+        for c in counts.iter_mut().take(harts) {
+            *c = PhaseCounters {
+                cycles: 30,
+                instructions: 10,
+            };
+        }
+        counts
+    }
+}
+
+/// Cycles are reported beside instructions, each as measured (protocol 11: the first iteration
+/// and the whole solve carried instructions only, and the summary called them cycles), and the
+/// cycle budget counts cycles.
+#[test]
+fn the_report_carries_cycles_beside_instructions_and_the_budget_counts_cycles() {
+    let m = encode(laplacian_1d(40), 18, 64);
+    let b: Vec<f64> = (0..40).map(|i| ((i * 7919) % 13) as f64 - 6.0).collect();
+    let exec = CpiThree {
+        instructions: Default::default(),
+        harts: 1,
+    };
+    let run = run_fused_on(&m, &[&b], None, 1e-9, &exec, 0).unwrap();
+    let report = run.report;
+    for cost in [report.per_iteration, report.whole_solve] {
+        for phase in [
+            cost.mvu_critical,
+            cost.svu_critical,
+            cost.mvu_total,
+            cost.svu_total,
+        ] {
+            assert!(phase.instructions > 0, "{cost:?}");
+            assert_eq!(phase.cycles, 3 * phase.instructions, "{cost:?}");
+        }
+    }
+    assert_eq!(report.per_iteration.critical().cpi(), Some(3.0));
+    let scalar = report.first_iteration_scalar;
+    assert!(scalar.instructions > 0 && scalar.cycles == 3 * scalar.instructions);
+    // A budget of the whole solve's instructions stops it a third of the way in cycles.
+    let all = report.whole_solve.critical();
+    let budgeted = run_fused_on(&m, &[&b], None, 1e-9, &exec, all.instructions).unwrap();
+    assert!(
+        budgeted.report.iterations < report.iterations / 2,
+        "{} of {} iterations within {} cycles",
+        budgeted.report.iterations,
+        report.iterations,
+        all.instructions
+    );
 }

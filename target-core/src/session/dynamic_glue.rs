@@ -1,4 +1,4 @@
-//! The session's dynamic-frame requests (protocol version 11, [`deform_shared::dynamics`]): the
+//! The session's dynamic-frame requests (protocol version 12, [`deform_shared::dynamics`]): the
 //! stiffness copy's upload, the tool set, the start and the steps. The arithmetic is in
 //! [`crate::dynamics`]; this is where it meets the session's vectors, the MVU and the solves.
 //!
@@ -11,6 +11,7 @@
 
 use deform_shared::dynamics::{DynamicError, DynamicParams, DynamicTool};
 use deform_shared::live::{FrameReport, LiveError, ToolRow, MAX_TOOL_NODES, MAX_TOOL_ROW};
+use deform_shared::protocol::PhaseCounters;
 use deform_shared::qformat::ldexp;
 
 use super::*;
@@ -19,7 +20,7 @@ use crate::dynamics::{
     advance_share, predict_share, residual_share, rhs_share, row_sum, Difference, History,
     LiveDynamicError, ResidualPlan, RhsPlan, RhsSums,
 };
-use crate::exec::{share, SharedSlice};
+use crate::exec::{share, slowest, SharedSlice};
 use crate::svu::{bound_of, bound_of_u64, magnitude_bits, Block, Lin, Narrow, Scalar};
 
 fn dynamic(e: DynamicError) -> ErrorCode {
@@ -35,16 +36,16 @@ impl From<LiveDynamicError> for ErrorCode {
     }
 }
 
-/// Hart 0's cycles over the parallel parts of a step and their critical path (see
+/// Hart 0's counts over the parallel parts of a step and their critical path (see
 /// `FrameSolve` in `live_glue.rs` for why they are told apart).
 #[derive(Debug, Clone, Copy, Default)]
 struct Phases {
-    on_hart0: u64,
-    critical: u64,
+    on_hart0: PhaseCounters,
+    critical: PhaseCounters,
 }
 
 impl Phases {
-    fn add(&mut self, on_hart0: u64, critical: u64) {
+    fn add(&mut self, on_hart0: PhaseCounters, critical: PhaseCounters) {
         self.on_hart0 = self.on_hart0.saturating_add(on_hart0);
         self.critical = self.critical.saturating_add(critical);
     }
@@ -238,15 +239,19 @@ impl<E: Executor> Session<'_, E> {
         if !force.iter().all(|&v| (v as f32).is_finite()) {
             return Err(ErrorCode::Live(LiveError::NotFinite));
         }
-        let elapsed = self.exec.now().cycles.wrapping_sub(t0.cycles);
-        let cycles = elapsed
+        let cost = self
+            .exec
+            .now()
+            .since(t0)
             .saturating_sub(phases.on_hart0)
             .saturating_add(phases.critical);
+        let (cycles, stall_cycles) = live_glue::live_counts(cost);
         Ok(Response::LiveFrame(FrameReport {
             force: force.map(|v| v as f32),
             residual: residual as f32,
             iterations: iterations.min(u32::from(u16::MAX)) as u16,
-            cycles: cycles.min(u64::from(u32::MAX)) as u32,
+            cycles,
+            stall_cycles,
         }))
     }
 
@@ -299,7 +304,7 @@ impl<E: Executor> Session<'_, E> {
         };
         let work = Work { p, kp, partial };
         let product = cg::product(&matrix, &mut us, work, &self.exec).map_err(ErrorCode::Solve)?;
-        phases.add(product.on_hart0.cycles, product.critical);
+        phases.add(product.on_hart0, product.critical);
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
         // Each lane's OR, which pass B plans with.
         for (lane, &d) in active.iter().enumerate() {
@@ -448,8 +453,8 @@ impl<E: Executor> Session<'_, E> {
             };
             let t = self.exec.now();
             let counts = self.exec.run_measured(harts, &task);
-            let critical = counts[..harts].iter().copied().max().unwrap_or(0);
-            phases.add(self.exec.now().cycles.wrapping_sub(t.cycles), critical);
+            let critical = slowest(&counts[..harts]);
+            phases.add(self.exec.now().since(t), critical);
         }
         for (lane, step) in steps.iter_mut().enumerate() {
             for hart in &sums[..harts] {
@@ -576,7 +581,7 @@ impl<E: Executor> Session<'_, E> {
         let work = Work { p, kp, partial };
         let report = cg::solve(&matrix, &mut systems, work, &params, &self.exec)
             .map_err(ErrorCode::Solve)?;
-        let (on_hart0, critical) = live_glue::solve_cycles(&report);
+        let (on_hart0, critical) = live_glue::solve_cost(&report);
         phases.add(on_hart0, critical);
         let mut outcomes = [Outcome::default(); MAX_DIRECTIONS];
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
@@ -665,8 +670,8 @@ impl<E: Executor> Session<'_, E> {
             };
             let t = self.exec.now();
             let counts = self.exec.run_measured(harts, &task);
-            let critical = counts[..harts].iter().copied().max().unwrap_or(0);
-            phases.add(self.exec.now().cycles.wrapping_sub(t.cycles), critical);
+            let critical = slowest(&counts[..harts]);
+            phases.add(self.exec.now().since(t), critical);
         }
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
         for (lane, step) in steps.iter().enumerate() {
@@ -758,8 +763,8 @@ impl<E: Executor> Session<'_, E> {
             };
             let t = self.exec.now();
             let counts = self.exec.run_measured(harts, &task);
-            let critical = counts[..harts].iter().copied().max().unwrap_or(0);
-            phases.add(self.exec.now().cycles.wrapping_sub(t.cycles), critical);
+            let critical = slowest(&counts[..harts]);
+            phases.add(self.exec.now().since(t), critical);
         }
         for (lane, step) in steps.iter().enumerate() {
             let Some(plan) = plans[lane] else { continue };
@@ -872,8 +877,8 @@ impl<E: Executor> Session<'_, E> {
             };
             let t = self.exec.now();
             let counts = self.exec.run_measured(harts, &task);
-            let critical = counts[..harts].iter().copied().max().unwrap_or(0);
-            phases.add(self.exec.now().cycles.wrapping_sub(t.cycles), critical);
+            let critical = slowest(&counts[..harts]);
+            phases.add(self.exec.now().since(t), critical);
         }
         for (lane, step) in steps.iter().enumerate() {
             let e = lins[lane].e;

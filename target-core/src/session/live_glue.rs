@@ -10,7 +10,7 @@ use deform_shared::live::{
 
 use super::*;
 use crate::cg::EXACT_PASS_ERROR;
-use crate::exec::{share, SharedSlice};
+use crate::exec::{share, slowest, SharedSlice};
 use crate::live::{field_exponent, pack_field, Estimate, Started, ToolKind};
 use crate::predict::scale;
 use crate::superpose::{
@@ -19,7 +19,7 @@ use crate::superpose::{
 };
 use crate::svu::magnitude_bits;
 use deform_shared::live::MAX_TOOL_NODES;
-use deform_shared::protocol::{SolveReport, MAX_HARTS};
+use deform_shared::protocol::{PhaseCounters, SolveReport, MAX_HARTS};
 use deform_shared::qformat::ldexp;
 
 /// The Schur columns' tolerance: the fixed-point CG's floor, which the host's refinement
@@ -61,9 +61,10 @@ impl<E: Executor> Session<'_, E> {
             iterations: 0,
             cycles: 0,
             converged: true,
+            stall_cycles: 0,
         };
-        // Hart 0's count over the solves and their critical paths (see `frame_cycles`).
-        let (mut counted, mut path) = (0u64, 0u64);
+        // Hart 0's counts over the solves and their critical paths (see [`solve_cost`]).
+        let (mut counted, mut path) = (PhaseCounters::default(), PhaseCounters::default());
         let mut result = || {
             for first in (0..tools).step_by(MAX_DIRECTIONS) {
                 let group = (tools - first).min(MAX_DIRECTIONS);
@@ -85,9 +86,9 @@ impl<E: Executor> Session<'_, E> {
                 })?;
                 if let Response::Solved(r) = solved {
                     // Each solve counts at its critical path, as a frame's does.
-                    let (on_hart0, critical) = solve_cycles(&r);
-                    counted = counted.saturating_add(on_hart0);
-                    path = path.saturating_add(critical);
+                    let (on_hart0, critical) = solve_cost(&r);
+                    counted += on_hart0;
+                    path += critical;
                     report.solves += 1;
                     report.iterations += r.iterations;
                     report.converged &= r.converged;
@@ -117,7 +118,7 @@ impl<E: Executor> Session<'_, E> {
                         [None; MAX_DIRECTIONS],
                         false,
                     )?;
-                    let (on_hart0, critical) = solve_cycles(&r);
+                    let (on_hart0, critical) = solve_cost(&r);
                     counted = counted.saturating_add(on_hart0);
                     path = path.saturating_add(critical);
                     for (g, outcome) in outcomes.iter().enumerate().take(group) {
@@ -139,8 +140,14 @@ impl<E: Executor> Session<'_, E> {
             self.live.clear();
             return Err(e);
         }
-        let elapsed = self.exec.now().cycles.wrapping_sub(t0.cycles);
-        report.cycles = elapsed.saturating_sub(counted).saturating_add(path);
+        let cost = self
+            .exec
+            .now()
+            .since(t0)
+            .saturating_sub(counted)
+            .saturating_add(path);
+        report.cycles = cost.cycles;
+        report.stall_cycles = cost.stall_cycles();
         Ok(Response::LiveReady(report))
     }
 
@@ -164,37 +171,40 @@ impl<E: Executor> Session<'_, E> {
 
     /// A displacement tool's full frame.
     pub(super) fn live_frame(&mut self, tool: &[[f32; 3]]) -> Result<Response, ErrorCode> {
-        let (force, residual, iterations, cycles) =
-            self.live_solve(tool, ToolKind::Displacement)?;
+        let (force, residual, iterations, cost) = self.live_solve(tool, ToolKind::Displacement)?;
+        let (cycles, stall_cycles) = live_counts(cost);
         Ok(Response::LiveFrame(FrameReport {
             force,
             residual,
             iterations,
             cycles,
+            stall_cycles,
         }))
     }
 
     /// A force tool's full frame (version 9).
     pub(super) fn live_load(&mut self, load: &[[f32; 3]]) -> Result<Response, ErrorCode> {
-        let (displacement, residual, iterations, cycles) =
-            self.live_solve(load, ToolKind::Force)?;
+        let (displacement, residual, iterations, cost) = self.live_solve(load, ToolKind::Force)?;
+        let (cycles, stall_cycles) = live_counts(cost);
         Ok(Response::LiveMotion(MotionReport {
             displacement,
             residual,
             iterations,
             cycles,
+            stall_cycles,
         }))
     }
 
     /// A full frame: right-hand sides from the tool inputs, the superposed start and its
     /// residual estimate, a solve of the directions that need one (none where every estimate
     /// is accepted), the answer (force or motion), and the local model re-anchored. Returns
-    /// the answer, the residual, the iterations and the cycles.
+    /// the answer, the residual, the iterations and the frame's cost (hart 0's counts over
+    /// the frame, the solve's share replaced by its critical path: [`solve_cost`]).
     fn live_solve(
         &mut self,
         tool: &[[f32; 3]],
         kind: ToolKind,
-    ) -> Result<([f32; 3], f32, u16, u32), ErrorCode> {
+    ) -> Result<([f32; 3], f32, u16, PhaseCounters), ErrorCode> {
         let shape = self.loaded()?;
         let (n, f) = (to_usize(shape.n), i32::from(shape.frac_bits));
         let t0 = self.exec.now();
@@ -253,15 +263,17 @@ impl<E: Executor> Session<'_, E> {
             *b = *u;
         }
         started.base = Some(base);
-        let elapsed = self.exec.now().cycles.wrapping_sub(t0.cycles);
-        let cycles = elapsed
+        let cost = self
+            .exec
+            .now()
+            .since(t0)
             .saturating_sub(report.on_hart0)
             .saturating_add(report.critical);
         Ok((
             answer.map(|v| v as f32),
             report.residual as f32,
             report.iterations.min(u32::from(u16::MAX)) as u16,
-            cycles.min(u64::from(u32::MAX)) as u32,
+            cost,
         ))
     }
 
@@ -443,8 +455,8 @@ impl<E: Executor> Session<'_, E> {
             };
             let t = self.exec.now();
             let counts = self.exec.run_measured(harts, &task);
-            frame.on_hart0 = self.exec.now().cycles.wrapping_sub(t.cycles);
-            frame.critical = counts[..harts].iter().copied().max().unwrap_or(0);
+            frame.on_hart0 = self.exec.now().since(t);
+            frame.critical = slowest(&counts[..harts]);
         }
         for (d, df) in frame.directions.iter_mut().enumerate() {
             if !df.moved {
@@ -567,34 +579,37 @@ impl<E: Executor> Session<'_, E> {
 
     /// A force query between a displacement tool's frames, from the local linear model.
     pub(super) fn live_force(&mut self, tool: &[[f32; 3]]) -> Result<Response, ErrorCode> {
-        let (force, cycles) = self.live_query(tool, ToolKind::Displacement)?;
-        Ok(Response::LiveForce(ForceReport { force, cycles }))
+        let (force, cost) = self.live_query(tool, ToolKind::Displacement)?;
+        let (cycles, stall_cycles) = live_counts(cost);
+        Ok(Response::LiveForce(ForceReport {
+            force,
+            cycles,
+            stall_cycles,
+        }))
     }
 
     /// A displacement query between a force tool's frames, from the compliance model.
     pub(super) fn live_load_query(&mut self, load: &[[f32; 3]]) -> Result<Response, ErrorCode> {
-        let (displacement, cycles) = self.live_query(load, ToolKind::Force)?;
+        let (displacement, cost) = self.live_query(load, ToolKind::Force)?;
+        let (cycles, stall_cycles) = live_counts(cost);
         Ok(Response::LiveMotionQuery(MotionQuery {
             displacement,
             cycles,
+            stall_cycles,
         }))
     }
 
-    /// The local model's answer at `tool` and the cycles it took.
+    /// The local model's answer at `tool` and hart 0's counts for it.
     fn live_query(
         &mut self,
         tool: &[[f32; 3]],
         kind: ToolKind,
-    ) -> Result<([f32; 3], u32), ErrorCode> {
+    ) -> Result<([f32; 3], PhaseCounters), ErrorCode> {
         let t0 = self.exec.now();
         self.check_tool(tool, kind)?;
         let (_, started) = self.live.parts().map_err(live)?;
         let answer = started.model_answer(tool).map_err(live)?;
-        let cycles = self.exec.now().cycles.wrapping_sub(t0.cycles);
-        Ok((
-            answer.map(|v| v as f32),
-            cycles.min(u64::from(u32::MAX)) as u32,
-        ))
+        Ok((answer.map(|v| v as f32), self.exec.now().since(t0)))
     }
 
     /// A chunk of the last frame's field (a live frame's or a dynamic step's), quantised (see
@@ -634,11 +649,12 @@ impl<E: Executor> Session<'_, E> {
             core::array::from_fn(|d| (dirs[d].x.get(..n).unwrap_or(&[]), exponents[d]));
         let exponent = *slot.get_or_insert_with(|| field_exponent(&solutions));
         let values = pack_field(&solutions, selection.chunk(offset), exponent);
-        let cycles = self.exec.now().cycles.wrapping_sub(t0.cycles);
+        let (cycles, stall_cycles) = live_counts(self.exec.now().since(t0));
         Ok(Response::Field(FieldChunk {
             offset,
             exponent,
-            cycles: cycles.min(u64::from(u32::MAX)) as u32,
+            cycles,
+            stall_cycles,
             values,
         }))
     }
@@ -656,13 +672,13 @@ impl<E: Executor> Session<'_, E> {
 struct FrameSolve {
     residual: f64,
     iterations: u32,
-    on_hart0: u64,
-    critical: u64,
+    on_hart0: PhaseCounters,
+    critical: PhaseCounters,
 }
 
 impl FrameSolve {
     fn of(report: &SolveReport) -> FrameSolve {
-        let (on_hart0, critical) = solve_cycles(report);
+        let (on_hart0, critical) = solve_cost(report);
         FrameSolve {
             residual: report.residual,
             iterations: report.iterations,
@@ -694,9 +710,9 @@ struct DirectionFrame {
 #[derive(Debug, Clone, Default)]
 struct SuperposedFrame {
     directions: [DirectionFrame; MAX_DIRECTIONS],
-    /// Hart 0's cycles over the parallel pass, and its critical path.
-    on_hart0: u64,
-    critical: u64,
+    /// Hart 0's counts over the parallel pass, and its critical path.
+    on_hart0: PhaseCounters,
+    critical: PhaseCounters,
 }
 
 /// The residual an accepted direction reports: (‖r̃‖ + its bound)/‖b‖, what it is certified
@@ -784,15 +800,17 @@ fn hold_column(
     }
 }
 
-/// A solve's share of hart 0's cycle count and its critical path; the same with one MVU.
-pub(super) fn solve_cycles(report: &SolveReport) -> (u64, u64) {
-    let on_hart0 = report.mvu.cycles.saturating_add(report.svu.cycles);
+/// A solve's share of hart 0's counts and its critical path; the same with one MVU.
+pub(super) fn solve_cost(report: &SolveReport) -> (PhaseCounters, PhaseCounters) {
+    let on_hart0 = report.mvu.saturating_add(report.svu);
     if report.mvus <= 1 {
         return (on_hart0, on_hart0);
     }
-    let critical = report
-        .whole_solve
-        .mvu_critical
-        .saturating_add(report.whole_solve.svu_critical);
-    (on_hart0, critical)
+    (on_hart0, report.whole_solve.critical())
+}
+
+/// A live report's `cycles` and `stall_cycles` (cycles − instructions), each clamped to 32 bits.
+pub(super) fn live_counts(cost: PhaseCounters) -> (u32, u32) {
+    let clamp = |v: u64| v.min(u64::from(u32::MAX)) as u32;
+    (clamp(cost.cycles), clamp(cost.stall_cycles()))
 }

@@ -245,7 +245,7 @@ fn force_tool_requests() -> Vec<Request> {
     out
 }
 
-/// A dynamic session (protocol version 11) on the seed matrix: K's values (the matrix's own)
+/// A dynamic session (protocol version 12) on the seed matrix: K's values (the matrix's own)
 /// into the stiffness copy, a tool at node 3, the start and two steps.
 fn dynamic_requests(system: &super::TestSystem) -> Vec<Request> {
     use deform_shared::dynamics::{DynamicParams, DynamicTool};

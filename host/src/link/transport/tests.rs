@@ -3,7 +3,7 @@ use std::os::unix::net::UnixStream;
 use std::thread;
 
 use deform_shared::frame::{Feed, FrameAccumulator};
-use deform_shared::protocol::{SessionStep, PROTOCOL_VERSION};
+use deform_shared::protocol::{ErrorCode, SessionStep, PROTOCOL_VERSION};
 
 use super::*;
 use crate::link::fake_target::{answer_frame, info, serve, serve_session, uplink_frame, Received};
@@ -159,9 +159,7 @@ fn a_target_that_streams_noise_forever_still_times_out() {
         }
     });
     let started = Instant::now();
-    let err = link
-        .exchange(&HELLO, Duration::from_millis(200), Exchange::Handshake)
-        .unwrap_err();
+    let err = link.request(&HELLO).unwrap_err();
     assert!(
         matches!(
             err,
@@ -320,4 +318,101 @@ fn requests_are_pipelined_up_to_the_window_and_replies_come_in_order() {
         handled.load(std::sync::atomic::Ordering::SeqCst) as u64,
         link.stats().requests
     );
+}
+
+/// The deadline follows progress: a target that answers every 100 ms keeps a window of eight
+/// requests going for 0.8 s on a 0.3 s timeout, though the last of them waited 0.8 s for its
+/// reply (a per-request deadline failed it).
+#[test]
+fn a_slow_target_that_keeps_answering_is_waited_for_beyond_the_timeout() {
+    let (host, target) = UnixStream::pair().unwrap();
+    let mut link = Link::new(host).with_timeout(Duration::from_millis(300));
+    link.set_config(LinkConfig {
+        retransmit: Duration::from_secs(1),
+        ..LinkConfig::default()
+    });
+    serve(target, |received| match received {
+        Received::Request(req) => {
+            thread::sleep(Duration::from_millis(100));
+            answer_frame(req.seq, Response::Ack)
+        }
+        Received::Unreadable(_) => Vec::new(),
+    });
+    let started = Instant::now();
+    let mut replies = 0;
+    link.run((0..8).map(end), |_, _| {
+        replies += 1;
+        Ok(())
+    })
+    .unwrap();
+    assert_eq!(replies, 8);
+    assert!(started.elapsed() >= Duration::from_millis(700));
+}
+
+/// A target that answers with noise (a corrupt frame) is there, its line noisy: the frame is
+/// resent at the plain retransmit timeout, not doubled each time, so ten damaged answers take
+/// ~0.5 s, within a 1.5 s deadline that doubling (50 ms … 400 ms: 2.75 s) would miss.
+#[test]
+fn a_target_that_answers_garbled_is_retried_without_back_off() {
+    let (host, target) = UnixStream::pair().unwrap();
+    let mut link = Link::new(host).with_timeout(Duration::from_millis(1500));
+    link.set_config(LinkConfig {
+        retransmit: Duration::from_millis(50),
+        ..LinkConfig::default()
+    });
+    let mut seen = 0;
+    serve(target, move |received| match received {
+        Received::Request(req) if seen >= 10 => answer_frame(req.seq, Response::Ack),
+        Received::Request(req) => {
+            seen += 1;
+            let mut garbled = answer_frame(req.seq, Response::Ack);
+            garbled[2] ^= 0x10;
+            garbled
+        }
+        Received::Unreadable(_) => Vec::new(),
+    });
+    let started = Instant::now();
+    assert_eq!(link.request(&end(0)).unwrap(), Response::Ack);
+    assert!(started.elapsed() < Duration::from_millis(1200));
+    assert_eq!(link.stats().retransmits, 10);
+    assert_eq!(link.stats().corrupt_frames, 10);
+}
+
+/// A NAK naming a later number says the requests before it were handled: the host fetches their
+/// lost replies at once (the target answers from its reply cache) instead of waiting a timer.
+#[test]
+fn a_nak_naming_a_later_number_fetches_the_lost_replies_at_once() {
+    let (host, target) = UnixStream::pair().unwrap();
+    let mut link = Link::new(host).with_timeout(Duration::from_secs(10));
+    link.set_config(LinkConfig {
+        retransmit: Duration::from_secs(3),
+        ..LinkConfig::default()
+    });
+    let mut seen = 0;
+    serve(target, move |received| match received {
+        Received::Request(req) => {
+            seen += 1;
+            match seen {
+                // The second and third requests are handled, their replies lost; the NAK after
+                // the third names the fourth.
+                2 => Vec::new(),
+                3 => uplink_frame(&Uplink::Nak {
+                    expected: req.seq.wrapping_add(1),
+                }),
+                _ => answer_frame(req.seq, Response::Ack),
+            }
+        }
+        Received::Unreadable(_) => Vec::new(),
+    });
+    // One quick exchange first, so that the link has measured the target's answer time.
+    link.request(&end(0)).unwrap();
+    let started = Instant::now();
+    link.run((1..3).map(end), |_, _| Ok(())).unwrap();
+    assert!(
+        started.elapsed() < Duration::from_secs(1),
+        "waited for a timer: {:?}",
+        started.elapsed()
+    );
+    assert_eq!(link.stats().timeouts, 0, "{:?}", link.stats());
+    assert_eq!(link.stats().retransmits, 2, "{:?}", link.stats());
 }

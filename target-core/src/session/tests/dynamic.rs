@@ -1,4 +1,4 @@
-//! Target-resident dynamic frames (protocol version 11) on a damped chain against a backward
+//! Target-resident dynamic frames (protocol version 12) on a damped chain against a backward
 //! Euler stepper in f64 run over the same quantised S and K: the displacements follow it, the
 //! tool's force too, and every refusal is clear.
 

@@ -107,7 +107,7 @@ impl Executor for Ticking {
     fn run(&self, harts: usize, task: Task<'_>) {
         HARTS.run(harts, task)
     }
-    fn run_measured(&self, harts: usize, task: Task<'_>) -> [u64; MAX_HARTS] {
+    fn run_measured(&self, harts: usize, task: Task<'_>) -> [PhaseCounters; MAX_HARTS] {
         HARTS.run_measured(harts, task)
     }
 }

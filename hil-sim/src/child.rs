@@ -1,0 +1,208 @@
+//! Child processes that never outlive the process that started them.
+//!
+//! Every process hil-sim starts (QEMU, the LiteX simulator, socat), and those the tests start
+//! (`deform` servers, Chromium, `litex_term`), goes through [`spawn`]. On Linux it asks the
+//! kernel, with `PR_SET_PDEATHSIG`, to SIGKILL the child when its parent dies, however the parent
+//! dies: a return from `main` without dropping it, a SIGTERM or SIGINT with the default action, a
+//! failed allocation's abort, even a SIGKILL. A `Drop` that kills the child covers only the first
+//! of these; a signal handler covers none of the last three.
+//!
+//! The kernel sends that signal when the *thread* that forked the child ends, not the process. A
+//! child forked by a test's thread or a server's worker thread would be killed when that thread
+//! returns, while its owner may still hold it. So every child is forked by one spawner thread
+//! that lives as long as the process (started on first use): for the child, its parent's death is
+//! then the process's.
+
+use std::io;
+use std::process::{Child, Command};
+use std::sync::{mpsc, Mutex, OnceLock};
+use std::thread;
+
+/// A command to fork and where to send the result.
+type Request = (Command, mpsc::Sender<io::Result<Child>>);
+
+/// Starts `cmd` as a child that is SIGKILLed when this process dies (see the module's doc).
+pub fn spawn(mut cmd: Command) -> io::Result<Child> {
+    die_with_parent(&mut cmd);
+    static SPAWNER: OnceLock<Mutex<mpsc::Sender<Request>>> = OnceLock::new();
+    let spawner = SPAWNER.get_or_init(|| {
+        let (tx, rx) = mpsc::channel::<Request>();
+        thread::Builder::new()
+            .name("hil-sim-spawner".into())
+            .spawn(move || {
+                for (mut cmd, reply) in rx {
+                    let _ = reply.send(cmd.spawn());
+                }
+            })
+            .expect("starting the spawner thread");
+        Mutex::new(tx)
+    });
+    let (reply_tx, reply_rx) = mpsc::channel();
+    let sent = spawner
+        .lock()
+        .map_err(|_| io::Error::other("the spawner thread's lock is poisoned"))?
+        .send((cmd, reply_tx));
+    if sent.is_err() {
+        return Err(io::Error::other("the spawner thread has ended"));
+    }
+    reply_rx
+        .recv()
+        .map_err(|_| io::Error::other("the spawner thread has ended"))?
+}
+
+/// Sets `PR_SET_PDEATHSIG` to SIGKILL in the forked child before it runs the program.
+#[cfg(target_os = "linux")]
+fn die_with_parent(cmd: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    let parent = std::process::id() as libc::pid_t;
+    // SAFETY: the closure runs between fork and exec and calls only async-signal-safe functions
+    // (prctl, getppid) and allocates nothing.
+    unsafe {
+        cmd.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                return Err(io::Error::last_os_error());
+            }
+            // The parent may have died before the prctl: then no signal comes, so stop here.
+            if libc::getppid() != parent {
+                return Err(io::Error::from_raw_os_error(libc::ESRCH));
+            }
+            Ok(())
+        });
+    }
+}
+
+/// Elsewhere there is no such kernel service: the owners' `Drop` is all there is.
+#[cfg(not(target_os = "linux"))]
+fn die_with_parent(_cmd: &mut Command) {}
+
+/// A process as `/proc/PID/stat` shows it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ProcessInfo {
+    pub pid: u32,
+    pub parent: u32,
+    /// The executable's name, as the kernel keeps it (at most 15 bytes: `qemu-system-ris`).
+    pub name: String,
+    /// `R`, `S`, `D`, … or `Z` for a zombie (dead, not yet reaped).
+    pub state: char,
+}
+
+/// Reads `/proc/PID/stat`; `None` if there is no such process.
+pub fn process_info(pid: u32) -> Option<ProcessInfo> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // `PID (NAME) STATE PPID …`, where NAME may hold spaces and parentheses.
+    let (head, tail) = stat.rsplit_once(')')?;
+    let name = head.split_once('(')?.1.to_owned();
+    let mut fields = tail.split_whitespace();
+    let state = fields.next()?.chars().next()?;
+    let parent = fields.next()?.parse().ok()?;
+    Some(ProcessInfo {
+        pid,
+        parent,
+        name,
+        state,
+    })
+}
+
+/// Whether `pid` runs: exists and is no zombie (a zombie is dead, only not yet reaped by whoever
+/// inherited it).
+pub fn is_running(pid: u32) -> bool {
+    process_info(pid).is_some_and(|p| p.state != 'Z' && p.state != 'X')
+}
+
+/// The processes whose parent is `pid`, for tests that check nothing is left behind.
+pub fn children_of(pid: u32) -> Vec<ProcessInfo> {
+    let Ok(entries) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    entries
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
+        .filter_map(process_info)
+        .filter(|p| p.parent == pid)
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::{Duration, Instant};
+
+    /// A child started from a short-lived thread still runs after that thread ended (the
+    /// spawner thread forked it), and is killed once its parent process dies.
+    #[test]
+    fn a_child_outlives_the_thread_that_asked_for_it() {
+        let mut child = thread::spawn(|| {
+            let mut cmd = Command::new("sleep");
+            cmd.arg("30");
+            spawn(cmd).unwrap()
+        })
+        .join()
+        .unwrap();
+        thread::sleep(Duration::from_millis(200));
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the child died with the thread that asked for it"
+        );
+        child.kill().unwrap();
+        child.wait().unwrap();
+    }
+
+    /// A parent killed by SIGKILL (no destructor, no handler runs) takes its child along. The
+    /// parent is a copy of this test binary running the ignored helper below.
+    #[test]
+    fn a_child_dies_when_its_parent_is_killed() {
+        let pid_file =
+            std::env::temp_dir().join(format!("deform-pdeathsig-{}", std::process::id()));
+        let _ = std::fs::remove_file(&pid_file);
+        let mut parent = Command::new(std::env::current_exe().unwrap())
+            .args([
+                "--exact",
+                "child::tests::helper_parent_that_spawns_sleep",
+                "--ignored",
+                "--nocapture",
+            ])
+            .env("DEFORM_PDEATHSIG_PID_FILE", &pid_file)
+            .spawn()
+            .unwrap();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        let sleeper: u32 = loop {
+            if let Some(pid) = std::fs::read_to_string(&pid_file)
+                .ok()
+                .and_then(|t| t.trim().parse().ok())
+            {
+                break pid;
+            }
+            assert!(Instant::now() < deadline, "the helper never started sleep");
+            thread::sleep(Duration::from_millis(20));
+        };
+        assert!(is_running(sleeper), "sleep is not running");
+        assert_eq!(process_info(sleeper).unwrap().parent, parent.id());
+        assert_eq!(process_info(sleeper).unwrap().name, "sleep");
+        parent.kill().unwrap();
+        parent.wait().unwrap();
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while is_running(sleeper) {
+            assert!(
+                Instant::now() < deadline,
+                "sleep ({sleeper}) outlived its SIGKILLed parent"
+            );
+            thread::sleep(Duration::from_millis(20));
+        }
+        let _ = std::fs::remove_file(&pid_file);
+    }
+
+    /// Run by [`a_child_dies_when_its_parent_is_killed`] only: starts `sleep 60`, writes its pid,
+    /// and waits to be killed.
+    #[test]
+    #[ignore = "a helper process of a_child_dies_when_its_parent_is_killed"]
+    fn helper_parent_that_spawns_sleep() {
+        let Some(pid_file) = std::env::var_os("DEFORM_PDEATHSIG_PID_FILE") else {
+            return;
+        };
+        let mut cmd = Command::new("sleep");
+        cmd.arg("60");
+        let mut child = spawn(cmd).unwrap();
+        std::fs::write(pid_file, child.id().to_string()).unwrap();
+        // Killed while it waits.
+        let _ = child.wait();
+    }
+}

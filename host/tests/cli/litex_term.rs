@@ -1,0 +1,135 @@
+//! LiteX's own client on the simulated SoC with the stock BIOS: `litex_term --kernel fw.bin
+//! --kernel-adr 0x40000000` in its default mode (calibrated inter-frame delay, 128 frames in
+//! flight; no `--safe`) boots the firmware over the BIOS's serial boot, then `deform solve
+//! --port` runs on the same line. Before the simulated UART was paced at a baud rate
+//! (hil-sim/litex/deform_soc.py), it handed the SoC a byte per clock, the BIOS's 128-byte
+//! receive ring overflowed and the upload failed at 0–5 % with `Got unexpected response from
+//! device 'E'`.
+//!
+//! Needs the LiteX set-up (`cargo xtask setup`: the venv holds litex_term) and the LiteX firmware
+//! (`cargo xtask firmware --board litex`); the BIOS SoC is built once (a few minutes, cached).
+
+use std::io::Read;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use deform_hil_sim::child;
+use deform_hil_sim::litex::{litex_dir, litex_firmware_elf, LitexConfig, LitexSim};
+use deform_host::flash::FlashImage;
+
+/// What litex_term prints once the BIOS has the image and was told to jump to it.
+const BOOTED: &str = "[LITEX-TERM] Booting the device.";
+
+/// litex_term's own lines (its progress bar redraws with `\r` thousands of times), and the end.
+fn term_lines(text: &str) -> String {
+    let mut lines: Vec<&str> = text
+        .split(['\n', '\r'])
+        .filter(|l| l.contains("[LITEX-TERM]"))
+        .collect();
+    let tail = text.len().saturating_sub(300);
+    lines.push(text.get(tail..).unwrap_or(""));
+    lines.join("\n")
+}
+
+#[test]
+fn stock_litex_term_boots_the_firmware_through_the_bios_and_deform_solves_on_that_line() {
+    let elf = litex_firmware_elf();
+    let image = FlashImage::from_file(&elf).unwrap_or_else(|e| panic!("{}: {e}", elf.display()));
+    let scratch = Path::new(env!("CARGO_TARGET_TMPDIR")).join("litex-term");
+    std::fs::create_dir_all(&scratch).unwrap();
+    let bin = scratch.join("fw.bin");
+    std::fs::write(&bin, &image.bytes).unwrap();
+
+    let sim = LitexSim::start(&LitexConfig::bios())
+        .unwrap_or_else(|e| panic!("cannot start the LiteX SoC with its BIOS: {e}"));
+    let serial = sim.serial_path().to_str().unwrap().to_string();
+    // litex_term is an interactive terminal: it wants a tty on stdin, which Python's pty module
+    // gives it (the test's own stdin is not one).
+    let python = litex_dir().join("venv/bin/python");
+    let mut term = Command::new(&python);
+    term.args([
+        "-c",
+        "import pty, sys; sys.exit(pty.spawn(sys.argv[1:]) >> 8)",
+    ])
+    .arg(&python)
+    .args(["-m", "litex.tools.litex_term", "--kernel"])
+    .arg(&bin)
+    .args(["--kernel-adr", &format!("{:#x}", image.load_address)])
+    .arg(&serial)
+    .stdin(Stdio::null())
+    .stdout(Stdio::piped())
+    .stderr(Stdio::piped());
+    let mut term = child::spawn(term).expect("python runs litex_term");
+    let (tx, rx) = mpsc::channel();
+    let mut out = term.stdout.take().unwrap();
+    std::thread::spawn(move || {
+        let mut buf = [0u8; 4096];
+        while let Ok(n) = out.read(&mut buf) {
+            if n == 0 || tx.send(buf[..n].to_vec()).is_err() {
+                break;
+            }
+        }
+    });
+    let started = Instant::now();
+    let mut seen = Vec::new();
+    let deadline = started + Duration::from_secs(900);
+    while !String::from_utf8_lossy(&seen).contains(BOOTED) {
+        let text = String::from_utf8_lossy(&seen).into_owned();
+        assert!(
+            !text.contains("[LITEX-TERM] Got unexpected")
+                && !text.contains("[LITEX-TERM] Upload to device failed"),
+            "litex_term's upload failed:\n{text}"
+        );
+        if let Ok(Some(status)) = term.try_wait() {
+            panic!("litex_term exited ({status}) before booting the device:\n{text}");
+        }
+        assert!(
+            Instant::now() < deadline,
+            "litex_term did not boot the device:\n{text}"
+        );
+        if let Ok(bytes) = rx.recv_timeout(Duration::from_millis(200)) {
+            seen.extend(bytes);
+        }
+    }
+    let text = String::from_utf8_lossy(&seen).into_owned();
+    println!(
+        "litex_term booted the firmware in {:.1} s:\n{}",
+        started.elapsed().as_secs_f64(),
+        term_lines(&text)
+    );
+    assert!(
+        !text.contains("switching to --safe"),
+        "the calibration fell back to --safe mode:\n{}",
+        term_lines(&text)
+    );
+    // litex_term holds the line: end it, and `deform solve` takes the line over.
+    let _ = term.kill();
+    let _ = term.wait();
+
+    let out = Command::new(env!("CARGO_BIN_EXE_deform"))
+        .args([
+            "solve", "--port", &serial, "--grid", "4,4,4", "--model", "b",
+        ])
+        .arg("--elf")
+        .arg(&elf)
+        .args(["--link-timeout", "60", "--timeout", "600"])
+        .output()
+        .expect("the deform binary runs");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "deform solve on the line litex_term booted: {}\n{stdout}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let deviation = stdout
+        .lines()
+        .find_map(|l| l.strip_prefix("max deviation from the f64 reference: "))
+        .and_then(|l| l.split_whitespace().next())
+        .and_then(|v| v.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("no deviation in:\n{stdout}"));
+    assert!(deviation <= 1e-6, "deviation {deviation:e}:\n{stdout}");
+    drop(sim);
+    std::fs::remove_dir_all(&scratch).unwrap();
+}
