@@ -133,6 +133,43 @@ impl Storage<'_> {
     }
 }
 
+/// What a solve or an MVU pass borrows of the store at once: a matrix's tiles and words (the
+/// resident ones, or the stiffness copy's), the direction vectors and the work arrays.
+struct Parts<'s, 'a> {
+    tiles: &'s [TileHeader],
+    words: &'s [u32],
+    directions: &'s mut [DirectionStorage<'a>; MAX_DIRECTIONS],
+    p: &'s mut [Lanes],
+    kp: &'s mut [Sums],
+    partial: &'s mut [Sums],
+}
+
+impl<'a> Storage<'a> {
+    /// The parts for a matrix of `shape`, its words from the stiffness copy if `stiffness`;
+    /// `None` where the shape does not fit the store.
+    fn parts(&mut self, shape: Shape, stiffness: bool) -> Option<Parts<'_, 'a>> {
+        let Storage {
+            words,
+            tiles,
+            directions,
+            p,
+            kp,
+            partial,
+            stiffness: copy,
+            ..
+        } = self;
+        let words: &[u32] = if stiffness { copy } else { words };
+        Some(Parts {
+            tiles: tiles.get(..to_usize(shape.tiles))?,
+            words: words.get(..to_usize(shape.words))?,
+            directions,
+            p,
+            kp,
+            partial,
+        })
+    }
+}
+
 impl DirectionStorage<'_> {
     fn max_n(&self) -> usize {
         [self.b.len(), self.x.len(), self.x0.len(), self.r.len()]
@@ -790,19 +827,15 @@ impl<'a, E: Executor> Session<'a, E> {
             };
         }
         let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
-        let Storage {
-            words,
+        let Some(Parts {
             tiles,
+            words,
             directions: vectors,
             p,
             kp,
             partial,
-            ..
-        } = &mut self.store;
-        let (Some(tiles), Some(words)) = (
-            tiles.get(..to_usize(shape.tiles)),
-            words.get(..to_usize(shape.words)),
-        ) else {
+        }) = self.store.parts(shape, false)
+        else {
             return Err(too_large);
         };
         let mut systems: heapless::Vec<System<'_>, MAX_DIRECTIONS> = heapless::Vec::new();

@@ -274,19 +274,15 @@ impl<E: Executor> Session<'_, E> {
         };
         let n = to_usize(shape.n);
         let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
-        let Storage {
+        let Some(Parts {
             tiles,
-            stiffness,
+            words,
             directions,
             p,
             kp,
             partial,
-            ..
-        } = &mut self.store;
-        let (Some(tiles), Some(words)) = (
-            tiles.get(..to_usize(shape.tiles)),
-            stiffness.get(..to_usize(shape.words)),
-        ) else {
+        }) = self.store.parts(shape, true)
+        else {
             return Err(ErrorCode::ChunkTooLong);
         };
         let mut us: heapless::Vec<&mut [i32], MAX_DIRECTIONS> = heapless::Vec::new();
@@ -537,19 +533,15 @@ impl<E: Executor> Session<'_, E> {
         };
         let v_exponents = st.v.map(|b| b.e);
         let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
-        let Storage {
-            words,
+        let Some(Parts {
             tiles,
+            words,
             directions,
             p,
             kp,
             partial,
-            ..
-        } = &mut self.store;
-        let (Some(tiles), Some(words)) = (
-            tiles.get(..to_usize(shape.tiles)),
-            words.get(..to_usize(shape.words)),
-        ) else {
+        }) = self.store.parts(shape, false)
+        else {
             return Err(ErrorCode::ChunkTooLong);
         };
         let mut systems: heapless::Vec<System<'_>, MAX_DIRECTIONS> = heapless::Vec::new();
