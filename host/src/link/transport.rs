@@ -17,7 +17,8 @@
 //! or once one frame went [`LinkConfig::retries`] retransmissions without a sign of damage;
 //! a long-running request (`Solve`) that the target acknowledged may wait its own, longer,
 //! deadline. So a noisy line that keeps moving is never given up on, however many frames it
-//! damages, while a dead one fails within the timeout. Nothing here can block longer than those
+//! damages, while a dead one fails within the timeout; a passed deadline first reads what the
+//! line already holds, since the time may have gone on this side while replies waited. Nothing here can block longer than those
 //! bounds: every read and write on the port is bounded by the time left.
 
 use std::collections::VecDeque;
@@ -333,13 +334,17 @@ impl<P: Port> Link<P> {
             // Wait for the next frame until the retransmission or a deadline is due.
             let now = Instant::now();
             let mut wake = now + self.timeout;
+            // A deadline that passed fails the run only if the line has nothing waiting either:
+            // the time may have gone on this side (a write held up by a slow target, a loaded
+            // machine) while the replies sat unread.
+            let mut expired = None;
             for entry in &window {
                 if entry.reply.is_some() {
                     continue;
                 }
                 let deadline = self.deadline(entry, progress, long_timeout);
-                if now >= deadline {
-                    return Err(LinkError::Timeout {
+                if now >= deadline && expired.is_none() {
+                    expired = Some(LinkError::Timeout {
                         request: entry.request.name(),
                         after: now - entry.accepted.unwrap_or(progress),
                         retries: entry.retries,
@@ -354,6 +359,10 @@ impl<P: Port> Link<P> {
             if let Some(i) = oldest {
                 wake = wake.min(window[i].timer + self.backoff(&window[i]));
             }
+            if expired.is_some() {
+                // Long enough to read what the port already holds.
+                wake = wake.max(now + Duration::from_millis(5));
+            }
             let (corrupt, received) = (self.stats.corrupt_frames, self.stats.bytes_received);
             let progressed = match self.receive(wake)? {
                 None => false,
@@ -361,6 +370,8 @@ impl<P: Port> Link<P> {
             };
             if progressed {
                 progress = Instant::now();
+            } else if let Some(timeout) = expired {
+                return Err(timeout);
             }
             // What the line did, for the chunk and window (see `adapt`).
             self.adapt

@@ -22,15 +22,28 @@ use deform_host::flash::FlashImage;
 /// What litex_term prints once the BIOS has the image and was told to jump to it.
 const BOOTED: &str = "[LITEX-TERM] Booting the device.";
 
-/// litex_term's own lines (its progress bar redraws with `\r` thousands of times), and the end.
-fn term_lines(text: &str) -> String {
-    let mut lines: Vec<&str> = text
-        .split(['\n', '\r'])
-        .filter(|l| l.contains("[LITEX-TERM]"))
-        .collect();
-    let tail = text.len().saturating_sub(300);
-    lines.push(text.get(tail..).unwrap_or(""));
-    lines.join("\n")
+/// litex_term's own lines (`[LITEX-TERM] …`), sent on as they end. Its upload loop redraws a
+/// progress bar with `\r` on every turn (hundreds of MB over an upload), which is dropped here:
+/// kept, it filled memory, and reading it slowly held litex_term up through the pty.
+fn term_lines(mut out: impl Read, lines: mpsc::Sender<String>) {
+    let mut buf = [0u8; 4096];
+    let mut line = Vec::new();
+    while let Ok(n) = out.read(&mut buf) {
+        if n == 0 {
+            break;
+        }
+        for &b in &buf[..n] {
+            if b == b'\r' || b == b'\n' {
+                let text = String::from_utf8_lossy(&line);
+                if text.contains("[LITEX-TERM]") && lines.send(text.into_owned()).is_err() {
+                    return;
+                }
+                line.clear();
+            } else if line.len() < 512 {
+                line.push(b);
+            }
+        }
+    }
 }
 
 #[test]
@@ -63,20 +76,13 @@ fn stock_litex_term_boots_the_firmware_through_the_bios_and_deform_solves_on_tha
     .stderr(Stdio::piped());
     let mut term = child::spawn(term).expect("python runs litex_term");
     let (tx, rx) = mpsc::channel();
-    let mut out = term.stdout.take().unwrap();
-    std::thread::spawn(move || {
-        let mut buf = [0u8; 4096];
-        while let Ok(n) = out.read(&mut buf) {
-            if n == 0 || tx.send(buf[..n].to_vec()).is_err() {
-                break;
-            }
-        }
-    });
+    let out = term.stdout.take().unwrap();
+    std::thread::spawn(move || term_lines(out, tx));
     let started = Instant::now();
-    let mut seen = Vec::new();
     let deadline = started + Duration::from_secs(900);
-    while !String::from_utf8_lossy(&seen).contains(BOOTED) {
-        let text = String::from_utf8_lossy(&seen).into_owned();
+    let mut seen: Vec<String> = Vec::new();
+    while !seen.iter().any(|l| l.contains(BOOTED)) {
+        let text = seen.join("\n");
         assert!(
             !text.contains("[LITEX-TERM] Got unexpected")
                 && !text.contains("[LITEX-TERM] Upload to device failed"),
@@ -89,20 +95,18 @@ fn stock_litex_term_boots_the_firmware_through_the_bios_and_deform_solves_on_tha
             Instant::now() < deadline,
             "litex_term did not boot the device:\n{text}"
         );
-        if let Ok(bytes) = rx.recv_timeout(Duration::from_millis(200)) {
-            seen.extend(bytes);
+        if let Ok(line) = rx.recv_timeout(Duration::from_millis(200)) {
+            seen.push(line);
         }
     }
-    let text = String::from_utf8_lossy(&seen).into_owned();
+    let text = seen.join("\n");
     println!(
-        "litex_term booted the firmware in {:.1} s:\n{}",
+        "litex_term booted the firmware in {:.1} s:\n{text}",
         started.elapsed().as_secs_f64(),
-        term_lines(&text)
     );
     assert!(
         !text.contains("switching to --safe"),
-        "the calibration fell back to --safe mode:\n{}",
-        term_lines(&text)
+        "the calibration fell back to --safe mode:\n{text}"
     );
     // litex_term holds the line: end it, and `deform solve` takes the line over.
     let _ = term.kill();

@@ -320,24 +320,31 @@ fn requests_are_pipelined_up_to_the_window_and_replies_come_in_order() {
     );
 }
 
-/// The deadline follows progress: a target that answers every 100 ms keeps a window of eight
-/// requests going for 0.8 s on a 0.3 s timeout, though the last of them waited 0.8 s for its
-/// reply (a per-request deadline failed it).
-#[test]
-fn a_slow_target_that_keeps_answering_is_waited_for_beyond_the_timeout() {
+/// A link with a 0.3 s timeout (retransmit 1 s) to a target that answers every request with
+/// `Ack` after `delay`.
+fn acking_target(delay: Duration) -> Link<UnixStream> {
     let (host, target) = UnixStream::pair().unwrap();
     let mut link = Link::new(host).with_timeout(Duration::from_millis(300));
     link.set_config(LinkConfig {
         retransmit: Duration::from_secs(1),
         ..LinkConfig::default()
     });
-    serve(target, |received| match received {
+    serve(target, move |received| match received {
         Received::Request(req) => {
-            thread::sleep(Duration::from_millis(100));
+            thread::sleep(delay);
             answer_frame(req.seq, Response::Ack)
         }
         Received::Unreadable(_) => Vec::new(),
     });
+    link
+}
+
+/// The deadline follows progress: a target that answers every 100 ms keeps a window of eight
+/// requests going for 0.8 s on a 0.3 s timeout, though the last of them waited 0.8 s for its
+/// reply (a per-request deadline failed it).
+#[test]
+fn a_slow_target_that_keeps_answering_is_waited_for_beyond_the_timeout() {
+    let mut link = acking_target(Duration::from_millis(100));
     let started = Instant::now();
     let mut replies = 0;
     link.run((0..8).map(end), |_, _| {
@@ -415,4 +422,22 @@ fn a_nak_naming_a_later_number_fetches_the_lost_replies_at_once() {
     );
     assert_eq!(link.stats().timeouts, 0, "{:?}", link.stats());
     assert_eq!(link.stats().retransmits, 2, "{:?}", link.stats());
+}
+
+/// The time a deadline counts may pass on the host's side (a slow reply handler, a loaded
+/// machine) while the target's replies wait unread: they are read before the run fails. Here the
+/// handler takes 0.4 s on a 0.3 s timeout while the target has answered everything.
+#[test]
+fn replies_waiting_on_the_line_are_read_before_a_deadline_fails_the_run() {
+    let mut link = acking_target(Duration::ZERO);
+    let mut replies = 0;
+    link.run((0..4).map(end), |_, _| {
+        replies += 1;
+        if replies == 1 {
+            thread::sleep(Duration::from_millis(400));
+        }
+        Ok(())
+    })
+    .unwrap();
+    assert_eq!(replies, 4);
 }
