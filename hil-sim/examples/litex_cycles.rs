@@ -28,6 +28,7 @@
 use std::time::{Duration, Instant};
 
 use clap::Parser;
+use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim};
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_host::board::{Board, BoardChoice, LogOptions};
 use deform_host::encode::{encode_with, EncodeOptions, Partition};
@@ -57,6 +58,9 @@ struct Args {
     /// MVU's layout).
     #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=8))]
     mvus: u8,
+    /// An SoC whose bus bursts (a cache line in one Wishbone burst): its own Verilator build.
+    #[arg(long)]
+    bus_bursting: bool,
 }
 
 /// The thesis's hardware, 500 nodes, one MVU: cycles per CG iteration (model A, model B).
@@ -101,13 +105,23 @@ fn main() -> anyhow::Result<()> {
     };
     let started = Instant::now();
     let layout_mvus = args.mvus.max(1);
-    // The firmware's logs are printed (the MVU array's own cycle count among them).
-    let choice = BoardChoice::Litex {
-        firmware: None,
-        mvus: args.mvus,
+    // The firmware's logs are printed (the MVU array's own cycle count among them), except on
+    // the bursting SoC, which Board::open does not build.
+    let (sim, mut bursting, mut board);
+    let litex: &mut Target = if args.bus_bursting {
+        let mut config = LitexConfig::new(litex_firmware_elf()).with_mvus(args.mvus);
+        config.soc.bus_bursting = true;
+        sim = LitexSim::start(&config)?;
+        bursting = Target::connect(sim.serial_path().to_str().unwrap_or_default(), timeouts)?;
+        &mut bursting
+    } else {
+        let choice = BoardChoice::Litex {
+            firmware: None,
+            mvus: args.mvus,
+        };
+        board = Board::open(&choice, timeouts, &LogOptions::default())?;
+        &mut board.target
     };
-    let mut board = Board::open(&choice, timeouts, &LogOptions::default())?;
-    let litex = &mut board.target;
     let qemu = Qemu::start(&QemuConfig::new(firmware_elf()).harts(layout_mvus))?;
     let mut virt = Target::connect(qemu.pty_path().to_str().unwrap_or_default(), timeouts)?;
     println!(
@@ -198,6 +212,5 @@ fn main() -> anyhow::Result<()> {
     litex.reset()?;
     std::thread::sleep(Duration::from_secs(2));
     eprintln!("wall time {:.1} s", started.elapsed().as_secs_f64());
-    drop(board);
     Ok(())
 }

@@ -27,6 +27,9 @@ the number of MVUs and their capacity from the array's registers at boot. The sc
 writes the gateware and build_sim.sh; the caller runs that (the Verilator build) and the
 simulator itself.
 
+--bus-bursting (issue 19) lets the CPU's caches fill a line in one Wishbone burst (CTI
+incrementing) instead of one single access per word; the CSR map does not change.
+
 With --uart-baud (on by default for the BIOS shape) the module also paces what it hands the
 SoC: one received byte per sys_clk/(baud/10) clocks, as a UART at that baud rate would, instead
 of one per clock. The stock BIOS's interrupt handler moves every byte into a 128-byte ring that
@@ -134,6 +137,11 @@ def main():
     parser.add_argument("--bios", action="store_true", help="ROM with the stock LiteX BIOS")
     parser.add_argument("--mvus", type=int, default=0, help="hardware MVUs (0 to 8)")
     parser.add_argument(
+        "--bus-bursting",
+        action="store_true",
+        help="Wishbone burst cycles: a cache line fills in one incrementing burst from main RAM",
+    )
+    parser.add_argument(
         "--uart-baud",
         type=int,
         default=None,
@@ -151,6 +159,9 @@ def main():
         integrated_sram_size=0x2000,
         integrated_main_ram_size=args.main_ram_size,
     )
+    if args.bus_bursting:
+        # Only then: an unchanged SoC keeps its arguments, and so its cached build.
+        soc_args.update(bus_bursting=True)
     if args.bios:
         # litex_sim's default ROM; the BIOS and its picolibc are built into it.
         soc_args.update(integrated_rom_size=0x20000)

@@ -178,6 +178,8 @@ pub struct SocConfig {
     /// Hardware MVUs in the SoC's MVU array (0 to [`MAX_MVUS`]); every count has the same CSR
     /// map, so one firmware runs on all of them.
     pub mvus: u8,
+    /// Wishbone burst cycles, so a cache line fills in one burst (`--bus-bursting`).
+    pub bus_bursting: bool,
 }
 
 impl Default for SocConfig {
@@ -189,6 +191,7 @@ impl Default for SocConfig {
             main_ram_size: 0x20_0000,
             bios: false,
             mvus: 0,
+            bus_bursting: false,
         }
     }
 }
@@ -217,6 +220,9 @@ impl SocConfig {
         ];
         if self.bios {
             args.push("--bios".into());
+        }
+        if self.bus_bursting {
+            args.push("--bus-bursting".into());
         }
         args
     }
