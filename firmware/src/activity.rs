@@ -72,11 +72,22 @@ fn log_request(request: &Request) {
             params.max_iterations,
             params.cycle_budget
         ),
+        Request::BeginStiffness { frac_bits } => {
+            defmt::debug!("stiffness copy: K's values in Q{=u8}", frac_bits)
+        }
+        Request::DynamicStart(params) => defmt::debug!(
+            "dynamic session: h = {=f32} s, mass {=f32} kg, tolerance {=f32}",
+            params.h,
+            params.mass,
+            params.tolerance
+        ),
         // Frames are the hot path: a log line would ride down the line with every answer.
         Request::LiveForceTool { nodes } => {
             defmt::debug!("force tool at {=usize} node(s)", nodes.len())
         }
         Request::LiveTool(_)
+        | Request::DynamicTool(_)
+        | Request::DynamicFrame { .. }
         | Request::LiveLoad { .. }
         | Request::LiveLoadQuery { .. }
         | Request::LiveFrame { .. }

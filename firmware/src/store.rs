@@ -20,8 +20,12 @@ pub const MAX_N: usize = Board::MAX_N;
 /// overlapping scheme (thesis 4.1.1) may use up to n of them beyond the rows themselves.
 pub const PARTIAL_ROWS: usize = MAX_N;
 
-/// Values of the live loop's response columns (the board's [`Bsp::RESPONSE_VALUES`]).
+/// Values of the live loop's response columns (the board's [`Bsp::RESPONSE_VALUES`]), and as
+/// many `i16` residuals of them.
 pub const RESPONSE_VALUES: usize = Board::RESPONSE_VALUES;
+
+/// Words of a dynamic session's stiffness copy (the board's [`Bsp::STIFFNESS_WORDS`]).
+pub const STIFFNESS_WORDS: usize = Board::STIFFNESS_WORDS;
 
 /// Everything the session works in. All zero at boot, so it lands in `.bss`.
 pub struct Buffers {
@@ -32,6 +36,8 @@ pub struct Buffers {
     kp: [Sums; MAX_N],
     partial: [Sums; PARTIAL_ROWS],
     responses: [i32; RESPONSE_VALUES],
+    residuals: [i16; RESPONSE_VALUES],
+    stiffness: [u32; STIFFNESS_WORDS],
 }
 
 /// The vectors of one direction of a fused solve.
@@ -78,6 +84,8 @@ impl Buffers {
         kp: [[0; MAX_DIRECTIONS]; MAX_N],
         partial: [[0; MAX_DIRECTIONS]; PARTIAL_ROWS],
         responses: [0; RESPONSE_VALUES],
+        residuals: [0; RESPONSE_VALUES],
+        stiffness: [0; STIFFNESS_WORDS],
     };
 
     /// Lends all buffers to a session.
@@ -91,6 +99,8 @@ impl Buffers {
             kp: &mut self.kp,
             partial: &mut self.partial,
             responses: &mut self.responses,
+            residuals: &mut self.residuals,
+            stiffness: &mut self.stiffness,
         }
     }
 }

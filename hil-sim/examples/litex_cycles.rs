@@ -46,6 +46,9 @@ struct Args {
     /// The soft core's clock for the time column, MHz.
     #[arg(long, default_value_t = 100.0)]
     clock_mhz: f64,
+    /// An SoC whose bus bursts (a cache line in one Wishbone burst): its own Verilator build.
+    #[arg(long)]
+    bus_bursting: bool,
 }
 
 /// The thesis's hardware, 500 nodes, one MVU: cycles per CG iteration (model A, model B).
@@ -89,7 +92,9 @@ fn main() -> anyhow::Result<()> {
         ..Timeouts::default()
     };
     let started = Instant::now();
-    let sim = LitexSim::start(&LitexConfig::new(litex_firmware_elf()))?;
+    let mut config = LitexConfig::new(litex_firmware_elf());
+    config.soc.bus_bursting = args.bus_bursting;
+    let sim = LitexSim::start(&config)?;
     let mut litex = Target::connect(sim.serial_path().to_str().unwrap_or_default(), timeouts)?;
     let qemu = Qemu::start(&QemuConfig::new(firmware_elf()))?;
     let mut virt = Target::connect(qemu.pty_path().to_str().unwrap_or_default(), timeouts)?;

@@ -19,6 +19,9 @@ buffer can take. The stock module reads regardless and overwrites unconsumed byt
 with more than 2 KiB in flight saw corrupt frames; bounded, the rest waits in the socket (TCP
 flow control reaches back through socat to the host's writes).
 
+--bus-bursting (issue 19) lets the CPU's caches fill a line in one Wishbone burst (CTI
+incrementing) instead of one single access per word; the CSR map does not change.
+
 With --uart-baud (on by default for the BIOS shape) the module also paces what it hands the
 SoC: one received byte per sys_clk/(baud/10) clocks, as a UART at that baud rate would, instead
 of one per clock. The stock BIOS's interrupt handler moves every byte into a 128-byte ring that
@@ -123,6 +126,11 @@ def main():
     parser.add_argument("--main-ram-size", type=lambda s: int(s, 0), default=0x200000)
     parser.add_argument("--bios", action="store_true", help="ROM with the stock LiteX BIOS")
     parser.add_argument(
+        "--bus-bursting",
+        action="store_true",
+        help="Wishbone burst cycles: a cache line fills in one incrementing burst from main RAM",
+    )
+    parser.add_argument(
         "--uart-baud",
         type=int,
         default=None,
@@ -140,6 +148,9 @@ def main():
         integrated_sram_size=0x2000,
         integrated_main_ram_size=args.main_ram_size,
     )
+    if args.bus_bursting:
+        # Only then: an unchanged SoC keeps its arguments, and so its cached build.
+        soc_args.update(bus_bursting=True)
     if args.bios:
         # litex_sim's default ROM; the BIOS and its picolibc are built into it.
         soc_args.update(integrated_rom_size=0x20000)

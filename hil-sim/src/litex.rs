@@ -163,6 +163,8 @@ pub struct SocConfig {
     pub main_ram_size: u32,
     /// With ROM and the stock LiteX BIOS (boots by serial, SFL), instead of resetting into RAM.
     pub bios: bool,
+    /// Wishbone burst cycles, so a cache line fills in one burst (`--bus-bursting`).
+    pub bus_bursting: bool,
 }
 
 impl Default for SocConfig {
@@ -172,6 +174,7 @@ impl Default for SocConfig {
             cpu_variant: "imac".into(),
             main_ram_size: 0x20_0000,
             bios: false,
+            bus_bursting: false,
         }
     }
 }
@@ -192,6 +195,9 @@ impl SocConfig {
         ];
         if self.bios {
             args.push("--bios".into());
+        }
+        if self.bus_bursting {
+            args.push("--bus-bursting".into());
         }
         args
     }

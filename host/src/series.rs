@@ -48,8 +48,12 @@ pub struct StepResult {
     /// its cycle and instruction counters.
     pub reports: Vec<SolveReport>,
     /// Critical-path cycles of the step's solves, as the target measured them
-    /// ([`crate::refine::critical_path_cycles`]).
+    /// ([`crate::refine::critical_path_cycles`]), or a superposed step's frame cycles (the
+    /// first step's also carrying the response columns' solve).
     pub cycles: u64,
+    /// The step ran as a superposed live frame (`crate::simulate`'s prescribed-tool series:
+    /// no solve reports, the frame's own cycles and iterations).
+    pub superposed: bool,
     /// Bytes the step moved on the line, both ways (any matrix upload or update included).
     pub bytes: WireBytes,
     /// Largest true relative residual ‖b − K·u‖/‖b‖ over the directions.

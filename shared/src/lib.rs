@@ -11,12 +11,14 @@
 //! - [`transport`]: sequence numbers, window, ACK/NAK and the target's uplink frames;
 //! - [`chunk`]: the fixed-width encoding of chunk payloads;
 //! - [`field`]: the live loop's compact field frames (node selection, difference coding);
+//! - [`dynamics`]: target-resident dynamic frames (the step's right-hand side formed on the target);
 //! - [`loader`]: the serial loader's protocol (flashing an application over the UART);
 //! - [`matrix`]: the tiled layout of a matrix as instruction words, and its validation.
 #![cfg_attr(not(any(feature = "std", test)), no_std)]
 #![forbid(unsafe_code)]
 
 pub mod chunk;
+pub mod dynamics;
 pub mod field;
 pub mod frame;
 pub mod live;

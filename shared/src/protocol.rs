@@ -70,7 +70,9 @@ use crate::matrix::{MatrixError, TileHeader};
 /// `IterationCost`'s four counts and `first_iteration_scalar` become [`PhaseCounters`], and the
 /// live reports (`ModelReport`, `FrameReport`, `ForceReport`, `MotionReport`, `MotionQuery`,
 /// `FieldChunk`) gain `stall_cycles` (cycles minus instructions) beside `cycles`.
-pub const PROTOCOL_VERSION: u16 = 11;
+/// Version 12 (engine): target-resident dynamic frames (`BeginStiffness`, `DynamicTool`,
+/// `DynamicStart`, `DynamicFrame`, `ErrorCode::Dynamic`; [`crate::dynamics`]).
+pub const PROTOCOL_VERSION: u16 = 12;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -263,6 +265,21 @@ pub enum Request {
     LiveLoadQuery {
         load: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
     },
+    /// Version 12 ([`crate::dynamics`]): starts a values-only upload of K into the resident
+    /// matrix's stiffness copy (its words, K's values in Q-format `frac_bits`); `UpdateValues`
+    /// and `EndUpdate` continue it as for `BeginUpdate`.
+    BeginStiffness {
+        frac_bits: u8,
+    },
+    /// Version 12: a dynamic session's tool node, its rows of S and K.
+    DynamicTool(crate::dynamics::DynamicTool),
+    /// Version 12: starts the dynamic session at rest; answered `Ack`.
+    DynamicStart(crate::dynamics::DynamicParams),
+    /// Version 12: one time step with the tool nodes at `tool` at its end (in the order of the
+    /// `DynamicTool`s); answered by [`Response::LiveFrame`].
+    DynamicFrame {
+        tool: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
+    },
 }
 
 impl Request {
@@ -290,6 +307,10 @@ impl Request {
             Request::LiveForceTool { .. } => "LiveForceTool",
             Request::LiveLoad { .. } => "LiveLoad",
             Request::LiveLoadQuery { .. } => "LiveLoadQuery",
+            Request::BeginStiffness { .. } => "BeginStiffness",
+            Request::DynamicTool(_) => "DynamicTool",
+            Request::DynamicStart(_) => "DynamicStart",
+            Request::DynamicFrame { .. } => "DynamicFrame",
         }
     }
 }
@@ -512,6 +533,9 @@ pub enum ErrorCode {
     OverlapTooLarge { rows: u32, capacity: u32 },
     #[error("live loop: {0}")]
     Live(crate::live::LiveError),
+    /// Version 12.
+    #[error("dynamic frames: {0}")]
+    Dynamic(crate::dynamics::DynamicError),
 }
 
 /// The step a request arrived out of, for [`ErrorCode::OutOfOrder`].

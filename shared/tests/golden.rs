@@ -25,6 +25,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
 use std::path::PathBuf;
 
+use deform_shared::dynamics::{DynamicError, DynamicParams, DynamicTool};
 use deform_shared::frame::{self, FrameError};
 use deform_shared::live::{
     Coupling, FieldChunk, ForceReport, FrameReport, LiveError, LiveParams, ModelReport,
@@ -225,6 +226,41 @@ impl Golden for Request {
             Request::LiveLoadQuery {
                 load: [[1.0, 0.0, -2.0], [0.5, 0.5, 0.5]].into_iter().collect(),
             },
+            Request::BeginStiffness { frac_bits: 18 },
+            Request::DynamicTool(DynamicTool {
+                s: ToolRow {
+                    node: 292,
+                    diagonal: 700_000,
+                    row: [Coupling {
+                        column: 291,
+                        value: -6_845,
+                    }]
+                    .into_iter()
+                    .collect(),
+                },
+                k: ToolRow {
+                    node: 292,
+                    diagonal: 26 << 9,
+                    row: [Coupling {
+                        column: 291,
+                        value: -512,
+                    }]
+                    .into_iter()
+                    .collect(),
+                },
+            }),
+            Request::DynamicStart(DynamicParams {
+                h: 1e-3,
+                mass: 5e-3,
+                s_scale: -7,
+                k_scale: 0,
+                tolerance: 1e-4,
+                max_iterations: 60,
+                cycle_budget: 100_000,
+            }),
+            Request::DynamicFrame {
+                tool: [[0.0, -0.25, 1.5e-3]].into_iter().collect(),
+            },
         ]
     }
     fn variant(&self) -> &'static str {
@@ -389,6 +425,7 @@ impl Golden for ErrorCode {
                 expected: 4,
                 got: 3,
             }),
+            ErrorCode::Dynamic(DynamicError::NoStiffness),
         ]
     }
     fn variant(&self) -> &'static str {
@@ -411,6 +448,7 @@ impl Golden for ErrorCode {
             ErrorCode::DirectionOutOfRange { .. } => "DirectionOutOfRange",
             ErrorCode::OverlapTooLarge { .. } => "OverlapTooLarge",
             ErrorCode::Live(_) => "Live",
+            ErrorCode::Dynamic(_) => "Dynamic",
         }
     }
 }
@@ -574,6 +612,26 @@ impl Golden for Start {
             Start::Previous => "Previous",
             Start::Uploaded => "Uploaded",
             Start::Predicted => "Predicted",
+        }
+    }
+}
+
+impl Golden for DynamicError {
+    const NAME: &'static str = "DynamicError";
+    fn samples() -> Vec<Self> {
+        vec![
+            DynamicError::NoStiffness,
+            DynamicError::RowsDiffer,
+            DynamicError::BadParams,
+            DynamicError::NotStarted,
+        ]
+    }
+    fn variant(&self) -> &'static str {
+        match self {
+            DynamicError::NoStiffness => "NoStiffness",
+            DynamicError::RowsDiffer => "RowsDiffer",
+            DynamicError::BadParams => "BadParams",
+            DynamicError::NotStarted => "NotStarted",
         }
     }
 }
@@ -868,6 +926,7 @@ fn current() -> BTreeMap<String, BTreeMap<String, String>> {
     entries::<VectorSlot>("protocol", &mut out);
     entries::<Start>("protocol", &mut out);
     entries::<LiveError>("protocol", &mut out);
+    entries::<DynamicError>("protocol", &mut out);
     entries::<LoaderRequest>("loader", &mut out);
     entries::<LoaderResponse>("loader", &mut out);
     entries::<LoaderError>("loader", &mut out);

@@ -23,8 +23,9 @@
 //! - Matrix values are raw 21-bit integers q with value = q · 2^-F (`frac_bits` = F).
 //! - Every vector is a block: `i32` mantissas with one shared exponent, below 2^30 in
 //!   magnitude (uploaded vectors and SVU results alike), which keeps every MVU product below 2^50.
-//! - Scalars (α, β, norms) are `f64` on hart 0 (soft float, a few per iteration and direction,
-//!   nothing per element).
+//! - Scalars (α, β, the exponents and multipliers) are integers on hart 0 ([`Scalar`]: a 32-bit
+//!   mantissa and an exponent; a few per iteration and direction, nothing per element), and
+//!   the convergence test is exact on Σr² ([`Threshold`]). `f64` is left for the report.
 //!
 //! The SVU's element operation and why it cannot overflow are in [`crate::svu`].
 //!
@@ -55,10 +56,10 @@ use deform_shared::word::ER_BIT;
 
 use crate::exec::{share, SharedSlice};
 pub use crate::exec::{Executor, NoClock, PhaseClock, Sequential};
-use crate::kernel::{p_kp_and_max, run_tile_dyn, Lanes, Sums, TileRun};
+use crate::kernel::{p_kp_and_max, run_tile_dyn, Lanes, Sums, TileRun, VALUE_SIGN_SHIFT};
 use crate::svu::{
     self, bound_of, bound_of_squares, bound_of_u64, check_bound, magnitude_bits, sum_squares,
-    Block, HartOut, Lin, Narrow, PassR, PassXP,
+    Block, HartOut, Lin, Narrow, PassR, PassXP, Scalar, Threshold,
 };
 
 /// How often a direction's residual is recomputed as b − A·x after it converged on the
@@ -126,6 +127,26 @@ pub struct Plan {
     pub offsets: [[usize; 2]; MAX_HARTS],
     /// Partial-sum slots used in all.
     pub partial_len: usize,
+    /// Every row of K is exactly one row of one tile (its own row or a mirror row) and the
+    /// MVUs do not overlap: then each row's sum is final at its tile row's end, where it is
+    /// stored and finished (pᵀKp, max |Kp|) at once, with no zeroing pass and no second step
+    /// ([`crate::kernel::run_tile`]). Otherwise rows are zeroed, added into and finished in
+    /// the MVU phase's second step.
+    pub fused: bool,
+    /// ‖K‖∞ in raw value units: the largest Σ_j |q_ij| over the rows (mirrors included). It
+    /// bounds ‖K·v‖₂ ≤ ‖K‖∞·‖v‖₂ (K is symmetric), which a live frame's residual estimate
+    /// needs ([`crate::superpose`]).
+    pub row_abs_max: u64,
+}
+
+/// True if `t`'s first row is the last row of `previous`, the tile its MVU ran before it, and
+/// both are whole or both mirrored (so its first mirror row is `previous`'s last mirror row):
+/// the row is split between the two tiles at a column window's edge. A fused plan stores the
+/// first part at `previous`'s row end and adds it back after `t` has stored the second.
+fn continues(previous: Option<&TileHeader>, t: &TileHeader) -> bool {
+    previous.is_some_and(|p| {
+        p.mirrored == t.mirrored && p.rows > 0 && p.row_base + p.rows - 1 == t.row_base
+    })
 }
 
 /// Why [`plan`] refuses a matrix.
@@ -153,11 +174,15 @@ pub fn plan(
         rows: [[Rows::default(); 2]; MAX_HARTS],
         offsets: [[0; 2]; MAX_HARTS],
         partial_len: 0,
+        fused: false,
+        row_abs_max: 0,
     };
-    // Words per row, mirrors included: every row sum must stay far from i64 overflow.
+    // Words per row, mirrors included: every row sum must stay far from i64 overflow. And
+    // tile rows per row (own and mirror), for `fused`, and Σ|q| per row, for `row_abs_max`.
     let counts = scratch.get_mut(..n).unwrap_or(&mut []);
-    counts.iter_mut().for_each(|c| c[0] = 0);
+    counts.iter_mut().for_each(|c| *c = [0; MAX_DIRECTIONS]);
     let mut start = 0usize;
+    let mut last = [None; MAX_HARTS];
     for (i, t) in tiles.iter().enumerate() {
         let h = usize::from(t.mvu).min(MAX_HARTS - 1);
         plan.mvus = plan.mvus.max(h + 1);
@@ -165,6 +190,18 @@ pub fn plan(
         plan.rows[h][0] = plan.rows[h][0].cover(lo, hi);
         if t.mirrored {
             plan.rows[h][1] = plan.rows[h][1].cover(n - hi, n - lo);
+        }
+        // A row split over two tiles of one MVU, one after the other, counts once: the MVU
+        // phase carries its first part into the second (`continues`).
+        let first = lo + usize::from(continues(last[h], t));
+        last[h] = Some(t);
+        for r in first..hi {
+            let mirror = t.mirrored.then(|| n - 1 - r);
+            for c in [Some(r), mirror].into_iter().flatten() {
+                if let Some(c) = counts.get_mut(c) {
+                    c[1] += 1;
+                }
+            }
         }
         let end = start + t.words as usize;
         let mut row = lo;
@@ -175,6 +212,9 @@ pub fn plan(
             {
                 if let Some(c) = counts.get_mut(r) {
                     c[0] += 1;
+                    c[2] += i64::from(
+                        (((w << VALUE_SIGN_SHIFT) as i32) >> VALUE_SIGN_SHIFT).unsigned_abs(),
+                    );
                     if c[0] > i64::from(MAX_WORDS_PER_ROW) {
                         return Err(PlanError::Matrix(MatrixError::RowTooLong {
                             tile: i as u32,
@@ -195,6 +235,8 @@ pub fn plan(
                 .any(|a| hulls(g).iter().any(|b| a.overlaps(*b)))
         })
     });
+    plan.fused = !plan.overlapping && counts.len() == n && counts.iter().all(|c| c[1] == 1);
+    plan.row_abs_max = counts.iter().map(|c| c[2] as u64).max().unwrap_or(0);
     if plan.overlapping {
         let mut next = 0usize;
         for h in 0..plan.mvus {
@@ -233,7 +275,45 @@ pub struct System<'a> {
     pub x: &'a mut [i32],
     pub x_exponent: i32,
     pub r: &'a mut [i32],
+    /// `Some`: r already holds a residual for x₀ (a live frame's estimate,
+    /// [`crate::superpose`]), which the solve starts from instead of forming b − A·x₀ (the
+    /// caller vouches for it; a converged direction is still verified against b − A·x at the
+    /// end, as always). `None`: r is formed from b.
+    pub r_start: Option<GivenResidual>,
+    /// Set by the solve: the state of r on return.
+    pub outcome: Outcome,
 }
+
+/// A residual the caller hands a solve with x₀ ([`System::r_start`]): r's exponent, Σr² of its
+/// mantissas (exact) and a bound on their magnitudes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GivenResidual {
+    pub exponent: i32,
+    pub rr: u128,
+    pub bound: u64,
+    /// Where it is already within the tolerance, check it against b − A·x by an exact pass
+    /// before accepting x₀ (an estimate the caller cannot bound); else accept it as it is.
+    pub verify: bool,
+}
+
+/// What a solve leaves in a system's r and x besides the mantissas.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Outcome {
+    /// r's exponent, and a bound on max |r| (mantissa units).
+    pub r_exponent: i32,
+    pub r_bound: u64,
+    /// r is b − A·x formed by an MVU pass at the end (a start or a residual replacement that
+    /// the solve ended on), each element within [`EXACT_PASS_ERROR`] units of r's exponent of
+    /// the exact residual of the mantissas; else the recursive residual, or the given one.
+    pub r_exact: bool,
+    /// A bound on max |x| (mantissa units).
+    pub x_bound: u64,
+}
+
+/// The largest error, in units of r's exponent, of an element of b − A·x formed by an MVU pass
+/// ([`Solver::residual_of`]): below 1 unit from narrowing K·x (or K·x − b), ½ from rounding
+/// the term and ¼ from its multiplier, and on the inexact path below 1 from flooring b's shift.
+pub const EXACT_PASS_ERROR: f64 = 2.0;
 
 /// The vectors all directions share: the interleaved search directions, K·p, and the pool of
 /// private partial sums for overlapping MVUs.
@@ -251,41 +331,60 @@ pub struct Work<'a> {
 struct Direction {
     active: bool,
     iterations: u32,
-    /// 1 / Σb² (b's mantissa units), so that ‖r‖²/‖b‖² costs a multiplication.
-    inv_bb: f64,
-    b_e: i32,
+    /// Σb² (b's mantissa units), for the report's residual.
+    bb: u128,
     x: Block,
     r: Block,
     p: Block,
-    /// Σr² of the current residual's mantissas, exact, and as `f64` (converted once).
+    /// Σr² of the current residual's mantissas, exact, and as a [`Scalar`] (formed once).
     rr: u128,
-    rr_f: f64,
-    residual_sq: f64,
+    rr_scalar: Scalar,
+    /// ‖r‖/‖b‖ ≤ tol, decided on `rr` by `threshold`.
+    converged: bool,
+    threshold: Threshold,
     /// b's block, to restart r from.
     b: Block,
     /// Residual replacements done so far.
     replacements: u32,
+    /// r was last formed by an MVU pass ([`Outcome::r_exact`]).
+    r_exact: bool,
+    /// r was given ([`System::r_start`]): no b − A·x₀ at the start.
+    given: bool,
 }
 
 impl Direction {
     const IDLE: Direction = Direction {
         active: false,
         iterations: 0,
-        inv_bb: 0.0,
-        b_e: 0,
+        bb: 0,
         x: Block::ZERO,
         r: Block::ZERO,
         p: Block::ZERO,
         rr: 0,
-        rr_f: 0.0,
-        residual_sq: 0.0,
+        rr_scalar: Scalar::ZERO,
+        converged: false,
+        threshold: Threshold { m: 0, e: 0 },
         b: Block::ZERO,
         replacements: 0,
+        r_exact: false,
+        given: false,
     };
 
-    /// ‖r‖²/‖b‖² for a residual block with exponent e_r and Σm² = rr.
-    fn ratio(&self, rr: f64, e_r: i32) -> f64 {
-        scale2(rr * self.inv_bb, 2 * (e_r - self.b_e))
+    /// Takes Σr² = `rr` of the residual block `r` as the current one.
+    fn set_residual(&mut self, rr: u128, r: Block) {
+        self.rr = rr;
+        self.rr_scalar = Scalar::of_u128(rr);
+        self.r = r;
+        self.converged = self.threshold.holds(self.rr_scalar, r.e);
+    }
+
+    /// ‖r‖/‖b‖ for the report (`f64`, once per solve).
+    fn residual(&self) -> f64 {
+        if self.bb == 0 {
+            return 0.0;
+        }
+        let ratio = ldexp(self.rr as f64 / self.bb as f64, 2 * (self.r.e - self.b.e));
+        sqrt(ratio)
     }
 }
 
@@ -304,9 +403,7 @@ struct Costs {
 impl Costs {
     fn parallel(&mut self, counts: [PhaseCounters; MAX_HARTS], harts: usize, mvu: bool) {
         let counts = &counts[..harts.min(MAX_HARTS)];
-        let max = counts
-            .iter()
-            .fold(PhaseCounters::default(), |m, &c| m.max_each(c));
+        let max = crate::exec::slowest(counts);
         let sum = counts
             .iter()
             .fold(PhaseCounters::default(), |s, &c| s.saturating_add(c));
@@ -370,19 +467,24 @@ impl<E: Executor> Engine<'_, '_, E> {
         &all[..self.harts.min(all.len())]
     }
 
-    /// Kp = K·p for every direction, pᵀKp, and the OR of |Kp|: the MVU phase.
+    /// Kp = K·p for every direction, pᵀKp, and the OR of |Kp|: the MVU phase. Where the plan
+    /// fuses the row ends, the tiles' step finishes every row and there is no second step.
     fn mvu(&self, clock: &mut Clock) {
         let t = self.exec.now();
         self.run(&|h| self.mvu_tiles(h), clock, true);
-        self.run(&|h| self.mvu_rows(h), clock, true);
+        if !self.a.plan.fused {
+            self.run(&|h| self.mvu_rows(h), clock, true);
+        }
         charge(&mut clock.mvu, t, self.exec);
     }
 
-    /// Hart h's tiles: zero its rows (or private slots), then run every tile with `mvu = h`.
+    /// Hart h's tiles: every tile with `mvu = h`. Fused, each row end stores and finishes its
+    /// row; otherwise hart h first zeroes its rows (or private slots) and each row end adds.
     fn mvu_tiles(&self, h: usize) {
         let (a, plan, n) = (self.a, self.a.plan, self.a.n);
         let p = self.p.as_mut_ptr() as *const Lanes;
-        for (k, rows) in plan.rows[h].iter().enumerate() {
+        let zeroed = if plan.fused { 0 } else { 2 };
+        for (k, rows) in plan.rows[h].iter().enumerate().take(zeroed) {
             let (target, range) = if plan.overlapping {
                 let lo = plan.offsets[h][k];
                 (&self.partial, lo..lo + rows.len())
@@ -394,12 +496,15 @@ impl<E: Executor> Engine<'_, '_, E> {
             unsafe { target.slice_mut(range) }.fill([0; MAX_DIRECTIONS]);
         }
         let mut start = 0usize;
+        let mut previous = None;
         for t in a.tiles {
             let first = start;
             start += t.words as usize;
             if usize::from(t.mvu) != h {
                 continue;
             }
+            let carried = plan.fused && continues(previous, t);
+            previous = Some(t);
             let (row_base, col_base) = (t.row_base as usize, t.col_base as usize);
             let mirror_row = n - 1 - row_base;
             let (y, y_mirror) = if plan.overlapping {
@@ -423,11 +528,52 @@ impl<E: Executor> Engine<'_, '_, E> {
                 y,
                 y_mirror,
             };
+            // A split row's first part, stored at the previous tile's row end, is carried over
+            // the store of its second part (an exact i64 sum, so the same bits as adding).
+            // SAFETY: fused plans do not overlap: these rows are this MVU's alone.
+            let saved = carried.then(|| unsafe { (*y, if t.mirrored { *y_mirror } else { *y }) });
             // SAFETY: the session validated every tile against n (rows, columns, ER/EM
             // structure) and sized p, kp and the pool for n and the plan; the tile's rows and
             // mirror rows lie in this MVU's hulls, which map to slots only it writes; p is only
             // read during this phase.
-            unsafe { run_tile_dyn(&run, self.directions, t.mirrored) };
+            unsafe { run_tile_dyn(&run, self.directions, t.mirrored, plan.fused) };
+            if let Some((own, mirror)) = saved {
+                // SAFETY: as above.
+                unsafe { carry(y, own, self.directions) };
+                if t.mirrored {
+                    // SAFETY: as above.
+                    unsafe { carry(y_mirror, mirror, self.directions) };
+                }
+            }
+        }
+        if plan.fused {
+            self.finish_rows(h, plan.rows[h]);
+        }
+    }
+
+    /// pᵀKp and max |Kp| over the rows of `hulls` (hart h's own and mirror rows, fused plans:
+    /// they are finished, and only hart h wrote them) into hart h's result slot.
+    fn finish_rows(&self, h: usize, hulls: [Rows; 2]) {
+        let mut p_kp = [0i128; MAX_DIRECTIONS];
+        let mut or = [0u64; MAX_DIRECTIONS];
+        for rows in hulls {
+            // SAFETY: p is only read during this phase; these rows of Kp are this hart's alone.
+            let (p, kp) = unsafe {
+                (
+                    self.p.as_slice().get(rows.lo..rows.hi).unwrap_or(&[]),
+                    self.kp.slice_mut(rows.lo..rows.hi),
+                )
+            };
+            let (s, o) = p_kp_and_max(p, kp, self.directions);
+            for d in 0..MAX_DIRECTIONS {
+                p_kp[d] += s[d];
+                or[d] |= o[d];
+            }
+        }
+        // SAFETY: each hart writes only its own result slot.
+        if let Some(out) = unsafe { self.out.slice_mut(h..h + 1) }.first_mut() {
+            out.p_kp = p_kp;
+            out.kp_or = or;
         }
     }
 
@@ -551,7 +697,7 @@ impl<E: Executor> Engine<'_, '_, E> {
     }
 
     /// What each direction's lane of p becomes, on every hart's share in parallel. A lane
-    /// copied from x or r also gets the OR of its magnitudes (`p_or`), the tight bound
+    /// copied from r also gets the OR of its magnitudes (`p_or`), the tight bound
     /// [`Solver::tighten_r_bounds`] needs.
     fn set_lanes(&self, lanes: [Lane; MAX_DIRECTIONS], clock: &mut Clock) {
         let n = self.a.n;
@@ -563,31 +709,43 @@ impl<E: Executor> Engine<'_, '_, E> {
                 let out = &mut self.out.slice_mut(h..h + 1)[0];
                 let p = self.p.slice_mut(range.clone());
                 for (d, lane) in lanes.iter().enumerate().take(self.directions) {
-                    let from = match lane {
-                        Lane::Keep => continue,
+                    match lane {
+                        Lane::Keep => {}
                         Lane::Zero => {
                             p.iter_mut().for_each(|pi| pi[d] = 0);
                             out.p_or[d] = 0;
-                            continue;
                         }
-                        Lane::X => &self.xs[d].as_slice()[range.clone()],
-                        Lane::R => &self.rs[d].as_slice()[range.clone()],
-                    };
-                    let mut or = 0u32;
-                    for (pi, &v) in p.iter_mut().zip(from) {
-                        pi[d] = v;
-                        or |= magnitude_bits(v);
+                        // x's bound is known; only r's copy is measured.
+                        Lane::X => {
+                            let x = &self.xs[d].as_slice()[range.clone()];
+                            p.iter_mut().zip(x).for_each(|(pi, &v)| pi[d] = v);
+                        }
+                        Lane::R => {
+                            let mut or = 0u32;
+                            for (pi, &v) in p.iter_mut().zip(&self.rs[d].as_slice()[range.clone()])
+                            {
+                                pi[d] = v;
+                                or |= magnitude_bits(v);
+                            }
+                            out.p_or[d] = or;
+                        }
                     }
-                    out.p_or[d] = or;
                 }
             }
         };
         self.run(&task, clock, false);
     }
 
-    /// The set-up on every hart's share: r = b, Σb², the ORs of b and x, p's lanes = x (or x
-    /// and its lane cleared, `zero_x`), Kp cleared.
-    fn setup(&self, b: &[&[i32]; MAX_DIRECTIONS], zero_x: bool, clock: &mut Clock) {
+    /// The set-up on every hart's share: r = b (where r is not `given`), Σb², the ORs of b and
+    /// x, p's lanes = x (or x and its lane cleared, `zero_x`), and Kp cleared where the MVUs
+    /// add into it (a fused plan stores every row).
+    fn setup(
+        &self,
+        b: &[&[i32]; MAX_DIRECTIONS],
+        given: [bool; MAX_DIRECTIONS],
+        zero_x: bool,
+        clock: &mut Clock,
+    ) {
         let n = self.a.n;
         let task = |h: usize| {
             let range = share(n, self.harts, h);
@@ -596,11 +754,14 @@ impl<E: Executor> Engine<'_, '_, E> {
             unsafe {
                 let out = &mut self.out.slice_mut(h..h + 1)[0];
                 let p = self.p.slice_mut(range.clone());
-                p.fill([0; 4]);
-                self.kp.slice_mut(range.clone()).fill([0; MAX_DIRECTIONS]);
+                if !self.a.plan.fused {
+                    self.kp.slice_mut(range.clone()).fill([0; MAX_DIRECTIONS]);
+                }
                 for d in 0..self.directions {
-                    let (b, r) = (&b[d][range.clone()], self.rs[d].slice_mut(range.clone()));
-                    r.copy_from_slice(b);
+                    let b = &b[d][range.clone()];
+                    if !given[d] {
+                        self.rs[d].slice_mut(range.clone()).copy_from_slice(b);
+                    }
                     out.rr[d] = sum_squares(b);
                     out.b_or[d] = b.iter().fold(0, |o, &m| o | magnitude_bits(m));
                     let x = self.xs[d].slice_mut(range.clone());
@@ -653,7 +814,6 @@ struct Solver<'s, 'e, 'a, E: Executor> {
     state: [Direction; MAX_DIRECTIONS],
     x_exponents: [i32; MAX_DIRECTIONS],
     iterations: u32,
-    tol_sq: f64,
     sat: u32,
     clock: Clock,
 }
@@ -676,9 +836,9 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         self.engine.directions
     }
 
-    /// Pass R's plan for direction d: r ← keep·r + c·K·v, where K·v is in the MVU's results
-    /// and v's block is `v` (p, or x when computing b − A·x); `keep` is 1 or 0.
-    fn r_plan(&mut self, d: usize, c: f64, v: Block, keep: f64) -> PassR {
+    /// Pass R's plan for direction d: r ← c·K·v (+ r if `keep`), where K·v is in the MVU's
+    /// results and v's block is `v` (p, or x when computing b − A·x).
+    fn r_plan(&mut self, d: usize, c: Scalar, v: Block, keep: bool) -> PassR {
         let kp_max = self
             .engine
             .outs()
@@ -690,7 +850,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             bound,
         };
         PassR {
-            lin: Lin::new(c, kp, true, keep, self.state[d].r, &mut self.sat),
+            lin: Lin::new(c, kp, true, keep.then_some(self.state[d].r), &mut self.sat),
             narrow,
         }
     }
@@ -702,14 +862,18 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         let or = outs.iter().fold(0u32, |o, out| o | out.r_or[d]);
         let bound = bound_of_squares(or);
         check_bound(bound, &mut self.sat);
-        let st = &mut self.state[d];
-        st.rr = rr;
-        st.rr_f = u128_to_f64(rr);
-        st.r = Block {
+        let r = Block {
             e: plan.lin.e,
             bound,
         };
-        st.residual_sq = st.ratio(st.rr_f, plan.lin.e);
+        self.state[d].set_residual(rr, r);
+    }
+
+    /// The left shift of b onto K·x's exponent (direction d) for which K·x − b·2^s is formed
+    /// exactly ([`Solver::residual_of`]), if there is one.
+    fn b_shift(&self, d: usize) -> Option<u32> {
+        let s = self.state[d].b.e - (self.state[d].x.e - self.f());
+        u32::try_from(s).ok().filter(|&s| s <= MAX_B_SHIFT)
     }
 
     /// r = b − K·x for the directions in `which`, whose x is in their lane of p (and b in r):
@@ -726,8 +890,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         let t = self.engine.exec.now();
         let mut shifts = [None; MAX_DIRECTIONS];
         for d in (0..self.directions()).filter(|&d| which[d]) {
-            let s = self.state[d].b.e - (self.state[d].x.e - self.f());
-            shifts[d] = u32::try_from(s).ok().filter(|&s| s <= MAX_B_SHIFT);
+            shifts[d] = self.b_shift(d);
         }
         if shifts.iter().any(Option::is_some) {
             self.engine
@@ -735,13 +898,14 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         }
         let mut plans = [None; MAX_DIRECTIONS];
         for d in (0..self.directions()).filter(|&d| which[d]) {
-            let keep = if shifts[d].is_some() { 0.0 } else { 1.0 };
-            plans[d] = Some(self.r_plan(d, -1.0, self.state[d].x, keep));
+            let keep = shifts[d].is_none();
+            plans[d] = Some(self.r_plan(d, Scalar::ONE.negate(), self.state[d].x, keep));
         }
         self.engine.pass_r(&plans, &mut self.clock);
         for (d, plan) in plans.iter().enumerate() {
             if let Some(plan) = plan {
                 self.take_r(d, *plan);
+                self.state[d].r_exact = true;
             }
         }
         charge(&mut self.clock.svu, t, self.engine.exec);
@@ -749,8 +913,10 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
 
     /// r₀ = b − A·x₀ where x₀ ≠ 0, then p₀ = r₀ for every direction with work to do.
     fn start(&mut self) {
-        let guessed: [bool; MAX_DIRECTIONS] =
-            core::array::from_fn(|d| self.state[d].active && self.state[d].x.bound != 0);
+        let guessed: [bool; MAX_DIRECTIONS] = core::array::from_fn(|d| {
+            let st = &self.state[d];
+            st.active && st.x.bound != 0 && !st.given
+        });
         if guessed.iter().any(|&g| g) {
             self.residual_of(guessed);
         }
@@ -759,8 +925,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         let directions = self.directions();
         for (st, lane) in self.state.iter_mut().zip(&mut lanes).take(directions) {
             if st.active {
-                st.residual_sq = st.ratio(st.rr_f, st.r.e);
-                st.active = !within(st.residual_sq, self.tol_sq);
+                st.active = !st.converged;
             }
             st.p = st.r;
             *lane = if st.active { Lane::R } else { Lane::Zero };
@@ -795,7 +960,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         self.engine.mvu(&mut self.clock);
         let t = self.engine.exec.now();
         let mut r_plans = [None; MAX_DIRECTIONS];
-        let mut alphas = [0.0f64; MAX_DIRECTIONS];
+        let mut alphas = [Scalar::ZERO; MAX_DIRECTIONS];
         for d in 0..self.directions() {
             if !self.state[d].active {
                 continue;
@@ -809,31 +974,30 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             }
             let st = &self.state[d];
             // α = rᵀr / pᵀKp; exponents: 2e_r and 2e_p − F.
-            let p_kp = u128_to_f64(p_kp as u128);
-            alphas[d] = scale2(st.rr_f / p_kp, 2 * st.r.e - 2 * st.p.e + self.f());
-            r_plans[d] = Some(self.r_plan(d, -alphas[d], st.p, 1.0));
+            alphas[d] = Scalar::quotient(st.rr_scalar, Scalar::of_i128(p_kp))
+                .scale2(2 * st.r.e - 2 * st.p.e + self.f());
+            r_plans[d] = Some(self.r_plan(d, alphas[d].negate(), st.p, true));
         }
         self.engine.pass_r(&r_plans, &mut self.clock);
         let mut xp_plans = [PassXP::NONE; MAX_DIRECTIONS];
         let mut verify = [false; MAX_DIRECTIONS];
         for (d, plan) in r_plans.iter().enumerate() {
             let Some(plan) = plan else { continue };
-            let (rr_old, e_old) = (self.state[d].rr_f, self.state[d].r.e);
+            let (rr_old, e_old) = (self.state[d].rr_scalar, self.state[d].r.e);
             self.take_r(d, *plan);
             let st = &mut self.state[d];
-            let x = Lin::new(alphas[d], st.p, false, 1.0, st.x, &mut self.sat);
+            st.r_exact = false;
+            let x = Lin::new(alphas[d], st.p, false, Some(st.x), &mut self.sat);
             xp_plans[d].x = Some(x);
-            if within(st.residual_sq, self.tol_sq) || st.iterations >= self.params.max_iterations {
+            if st.converged || st.iterations >= self.params.max_iterations {
                 st.active = false;
                 // Converged on the recursive residual: check it against b − A·x.
-                verify[d] =
-                    within(st.residual_sq, self.tol_sq) && st.replacements < MAX_REPLACEMENTS;
+                verify[d] = st.converged && st.replacements < MAX_REPLACEMENTS;
                 continue;
             }
             // β = r_newᵀr_new / rᵀr
-            let beta = scale2(st.rr_f / rr_old, 2 * (st.r.e - e_old));
-            let p = Lin::new(1.0, st.r, false, beta, st.p, &mut self.sat);
-            xp_plans[d] = PassXP::new(Some(x), Some(p));
+            let beta = Scalar::quotient(st.rr_scalar, rr_old).scale2(2 * (st.r.e - e_old));
+            xp_plans[d].p = Some(Lin::new(beta, st.p, false, Some(st.r), &mut self.sat));
         }
         self.engine.pass_xp(&xp_plans, &mut self.clock);
         let outs = self.engine.outs();
@@ -877,9 +1041,12 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         for d in (0..self.directions()).filter(|&d| verify[d]) {
             self.state[d].replacements += 1;
             lanes[d] = Lane::X;
-            // SAFETY: no task runs; hart 0 has the vectors to itself.
-            unsafe { self.engine.rs[d].slice_mut(0..self.engine.a.n) }
-                .copy_from_slice(&self.systems_b[d][..self.engine.a.n]);
+            if self.b_shift(d).is_none() {
+                // Only pass R's inexact path reads b from r; the exact one subtracts b itself.
+                // SAFETY: no task runs; hart 0 has the vectors to itself.
+                unsafe { self.engine.rs[d].slice_mut(0..self.engine.a.n) }
+                    .copy_from_slice(&self.systems_b[d][..self.engine.a.n]);
+            }
             self.state[d].r = self.state[d].b;
         }
         self.engine.set_lanes(lanes, &mut self.clock);
@@ -889,7 +1056,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         let mut lanes = [Lane::Keep; MAX_DIRECTIONS];
         for d in (0..self.directions()).filter(|&d| verify[d]) {
             let st = &mut self.state[d];
-            if !within(st.residual_sq, self.tol_sq) && st.iterations < self.params.max_iterations {
+            if !st.converged && st.iterations < self.params.max_iterations {
                 st.active = true;
                 st.p = st.r;
                 lanes[d] = Lane::R;
@@ -939,12 +1106,15 @@ pub fn solve(
     let mut systems_b: [&[i32]; MAX_DIRECTIONS] = [&[]; MAX_DIRECTIONS];
     let mut b_exponents = [0i32; MAX_DIRECTIONS];
     let mut x_exponents = [0i32; MAX_DIRECTIONS];
+    let mut given = [None; MAX_DIRECTIONS];
     let mut xs = heapless::Vec::new();
     let mut rs = heapless::Vec::new();
     for (d, s) in systems.iter_mut().enumerate() {
         systems_b[d] = s.b;
         b_exponents[d] = s.b_exponent;
         x_exponents[d] = s.x_exponent;
+        // A given residual belongs to x₀: without one (a zero start) it is ignored.
+        given[d] = s.r_start.filter(|_| params.start != Start::Zero);
         let _ = xs.push(SharedSlice::new(&mut s.x[..n]));
         let _ = rs.push(SharedSlice::new(&mut s.r[..n]));
     }
@@ -964,10 +1134,25 @@ pub fn solve(
         last: t0,
         ..Clock::default()
     };
-    engine.setup(&systems_b, params.start == Start::Zero, &mut clock);
+    let given_flags = given.map(|g| g.is_some());
+    engine.setup(
+        &systems_b,
+        given_flags,
+        params.start == Start::Zero,
+        &mut clock,
+    );
+    let tol_sq = params.tolerance * params.tolerance;
     let mut state = [Direction::IDLE; MAX_DIRECTIONS];
     for d in 0..directions {
-        state[d] = initial_state(&engine, d, b_exponents[d], &mut x_exponents[d]);
+        state[d] = initial_state(&engine, d, b_exponents[d], &mut x_exponents[d], tol_sq);
+        if let Some(g) = given[d].filter(|_| state[d].active) {
+            let r = Block {
+                e: g.exponent,
+                bound: g.bound,
+            };
+            state[d].set_residual(g.rr, r);
+            state[d].given = true;
+        }
     }
     let mut solver = Solver {
         engine: &engine,
@@ -976,12 +1161,16 @@ pub fn solve(
         state,
         x_exponents,
         iterations: 0,
-        tol_sq: params.tolerance * params.tolerance,
         sat: 0,
         clock,
     };
     charge(&mut solver.clock.svu, t0, exec);
     solver.start();
+    let unverified: [bool; MAX_DIRECTIONS] = core::array::from_fn(|d| {
+        let st = &solver.state[d];
+        st.given && st.converged && given[d].is_some_and(|g| g.verify)
+    });
+    solver.replace_residuals(unverified);
     while solver.state.iter().any(|s| s.active)
         && solver.iterations < params.max_iterations
         && solver.within_budget()
@@ -995,12 +1184,103 @@ pub fn solve(
         solver.replace_residuals(verify);
     }
     solver.clock.flush_serial(exec);
+    let outcomes: [Outcome; MAX_DIRECTIONS] = core::array::from_fn(|d| {
+        let st = &solver.state[d];
+        Outcome {
+            r_exponent: st.r.e,
+            r_bound: st.r.bound,
+            r_exact: st.r_exact,
+            x_bound: st.x.bound,
+        }
+    });
     let (report, x_exponents) = finish(solver);
     drop(engine);
-    for (s, e) in systems.iter_mut().zip(x_exponents) {
+    for ((s, e), outcome) in systems.iter_mut().zip(x_exponents).zip(outcomes) {
         s.x_exponent = e;
+        s.outcome = outcome;
     }
     Ok(report)
+}
+
+/// What [`product`] measured: per lane the OR of |K·v| (its highest bit is that of the largest
+/// row sum), hart 0's counters over the phase and its critical path (every parallel step's
+/// slowest hart plus hart 0's serial work).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Product {
+    pub or: [u64; MAX_DIRECTIONS],
+    pub on_hart0: PhaseCounters,
+    pub critical: PhaseCounters,
+}
+
+/// K·v for up to three vectors at once, `vectors[k]` into lane k of `work.kp` as exact `i64` row
+/// sums (value 2^(e_v − F) each): the MVU phase on its own, as a dynamic step needs it for
+/// K·u₀ ([`crate::dynamics`]). The vectors are only read (p's lanes take a copy).
+pub fn product(
+    a: &Matrix<'_>,
+    vectors: &mut [&mut [i32]],
+    work: Work<'_>,
+    exec: &impl Executor,
+) -> Result<Product, SolveFailure> {
+    let n = a.n;
+    let lanes = vectors.len();
+    if !(1..=MAX_DIRECTIONS).contains(&lanes) {
+        return Err(SolveFailure::BadDirections(lanes as u8));
+    }
+    let plan = a.plan;
+    let harts = plan.mvus.clamp(1, MAX_HARTS);
+    if vectors.iter().any(|v| v.len() < n)
+        || work.p.len() < n
+        || work.kp.len() < n
+        || work.partial.len() < plan.partial_len
+        || plan.mvus > exec.harts()
+    {
+        return Err(SolveFailure::WorkspaceTooSmall);
+    }
+    let t0 = exec.now();
+    let Work { p, kp, partial } = work;
+    let mut outs = [HartOut::default(); MAX_HARTS];
+    let mut xs = heapless::Vec::new();
+    for v in vectors.iter_mut() {
+        let _ = xs.push(SharedSlice::new(&mut v[..n]));
+    }
+    let engine = Engine {
+        a,
+        exec,
+        harts,
+        directions: lanes,
+        p: SharedSlice::new(&mut p[..n]),
+        kp: SharedSlice::new(&mut kp[..n]),
+        partial: SharedSlice::new(partial),
+        out: SharedSlice::new(&mut outs),
+        xs,
+        rs: heapless::Vec::new(),
+    };
+    let mut clock = Clock {
+        last: t0,
+        ..Clock::default()
+    };
+    if !plan.fused {
+        // Rows the MVUs add into start from zero.
+        engine.run(
+            &|h| {
+                let range = share(n, harts, h);
+                // SAFETY: each hart clears only its own share of Kp.
+                unsafe { engine.kp.slice_mut(range) }.fill([0; MAX_DIRECTIONS]);
+            },
+            &mut clock,
+            true,
+        );
+    }
+    engine.set_lanes([Lane::X; MAX_DIRECTIONS], &mut clock);
+    engine.mvu(&mut clock);
+    clock.flush_serial(exec);
+    let or = core::array::from_fn(|d| engine.outs().iter().fold(0, |o, out| o | out.kp_or[d]));
+    let now = exec.now();
+    Ok(Product {
+        or,
+        on_hart0: now.since(t0),
+        critical: clock.costs.whole.critical(),
+    })
 }
 
 /// Direction d's state before the first iteration, from the set-up's results. A direction
@@ -1010,6 +1290,7 @@ fn initial_state<E: Executor>(
     d: usize,
     b_exponent: i32,
     x_exponent: &mut i32,
+    tol_sq: f64,
 ) -> Direction {
     let outs = engine.outs();
     let bb: u128 = outs.iter().map(|o| o.rr[d]).sum();
@@ -1032,20 +1313,19 @@ fn initial_state<E: Executor>(
         e: b_exponent,
         bound: bound_of(b_or),
     };
-    Direction {
+    let mut st = Direction {
         active: bb != 0,
-        inv_bb: if bb == 0 { 0.0 } else { 1.0 / bb as f64 },
-        b_e: b_exponent,
+        bb,
         x: Block {
             e: *x_exponent,
             bound: if x_any != 0 { bound_of(x_or) } else { 0 },
         },
-        r,
-        rr: bb,
-        rr_f: bb as f64,
         b: r,
+        threshold: Threshold::new(tol_sq, bb, b_exponent),
         ..Direction::IDLE
-    }
+    };
+    st.set_residual(bb, r);
+    st
 }
 
 /// The report, and each system's x exponent.
@@ -1068,8 +1348,8 @@ fn finish<E: Executor>(solver: Solver<'_, '_, '_, E>) -> (SolveReport, [i32; MAX
         first_iteration_scalar: costs.first_scalar,
     };
     for st in &solver.state[..engine.directions] {
-        let converged = st.residual_sq <= solver.tol_sq;
-        let residual = sqrt(st.residual_sq);
+        let converged = st.converged;
+        let residual = st.residual();
         report.converged &= converged;
         report.residual = report.residual.max(residual);
         let _ = report.directions.push(DirectionReport {
@@ -1079,36 +1359,6 @@ fn finish<E: Executor>(solver: Solver<'_, '_, '_, E>) -> (SolveReport, [i32; MAX
         });
     }
     (report, solver.x_exponents)
-}
-
-/// x ≤ limit for non-negative finite `f64`s, whose bit patterns order like the numbers: a few
-/// integer instructions instead of a soft-float comparison on rv32.
-fn within(x: f64, limit: f64) -> bool {
-    debug_assert!(x >= 0.0 && limit >= 0.0);
-    x.to_bits() <= limit.to_bits()
-}
-
-/// x·2^k: the exponent field adjusted directly where the result stays a normal number (a few
-/// integer instructions instead of a soft-float multiplication), else [`ldexp`].
-fn scale2(x: f64, k: i32) -> f64 {
-    let bits = x.to_bits();
-    let biased = ((bits >> 52) & 0x7FF) as i32;
-    if biased != 0 && biased != 0x7FF && (1..0x7FF).contains(&(biased + k)) {
-        f64::from_bits(bits.wrapping_add(((k as i64) << 52) as u64))
-    } else {
-        ldexp(x, k)
-    }
-}
-
-/// v as `f64`, its top 64 bits rounded (compiler-rt's 128-bit conversion costs several times
-/// more on rv32, and nothing here needs the last bit).
-fn u128_to_f64(v: u128) -> f64 {
-    let hi = (v >> 64) as u64;
-    if hi == 0 {
-        return v as u64 as f64;
-    }
-    let lz = hi.leading_zeros();
-    scale2(((v << lz) >> 64) as u64 as f64, 64 - lz as i32)
 }
 
 /// √x for x ≥ 0 without std: Newton's method from a power-of-two first guess.
@@ -1124,6 +1374,20 @@ fn sqrt(x: f64) -> f64 {
 }
 
 /// Adds hart 0's counters elapsed since `since` to `total`.
+/// Adds a split row's first part `part` into its finished second part at `y` (see
+/// [`continues`]).
+///
+/// # Safety
+///
+/// `y` is a row of Kp that no other hart accesses during the call.
+unsafe fn carry(y: *mut Sums, part: Sums, directions: usize) {
+    // SAFETY: forwarded from the caller.
+    let row = unsafe { &mut *y };
+    for (sum, part) in row.iter_mut().zip(part).take(directions) {
+        *sum += part;
+    }
+}
+
 fn charge(total: &mut PhaseCounters, since: PhaseCounters, clock: &impl PhaseClock) {
     *total += clock.now().since(since);
 }

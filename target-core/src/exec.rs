@@ -48,6 +48,15 @@ pub trait Executor: PhaseClock + Sync {
     fn run_measured(&self, harts: usize, task: Task<'_>) -> [PhaseCounters; MAX_HARTS];
 }
 
+/// The slowest of `harts`' counts from [`Executor::run_measured`], each count its own slowest
+/// hart's (the hart with the most cycles need not retire the most instructions): a parallel
+/// phase's critical path.
+pub fn slowest(counts: &[PhaseCounters]) -> PhaseCounters {
+    counts
+        .iter()
+        .fold(PhaseCounters::default(), |m, &c| m.max_each(c))
+}
+
 /// Runs every hart's task in turn on the calling thread: the host's stand-in for N MVUs.
 pub struct Sequential {
     pub harts: usize,
@@ -139,10 +148,23 @@ impl<'a, T> SharedSlice<'a, T> {
     }
 }
 
-/// The `h`-th of `parts` near-equal contiguous pieces of `0..len`.
+/// Pieces of a [`share`] start at multiples of this: the SVU's assembly loops take four
+/// elements per pass of their body, so only the last piece can leave a shorter tail.
+pub const SHARE_ALIGN: usize = 4;
+
+/// The `h`-th of `parts` near-equal contiguous pieces of `0..len`, each starting at a
+/// multiple of [`SHARE_ALIGN`] (the last one takes what is left).
 pub fn share(len: usize, parts: usize, h: usize) -> Range<usize> {
     let parts = parts.max(1);
-    (len * h / parts)..(len * (h + 1) / parts)
+    let blocks = len / SHARE_ALIGN;
+    let edge = |k: usize| {
+        if k >= parts {
+            len
+        } else {
+            blocks * k / parts * SHARE_ALIGN
+        }
+    };
+    edge(h)..edge(h + 1)
 }
 
 #[cfg(test)]
@@ -151,12 +173,14 @@ mod tests {
 
     #[test]
     fn shares_cover_the_range_once() {
-        for len in [0, 1, 7, 4096] {
+        for len in [0, 1, 7, 13, 512, 1000, 4096] {
             for parts in 1..=8 {
                 let mut next = 0;
                 for h in 0..parts {
                     let r = share(len, parts, h);
                     assert_eq!(r.start, next);
+                    assert_eq!(r.start % SHARE_ALIGN, 0);
+                    assert!(r.len() <= len.div_ceil(parts) + 2 * SHARE_ALIGN);
                     next = r.end;
                 }
                 assert_eq!(next, len);

@@ -15,9 +15,10 @@
 //! Each product q·p (|q| < 2^20, |p| < 2^30) is exact in `i64`, and so is the row sum (at most
 //! 2^12 products of a tile row before the sum could reach 2^62; validated tiles have at most
 //! 512 columns per row, and [`crate::cg::plan`] refuses a matrix whose rows could overflow).
-//! Nothing is rounded. pᵀKp is not formed here but once per finished row of Kp, in the MVU
-//! phase's second step ([`p_kp_and_max`]), exactly in `i128`: per row rather than per tile row
-//! and mirror row, which halves its cost where rows span two tiles.
+//! Nothing is rounded. pᵀKp is formed once per finished row of Kp, exactly
+//! ([`p_kp_and_max`]), per row rather than per tile row and mirror row: where every row of K
+//! is one row of one tile ([`crate::cg::Plan::fused`]) by each MVU over its own rows right
+//! after its tiles, otherwise in the MVU phase's second step.
 //!
 //! # Loop shape
 //!
@@ -74,14 +75,15 @@ pub struct TileRun {
     pub y_mirror: *mut Sums,
 }
 
-/// pᵀKp over rows `p`/`kp` (one hart's share of finished rows) for `directions`, exactly, and
-/// the OR of |Kp| per direction (whose highest bit is that of max |Kp|).
+/// pᵀKp over rows `p`/`kp` (finished rows) for `directions`, exactly, and the OR of |Kp| per
+/// direction (whose highest bit is that of max |Kp|).
 ///
 /// Each product p·Kp (|p| < 2^30, |Kp| < 2^62) is split by Kp's 32-bit halves h (signed) and l
 /// (unsigned) into p·l and p·h, two 64-bit products; their words are summed in three `i64`s by
 /// weight 2^0, 2^32 and 2^64, which cannot overflow for any n ≤ 2^16 (below 2^48, 2^50 and
 /// 2^46), and are joined into the `i128` once. That is about half the instructions of an
-/// `i128` accumulation per row on rv32.
+/// `i128` accumulation per row on rv32; one direction at a time keeps the six words of the
+/// sums in registers.
 pub fn p_kp_and_max(
     p: &[Lanes],
     kp: &[Sums],
@@ -107,8 +109,13 @@ pub fn p_kp_and_max(
     (p_kp, or)
 }
 
-/// Runs one tile for `D` fused directions (`MIRROR`: persymmetric half storage), adding each
-/// row sum into `y` (and each mirror row's into `y_mirror`).
+/// Runs one tile for `D` fused directions (`MIRROR`: persymmetric half storage), each row sum
+/// *stored* into `y` (and each mirror row's into `y_mirror`) if `STORE`, else *added*.
+///
+/// A row's sum may be stored where it is the only one the row gets ([`crate::cg::Plan::fused`]:
+/// every row of K is one row of one tile, own or mirror, and the MVUs do not overlap); then
+/// nothing zeroes the rows first and no second step adds partial rows up. Otherwise rows were
+/// zeroed and take their tiles' sums by adding.
 ///
 /// # Safety
 ///
@@ -119,7 +126,7 @@ pub fn p_kp_and_max(
 /// - `y` points at `rows` writable slots (and `y_mirror` at the top of `rows` slots going
 ///   down, for `MIRROR`) that no one else accesses during the call.
 #[inline(always)]
-pub unsafe fn run_tile<const D: usize, const MIRROR: bool>(t: &TileRun) {
+pub unsafe fn run_tile<const D: usize, const MIRROR: bool, const STORE: bool>(t: &TileRun) {
     let mut w = t.words;
     let mut y = t.y;
     let mut y_mirror = t.y_mirror;
@@ -147,22 +154,30 @@ pub unsafe fn run_tile<const D: usize, const MIRROR: bool>(t: &TileRun) {
             };
         }
         // SAFETY: one slot per tile row, as the caller promised.
-        unsafe {
-            let out = &mut *y;
-            for d in 0..D {
-                out[d] += acc[d];
-            }
-        }
+        unsafe { end_row::<D, STORE>(y, &acc) };
         y = y.wrapping_add(1);
         if MIRROR {
             // SAFETY: as above, walking down from the mirror of row_base.
-            unsafe {
-                let out = &mut *y_mirror;
-                for d in 0..D {
-                    out[d] += mirror_acc[d];
-                }
-            }
+            unsafe { end_row::<D, STORE>(y_mirror, &mirror_acc) };
             y_mirror = y_mirror.wrapping_sub(1);
+        }
+    }
+}
+
+/// A row's end: its sum `acc` stored into `*y` (`STORE`) or added to it.
+///
+/// # Safety
+///
+/// `y` is a writable slot no one else accesses.
+#[inline(always)]
+unsafe fn end_row<const D: usize, const STORE: bool>(y: *mut Sums, acc: &[i64; D]) {
+    // SAFETY: forwarded from the caller.
+    let out = unsafe { &mut *y };
+    for d in 0..D {
+        if STORE {
+            out[d] = acc[d];
+        } else {
+            out[d] += acc[d];
         }
     }
 }
@@ -206,22 +221,28 @@ unsafe fn portable_row<const D: usize, const MIRROR: bool>(
     }
 }
 
-/// [`run_tile`] for a run-time direction count (1..=3) and mirror flag.
+/// [`run_tile`] for a run-time direction count (1..=3), mirror flag and row end.
 ///
 /// # Safety
 ///
 /// As [`run_tile`].
 #[inline(never)]
-pub unsafe fn run_tile_dyn(t: &TileRun, directions: usize, mirrored: bool) {
+pub unsafe fn run_tile_dyn(t: &TileRun, directions: usize, mirrored: bool, store: bool) {
     // SAFETY: forwarded contract.
     unsafe {
-        match (directions, mirrored) {
-            (1, false) => run_tile::<1, false>(t),
-            (2, false) => run_tile::<2, false>(t),
-            (1, true) => run_tile::<1, true>(t),
-            (2, true) => run_tile::<2, true>(t),
-            (_, false) => run_tile::<3, false>(t),
-            (_, true) => run_tile::<3, true>(t),
+        match (directions, mirrored, store) {
+            (1, false, false) => run_tile::<1, false, false>(t),
+            (2, false, false) => run_tile::<2, false, false>(t),
+            (1, true, false) => run_tile::<1, true, false>(t),
+            (2, true, false) => run_tile::<2, true, false>(t),
+            (_, false, false) => run_tile::<3, false, false>(t),
+            (_, true, false) => run_tile::<3, true, false>(t),
+            (1, false, true) => run_tile::<1, false, true>(t),
+            (2, false, true) => run_tile::<2, false, true>(t),
+            (1, true, true) => run_tile::<1, true, true>(t),
+            (2, true, true) => run_tile::<2, true, true>(t),
+            (_, false, true) => run_tile::<3, false, true>(t),
+            (_, true, true) => run_tile::<3, true, true>(t),
         }
     }
 }
@@ -237,14 +258,23 @@ pub unsafe fn run_tile_dyn(t: &TileRun, directions: usize, mirrored: bool) {
 ///
 /// # Scheduling
 ///
-/// The loops are ordered for an in-order five-stage core such as VexRiscv, where a load's or a
-/// multiply's result used by the very next instruction stalls the pipeline
-/// (`/work/shared/notes/litex-vexriscv.md`: CPI 1.64 naive, about 1.15 scheduled): the word
-/// pointer's increment sits between the word's load and its first use, the three lanes' loads
-/// are issued before the first multiply, and every `mul`/`mulh` result is consumed at least
-/// one instruction later. The instruction count is the same as unscheduled, so QEMU's counts do
-/// not change. No loop is unrolled: every word may end its row, so an unrolled body would need
-/// an exit test per word anyway, which is what the loop branch is.
+/// The loops are ordered for an in-order five-stage core such as VexRiscv, where a result used
+/// too soon stalls the pipeline: a load's or a multiply's within three slots of its use, a
+/// shift's within two (the project's VexRiscv notes: CPI 1.64 naive, about 1.15 scheduled).
+/// The two shifts that decode the column and the value are interleaved, the lanes' loads (own
+/// and mirror, where registers allow) are issued before the first multiply, and lanes rotate
+/// through load and product registers so each multiply is three slots from its load and each
+/// add three from its multiply. What no order within one word can hide is the word's own load
+/// before its decode (one slot short in every loop) and, where only one or two lanes follow,
+/// a lane's load before its multiply. The one-direction whole-K loop, with no other work to
+/// fill those slots, is software-pipelined: a trip adds the previous word's product while it
+/// decodes its own, and the last product is added after the loop (6 instructions more per row,
+/// none per word). Otherwise the instruction counts are those of the unscheduled loops, so
+/// QEMU's counts do not change.
+///
+/// No loop is unrolled: every word may end its row, so an unrolled body would need an exit
+/// test per word anyway, which is what the loop branch is (and an unrolled trial measured no
+/// gain on VexRiscv: docs/PERFORMANCE.md, issue 13).
 ///
 /// The six loops (one, two and three directions, whole and mirrored) are written out rather
 /// than generated by a macro: the schedule above interleaves each variant's loads, multiplies
@@ -279,28 +309,38 @@ mod riscv {
         let mut a = [0u32; 2 * MAX_DIRECTIONS];
         match D {
             1 => {
+                // Software-pipelined: a trip adds the previous word's product (m, hh; zero
+                // before the first word) while its own word is decoded, so no result is used
+                // within three slots of its load or multiply; the last product is added after
+                // the loop.
                 // SAFETY: reads only the row's words and p[col_base + c] for its columns.
                 unsafe {
                     asm!(
                         "2:",
                         "lw {w}, 0({wp})",
-                        "addi {wp}, {wp}, 4",
-                        "srli {t}, {w}, {cs}",
-                        "and {t}, {t}, {mask}",
-                        "add {t}, {t}, {base}",
-                        "lw {t}, 0({t})",
-                        "slli {v}, {w}, {vs}",
-                        "srai {v}, {v}, {vs}",
-                        "mul {m}, {v}, {t}",
-                        "mulh {v}, {v}, {t}",
                         "add {l0}, {l0}, {m}",
                         "sltu {m}, {l0}, {m}",
-                        "add {h0}, {h0}, {v}",
+                        "srli {t}, {w}, {cs}",
+                        "slli {v}, {w}, {vs}",
+                        "add {h0}, {h0}, {hh}",
+                        "and {t}, {t}, {mask}",
+                        "srai {v}, {v}, {vs}",
+                        "add {t}, {t}, {base}",
+                        "lw {t}, 0({t})",
+                        "addi {wp}, {wp}, 4",
                         "add {h0}, {h0}, {m}",
+                        "mul {m}, {v}, {t}",
+                        "mulh {hh}, {v}, {t}",
                         "bltu {w}, {er}, 2b",
+                        "add {l0}, {l0}, {m}",
+                        "sltu {m}, {l0}, {m}",
+                        "add {h0}, {h0}, {hh}",
+                        "add {h0}, {h0}, {m}",
                         wp = inout(reg) wp,
                         l0 = inout(reg) a[0],
                         h0 = inout(reg) a[1],
+                        m = inout(reg) 0u32 => _,
+                        hh = inout(reg) 0u32 => _,
                         base = in(reg) cols,
                         mask = in(reg) COLUMN_OFFSET_MASK,
                         er = in(reg) ER_BIT,
@@ -309,7 +349,6 @@ mod riscv {
                         w = out(reg) _,
                         t = out(reg) _,
                         v = out(reg) _,
-                        m = out(reg) _,
                         options(nostack, readonly),
                     );
                 }
@@ -322,24 +361,24 @@ mod riscv {
                         "lw {w}, 0({wp})",
                         "addi {wp}, {wp}, 4",
                         "srli {t}, {w}, {cs}",
-                        "and {t}, {t}, {mask}",
-                        "add {t}, {t}, {base}",
                         "slli {v}, {w}, {vs}",
-                        "lw {p0}, 0({t})",
-                        "lw {p1}, 4({t})",
+                        "and {t}, {t}, {mask}",
                         "srai {v}, {v}, {vs}",
-                        "mul {m0}, {v}, {p0}",
-                        "mulh {p0}, {v}, {p0}",
-                        "mul {m1}, {v}, {p1}",
-                        "add {l0}, {l0}, {m0}",
-                        "sltu {m0}, {l0}, {m0}",
-                        "mulh {p1}, {v}, {p1}",
-                        "add {h0}, {h0}, {p0}",
-                        "add {h0}, {h0}, {m0}",
-                        "add {l1}, {l1}, {m1}",
-                        "sltu {m1}, {l1}, {m1}",
-                        "add {h1}, {h1}, {p1}",
-                        "add {h1}, {h1}, {m1}",
+                        "add {t}, {t}, {base}",
+                        "lw {p}, 0({t})",
+                        "lw {q}, 4({t})",
+                        "mul {m}, {v}, {p}",
+                        "mulh {p}, {v}, {p}",
+                        "mul {n}, {v}, {q}",
+                        "add {l0}, {l0}, {m}",
+                        "sltu {m}, {l0}, {m}",
+                        "mulh {q}, {v}, {q}",
+                        "add {h0}, {h0}, {p}",
+                        "add {h0}, {h0}, {m}",
+                        "add {l1}, {l1}, {n}",
+                        "sltu {n}, {l1}, {n}",
+                        "add {h1}, {h1}, {q}",
+                        "add {h1}, {h1}, {n}",
                         "bltu {w}, {er}, 2b",
                         wp = inout(reg) wp,
                         l0 = inout(reg) a[0],
@@ -354,10 +393,10 @@ mod riscv {
                         w = out(reg) _,
                         t = out(reg) _,
                         v = out(reg) _,
-                        p0 = out(reg) _,
-                        p1 = out(reg) _,
-                        m0 = out(reg) _,
-                        m1 = out(reg) _,
+                        p = out(reg) _,
+                        q = out(reg) _,
+                        m = out(reg) _,
+                        n = out(reg) _,
                         options(nostack, readonly),
                     );
                 }
@@ -370,39 +409,39 @@ mod riscv {
                         "lw {w}, 0({wp})",
                         "addi {wp}, {wp}, 4",
                         "srli {t}, {w}, {cs}",
-                        "and {t}, {t}, {mask}",
-                        "add {t}, {t}, {base}",
                         "slli {v}, {w}, {vs}",
-                        "lw {p0}, 0({t})",
+                        "and {t}, {t}, {mask}",
                         "srai {v}, {v}, {vs}",
-                        "lw {p1}, 4({t})",
-                        "mul {m0}, {v}, {p0}",
-                        "lw {p2}, 8({t})",
-                        "mulh {p0}, {v}, {p0}",
-                        "add {l0}, {l0}, {m0}",
-                        "mul {m1}, {v}, {p1}",
-                        "sltu {m0}, {l0}, {m0}",
-                        "add {h0}, {h0}, {p0}",
-                        "mulh {p1}, {v}, {p1}",
-                        "add {h0}, {h0}, {m0}",
-                        "add {l1}, {l1}, {m1}",
-                        "mul {m0}, {v}, {p2}",
-                        "sltu {m1}, {l1}, {m1}",
-                        "add {h1}, {h1}, {p1}",
-                        "mulh {p2}, {v}, {p2}",
-                        "add {h1}, {h1}, {m1}",
-                        "add {l2}, {l2}, {m0}",
-                        "sltu {m0}, {l2}, {m0}",
-                        "add {h2}, {h2}, {p2}",
-                        "add {h2}, {h2}, {m0}",
+                        "add {t}, {t}, {base}",
+                        "lw {p}, 0({t})",
+                        "lw {q}, 4({t})",
+                        "lw {r}, 8({t})",
+                        "mul {m}, {v}, {p}",
+                        "mulh {p}, {v}, {p}",
+                        "mul {n}, {v}, {q}",
+                        "add {a0}, {a0}, {m}",
+                        "sltu {m}, {a0}, {m}",
+                        "mulh {q}, {v}, {q}",
+                        "add {a1}, {a1}, {p}",
+                        "add {a1}, {a1}, {m}",
+                        "add {a2}, {a2}, {n}",
+                        "sltu {n}, {a2}, {n}",
+                        "mul {m}, {v}, {r}",
+                        "add {a3}, {a3}, {q}",
+                        "add {a3}, {a3}, {n}",
+                        "mulh {r}, {v}, {r}",
+                        "add {a4}, {a4}, {m}",
+                        "sltu {m}, {a4}, {m}",
+                        "add {a5}, {a5}, {r}",
+                        "add {a5}, {a5}, {m}",
                         "bltu {w}, {er}, 2b",
                         wp = inout(reg) wp,
-                        l0 = inout(reg) a[0],
-                        h0 = inout(reg) a[1],
-                        l1 = inout(reg) a[2],
-                        h1 = inout(reg) a[3],
-                        l2 = inout(reg) a[4],
-                        h2 = inout(reg) a[5],
+                        a0 = inout(reg) a[0],
+                        a1 = inout(reg) a[1],
+                        a2 = inout(reg) a[2],
+                        a3 = inout(reg) a[3],
+                        a4 = inout(reg) a[4],
+                        a5 = inout(reg) a[5],
                         base = in(reg) cols,
                         mask = in(reg) COLUMN_OFFSET_MASK,
                         er = in(reg) ER_BIT,
@@ -411,11 +450,11 @@ mod riscv {
                         w = out(reg) _,
                         t = out(reg) _,
                         v = out(reg) _,
-                        p0 = out(reg) _,
-                        p1 = out(reg) _,
-                        p2 = out(reg) _,
-                        m0 = out(reg) _,
-                        m1 = out(reg) _,
+                        p = out(reg) _,
+                        q = out(reg) _,
+                        r = out(reg) _,
+                        m = out(reg) _,
+                        n = out(reg) _,
                         options(nostack, readonly),
                     );
                 }
@@ -453,13 +492,13 @@ mod riscv {
                         "lw {w}, 0({wp})",
                         "addi {wp}, {wp}, 4",
                         "srli {t}, {w}, {cs}",
+                        "slli {v}, {w}, {vs}",
                         "and {t}, {t}, {mask}",
+                        "srai {v}, {v}, {vs}",
                         "sub {tm}, {mbase}, {t}",
                         "add {t}, {t}, {base}",
                         "lw {p}, 0({t})",
                         "lw {q}, 0({tm})",
-                        "slli {v}, {w}, {vs}",
-                        "srai {v}, {v}, {vs}",
                         "mul {m}, {v}, {p}",
                         "mulh {p}, {v}, {p}",
                         "mul {n}, {v}, {q}",
@@ -504,13 +543,14 @@ mod riscv {
                         "lw {w}, 0({wp})",
                         "addi {wp}, {wp}, 4",
                         "srli {t}, {w}, {cs}",
+                        "slli {v}, {w}, {vs}",
                         "and {t}, {t}, {mask}",
+                        "srai {v}, {v}, {vs}",
                         "sub {tm}, {mbase}, {t}",
                         "add {t}, {t}, {base}",
                         "lw {p}, 0({t})",
                         "lw {q}, 4({t})",
-                        "slli {v}, {w}, {vs}",
-                        "srai {v}, {v}, {vs}",
+                        "lw {r}, 0({tm})",
                         "mul {m}, {v}, {p}",
                         "mulh {p}, {v}, {p}",
                         "mul {n}, {v}, {q}",
@@ -519,23 +559,22 @@ mod riscv {
                         "mulh {q}, {v}, {q}",
                         "add {a1}, {a1}, {p}",
                         "add {a1}, {a1}, {m}",
-                        "lw {p}, 0({tm})",
+                        "lw {p}, 4({tm})",
                         "add {a2}, {a2}, {n}",
                         "sltu {n}, {a2}, {n}",
+                        "mul {m}, {v}, {r}",
                         "add {a3}, {a3}, {q}",
-                        "lw {q}, 4({tm})",
                         "add {a3}, {a3}, {n}",
-                        "mul {m}, {v}, {p}",
-                        "mulh {p}, {v}, {p}",
-                        "mul {n}, {v}, {q}",
+                        "mulh {r}, {v}, {r}",
+                        "mul {n}, {v}, {p}",
                         "add {a6}, {a6}, {m}",
                         "sltu {m}, {a6}, {m}",
-                        "mulh {q}, {v}, {q}",
-                        "add {a7}, {a7}, {p}",
+                        "mulh {p}, {v}, {p}",
+                        "add {a7}, {a7}, {r}",
                         "add {a7}, {a7}, {m}",
                         "add {a8}, {a8}, {n}",
                         "sltu {n}, {a8}, {n}",
-                        "add {a9}, {a9}, {q}",
+                        "add {a9}, {a9}, {p}",
                         "add {a9}, {a9}, {n}",
                         "bltu {w}, {er}, 2b",
                         wp = inout(reg) wp,
@@ -559,6 +598,7 @@ mod riscv {
                         v = out(reg) _,
                         p = out(reg) _,
                         q = out(reg) _,
+                        r = out(reg) _,
                         m = out(reg) _,
                         n = out(reg) _,
                         options(nostack, readonly),
@@ -566,6 +606,9 @@ mod riscv {
                 }
             }
             _ => {
+                // Lanes rotate through three load registers (p, q, r) and two product
+                // registers (m, n), so every load has three slots before its multiply and every
+                // multiply three before its add; 26 registers, every one the asm may name.
                 // SAFETY: as above, three lanes at offsets 0, 4, 8 of both addresses.
                 unsafe {
                     asm!(
@@ -573,53 +616,53 @@ mod riscv {
                         "lw {w}, 0({wp})",
                         "addi {wp}, {wp}, 4",
                         "srli {t}, {w}, {cs}",
+                        "slli {v}, {w}, {vs}",
                         "and {t}, {t}, {mask}",
+                        "srai {v}, {v}, {vs}",
                         "sub {tm}, {mbase}, {t}",
                         "add {t}, {t}, {base}",
                         "lw {p}, 0({t})",
-                        "slli {v}, {w}, {vs}",
-                        "srai {v}, {v}, {vs}",
+                        "lw {q}, 4({t})",
+                        "lw {r}, 8({t})",
                         "mul {m}, {v}, {p}",
                         "mulh {p}, {v}, {p}",
+                        "mul {n}, {v}, {q}",
                         "add {a0}, {a0}, {m}",
                         "sltu {m}, {a0}, {m}",
+                        "mulh {q}, {v}, {q}",
                         "add {a1}, {a1}, {p}",
-                        "lw {p}, 4({t})",
                         "add {a1}, {a1}, {m}",
-                        "mul {m}, {v}, {p}",
-                        "mulh {p}, {v}, {p}",
-                        "add {a2}, {a2}, {m}",
-                        "sltu {m}, {a2}, {m}",
-                        "add {a3}, {a3}, {p}",
-                        "lw {p}, 8({t})",
-                        "add {a3}, {a3}, {m}",
-                        "mul {m}, {v}, {p}",
-                        "mulh {p}, {v}, {p}",
+                        "lw {p}, 0({tm})",
+                        "add {a2}, {a2}, {n}",
+                        "sltu {n}, {a2}, {n}",
+                        "mul {m}, {v}, {r}",
+                        "add {a3}, {a3}, {q}",
+                        "add {a3}, {a3}, {n}",
+                        "mulh {r}, {v}, {r}",
                         "add {a4}, {a4}, {m}",
                         "sltu {m}, {a4}, {m}",
-                        "add {a5}, {a5}, {p}",
-                        "lw {p}, 0({tm})",
+                        "lw {q}, 4({tm})",
+                        "mul {n}, {v}, {p}",
+                        "add {a5}, {a5}, {r}",
                         "add {a5}, {a5}, {m}",
-                        "mul {m}, {v}, {p}",
                         "mulh {p}, {v}, {p}",
-                        "add {a6}, {a6}, {m}",
-                        "sltu {m}, {a6}, {m}",
+                        "add {a6}, {a6}, {n}",
+                        "sltu {n}, {a6}, {n}",
+                        "lw {r}, 8({tm})",
+                        "mul {m}, {v}, {q}",
                         "add {a7}, {a7}, {p}",
-                        "lw {p}, 4({tm})",
-                        "add {a7}, {a7}, {m}",
-                        "mul {m}, {v}, {p}",
-                        "mulh {p}, {v}, {p}",
+                        "add {a7}, {a7}, {n}",
+                        "mulh {q}, {v}, {q}",
                         "add {a8}, {a8}, {m}",
                         "sltu {m}, {a8}, {m}",
-                        "add {a9}, {a9}, {p}",
-                        "lw {p}, 8({tm})",
+                        "mul {n}, {v}, {r}",
+                        "add {a9}, {a9}, {q}",
                         "add {a9}, {a9}, {m}",
-                        "mul {m}, {v}, {p}",
-                        "mulh {p}, {v}, {p}",
-                        "add {a10}, {a10}, {m}",
-                        "sltu {m}, {a10}, {m}",
-                        "add {a11}, {a11}, {p}",
-                        "add {a11}, {a11}, {m}",
+                        "mulh {r}, {v}, {r}",
+                        "add {a10}, {a10}, {n}",
+                        "sltu {n}, {a10}, {n}",
+                        "add {a11}, {a11}, {r}",
+                        "add {a11}, {a11}, {n}",
                         "bltu {w}, {er}, 2b",
                         wp = inout(reg) wp,
                         a0 = inout(reg) a[0],
@@ -645,7 +688,10 @@ mod riscv {
                         tm = out(reg) _,
                         v = out(reg) _,
                         p = out(reg) _,
+                        q = out(reg) _,
+                        r = out(reg) _,
                         m = out(reg) _,
+                        n = out(reg) _,
                         options(nostack, readonly),
                     );
                 }

@@ -21,6 +21,7 @@
 #![deny(clippy::undocumented_unsafe_blocks)]
 
 pub mod cg;
+pub mod dynamics;
 pub mod exec;
 pub mod kernel;
 pub mod live;

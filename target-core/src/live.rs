@@ -67,9 +67,34 @@ pub struct Started {
     /// The model's solved columns held in the session's response storage, in tool order
     /// ([`crate::superpose`]); `None` if they did not all fit.
     pub columns: Option<Vec<Column, MAX_TOOL_NODES>>,
+    /// The columns' own residuals ρ_j = c_j − K·G_j, held beside them as `i16` mantissas,
+    /// each with the bound of its stored error (real units); `None` where not held.
+    pub residual_columns: Option<Vec<(Column, f64), MAX_TOOL_NODES>>,
     /// The tool input the solutions in x belong to, while they are a live frame's: the
     /// superposition predictor's anchor. Any other solve clears it.
     pub base: Option<[[f32; 3]; MAX_TOOL_NODES]>,
+    /// Per direction, what the residual estimate of the next frame starts from (valid while
+    /// `base` is).
+    pub estimates: [Option<Estimate>; 3],
+}
+
+/// A direction's residual in r for the solution in x at a live frame's end: the start of the
+/// next frame's estimate ([`crate::superpose`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Estimate {
+    pub r_exponent: i32,
+    /// Bounds on max |r| and max |x| (mantissa units).
+    pub r_bound: u64,
+    pub x_bound: u64,
+    /// A bound on ‖r₀ − r‖₂ (real units), r₀ the exact residual of the mantissas; infinite
+    /// where r is the recursive residual.
+    pub error: f64,
+    /// Frames since r was formed by an exact pass.
+    pub frames: u32,
+    /// The frame's right-hand side exponent and tool inputs' exponent (their rounding enters
+    /// the next frame's bound).
+    pub b_exponent: i32,
+    pub input_exponent: i32,
 }
 
 /// The static right-hand side of one direction, as far as frames need it.
@@ -107,10 +132,16 @@ impl Live {
         Ok((tools, started.as_mut().ok_or(LiveError::NotStarted)?))
     }
 
-    /// A right-hand side of direction `d` was uploaded: it is the new static load.
+    /// A right-hand side of direction `d` was uploaded: it is the new static load, and the
+    /// residual in r no longer belongs to it.
     pub fn rhs_replaced(&mut self, d: usize) {
-        if let Some(s) = self.started.as_mut().and_then(|s| s.snapshot.get_mut(d)) {
-            *s = None;
+        if let Some(started) = self.started.as_mut() {
+            if let Some(s) = started.snapshot.get_mut(d) {
+                *s = None;
+            }
+            if let Some(e) = started.estimates.get_mut(d) {
+                *e = None;
+            }
         }
     }
 
@@ -217,7 +248,9 @@ impl Live {
             anchor: None,
             field_exponent: None,
             columns: None,
+            residual_columns: None,
             base: None,
+            estimates: [None; 3],
         }))
     }
 }
@@ -314,8 +347,10 @@ impl Started {
         let Some(Some(snap)) = self.snapshot.get(d) else {
             return e_b;
         };
-        // Σ_t K_it·u_t per coupled row, exactly: |raw| < 2^20, |u| < 2^30, ≤ 256 terms.
-        let mut sums = [0i64; MAX_ROWS];
+        // Σ_t K_it·u_t per coupled row, exactly: |raw| < 2^20, |u| < 2^30, ≤ 256 terms. Only
+        // the rows in use are zeroed (the array is large, the rows few).
+        let mut sums: Vec<i64, MAX_ROWS> = Vec::new();
+        let _ = sums.resize(self.rows.len(), 0);
         let mut diag = [0i64; MAX_TOOL_NODES];
         for (t, tool) in tools.iter().enumerate() {
             let ut = i64::from(u.get(t).copied().unwrap_or(0));
@@ -328,14 +363,7 @@ impl Started {
         }
         let e_tool = e_u - f;
         let nodes = tools.iter().map(|t| t.node);
-        self.write_rows(
-            snap,
-            b,
-            e_b,
-            &sums[..self.rows.len()],
-            nodes.zip(diag),
-            e_tool,
-        )
+        self.write_rows(snap, b, e_b, &sums, nodes.zip(diag), e_tool)
     }
 
     /// Adds the point loads `load` (mantissas of f/k_d, exponent `e_l`) of direction `d` to
@@ -408,8 +436,23 @@ impl Started {
         e
     }
 
-    /// Builds direction `d`'s right-hand side of a frame whose tool inputs are `input`
-    /// (displacements or loads, by the tool's kind). Returns b's new exponent.
+    /// Direction `d`'s tool inputs of a frame (`input`: displacements, or loads scaled by
+    /// 1/k_d, by the tool's kind) as mantissas with one exponent: converted once per frame, for
+    /// the right-hand side ([`Started::patch`]) and the answer ([`Started::answer`]).
+    pub fn tool_input(
+        &self,
+        d: usize,
+        input: &[[f32; 3]],
+    ) -> Result<(Vec<i32, MAX_TOOL_NODES>, i32), LiveError> {
+        let factor = match self.kind {
+            ToolKind::Displacement => 1.0,
+            ToolKind::Force => 1.0 / f64::from(self.params.scale.get(d).copied().unwrap_or(1.0)),
+        };
+        tool_mantissas(input, d, factor)
+    }
+
+    /// Builds direction `d`'s right-hand side of a frame whose tool inputs are `(m, e_m)`
+    /// ([`Started::tool_input`]). Returns b's new exponent.
     #[allow(clippy::too_many_arguments)]
     pub fn patch(
         &self,
@@ -417,38 +460,40 @@ impl Started {
         tools: &[ToolRow],
         b: &mut [i32],
         e_b: i32,
-        input: &[[f32; 3]],
+        (m, e_m): (&[i32], i32),
         f: i32,
-    ) -> Result<i32, LiveError> {
-        Ok(match self.kind {
-            ToolKind::Displacement => {
-                let (u, e_u) = tool_mantissas(input, d, 1.0)?;
-                self.patch_rhs(d, tools, b, e_b, &u, e_u, f)
-            }
-            ToolKind::Force => {
-                let k = f64::from(self.params.scale.get(d).copied().unwrap_or(1.0));
-                let (l, e_l) = tool_mantissas(input, d, 1.0 / k)?;
-                self.patch_load(d, b, e_b, &l, e_l)
-            }
-        })
+    ) -> i32 {
+        match self.kind {
+            ToolKind::Displacement => self.patch_rhs(d, tools, b, e_b, m, e_m, f),
+            ToolKind::Force => self.patch_load(d, b, e_b, m, e_m),
+        }
     }
 
-    /// A frame's answer in direction `d` from the solution `x` (exponent `e_x`): the reaction
-    /// force (displacement tool) or the tool nodes' mean displacement (force tool).
+    /// The rows a frame's right-hand side rewrites (coupled rows and tool rows).
+    pub fn patched_rows(&self, tools: usize) -> usize {
+        self.rows.len()
+            + match self.kind {
+                ToolKind::Displacement => tools,
+                ToolKind::Force => 0,
+            }
+    }
+
+    /// A frame's answer in direction `d` from the solution `x` (exponent `e_x`) and the tool
+    /// inputs `(m, e_m)` ([`Started::tool_input`]): the reaction force (displacement tool) or
+    /// the tool nodes' mean displacement (force tool).
     pub fn answer(
         &self,
         d: usize,
         tools: &[ToolRow],
         x: &[i32],
         e_x: i32,
-        input: &[[f32; 3]],
+        (m, e_m): (&[i32], i32),
         f: i32,
     ) -> Result<f64, LiveError> {
         Ok(match self.kind {
             ToolKind::Displacement => {
-                let (u, e_u) = tool_mantissas(input, d, 1.0)?;
                 let k = f64::from(self.params.scale.get(d).copied().unwrap_or(1.0));
-                k * self.reaction(tools, x, e_x, &u, e_u, f)
+                k * self.reaction(tools, x, e_x, m, e_m, f)
             }
             ToolKind::Force => {
                 let sum: i64 = tools

@@ -67,13 +67,14 @@
 
 use deform_shared::matrix::{validate_mvu, validate_tile, words_crc, MatrixError, TileHeader};
 use deform_shared::protocol::{
-    ErrorCode, Request, Response, SessionStep, SolveFailure, SolveParams, Start, TargetInfo,
-    VectorSlot, CHUNK_LEN, MAX_DIRECTIONS, MAX_HARTS, PROTOCOL_VERSION,
+    ErrorCode, Request, Response, SessionStep, SolveFailure, SolveParams, SolveReport, Start,
+    TargetInfo, VectorSlot, CHUNK_LEN, MAX_DIRECTIONS, MAX_HARTS, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{MANTISSA_LIMIT, MAX_FRAC_BITS};
 use deform_shared::word::{VALUE_MASK, VALUE_MAX, VALUE_MIN};
 
-use crate::cg::{self, Matrix, Plan, PlanError, System, Work};
+use crate::cg::{self, GivenResidual, Matrix, Outcome, Plan, PlanError, System, Work};
+use crate::dynamics::Dynamic;
 use crate::exec::Executor;
 use crate::kernel::{Lanes, Sums};
 use crate::live::Live;
@@ -100,6 +101,12 @@ pub struct Storage<'a> {
     /// ([`crate::superpose`]); held only if all of a tool set's fit, else (or if empty) live
     /// frames fall back to the extrapolation of [`Start::Predicted`].
     pub responses: &'a mut [i32],
+    /// The response columns' own residuals, `i16` mantissas laid out as `responses`
+    /// ([`crate::superpose`]'s residual estimate); held only where as long as `responses`.
+    pub residuals: &'a mut [i16],
+    /// The stiffness copy of a dynamic session ([`crate::dynamics`]): the resident matrix's
+    /// words with K's values; its length limits the matrices a dynamic session takes.
+    pub stiffness: &'a mut [u32],
 }
 
 /// The vectors of one direction.
@@ -123,6 +130,43 @@ impl Storage<'_> {
             .chain([self.p.len(), self.kp.len()])
             .min()
             .unwrap_or(0)
+    }
+}
+
+/// What a solve or an MVU pass borrows of the store at once: a matrix's tiles and words (the
+/// resident ones, or the stiffness copy's), the direction vectors and the work arrays.
+struct Parts<'s, 'a> {
+    tiles: &'s [TileHeader],
+    words: &'s [u32],
+    directions: &'s mut [DirectionStorage<'a>; MAX_DIRECTIONS],
+    p: &'s mut [Lanes],
+    kp: &'s mut [Sums],
+    partial: &'s mut [Sums],
+}
+
+impl<'a> Storage<'a> {
+    /// The parts for a matrix of `shape`, its words from the stiffness copy if `stiffness`;
+    /// `None` where the shape does not fit the store.
+    fn parts(&mut self, shape: Shape, stiffness: bool) -> Option<Parts<'_, 'a>> {
+        let Storage {
+            words,
+            tiles,
+            directions,
+            p,
+            kp,
+            partial,
+            stiffness: copy,
+            ..
+        } = self;
+        let words: &[u32] = if stiffness { copy } else { words };
+        Some(Parts {
+            tiles: tiles.get(..to_usize(shape.tiles))?,
+            words: words.get(..to_usize(shape.words))?,
+            directions,
+            p,
+            kp,
+            partial,
+        })
     }
 }
 
@@ -170,6 +214,20 @@ enum MatrixState {
     },
 }
 
+/// The stiffness copy of the resident matrix (protocol version 12).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum StiffnessState {
+    Empty,
+    /// K's values arriving: `done` words have theirs.
+    Updating {
+        frac_bits: u8,
+        done: u32,
+    },
+    Complete {
+        frac_bits: u8,
+    },
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum VectorState {
     Empty,
@@ -208,6 +266,10 @@ pub struct Session<'a, E: Executor> {
     kept: [Option<i32>; MAX_DIRECTIONS],
     /// The live loop's tool set and local force model ([`crate::live`]).
     live: Live,
+    /// The stiffness copy's state (protocol version 12).
+    stiffness: StiffnessState,
+    /// A dynamic session's tools and state ([`crate::dynamics`]).
+    dynamic: Dynamic,
     /// How the MVUs share the resident matrix.
     plan: Option<Plan>,
 }
@@ -245,6 +307,8 @@ impl<'a, E: Executor> Session<'a, E> {
             solution: [None; MAX_DIRECTIONS],
             kept: [None; MAX_DIRECTIONS],
             live: Live::default(),
+            stiffness: StiffnessState::Empty,
+            dynamic: Dynamic::default(),
         }
     }
 
@@ -327,6 +391,10 @@ impl<'a, E: Executor> Session<'a, E> {
             Request::LiveForceTool { nodes } => self.live_force_tool(&nodes),
             Request::LiveLoad { load } => self.live_load(&load),
             Request::LiveLoadQuery { load } => self.live_load_query(&load),
+            Request::BeginStiffness { frac_bits } => self.begin_stiffness(frac_bits),
+            Request::DynamicTool(tool) => self.dynamic_tool(tool),
+            Request::DynamicStart(params) => self.dynamic_start(params),
+            Request::DynamicFrame { tool } => self.dynamic_frame(&tool),
         }
     }
 
@@ -344,6 +412,8 @@ impl<'a, E: Executor> Session<'a, E> {
         self.solution = [None; MAX_DIRECTIONS];
         self.kept = [None; MAX_DIRECTIONS];
         self.live.clear();
+        self.stiffness = StiffnessState::Empty;
+        self.dynamic.clear();
     }
 
     fn begin_matrix(&mut self, shape: Shape) -> Result<Response, ErrorCode> {
@@ -567,6 +637,9 @@ impl<'a, E: Executor> Session<'a, E> {
     }
 
     fn update_values(&mut self, offset: u32, values: &[i32]) -> Result<Response, ErrorCode> {
+        if let StiffnessState::Updating { .. } = self.stiffness {
+            return self.stiffness_values(offset, values);
+        }
         let MatrixState::Updating {
             shape,
             frac_bits,
@@ -576,21 +649,11 @@ impl<'a, E: Executor> Session<'a, E> {
             return Err(out_of_order(SessionStep::NoUpdate));
         };
         let end = chunk_end(done, offset, values.len(), shape.words)?;
-        if let Some(&bad) = values
-            .iter()
-            .find(|&&v| !(VALUE_MIN..=VALUE_MAX).contains(&v))
-        {
-            return Err(ErrorCode::ValueOutOfRange(bad));
-        }
         // `shape.words ≤ word_capacity ≤ words.len()` was checked when the matrix was announced.
-        let dst = self
-            .store
-            .words
-            .get_mut(to_usize(offset)..to_usize(end))
-            .ok_or(ErrorCode::ChunkTooLong)?;
-        for (d, &v) in dst.iter_mut().zip(values) {
-            *d = (*d & !VALUE_MASK) | (v as u32 & VALUE_MASK);
-        }
+        replace_values(
+            self.store.words.get_mut(to_usize(offset)..to_usize(end)),
+            values,
+        )?;
         self.matrix = MatrixState::Updating {
             shape,
             frac_bits,
@@ -600,6 +663,9 @@ impl<'a, E: Executor> Session<'a, E> {
     }
 
     fn end_update(&mut self, crc32: u32) -> Result<Response, ErrorCode> {
+        if let StiffnessState::Updating { .. } = self.stiffness {
+            return self.end_stiffness(crc32);
+        }
         let MatrixState::Updating {
             shape,
             frac_bits,
@@ -639,6 +705,8 @@ impl<'a, E: Executor> Session<'a, E> {
         len: u32,
     ) -> Result<Response, ErrorCode> {
         *self.slot_state(slot)? = VectorState::Empty;
+        // A dynamic session's state lives in the vectors.
+        self.dynamic.clear();
         match slot {
             // x0 now holds neither the guess nor the kept solution.
             VectorSlot::InitialGuess { direction } => self.kept[usize::from(direction)] = None,
@@ -704,11 +772,36 @@ impl<'a, E: Executor> Session<'a, E> {
     }
 
     fn solve(&mut self, params: &SolveParams) -> Result<Response, ErrorCode> {
-        let shape = self.loaded()?;
         let directions = usize::from(params.directions);
         if !(1..=MAX_DIRECTIONS).contains(&directions) {
             return Err(ErrorCode::Solve(SolveFailure::BadDirections(
                 params.directions,
+            )));
+        }
+        let which: heapless::Vec<usize, MAX_DIRECTIONS> = (0..directions).collect();
+        self.dynamic.clear();
+        let (report, _) = self.solve_directions(params, &which, [None; MAX_DIRECTIONS], false)?;
+        Ok(Response::Solved(report))
+    }
+
+    /// Solves the storage directions `which` (1..=3 of them, fused in that order; a live frame
+    /// solves only the directions its tool moved) with `params` (whose `directions` is
+    /// ignored), each from `r_start[d]` where given ([`cg::System::r_start`]). Every other
+    /// direction keeps its solution if `keep_others` (else, as after a `Solve` request, only
+    /// the solved directions have one). Returns the report and each direction's [`Outcome`].
+    fn solve_directions(
+        &mut self,
+        params: &SolveParams,
+        which: &[usize],
+        r_start: [Option<GivenResidual>; MAX_DIRECTIONS],
+        keep_others: bool,
+    ) -> Result<(SolveReport, [Outcome; MAX_DIRECTIONS]), ErrorCode> {
+        let shape = self.loaded()?;
+        if !(1..=MAX_DIRECTIONS).contains(&which.len())
+            || which.iter().any(|&d| d >= MAX_DIRECTIONS)
+        {
+            return Err(ErrorCode::Solve(SolveFailure::BadDirections(
+                which.len() as u8
             )));
         }
         let n = to_usize(shape.n);
@@ -721,7 +814,7 @@ impl<'a, E: Executor> Session<'a, E> {
         // All checks first, so that a refused solve changes nothing.
         let mut b_exponents = [0i32; MAX_DIRECTIONS];
         let mut x_exponents = [0i32; MAX_DIRECTIONS];
-        for d in 0..directions {
+        for &d in which {
             b_exponents[d] = self.rhs[d].exponent(SessionStep::NoRhs)?;
             x_exponents[d] = match params.start {
                 Start::Zero => 0,
@@ -734,23 +827,22 @@ impl<'a, E: Executor> Session<'a, E> {
             };
         }
         let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
-        let Storage {
-            words,
+        let Some(Parts {
             tiles,
+            words,
             directions: vectors,
             p,
             kp,
             partial,
-            ..
-        } = &mut self.store;
-        let (Some(tiles), Some(words)) = (
-            tiles.get(..to_usize(shape.tiles)),
-            words.get(..to_usize(shape.words)),
-        ) else {
+        }) = self.store.parts(shape, false)
+        else {
             return Err(too_large);
         };
         let mut systems: heapless::Vec<System<'_>, MAX_DIRECTIONS> = heapless::Vec::new();
-        for (d, v) in vectors.iter_mut().enumerate().take(directions) {
+        for (d, v) in vectors.iter_mut().enumerate() {
+            if !which.contains(&d) {
+                continue;
+            }
             let DirectionStorage { b, x, x0, r } = v;
             let (Some(b), Some(x), Some(x0), Some(r)) =
                 (b.get(..n), x.get_mut(..n), x0.get_mut(..n), r.get_mut(..n))
@@ -783,9 +875,15 @@ impl<'a, E: Executor> Session<'a, E> {
                 x,
                 x_exponent: x_exponents[d],
                 r,
+                r_start: r_start[d],
+                outcome: Outcome::default(),
             });
         }
-        self.solution = [None; MAX_DIRECTIONS];
+        for (d, solution) in self.solution.iter_mut().enumerate() {
+            if !keep_others || which.contains(&d) {
+                *solution = None;
+            }
+        }
         let matrix = Matrix {
             n,
             frac_bits: shape.frac_bits,
@@ -802,10 +900,12 @@ impl<'a, E: Executor> Session<'a, E> {
             self.kept = [None; MAX_DIRECTIONS];
             ErrorCode::Solve(e)
         })?;
-        for (solution, system) in self.solution.iter_mut().zip(&systems) {
-            *solution = Some(system.x_exponent);
+        let mut outcomes = [Outcome::default(); MAX_DIRECTIONS];
+        for (&d, system) in which.iter().zip(&systems) {
+            self.solution[d] = Some(system.x_exponent);
+            outcomes[d] = system.outcome;
         }
-        Ok(Response::Solved(report))
+        Ok((report, outcomes))
     }
 
     fn read_solution(
@@ -877,6 +977,24 @@ fn chunk_end(expected: u32, offset: u32, len: usize, limit: u32) -> Result<u32, 
         .ok_or(ErrorCode::ChunkTooLong)
 }
 
+/// Replaces the values of the words `dst` (a value update's chunk: the matrix's, or the
+/// stiffness copy's) with `values`, each checked to fit the 21-bit value field; `None` is a
+/// chunk beyond the store.
+fn replace_values(dst: Option<&mut [u32]>, values: &[i32]) -> Result<(), ErrorCode> {
+    if let Some(&bad) = values
+        .iter()
+        .find(|&&v| !(VALUE_MIN..=VALUE_MAX).contains(&v))
+    {
+        return Err(ErrorCode::ValueOutOfRange(bad));
+    }
+    let dst = dst.ok_or(ErrorCode::ChunkTooLong)?;
+    for (d, &v) in dst.iter_mut().zip(values) {
+        *d = (*d & !VALUE_MASK) | (v as u32 & VALUE_MASK);
+    }
+    Ok(())
+}
+
+mod dynamic_glue;
 mod live_glue;
 
 #[cfg(test)]

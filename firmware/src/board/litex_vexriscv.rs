@@ -125,6 +125,10 @@ impl Bsp for LitexVexriscv {
     const WORD_CAPACITY: usize = 64 * 1024;
     const TILE_CAPACITY: usize = 1024;
     const MAX_N: usize = 8192;
+    /// 64 KiB: a dynamic session's stiffness copy for matrices up to 16 Ki words (8³ model B
+    /// takes about 5.5 Ki mirrored); the 2 MiB main RAM has no room for a full-size one beside
+    /// the response columns and their residuals.
+    const STIFFNESS_WORDS: usize = 16 * 1024;
     const TICK_HZ: u64 = csr::CLOCK_FREQUENCY;
 
     type Uart = Uart;

@@ -57,6 +57,10 @@ pub trait Bsp {
     /// of its 16 MiB in all; LiteX: 256 KiB, leaving about 0.7 MiB of its 2 MiB for code and
     /// stack); a board short of RAM sets less.
     const RESPONSE_VALUES: usize = deform_shared::live::MAX_TOOL_NODES * Self::MAX_N;
+    /// Words of a dynamic session's stiffness copy of the resident matrix (the words with K's
+    /// values, `deform_target_core::dynamics`); a larger matrix runs dynamic frames formed on
+    /// the host. By default as many as the matrix store holds.
+    const STIFFNESS_WORDS: usize = Self::WORD_CAPACITY;
     /// Ticks per second of [`Bsp::ticks`].
     const TICK_HZ: u64;
 

@@ -342,16 +342,118 @@ fn deform_live_runs_dynamic_frames_over_a_port() {
         target: "port".into(),
         mvus: 1,
     };
+    // The needle is a tool-driven, backward-Euler, isotropic tissue of one mass: the target
+    // forms its steps (protocol 12), so a frame is the tool's motion up and its force down.
+    assert_eq!(engine.name(), "target (dynamic, resident)");
     let report = SessionReport::of(&live, &*engine, &options, place, &frames, &summary);
     let r = serde_json::to_value(&report).unwrap();
     assert_eq!(r["frames"], 12);
     assert_eq!(r["target"], "port");
     assert!(r["frame_cycles"]["p50"].as_f64().unwrap() > 0.0, "{r}");
-    assert!(r["bytes_up_per_frame"].as_f64().unwrap() > 0.0, "{r}");
+    let (up, down) = (
+        r["bytes_up_per_frame"].as_f64().unwrap(),
+        r["bytes_down_per_frame"].as_f64().unwrap(),
+    );
+    assert!(up > 0.0 && up <= 64.0 && down > 0.0 && down <= 64.0, "{r}");
+    assert!(
+        r["residual_max"].as_f64().unwrap() <= options.tol(),
+        "every step within the tolerance: {r}"
+    );
     assert!(r["error_vs_converged_max"].as_f64().unwrap() <= 1e-3, "{r}");
     assert!(r["force_updates_per_s"].is_null());
     assert_eq!(r["dynamic"]["h"], 0.01);
     drop(engine);
     drop(board);
+    assert_alive(&mut qemu);
+}
+
+/// Target-resident dynamic frames (protocol version 12, issue 19 item 3) on 8 MVUs: the needle
+/// of examples/needle-dynamic-8b.toml at h = 1 ms, the target forming every step's right-hand
+/// side itself. The displacements stay
+/// within 1e-4 of the session's peak |u| of the host's f64 stepper (fed the tool's positions
+/// as the frames carry them, f32), and the figures print. The median frame is at most 64 bytes
+/// each way on the line (the messages themselves always are: `shared`'s dynamics tests).
+#[test]
+fn target_resident_dynamic_frames_follow_the_f64_stepper() {
+    use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
+    use deform_host::dynamics::resident::ResidentSetup;
+    use deform_host::dynamics::DynamicSystem;
+    use deform_host::encode::{EncodeOptions, Partition};
+    use deform_host::live::dynamic::DynamicLive;
+    use deform_host::reference::{max_abs, max_abs_diff};
+
+    let layout = EncodeOptions {
+        mvus: 8,
+        partition: Partition::Rows,
+        use_symmetry: true,
+    };
+    let needle = DynamicNeedle::load(&layout);
+    let h = 1e-3;
+    let (spec, model, tools) = (&needle.spec, &needle.setup.model, &needle.setup.tools);
+    let system = DynamicSystem::new(model, spec).unwrap();
+    let matrices = StepMatrices::new(&system, h, spec.scheme).unwrap();
+    let tol = 1e-5;
+    let setup = ResidentSetup::new(&system, &matrices, tools, &layout, tol, 500, 0).unwrap();
+    let mut qemu = Qemu::start(&QemuConfig::new(firmware_elf()).harts(8)).unwrap();
+    let mut target = connect(&qemu);
+    setup.start(&mut target).unwrap();
+    let mut host = <DynamicLive>::host(model, tools, DynamicModel::new(model, spec, h).unwrap());
+    let n = model.n();
+    let (mut peak, mut worst, mut cycles) = (0f64, 0f64, Vec::new());
+    let mut bytes = Vec::new();
+    for i in 1..=300u32 {
+        // The tool's position as the frame carries it.
+        let t = f64::from(i) * h;
+        let spec_t = needle.simulation.spec_at(&needle.model, t);
+        let tool = vec![spec_t.prescribed[0].u.map(|v| f64::from(v as f32))];
+        let before = target.stats();
+        let report = ResidentSetup::frame(&mut target, &tool).unwrap();
+        let after = target.stats();
+        let (up, down) = (
+            after.bytes_sent - before.bytes_sent,
+            after.bytes_received - before.bytes_received,
+        );
+        let want = host.advance(i, &tool).unwrap();
+        let want_u = &host.state().u;
+        let got: Vec<Vec<f64>> = (0..3)
+            .map(|d| target.read_direction_solution(d as u8, n).unwrap())
+            .collect();
+        peak = peak.max(want.max_u);
+        let err = (0..3)
+            .map(|d| max_abs_diff(&got[d], &want_u[d]))
+            .fold(0.0, f64::max)
+            / peak.max(f64::MIN_POSITIVE);
+        worst = worst.max(err);
+        if i % 25 == 0 || i <= 3 {
+            println!(
+                "frame {i}: tool z {:+.4}, {} iterations, {} cycles, {up} B up / {down} B down, error {err:.2e} of peak, force z {:+.4} (f64 {:+.4}), residual {:.1e}",
+                tool[0][2], report.iterations, report.cycles, report.force[2], want.answer[2], report.residual
+            );
+        }
+        bytes.push((up, down));
+        assert!(err <= 1e-4, "frame {i}: {err:e} of the peak |u|");
+        assert!(report.residual <= tol as f32, "frame {i}: {report:?}");
+        assert!(max_abs(&got[2]) > 0.0);
+        cycles.push(u64::from(report.cycles));
+    }
+    // On the line a frame is its request and its answer, resends included (a loaded machine
+    // makes QEMU answer late now and then); the median frame is the frame.
+    let median = |mut v: Vec<u64>| {
+        v.sort_unstable();
+        v[v.len() / 2]
+    };
+    let (up, down) = (
+        median(bytes.iter().map(|b| b.0).collect()),
+        median(bytes.iter().map(|b| b.1).collect()),
+    );
+    println!("bytes per frame (median): {up} up, {down} down");
+    assert!(up <= 64 && down <= 64, "{up} B up, {down} B down");
+    let later = &cycles[1..];
+    println!(
+        "target-resident dynamic frames, 8³ B, h = 1 ms, 8 MVUs: first {} cycles, then mean {:.0}, max {}; worst error {worst:.2e} of the peak |u|",
+        cycles[0],
+        later.iter().sum::<u64>() as f64 / later.len() as f64,
+        later.iter().max().unwrap()
+    );
     assert_alive(&mut qemu);
 }

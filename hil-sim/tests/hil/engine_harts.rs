@@ -123,6 +123,8 @@ fn host_solve(matrix: &EncodedMatrix, b: &[&[f64]], mvus: usize) -> Vec<Vec<f64>
             x,
             x_exponent: 0,
             r,
+            r_start: None,
+            outcome: Default::default(),
         })
         .collect();
     let a = Matrix {

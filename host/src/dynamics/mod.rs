@@ -46,12 +46,14 @@
 //! Submodules: [`params`] (what the user gives, checked), [`flags`] (the command line's), [`system`] (M, C, K and S),
 //! [`step`] (right-hand side and update, shared by both solvers), [`host`] (the f64
 //! reference stepper), [`target`] (the series on the target), [`fixed_point`] (whether the
-//! target can hold S).
+//! target can hold S), [`resident`] (frames whose right-hand side the target forms itself,
+//! protocol version 12).
 
 pub mod fixed_point;
 pub mod flags;
 pub mod host;
 pub mod params;
+pub mod resident;
 pub mod step;
 pub mod system;
 pub mod target;

@@ -77,6 +77,11 @@ impl StepMatrices {
     pub fn matrix(&self, axis: Axis) -> &Csr {
         &self.eliminated[axis.position()]
     }
+
+    /// S_d before elimination (its rows at constrained nodes move their velocities over).
+    pub fn free(&self, axis: Axis) -> &Csr {
+        &self.free[axis.position()]
+    }
 }
 
 /// v₁ at a constrained node: 0 where fixed; where prescribed, the velocity that lands exactly

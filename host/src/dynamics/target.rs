@@ -339,6 +339,7 @@ impl DynamicRunner {
                 t: self.state.t,
                 iterations,
                 cycles: critical_path_cycles(&reports),
+                superposed: false,
                 reports,
                 residual,
                 max_u: self.state.u.iter().map(|u| max_abs(u)).fold(0.0, f64::max),

@@ -10,7 +10,9 @@
 //! sparse protocol is used, so every frame carries whole vectors (the residual up, the
 //! correction down): its bytes are reported as they are, not as the tens of bytes of a
 //! quasi-static frame. Without a target ([`DynamicLive::host`]) the f64 stepper
-//! ([`host_step`]) is the answer itself.
+//! ([`host_step`]) is the answer itself. Where the target can form the steps itself (backward
+//! Euler, isotropic tissue, a uniform mass, no external loads) a session runs
+//! [`super::resident::ResidentEngine`] instead, whose frames are a few dozen bytes.
 
 use super::engine::{max_u, Engine, Frame, Motion};
 use crate::dynamics::host::host_step;
@@ -195,7 +197,7 @@ impl<P: Port> Engine for DynamicLive<'_, P> {
 }
 
 /// The tool nodes' velocities in `state`: all of the start state a tool force needs.
-fn tool_velocities(tools: &[usize], state: &State) -> Vec<[f64; 3]> {
+pub(super) fn tool_velocities(tools: &[usize], state: &State) -> Vec<[f64; 3]> {
     tools
         .iter()
         .map(|&t| [0, 1, 2].map(|p| state.v[p][t]))

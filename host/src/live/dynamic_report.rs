@@ -101,7 +101,9 @@ pub struct DynamicReport {
     pub error_vs_converged_of_peak_max: Option<f64>,
     /// max |F − F_ref| / max |F_ref| over the frames.
     pub force_error_max: Option<f64>,
-    /// Median over the frames after the first (whole vectors: a residual up, a correction down).
+    /// Median over the frames after the first: whole vectors where the host forms the steps (a
+    /// residual up, a correction down), the tool's motion up and its force down where the
+    /// target does ([`super::resident`]).
     pub bytes_up_per_frame: f64,
     pub bytes_down_per_frame: f64,
     pub bytes_up_per_frame_max: u64,

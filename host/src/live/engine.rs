@@ -8,10 +8,10 @@
 //! |---|---|---|
 //! | [`super::quasi_static::TargetEngine`] | `LiveFrame`/`LiveLoad` on a target | a converged f64 solve per frame |
 //! | [`super::quasi_static::HostEngine`] | the converged f64 solve itself | none (it is the reference) |
-//! | [`super::dynamic::DynamicLive`] | one step h, on a target or the host | the f64 stepper alongside |
+//! | [`super::dynamic::DynamicLive`] | one step h, on a target (whole vectors) or the host | the f64 stepper alongside |
+//! | [`super::resident::ResidentEngine`] | one step h formed on the target (`DynamicFrame`: the tool's motion up, its force down) | the f64 stepper alongside |
 //!
-//! A new kind of frame (target-resident dynamic frames, a frame carrying only the tool's motion)
-//! is a new engine; the sessions, the sink and the reports do not change.
+//! A new kind of frame is a new engine; the sessions, the sink and the reports do not change.
 
 use super::field::FieldChoice;
 use super::link::FieldFrame;

@@ -15,6 +15,7 @@ use super::setup::ToolKind;
 use super::LiveSetup;
 use crate::board::WireBytes;
 use crate::link::{LinkError, Port, Target};
+use crate::model::Grid;
 
 /// A started live session on a target.
 pub struct LiveLink<'a, P: Port> {
@@ -210,51 +211,14 @@ impl<'a, P: Port> LiveLink<'a, P> {
         }
     }
 
-    /// The last frame's quantised field at the nodes `choice` selects, as (node, u), and the
-    /// target's cycles for building it (all chunks together).
+    /// The last frame's quantised field at the nodes `choice` selects ([`read_field`]).
     pub fn field(&mut self, choice: FieldChoice) -> Result<FieldFrame, LinkError> {
-        let (stride, surface) = choice.request(&self.setup.model.grid());
-        // The target runs the same check on the same numbers and would refuse alike.
-        let selection = FieldSelection::new(self.setup.matrix.n, stride, surface).map_err(|e| {
-            LinkError::Target {
-                request: "ReadField",
-                code: ErrorCode::Live(e),
-            }
-        })?;
-        let start = self.wire();
-        let mut frame = FieldFrame::default();
-        let mut exponent = None;
-        let requests = selection.chunk_offsets().map(|offset| Request::ReadField {
-            offset,
-            stride,
-            surface,
-        });
-        self.target.link_mut().run(requests, |request, reply| {
-            let Request::ReadField { offset, .. } = *request else {
-                return Err(unexpected("ReadField", "Field", reply));
-            };
-            match reply {
-                Response::Field(chunk)
-                    if chunk.offset == offset
-                        && *exponent.get_or_insert(chunk.exponent) == chunk.exponent
-                        && chunk.values.len() == 3 * selection.chunk(offset).count() =>
-                {
-                    let nodes = selection.chunk(offset).map(|p| p as usize);
-                    frame.nodes.extend(nodes.zip(chunk.displacements()));
-                    frame.cycles += u64::from(chunk.cycles);
-                    frame.instructions +=
-                        u64::from(chunk.cycles.saturating_sub(chunk.stall_cycles));
-                    Ok(())
-                }
-                other => Err(unexpected(
-                    "ReadField",
-                    "a Field chunk at the offset asked, with the frame's exponent and every node asked",
-                    other,
-                )),
-            }
-        })?;
-        frame.bytes = self.wire().since(start);
-        Ok(frame)
+        read_field(
+            self.target,
+            &self.setup.model.grid(),
+            self.setup.matrix.n,
+            choice,
+        )
     }
 
     /// The last frame's full-precision solution (for checking, not the live path).
@@ -266,6 +230,57 @@ impl<'a, P: Port> LiveLink<'a, P> {
         }
         Ok(u)
     }
+}
+
+/// The last frame's quantised field at the nodes `choice` selects, as (node, u), and the
+/// target's cycles for building it (all chunks together): a live frame's, or a target-resident
+/// dynamic step's ([`super::resident`]), on the model's `grid` with the resident matrix of `n`
+/// rows.
+pub fn read_field<P: Port>(
+    target: &mut Target<P>,
+    grid: &Grid,
+    n: u32,
+    choice: FieldChoice,
+) -> Result<FieldFrame, LinkError> {
+    let (stride, surface) = choice.request(grid);
+    // The target runs the same check on the same numbers and would refuse alike.
+    let selection = FieldSelection::new(n, stride, surface).map_err(|e| LinkError::Target {
+        request: "ReadField",
+        code: ErrorCode::Live(e),
+    })?;
+    let start = WireBytes::of(&target.stats());
+    let mut frame = FieldFrame::default();
+    let mut exponent = None;
+    let requests = selection.chunk_offsets().map(|offset| Request::ReadField {
+        offset,
+        stride,
+        surface,
+    });
+    target.link_mut().run(requests, |request, reply| {
+        let Request::ReadField { offset, .. } = *request else {
+            return Err(unexpected("ReadField", "Field", reply));
+        };
+        match reply {
+            Response::Field(chunk)
+                if chunk.offset == offset
+                    && *exponent.get_or_insert(chunk.exponent) == chunk.exponent
+                    && chunk.values.len() == 3 * selection.chunk(offset).count() =>
+            {
+                let nodes = selection.chunk(offset).map(|p| p as usize);
+                frame.nodes.extend(nodes.zip(chunk.displacements()));
+                frame.cycles += u64::from(chunk.cycles);
+                frame.instructions += u64::from(chunk.cycles.saturating_sub(chunk.stall_cycles));
+                Ok(())
+            }
+            other => Err(unexpected(
+                "ReadField",
+                "a Field chunk at the offset asked, with the frame's exponent and every node asked",
+                other,
+            )),
+        }
+    })?;
+    frame.bytes = WireBytes::of(&target.stats()).since(start);
+    Ok(frame)
 }
 
 /// One field frame as the host received it.

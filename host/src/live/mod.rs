@@ -28,6 +28,7 @@ pub mod interactive;
 pub mod link;
 pub mod quasi_static;
 pub mod report;
+pub mod resident;
 pub mod serve;
 pub mod session;
 pub mod setup;

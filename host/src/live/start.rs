@@ -13,6 +13,7 @@ use super::engine::Engine;
 use super::field::FieldChoice;
 use super::link::LiveLink;
 use super::quasi_static::{HostEngine, TargetEngine};
+use super::resident::{resident_setup, ResidentEngine, ResidentParams};
 use super::session::{Script, Timing};
 use super::setup::ToolKind;
 use super::{LiveSetup, SetupError};
@@ -219,6 +220,27 @@ impl Live {
             (None, None) => Box::new(HostEngine::new(setup)),
             (None, Some(built)) => Box::new(<DynamicLive>::host(&setup.model, &setup.tools, built)),
             (Some(board), Some(built)) => {
+                let resident = ResidentParams {
+                    tol: options.tol(),
+                    max_iterations: options.max_iter(),
+                    cycle_budget: options.cycle_budget(),
+                    layout: layout(mvus),
+                };
+                // The target forms the steps itself where it can; whole vectors otherwise.
+                if let Ok(formed) = resident_setup(&setup.model, &setup.tools, &built, &resident) {
+                    let target = &mut board.target;
+                    return Ok(Box::new(
+                        ResidentEngine::start(
+                            &setup.model,
+                            &setup.tools,
+                            built,
+                            &formed,
+                            target,
+                            checked,
+                        )
+                        .context("setting the dynamic session up on the target")?,
+                    ));
+                }
                 let params = DynamicParams {
                     tol: options.tol(),
                     max_solves: options

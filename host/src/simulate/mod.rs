@@ -36,6 +36,7 @@
 pub mod plan;
 pub mod run;
 pub mod sink;
+mod superposed;
 
 use deform_shared::protocol::{SolveParams, Start, VectorSlot};
 
@@ -113,6 +114,8 @@ pub enum SimulateError {
         "the model at t = {0} has another matrix (other fixed or prescribed nodes) than the first"
     )]
     MatrixChanged(f64),
+    #[error("setting up the superposed steps: {0}")]
+    Setup(#[from] crate::live::SetupError),
 }
 
 /// K for the nonlinear model after displacements `u` (fixed nodes eliminated).
@@ -164,6 +167,13 @@ pub fn simulate_with<P: Port>(
     if nonlinear.is_some() && model.prescribed_count() > 0 {
         return Err(SimulateError::PrescribedNonlinear);
     }
+    if let Some(step_model) =
+        step_model.filter(|f| superposed::superposable(model, schedule, *f, nonlinear, &params))
+    {
+        return superposed::simulate_superposed(
+            target, model, schedule, step_model, params, on_upload, on_step,
+        );
+    }
     let n = model.n();
     let mut previous: [Vec<f64>; 3] = [vec![0.0; n], vec![0.0; n], vec![0.0; n]];
     let mut results = Vec::new();
@@ -202,6 +212,7 @@ pub fn simulate_with<P: Port>(
             iterations: 0,
             reports: Vec::new(),
             cycles: 0,
+            superposed: false,
             residual: 0.0,
             max_u: 0.0,
             deviation: None,

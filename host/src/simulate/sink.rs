@@ -147,6 +147,8 @@ pub struct Totals {
     /// residual of all.
     pub missed: u64,
     pub worst_residual: f64,
+    /// Steps run as superposed live frames.
+    pub superposed: u64,
 }
 
 impl Totals {
@@ -165,11 +167,15 @@ impl Totals {
             self.missed += 1;
         }
         self.worst_residual = self.worst_residual.max(r.residual);
+        self.superposed += u64::from(r.superposed);
     }
 
     /// The closing lines of a quasi-static run solved with `params`.
     pub fn quasi_static_lines(&self, params: &super::StepParams, nonlinear: bool) -> String {
         let start = match (params.warm_start, params.fuse && params.predict) {
+            _ if self.superposed > 0 && self.superposed == self.steps => {
+                "superposed live frames: the prescribed nodes' response columns"
+            }
             (false, _) => "cold starts",
             (true, false) => "warm starts from the previous step",
             (true, true) => "fused, started from the target's prediction 2u(t−1) − u(t−2)",
@@ -231,6 +237,7 @@ mod tests {
             iterations: 12,
             reports: Vec::new(),
             cycles: 99_000,
+            superposed: false,
             residual: 1e-5,
             max_u: 2.5e-3,
             deviation: None,

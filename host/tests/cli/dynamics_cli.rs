@@ -317,7 +317,10 @@ fn next_frame<S: std::io::Read + std::io::Write>(
 /// the next position.
 #[test]
 fn deform_live_serve_keeps_stepping_a_dynamic_scenario_while_the_tool_rests() {
-    for (target, solver) in [("host", "host (dynamic)"), ("qemu", "target (dynamic)")] {
+    for (target, solver) in [
+        ("host", "host (dynamic)"),
+        ("qemu", "target (dynamic, resident)"),
+    ] {
         serve_dynamic(target, solver);
     }
 }

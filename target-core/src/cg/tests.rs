@@ -24,18 +24,52 @@ fn encode(rows: Vec<Vec<(usize, f64)>>, frac_bits: u8, block: usize) -> Encoded 
 
 /// Like [`encode`] for the first `rows.len()` rows of an n×n matrix.
 fn encode_rows(rows: Vec<Vec<(usize, f64)>>, n: usize, frac_bits: u8, block: usize) -> Encoded {
+    let pieces = (0..rows.len())
+        .step_by(block)
+        .map(|start| (start, rows[start..(start + block).min(rows.len())].to_vec()))
+        .collect();
+    encode_pieces(pieces, rows, n, frac_bits)
+}
+
+/// Like [`encode`], but each block's last row is split with the next block: its entries left of
+/// the diagonal end this block's tile and the rest begin the next tile (a row split at a
+/// column window's edge, as the host's encoder makes them).
+fn encode_split(rows: Vec<Vec<(usize, f64)>>, frac_bits: u8, block: usize) -> Encoded {
+    let n = rows.len();
+    let mut pieces: Vec<Piece> = Vec::new();
+    let mut carried: Option<Vec<(usize, f64)>> = None;
+    for start in (0..n).step_by(block) {
+        let end = (start + block).min(n);
+        let mut piece: Vec<_> = carried.take().into_iter().collect();
+        let first = start + usize::from(!piece.is_empty());
+        piece.extend(rows[first..end].iter().cloned());
+        if end < n {
+            let shared = &rows[end];
+            let (left, right) = shared.iter().partition(|&&(c, _)| c < end);
+            piece.push(left);
+            carried = Some(right);
+        }
+        pieces.push((start, piece));
+    }
+    encode_pieces(pieces, rows, n, frac_bits)
+}
+
+/// A tile to encode: its first row and its rows' entries.
+type Piece = (usize, Vec<Vec<(usize, f64)>>);
+
+/// Tiles of `pieces`, in order.
+fn encode_pieces(
+    pieces: Vec<Piece>,
+    rows: Vec<Vec<(usize, f64)>>,
+    n: usize,
+    frac_bits: u8,
+) -> Encoded {
     let mut tiles = Vec::new();
     let mut words = Vec::new();
-    for start in (0..rows.len()).step_by(block) {
-        let end = (start + block).min(rows.len());
-        let col_base = rows[start..end]
-            .iter()
-            .flatten()
-            .map(|&(c, _)| c)
-            .min()
-            .unwrap_or(0);
+    for (row_base, piece) in pieces {
+        let col_base = piece.iter().flatten().map(|&(c, _)| c).min().unwrap_or(0);
         let first = words.len();
-        for row in &rows[start..end] {
+        for row in &piece {
             if row.is_empty() {
                 words.push(Word::empty_row(false).bits());
             }
@@ -50,9 +84,9 @@ fn encode_rows(rows: Vec<Vec<(usize, f64)>>, n: usize, frac_bits: u8, block: usi
         }
         *words.last_mut().unwrap() |= deform_shared::word::EM_BIT;
         let header = TileHeader {
-            row_base: start as u32,
+            row_base: row_base as u32,
             col_base: col_base as u32,
-            rows: (end - start) as u32,
+            rows: piece.len() as u32,
             words: (words.len() - first) as u32,
             mvu: 0,
             mirrored: false,
@@ -218,6 +252,8 @@ fn run_fused_on(
             x,
             x_exponent: *xe,
             r,
+            r_start: None,
+            outcome: Default::default(),
         })
         .collect();
     let mut p = vec![[0i32; 4]; n];
@@ -443,6 +479,8 @@ fn short_workspace_is_an_error_not_a_panic() {
         x: &mut x,
         x_exponent: 0,
         r: &mut r,
+        r_start: None,
+        outcome: Default::default(),
     }];
     let params = SolveParams {
         max_iterations: 5,
@@ -487,6 +525,8 @@ fn iteration_cap_is_honoured() {
         x: &mut x,
         x_exponent: 0,
         r: &mut r,
+        r_start: None,
+        outcome: Default::default(),
     }];
     let params = SolveParams {
         max_iterations: 3,
@@ -559,6 +599,33 @@ fn any_number_of_mvus_and_either_partition_give_the_same_bits() {
             assert_eq!(out.x, one.x, "{mvus} MVUs, round robin {round_robin}");
             assert_eq!(out.report.directions, one.report.directions);
         }
+    }
+}
+
+/// Rows split between two tiles of one MVU, one after the other, keep the plan fused (the first
+/// part is carried over the second's store); split between two MVUs, the MVUs overlap. Either
+/// way the bits are those of the unsplit matrix.
+#[test]
+fn rows_split_between_consecutive_tiles_stay_fused_and_exact() {
+    let rows = laplacian_3d(6, 1.0);
+    let whole = encode(rows.clone(), 17, 24);
+    let split = encode_split(rows, 17, 24);
+    assert!(split
+        .tiles
+        .windows(2)
+        .all(|t| t[0].row_base + t[0].rows - 1 == t[1].row_base));
+    let n = whole.n;
+    let b = cube_rhs(n, 1);
+    let want = run_fused(&whole, &[&b], None, 1e-9, 1).unwrap();
+    for mvus in [1, 2, 3, 8] {
+        let m = assign(&split, mvus, false);
+        let mut kp = vec![[0i64; MAX_DIRECTIONS]; n];
+        let p = plan(&m.tiles, &m.words, n, &mut kp, 4 * n).unwrap();
+        assert_eq!(p.fused, mvus == 1, "{mvus} MVUs");
+        assert_eq!(p.overlapping, mvus > 1, "{mvus} MVUs");
+        let got = run_fused(&m, &[&b], None, 1e-9, mvus).unwrap();
+        assert_eq!(got.x, want.x, "{mvus} MVUs");
+        assert_eq!(got.report.directions, want.report.directions);
     }
 }
 
@@ -669,6 +736,84 @@ fn mirrored_tiles_solve_like_the_whole_persymmetric_matrix() {
                 assert_eq!(x, &full.x[0], "{mvus} MVUs, round robin {round_robin}");
             }
         }
+    }
+}
+
+/// A given residual ([`System::r_start`]) is started from without an exact pass; even a wrong
+/// one ends verified against b − A·x, so the solution meets the tolerance.
+#[test]
+fn a_given_residual_is_started_from_and_the_end_verified() {
+    let m = encode(laplacian_3d(5, 1.0), 17, 125);
+    let n = m.n;
+    let b: Vec<f64> = (0..n).map(|i| ((i * 37) % 11) as f64 - 5.0).collect();
+    let x_near: Vec<f64> = reference(&m.rows, &b).iter().map(|v| v * 0.9).collect();
+    let kx = matvec(&m.rows, &x_near);
+    for factor in [1.0, 2.0] {
+        // The residual of x_near, or twice it (a wrong estimate).
+        let r: Vec<f64> = b.iter().zip(&kx).map(|(b, k)| factor * (b - k)).collect();
+        let (rm, re) = to_block(&r);
+        let rr: u128 = rm
+            .iter()
+            .map(|&v| (i64::from(v) * i64::from(v)) as u128)
+            .sum();
+        let or = rm.iter().fold(0, |o, &v| o | crate::svu::magnitude_bits(v));
+        let (bm, be) = to_block(&b);
+        let (mut xm, xe) = to_block(&x_near);
+        let mut r_vec = rm.clone();
+        let mut kp = vec![[0i64; MAX_DIRECTIONS]; n];
+        let mut partial = vec![[0i64; MAX_DIRECTIONS]; 4 * n];
+        let plan = plan(&m.tiles, &m.words, n, &mut kp, partial.len()).unwrap();
+        let mut systems = [System {
+            b: &bm,
+            b_exponent: be,
+            x: &mut xm,
+            x_exponent: xe,
+            r: &mut r_vec,
+            r_start: Some(GivenResidual {
+                exponent: re,
+                rr,
+                bound: crate::svu::bound_of(or),
+                verify: true,
+            }),
+            outcome: Default::default(),
+        }];
+        let matrix = Matrix {
+            n,
+            frac_bits: m.frac_bits,
+            tiles: &m.tiles,
+            words: &m.words,
+            plan: &plan,
+        };
+        let params = SolveParams {
+            max_iterations: 500,
+            tolerance: 1e-7,
+            start: Start::Previous,
+            directions: 1,
+            cycle_budget: 0,
+        };
+        let work = Work {
+            p: &mut vec![[0; 4]; n],
+            kp: &mut kp,
+            partial: &mut partial,
+        };
+        let report = solve(
+            &matrix,
+            &mut systems,
+            work,
+            &params,
+            &Sequential { harts: 3 },
+        )
+        .unwrap();
+        let s = &systems[0];
+        let x: Vec<f64> =
+            s.x.iter()
+                .map(|&v| from_mantissa(v, s.x_exponent))
+                .collect();
+        assert!(
+            report.converged && s.outcome.r_exact,
+            "{factor}: {report:?}"
+        );
+        assert!(true_residual(&m.rows, &x, &b) < 2e-7, "{factor}");
     }
 }
 

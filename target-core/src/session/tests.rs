@@ -1928,6 +1928,8 @@ fn a_solution_answer_holds_at_most_len_elements() {
     }
 }
 
+mod dynamic;
+mod estimate;
 mod force_tool;
 mod live;
 mod predicted;

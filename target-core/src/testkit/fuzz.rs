@@ -245,6 +245,61 @@ fn force_tool_requests() -> Vec<Request> {
     out
 }
 
+/// A dynamic session (protocol version 12) on the seed matrix: K's values (the matrix's own)
+/// into the stiffness copy, a tool at node 3, the start and two steps.
+fn dynamic_requests(system: &super::TestSystem) -> Vec<Request> {
+    use deform_shared::dynamics::{DynamicParams, DynamicTool};
+    use deform_shared::live::{Coupling, ToolRow};
+    use deform_shared::matrix::words_crc;
+    use deform_shared::word::VALUE_MASK;
+    let values = system
+        .words
+        .iter()
+        .map(|&w| (((w & VALUE_MASK) << 11) as i32) >> 11);
+    let row = ToolRow {
+        node: 3,
+        diagonal: 2 << 18,
+        row: [2, 4]
+            .map(|column| Coupling {
+                column,
+                value: -(1 << 18),
+            })
+            .into_iter()
+            .collect(),
+    };
+    let mut out = vec![
+        Request::BeginStiffness {
+            frac_bits: system.frac_bits,
+        },
+        Request::UpdateValues {
+            offset: 0,
+            values: values.collect(),
+        },
+        Request::EndUpdate {
+            crc32: words_crc(&system.words),
+        },
+        Request::DynamicTool(DynamicTool {
+            s: row.clone(),
+            k: row,
+        }),
+        Request::DynamicStart(DynamicParams {
+            h: 1e-3,
+            mass: 0.5,
+            s_scale: 0,
+            k_scale: 0,
+            tolerance: 1e-4,
+            max_iterations: 50,
+            cycle_budget: 0,
+        }),
+    ];
+    for u in [0.01f32, 0.02] {
+        out.push(Request::DynamicFrame {
+            tool: [[0.0, -u, u]].into_iter().collect(),
+        });
+    }
+    out
+}
+
 /// A whole session in request order, sequence numbers from 0: handshake, an 8×8 Laplacian in
 /// one tile, a right-hand side, a solve, the solution, a surface field request.
 fn session_requests() -> Vec<Envelope<Request>> {
@@ -301,6 +356,7 @@ fn session_requests() -> Vec<Envelope<Request>> {
     requests
         .into_iter()
         .chain(force_tool_requests())
+        .chain(dynamic_requests(&system))
         .enumerate()
         .map(|(seq, body)| Envelope {
             seq: seq as u16,
@@ -384,7 +440,7 @@ mod tests {
     /// The seed session reaches the force tool's answers (not refusals), so the fuzzer starts
     /// from inside the live state machine.
     #[test]
-    fn the_seed_session_reaches_the_force_tools_answers() {
+    fn the_seed_session_reaches_the_force_tools_and_dynamic_answers() {
         let info = small_target();
         let mut storage = OwnedStorage::for_info(&info);
         let mut session = storage.session(info, 2);
@@ -392,9 +448,25 @@ mod tests {
             .into_iter()
             .map(|e| session.handle(e.body))
             .collect();
-        let tail = &answers[answers.len() - 3..];
-        assert!(matches!(tail[0], Response::LiveMotion(_)), "{answers:?}");
-        assert!(matches!(tail[1], Response::LiveMotionQuery(_)), "{tail:?}");
-        assert!(matches!(tail[2], Response::Field(_)), "{tail:?}");
+        let dynamic = dynamic_requests(&crate::testkit::encode_rows(
+            8,
+            8,
+            8,
+            18,
+            crate::testkit::banded_row(8, 1),
+        ));
+        let (live, tail) = answers.split_at(answers.len() - dynamic.len());
+        let live = &live[live.len() - 3..];
+        assert!(matches!(live[0], Response::LiveMotion(_)), "{answers:?}");
+        assert!(matches!(live[1], Response::LiveMotionQuery(_)), "{live:?}");
+        assert!(matches!(live[2], Response::Field(_)), "{live:?}");
+        // And the dynamic frames' answers, not refusals.
+        assert!(tail[..5].iter().all(|a| *a == Response::Ack), "{tail:?}");
+        assert!(
+            tail[5..]
+                .iter()
+                .all(|a| matches!(a, Response::LiveFrame(_))),
+            "{tail:?}"
+        );
     }
 }

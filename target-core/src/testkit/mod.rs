@@ -29,8 +29,12 @@ pub struct OwnedStorage {
     pub p: Vec<Lanes>,
     pub kp: Vec<Sums>,
     pub partial: Vec<Sums>,
-    /// The live loop's response columns: room for every tool node's at `max_n`.
+    /// The live loop's response columns: room for every tool node's at `max_n`, and their
+    /// residuals.
     pub responses: Vec<i32>,
+    pub residuals: Vec<i16>,
+    /// A dynamic session's stiffness copy, as long as `words`.
+    pub stiffness: Vec<u32>,
 }
 
 impl OwnedStorage {
@@ -44,6 +48,8 @@ impl OwnedStorage {
             kp: vec![[0; MAX_DIRECTIONS]; max_n],
             partial: vec![[0; MAX_DIRECTIONS]; 2 * max_n],
             responses: vec![0; MAX_TOOL_NODES * max_n],
+            residuals: vec![0; MAX_TOOL_NODES * max_n],
+            stiffness: vec![0; words],
         }
     }
 
@@ -67,6 +73,8 @@ impl OwnedStorage {
             kp: &mut self.kp,
             partial: &mut self.partial,
             responses: &mut self.responses,
+            residuals: &mut self.residuals,
+            stiffness: &mut self.stiffness,
         }
     }
 

@@ -7,13 +7,13 @@ use deform_shared::qformat::quantize;
 use super::*;
 
 pub(super) const N: usize = 21;
-const TOOL: usize = 10;
+pub(super) const TOOL: usize = 10;
 const F: u8 = 18;
 pub(super) const SCALE: [f32; 3] = [1.0, 2.0, 0.5];
 const U0: [f32; 3] = [0.3, -0.2, 0.05];
 
 /// tridiag(−1, 2, −1) with the tool node's row and column eliminated (its row keeps 2).
-fn chain() -> Encoded {
+pub(super) fn chain() -> Encoded {
     encode(N, 8, F, |i| {
         laplacian_row(N)(i)
             .into_iter()
@@ -26,7 +26,7 @@ fn raw(v: f64) -> i32 {
     quantize(v, F).unwrap()
 }
 
-fn tool_row(node: u32) -> ToolRow {
+pub(super) fn tool_row(node: u32) -> ToolRow {
     ToolRow {
         node,
         diagonal: raw(2.0),
@@ -40,7 +40,7 @@ fn tool_row(node: u32) -> ToolRow {
     }
 }
 
-fn static_load() -> Vec<f64> {
+pub(super) fn static_load() -> Vec<f64> {
     sine_load(TOOL)
 }
 

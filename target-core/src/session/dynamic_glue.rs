@@ -1,0 +1,912 @@
+//! The session's dynamic-frame requests (protocol version 12, [`deform_shared::dynamics`]): the
+//! stiffness copy's upload, the tool set, the start and the steps. The arithmetic is in
+//! [`crate::dynamics`]; this is where it meets the session's vectors, the MVU and the solves.
+//!
+//! While a dynamic session runs, each direction's x holds u (so `ReadSolution` and `ReadField`
+//! read displacements, as for quasi-static frames, and the solution's exponent is u's), x0
+//! holds v, b the step's right-hand side and r its residual.
+
+// The passes share the vectors through `SharedSlice`s, each hart writing its own share.
+#![allow(unsafe_code)]
+
+use deform_shared::dynamics::{DynamicError, DynamicParams, DynamicTool};
+use deform_shared::live::{FrameReport, LiveError, ToolRow, MAX_TOOL_NODES, MAX_TOOL_ROW};
+use deform_shared::protocol::PhaseCounters;
+use deform_shared::qformat::ldexp;
+
+use super::*;
+use crate::cg::{GivenResidual, Outcome};
+use crate::dynamics::{
+    advance_share, predict_share, residual_share, rhs_share, row_sum, Difference, History,
+    LiveDynamicError, ResidualPlan, RhsPlan, RhsSums,
+};
+use crate::exec::{share, slowest, SharedSlice};
+use crate::svu::{bound_of, bound_of_u64, magnitude_bits, Block, Lin, Narrow, Scalar};
+
+fn dynamic(e: DynamicError) -> ErrorCode {
+    ErrorCode::Dynamic(e)
+}
+
+impl From<LiveDynamicError> for ErrorCode {
+    fn from(e: LiveDynamicError) -> Self {
+        match e {
+            LiveDynamicError::Live(e) => ErrorCode::Live(e),
+            LiveDynamicError::Dynamic(e) => ErrorCode::Dynamic(e),
+        }
+    }
+}
+
+/// Hart 0's counts over the parallel parts of a step and their critical path (see
+/// `FrameSolve` in `live_glue.rs` for why they are told apart).
+#[derive(Debug, Clone, Copy, Default)]
+struct Phases {
+    on_hart0: PhaseCounters,
+    critical: PhaseCounters,
+}
+
+impl Phases {
+    fn add(&mut self, on_hart0: PhaseCounters, critical: PhaseCounters) {
+        self.on_hart0 = self.on_hart0.saturating_add(on_hart0);
+        self.critical = self.critical.saturating_add(critical);
+    }
+}
+
+/// A real multiplier as a fixed-point integer m·2^−shift (m below 2^40, so a 21-bit raw value
+/// times it stays within `i64`).
+#[derive(Debug, Clone, Copy, Default)]
+struct Fixed {
+    m: i64,
+    shift: i32,
+}
+
+impl Fixed {
+    fn of(v: f64) -> Fixed {
+        if v == 0.0 || !v.is_finite() {
+            return Fixed::default();
+        }
+        let shift = 39 - deform_shared::qformat::floor_log2(v);
+        let r = ldexp(v, shift);
+        Fixed {
+            m: (if r >= 0.0 { r + 0.5 } else { r - 0.5 }) as i64,
+            shift,
+        }
+    }
+
+    /// raw·m·2^−shift, rounded to nearest.
+    fn times(self, raw: i32) -> i64 {
+        crate::predict::scale(i64::from(raw) * self.m, self.shift)
+    }
+}
+
+/// b₀ at the rows a tool node writes (its own and its couplings'), per direction, kept on hart
+/// 0 while pass B overwrites b: at most every tool node and its row.
+type Stash = heapless::Vec<(u32, [i32; MAX_DIRECTIONS]), { MAX_TOOL_NODES * (MAX_TOOL_ROW + 1) }>;
+
+/// One active direction of a step: its index and what its passes planned and measured.
+#[derive(Debug, Clone, Copy)]
+struct Step {
+    d: usize,
+    plan: RhsPlan,
+    sums: RhsSums,
+    /// The tool's velocities v₁t (real units) in this direction.
+    velocity: [f64; MAX_TOOL_NODES],
+    /// Per tool node, what its couplings' raw values of S and K are multiplied by on the rows
+    /// they couple to, in b's (the resident S's) units: v₁t·2^−F_S, and h·u₀t·2^−F_K with
+    /// the scales of S and K folded in (the resident K lacks the tool's columns).
+    s_mult: [f64; MAX_TOOL_NODES],
+    k_mult: [f64; MAX_TOOL_NODES],
+    /// Per tool node, (K·u₀)_t and m·v₀t (real units), for the force.
+    ku: [f64; MAX_TOOL_NODES],
+    mv: [f64; MAX_TOOL_NODES],
+    /// v₀'s block before the start's extrapolation.
+    v0: Block,
+    /// What this step keeps for the next one: d₁'s narrowed block and r₀f's (where the last
+    /// solve left a checked r).
+    kept: Option<(Block, Block)>,
+}
+
+impl<E: Executor> Session<'_, E> {
+    /// Starts K's values into the stiffness copy: the resident words, whose values `UpdateValues`
+    /// then replaces.
+    pub(super) fn begin_stiffness(&mut self, frac_bits: u8) -> Result<Response, ErrorCode> {
+        let shape = self.loaded()?;
+        if frac_bits > MAX_FRAC_BITS {
+            return Err(ErrorCode::BadFracBits(frac_bits));
+        }
+        let words = to_usize(shape.words);
+        let (Some(src), Some(dst)) = (
+            self.store.words.get(..words),
+            self.store.stiffness.get_mut(..words),
+        ) else {
+            return Err(ErrorCode::TooManyWords {
+                requested: shape.words,
+                capacity: to_u32(self.store.stiffness.len()),
+            });
+        };
+        dst.copy_from_slice(src);
+        self.dynamic.clear();
+        self.stiffness = StiffnessState::Updating { frac_bits, done: 0 };
+        Ok(Response::Ack)
+    }
+
+    /// K's values `offset..offset + values.len()`, as `UpdateValues` does for the matrix.
+    pub(super) fn stiffness_values(
+        &mut self,
+        offset: u32,
+        values: &[i32],
+    ) -> Result<Response, ErrorCode> {
+        let shape = self.loaded()?;
+        let StiffnessState::Updating { frac_bits, done } = self.stiffness else {
+            return Err(out_of_order(SessionStep::NoUpdate));
+        };
+        let end = chunk_end(done, offset, values.len(), shape.words)?;
+        replace_values(
+            self.store
+                .stiffness
+                .get_mut(to_usize(offset)..to_usize(end)),
+            values,
+        )?;
+        self.stiffness = StiffnessState::Updating {
+            frac_bits,
+            done: end,
+        };
+        Ok(Response::Ack)
+    }
+
+    /// Ends K's values: complete, and the CRC of K's words as they now are.
+    pub(super) fn end_stiffness(&mut self, crc32: u32) -> Result<Response, ErrorCode> {
+        let shape = self.loaded()?;
+        let StiffnessState::Updating { frac_bits, done } = self.stiffness else {
+            return Err(out_of_order(SessionStep::NoUpdate));
+        };
+        if done != shape.words {
+            return Err(out_of_order(SessionStep::UpdateIncomplete));
+        }
+        let computed = words_crc(self.store.stiffness.get(..to_usize(done)).unwrap_or(&[]));
+        if computed != crc32 {
+            self.stiffness = StiffnessState::Empty;
+            return Err(ErrorCode::MatrixCrc { computed });
+        }
+        self.stiffness = StiffnessState::Complete { frac_bits };
+        Ok(Response::Ack)
+    }
+
+    pub(super) fn dynamic_tool(&mut self, tool: DynamicTool) -> Result<Response, ErrorCode> {
+        let shape = self.loaded()?;
+        self.live.clear();
+        self.dynamic.add_tool(tool, shape.n)?;
+        Ok(Response::Ack)
+    }
+
+    /// Starts the session at rest: u = v = b = r = 0 in every direction, the tool at 0.
+    pub(super) fn dynamic_start(&mut self, params: DynamicParams) -> Result<Response, ErrorCode> {
+        let shape = self.loaded()?;
+        if !matches!(self.stiffness, StiffnessState::Complete { .. }) {
+            return Err(dynamic(DynamicError::NoStiffness));
+        }
+        let n = to_usize(shape.n);
+        self.live.clear();
+        self.dynamic.start(params)?;
+        for (d, v) in self.store.directions.iter_mut().enumerate() {
+            for vector in [&mut v.b, &mut v.x, &mut v.x0, &mut v.r] {
+                vector.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?.fill(0);
+            }
+            self.rhs[d] = VectorState::Complete { exponent: 0 };
+            self.guess[d] = VectorState::Empty;
+            self.solution[d] = Some(0);
+            self.kept[d] = None;
+        }
+        Ok(Response::Ack)
+    }
+
+    /// One step with the tool at `tool` at its end (see [`crate::dynamics`]).
+    pub(super) fn dynamic_frame(&mut self, tool: &[[f32; 3]]) -> Result<Response, ErrorCode> {
+        let shape = self.loaded()?;
+        let t0 = self.exec.now();
+        let (tools, st) = self.dynamic.parts().map_err(dynamic)?;
+        if tool.len() != tools.len() {
+            return Err(ErrorCode::Live(LiveError::ToolCount {
+                expected: tools.len() as u8,
+                got: tool.len() as u8,
+            }));
+        }
+        if !tool.iter().flatten().all(|u| u.is_finite()) {
+            return Err(ErrorCode::Live(LiveError::NotFinite));
+        }
+        let moved = |d: usize| tool.iter().zip(&st.tool_u).any(|(a, b)| a[d] != b[d]);
+        let active: heapless::Vec<usize, MAX_DIRECTIONS> = (0..MAX_DIRECTIONS)
+            .filter(|&d| moved(d) || st.u_bound[d] != 0 || st.v[d].bound != 0)
+            .collect();
+        let mut phases = Phases::default();
+        let mut force = [0f64; 3];
+        let (mut residual, mut iterations) = (0f64, 0u32);
+        if !active.is_empty() {
+            self.stiffness_product(shape, &active, &mut phases)?;
+            let mut steps = self.form_rhs(shape, tool, &active, &mut phases)?;
+            let (report, outcomes) = self.solve_step(shape, &mut steps, &mut phases)?;
+            residual = report.residual;
+            iterations = report.iterations;
+            for step in &mut steps {
+                force[step.d] = self.tool_force(shape, step, outcomes[step.d]);
+            }
+            self.advance(shape, tool, &steps, &mut phases)?;
+        }
+        let (_, st) = self.dynamic.parts().map_err(dynamic)?;
+        for (a, b) in st.tool_u.iter_mut().zip(tool) {
+            *a = *b;
+        }
+        st.field_exponent = None;
+        if !force.iter().all(|&v| (v as f32).is_finite()) {
+            return Err(ErrorCode::Live(LiveError::NotFinite));
+        }
+        let cost = self
+            .exec
+            .now()
+            .since(t0)
+            .saturating_sub(phases.on_hart0)
+            .saturating_add(phases.critical);
+        let (cycles, stall_cycles) = live_glue::live_counts(cost);
+        Ok(Response::LiveFrame(FrameReport {
+            force: force.map(|v| v as f32),
+            residual: residual as f32,
+            iterations: iterations.min(u32::from(u16::MAX)) as u16,
+            cycles,
+            stall_cycles,
+        }))
+    }
+
+    /// K·u₀ of the active directions with a displaced state, into Kp's lanes (one per active
+    /// direction, in order): one MVU pass over the stiffness copy.
+    fn stiffness_product(
+        &mut self,
+        shape: Shape,
+        active: &[usize],
+        phases: &mut Phases,
+    ) -> Result<(), ErrorCode> {
+        let (_, st) = self.dynamic.parts().map_err(dynamic)?;
+        if active.iter().all(|&d| st.u_bound[d] == 0) {
+            // u = 0: so is K·u₀ (Kp's lanes are not read then: pass B's term on them is 0).
+            st.ku_or = [0; 3];
+            return Ok(());
+        }
+        let StiffnessState::Complete { frac_bits } = self.stiffness else {
+            return Err(dynamic(DynamicError::NoStiffness));
+        };
+        let n = to_usize(shape.n);
+        let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
+        let Some(Parts {
+            tiles,
+            words,
+            directions,
+            p,
+            kp,
+            partial,
+        }) = self.store.parts(shape, true)
+        else {
+            return Err(ErrorCode::ChunkTooLong);
+        };
+        let mut us: heapless::Vec<&mut [i32], MAX_DIRECTIONS> = heapless::Vec::new();
+        for (d, v) in directions.iter_mut().enumerate() {
+            if active.contains(&d) {
+                let _ = us.push(v.x.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?);
+            }
+        }
+        let matrix = Matrix {
+            n,
+            frac_bits,
+            tiles,
+            words,
+            plan: &plan,
+        };
+        let work = Work { p, kp, partial };
+        let product = cg::product(&matrix, &mut us, work, &self.exec).map_err(ErrorCode::Solve)?;
+        phases.add(product.on_hart0, product.critical);
+        let (_, st) = self.dynamic.parts().map_err(dynamic)?;
+        // Each lane's OR, which pass B plans with.
+        for (lane, &d) in active.iter().enumerate() {
+            st.ku_or[d] = product.or[lane];
+        }
+        Ok(())
+    }
+
+    /// The tool's velocities and force terms, then pass B on every hart and the tool rows on
+    /// hart 0: b₁ and d = b₁ − b₀ of every active direction (d in Kp's lane). Returns the
+    /// steps' plans and sums.
+    fn form_rhs(
+        &mut self,
+        shape: Shape,
+        tool: &[[f32; 3]],
+        active: &[usize],
+        phases: &mut Phases,
+    ) -> Result<heapless::Vec<Step, MAX_DIRECTIONS>, ErrorCode> {
+        let (n, f_s) = (to_usize(shape.n), i32::from(shape.frac_bits));
+        let StiffnessState::Complete { frac_bits } = self.stiffness else {
+            return Err(dynamic(DynamicError::NoStiffness));
+        };
+        let (tools, st) = self.dynamic.parts().map_err(dynamic)?;
+        // K's raw values are K·2^(F − k_scale); b is kept in the resident S's units, b·2^−s_scale.
+        let f_k = i32::from(frac_bits) - i32::from(st.params.k_scale);
+        let s_scale = i32::from(st.params.s_scale);
+        let (h, m) = (f64::from(st.params.h), f64::from(st.params.mass));
+        let mut steps: heapless::Vec<Step, MAX_DIRECTIONS> = heapless::Vec::new();
+        let mut sat = 0;
+        for &d in active {
+            let dir = &self.store.directions[d];
+            let (u, v) = (
+                dir.x.get(..n).unwrap_or(&[]),
+                dir.x0.get(..n).unwrap_or(&[]),
+            );
+            let (e_u, e_v) = (self.solution[d].unwrap_or(0), st.v[d].e);
+            let mut step = Step {
+                d,
+                plan: RhsPlan::new(m, h, st.v[d], 0, 0, 0.0, 0, &mut sat),
+                sums: RhsSums::default(),
+                velocity: [0.0; MAX_TOOL_NODES],
+                s_mult: [0.0; MAX_TOOL_NODES],
+                k_mult: [0.0; MAX_TOOL_NODES],
+                ku: [0.0; MAX_TOOL_NODES],
+                mv: [0.0; MAX_TOOL_NODES],
+                v0: st.v[d],
+                kept: None,
+            };
+            let mut tool_part = 0f64;
+            for (t, dt) in tools.iter().enumerate() {
+                let node = dt.s.node as usize;
+                let u_then = f64::from(st.tool_u[t][d]);
+                let velocity = (f64::from(tool[t][d]) - u_then) / h;
+                step.velocity[t] = velocity;
+                step.s_mult[t] = ldexp(velocity, -f_s);
+                step.k_mult[t] = ldexp(h * u_then, -f_k - s_scale);
+                let own_u = u.get(node).copied().unwrap_or(0);
+                step.ku[t] = ldexp(row_sum(&dt.k, own_u, u) as f64, e_u - f_k);
+                step.mv[t] = m * ldexp(f64::from(v.get(node).copied().unwrap_or(0)), e_v);
+                // Σ|q| over the row in integers (exact: at most 1 + MAX_TOOL_ROW values below
+                // 2^21), converted once.
+                let column = |r: &ToolRow| -> f64 {
+                    let sum: u64 = core::iter::once(r.diagonal)
+                        .chain(r.row.iter().map(|c| c.value))
+                        .map(|q| u64::from(q.unsigned_abs()))
+                        .sum();
+                    sum as f64
+                };
+                tool_part +=
+                    column(&dt.s) * step.s_mult[t].abs() + column(&dt.k) * step.k_mult[t].abs();
+            }
+            let e_old = self.rhs[d].exponent(SessionStep::NoRhs)?;
+            step.plan = RhsPlan::new(
+                ldexp(m, -s_scale),
+                ldexp(h, -s_scale),
+                st.v[d],
+                st.ku_or[d],
+                e_u - f_k,
+                tool_part,
+                e_old,
+                &mut sat,
+            );
+            let _ = steps.push(step);
+        }
+        if sat != 0 {
+            return Err(ErrorCode::Solve(SolveFailure::NotPositiveDefinite {
+                iteration: 0,
+            }));
+        }
+        // b₀ at the tool's rows, before pass B overwrites it.
+        let mut stash: Stash = heapless::Vec::new();
+        for dt in tools {
+            let rows = core::iter::once(dt.s.node).chain(dt.s.row.iter().map(|c| c.column));
+            for row in rows {
+                if stash.iter().any(|(r, _)| *r == row) {
+                    continue;
+                }
+                let old = core::array::from_fn(|d| {
+                    let b = &self.store.directions[d].b;
+                    b.get(row as usize).copied().unwrap_or(0)
+                });
+                let _ = stash.push((row, old));
+            }
+        }
+        self.rhs_pass(n, &mut steps, phases)?;
+        self.tool_rows(&mut steps, &stash)?;
+        Ok(steps)
+    }
+
+    /// Pass B of every active direction on every hart's share.
+    fn rhs_pass(
+        &mut self,
+        n: usize,
+        steps: &mut [Step],
+        phases: &mut Phases,
+    ) -> Result<(), ErrorCode> {
+        let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let mut sums = [[RhsSums::default(); MAX_DIRECTIONS]; MAX_HARTS];
+        {
+            let Storage { directions, kp, .. } = &mut self.store;
+            let kp = SharedSlice::new(kp.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?);
+            let mut bs: [&mut [i32]; MAX_DIRECTIONS] = Default::default();
+            let mut vs: [&[i32]; MAX_DIRECTIONS] = Default::default();
+            for (d, v) in directions.iter_mut().enumerate() {
+                bs[d] = v.b.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?;
+                vs[d] = v.x0.get(..n).ok_or(ErrorCode::ChunkTooLong)?;
+            }
+            let bs = bs.map(SharedSlice::new);
+            let out = SharedSlice::new(&mut sums);
+            let steps = &*steps;
+            let task = |h: usize| {
+                let range = share(n, harts, h);
+                for (lane, step) in steps.iter().enumerate() {
+                    // SAFETY: each hart writes only its own share of b and Kp and its own
+                    // slot of the sums; v is only read.
+                    unsafe {
+                        out.slice_mut(h..h + 1)[0][lane] = rhs_share(
+                            bs[step.d].slice_mut(range.clone()),
+                            kp.slice_mut(range.clone()),
+                            &vs[step.d][range.clone()],
+                            lane,
+                            &step.plan,
+                        );
+                    }
+                }
+            };
+            let t = self.exec.now();
+            let counts = self.exec.run_measured(harts, &task);
+            let critical = slowest(&counts[..harts]);
+            phases.add(self.exec.now().since(t), critical);
+        }
+        for (lane, step) in steps.iter_mut().enumerate() {
+            for hart in &sums[..harts] {
+                let s = hart[lane];
+                step.sums.bb += s.bb;
+                step.sums.b_or |= s.b_or;
+                step.sums.d_or |= s.d_or;
+            }
+        }
+        Ok(())
+    }
+
+    /// The tool's rows of every active direction on hart 0: b₁ᵢ −= S_it·v₁t where a tool node
+    /// couples, b₁t = S_tt·v₁t at its own row; d, Σb² and the ORs follow.
+    fn tool_rows(&mut self, steps: &mut [Step], stash: &Stash) -> Result<(), ErrorCode> {
+        let tools = self.dynamic.tools();
+        for (lane, step) in steps.iter_mut().enumerate() {
+            let b = &mut self.store.directions[step.d].b;
+            let kp = &mut self.store.kp;
+            // Per tool node, its couplings' multipliers in b's units as fixed-point integers:
+            // a raw value times one is a product and a rounded shift, no soft float per row.
+            let e = step.plan.e;
+            let ms: [Fixed; MAX_TOOL_NODES] =
+                core::array::from_fn(|t| Fixed::of(ldexp(step.s_mult[t], -e)));
+            let mk: [Fixed; MAX_TOOL_NODES] =
+                core::array::from_fn(|t| Fixed::of(ldexp(step.k_mult[t], -e)));
+            for &(row, old) in stash {
+                let i = row as usize;
+                let Some(bi) = b.get_mut(i) else { continue };
+                let formed = *bi;
+                let mut value = i64::from(formed);
+                if let Some(t) = tools.iter().position(|dt| dt.s.node == row) {
+                    // A tool node's own row: S_tt·v₁t, whatever else couples to it.
+                    value = ms[t].times(tools[t].s.diagonal);
+                } else {
+                    for (t, dt) in tools.iter().enumerate() {
+                        if let Some(k) = dt.s.row.iter().position(|c| c.column == row) {
+                            let ks = dt.k.row.get(k).map_or(0, |c| c.value);
+                            value -= ms[t].times(dt.s.row[k].value) + mk[t].times(ks);
+                        }
+                    }
+                }
+                let value = value.clamp(-(1 << 30) + 1, (1 << 30) - 1) as i32;
+                *bi = value;
+                let sq = |z: i32| (i64::from(z) * i64::from(z)) as u128;
+                step.sums.bb = step.sums.bb - sq(formed) + sq(value);
+                step.sums.b_or |= magnitude_bits(value);
+                let d = step.plan.change(value, old[step.d]);
+                if let Some(k) = kp.get_mut(i) {
+                    k[lane] = d;
+                }
+                step.sums.d_or |= (d ^ (d >> 63)) as u64;
+            }
+            self.rhs[step.d] = VectorState::Complete {
+                exponent: step.plan.e,
+            };
+        }
+        Ok(())
+    }
+
+    /// The start's residual r₀ = d + r (pass R, where the last solve left a checked r), then
+    /// the fused solve S·v₁ = b₁ of the active directions from v₀ (x0), v₁'s and r's state
+    /// kept.
+    fn solve_step(
+        &mut self,
+        shape: Shape,
+        steps: &mut [Step],
+        phases: &mut Phases,
+    ) -> Result<(SolveReport, [Outcome; MAX_DIRECTIONS]), ErrorCode> {
+        let n = to_usize(shape.n);
+        self.predict(n, steps, phases)?;
+        let r_start = self.start_residuals(n, steps, phases)?;
+        let (_, st) = self.dynamic.parts().map_err(dynamic)?;
+        let params = SolveParams {
+            max_iterations: st.params.max_iterations,
+            tolerance: f64::from(st.params.tolerance),
+            start: Start::Previous,
+            directions: steps.len() as u8,
+            cycle_budget: st.params.cycle_budget,
+        };
+        let v_exponents = st.v.map(|b| b.e);
+        let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
+        let Some(Parts {
+            tiles,
+            words,
+            directions,
+            p,
+            kp,
+            partial,
+        }) = self.store.parts(shape, false)
+        else {
+            return Err(ErrorCode::ChunkTooLong);
+        };
+        let mut systems: heapless::Vec<System<'_>, MAX_DIRECTIONS> = heapless::Vec::new();
+        for (d, v) in directions.iter_mut().enumerate() {
+            let Some(lane) = steps.iter().position(|s| s.d == d) else {
+                continue;
+            };
+            let (Some(b), Some(x), Some(r)) = (v.b.get(..n), v.x0.get_mut(..n), v.r.get_mut(..n))
+            else {
+                return Err(ErrorCode::ChunkTooLong);
+            };
+            let _ = systems.push(System {
+                b,
+                b_exponent: steps[lane].plan.e,
+                x,
+                x_exponent: v_exponents[d],
+                r,
+                r_start: r_start[d],
+                outcome: Outcome::default(),
+            });
+        }
+        let matrix = Matrix {
+            n,
+            frac_bits: shape.frac_bits,
+            tiles,
+            words,
+            plan: &plan,
+        };
+        let work = Work { p, kp, partial };
+        let report = cg::solve(&matrix, &mut systems, work, &params, &self.exec)
+            .map_err(ErrorCode::Solve)?;
+        let (on_hart0, critical) = live_glue::solve_cost(&report);
+        phases.add(on_hart0, critical);
+        let mut outcomes = [Outcome::default(); MAX_DIRECTIONS];
+        let (_, st) = self.dynamic.parts().map_err(dynamic)?;
+        for (step, system) in steps.iter().zip(&systems) {
+            let d = step.d;
+            outcomes[d] = system.outcome;
+            st.v[d] = Block {
+                e: system.x_exponent,
+                bound: system.outcome.x_bound,
+            };
+            st.residual[d] = system.outcome.r_exact.then_some(Block {
+                e: system.outcome.r_exponent,
+                bound: system.outcome.r_bound,
+            });
+        }
+        Ok((report, outcomes))
+    }
+
+    /// Whether the spare storage (the live loop's response columns, unused by a dynamic
+    /// session) holds every direction's history: four vectors each.
+    fn history_room(&self, n: usize) -> bool {
+        self.store.responses.len() >= 4 * MAX_DIRECTIONS * n
+    }
+
+    /// History vector `k` of direction `d` (0: Δv, 1: v₀, 2: d, 3: r), as a `SharedSlice`
+    /// base index into the spare storage.
+    fn history_at(n: usize, d: usize, k: usize) -> core::ops::Range<usize> {
+        let start = (4 * d + k) * n;
+        start..start + n
+    }
+
+    /// Pass A on every hart: v₀ kept (history slot 1), and where the history holds Δv₀ the
+    /// start v₀ + Δv₀ in x0 (u₁ ≈ u₀ + h·(2v₀ − v₋₁)), v's block updated.
+    fn predict(&mut self, n: usize, steps: &[Step], phases: &mut Phases) -> Result<(), ErrorCode> {
+        if !self.history_room(n) {
+            return Ok(());
+        }
+        let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let (_, st) = self.dynamic.parts().map_err(dynamic)?;
+        let mut sat = 0;
+        let lins: [Option<Lin>; MAX_DIRECTIONS] = core::array::from_fn(|lane| {
+            let step = steps.get(lane)?;
+            let h = st.history[step.d]?;
+            st.residual[step.d]?;
+            Some(Lin::new(
+                Scalar::ONE,
+                h.dv,
+                false,
+                Some(st.v[step.d]),
+                &mut sat,
+            ))
+        });
+        let mut ors = [[0u32; MAX_DIRECTIONS]; MAX_HARTS];
+        {
+            let Storage {
+                directions,
+                responses,
+                ..
+            } = &mut self.store;
+            let spare = SharedSlice::new(responses);
+            let mut vs: [&mut [i32]; MAX_DIRECTIONS] = Default::default();
+            for (d, v) in directions.iter_mut().enumerate() {
+                vs[d] = v.x0.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?;
+            }
+            let vs = vs.map(SharedSlice::new);
+            let out = SharedSlice::new(&mut ors);
+            let lins = &lins;
+            let task = |h: usize| {
+                let range = share(n, harts, h);
+                for (lane, step) in steps.iter().enumerate() {
+                    let (d, lo, hi) = (step.d, range.start, range.end);
+                    let at = |k| Self::history_at(n, d, k);
+                    // SAFETY: each hart touches only its own share of v and of the history
+                    // vectors (disjoint ranges of the spare storage), and its own slot.
+                    unsafe {
+                        let v0 = spare.slice_mut(at(1).start + lo..at(1).start + hi);
+                        let dv = &spare.as_slice()[at(0).start + lo..at(0).start + hi];
+                        out.slice_mut(h..h + 1)[0][lane] = predict_share(
+                            vs[d].slice_mut(range.clone()),
+                            v0,
+                            dv,
+                            lins[lane].as_ref(),
+                        );
+                    }
+                }
+            };
+            let t = self.exec.now();
+            let counts = self.exec.run_measured(harts, &task);
+            let critical = slowest(&counts[..harts]);
+            phases.add(self.exec.now().since(t), critical);
+        }
+        let (_, st) = self.dynamic.parts().map_err(dynamic)?;
+        for (lane, step) in steps.iter().enumerate() {
+            if let Some(lin) = lins[lane] {
+                let or = ors[..harts].iter().fold(0, |o, s| o | s[lane]);
+                st.v[step.d] = Block {
+                    e: lin.e,
+                    bound: bound_of(or),
+                };
+            }
+        }
+        Ok(())
+    }
+
+    /// Pass D on every hart for every active direction whose r the last solve checked: the
+    /// start's residual r₀ = d₁ + r₀f (from v₀) or d₁ + 2·r₀f − d₀ − r₋₁f (from v₀ + Δv₀) in
+    /// O(n) instead of an MVU pass ([`residual_share`]), the history kept for the next step.
+    fn start_residuals(
+        &mut self,
+        n: usize,
+        steps: &mut [Step],
+        phases: &mut Phases,
+    ) -> Result<[Option<GivenResidual>; MAX_DIRECTIONS], ErrorCode> {
+        let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let room = self.history_room(n);
+        let (_, st) = self.dynamic.parts().map_err(dynamic)?;
+        let mut plans = [None; MAX_DIRECTIONS];
+        let mut sat = 0;
+        for (lane, step) in steps.iter_mut().enumerate() {
+            let Some(r) = st.residual[step.d] else {
+                continue;
+            };
+            let extrapolated = st.history[step.d].filter(|_| room).map(|h| (h.d0, h.r1));
+            let plan = ResidualPlan::new(step.sums.d_or, step.plan.e_d, r, extrapolated, &mut sat);
+            let (_, _, d_bound) = Narrow::new(bound_of_u64(step.sums.d_or), &mut sat);
+            let d = Block {
+                e: plan.e_keep,
+                bound: d_bound,
+            };
+            step.kept = room.then_some((d, r));
+            plans[lane] = Some(plan);
+        }
+        let mut out = [None; MAX_DIRECTIONS];
+        if plans.iter().all(Option::is_none) {
+            return Ok(out);
+        }
+        let mut sums = [[(0u128, 0u32); MAX_DIRECTIONS]; MAX_HARTS];
+        {
+            let Storage {
+                directions,
+                kp,
+                responses,
+                ..
+            } = &mut self.store;
+            let kp = SharedSlice::new(kp.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?);
+            let spare = SharedSlice::new(responses);
+            let mut rs: [&mut [i32]; MAX_DIRECTIONS] = Default::default();
+            for (d, v) in directions.iter_mut().enumerate() {
+                rs[d] = v.r.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?;
+            }
+            let rs = rs.map(SharedSlice::new);
+            let out = SharedSlice::new(&mut sums);
+            let steps = &*steps;
+            let task = |h: usize| {
+                let range = share(n, harts, h);
+                for (lane, step) in steps.iter().enumerate() {
+                    let Some(plan) = plans[lane] else { continue };
+                    let (d, lo, hi) = (step.d, range.start, range.end);
+                    let at = |k| Self::history_at(n, d, k);
+                    // SAFETY: each hart writes only its own share of r and of the history
+                    // vectors and its own slot of the sums; Kp is only read.
+                    unsafe {
+                        let history = room.then(|| {
+                            let (d_at, r_at) = (at(2).start, at(3).start);
+                            (
+                                spare.slice_mut(d_at + lo..d_at + hi),
+                                spare.slice_mut(r_at + lo..r_at + hi),
+                            )
+                        });
+                        out.slice_mut(h..h + 1)[0][lane] = residual_share(
+                            rs[d].slice_mut(range.clone()),
+                            &kp.as_slice()[range.clone()],
+                            lane,
+                            &plan,
+                            history,
+                        );
+                    }
+                }
+            };
+            let t = self.exec.now();
+            let counts = self.exec.run_measured(harts, &task);
+            let critical = slowest(&counts[..harts]);
+            phases.add(self.exec.now().since(t), critical);
+        }
+        for (lane, step) in steps.iter().enumerate() {
+            let Some(plan) = plans[lane] else { continue };
+            let rr: u128 = sums[..harts].iter().map(|s| s[lane].0).sum();
+            let or = sums[..harts].iter().fold(0, |o, s| o | s[lane].1);
+            out[step.d] = Some(GivenResidual {
+                exponent: plan.e,
+                rr,
+                bound: bound_of(or),
+                verify: true,
+            });
+        }
+        Ok(out)
+    }
+
+    /// The force the tool exerts in the step's direction: Σ_t ((S·v₁)_t − m·v₀t)/h + (K·u₀)_t.
+    fn tool_force(&self, shape: Shape, step: &Step, _outcome: Outcome) -> f64 {
+        let (n, f_s) = (to_usize(shape.n), i32::from(shape.frac_bits));
+        let v = self.store.directions[step.d].x0.get(..n).unwrap_or(&[]);
+        let (Some(st), tools) = (self.dynamic_state(), self.dynamic.tools()) else {
+            return 0.0;
+        };
+        let h = f64::from(st.params.h);
+        // S = S_resident·2^s_scale.
+        let f_s = f_s - i32::from(st.params.s_scale);
+        tools
+            .iter()
+            .enumerate()
+            .map(|(t, dt)| {
+                let node = dt.s.node as usize;
+                let own = v.get(node).copied().unwrap_or(0);
+                let sv = ldexp(row_sum(&dt.s, own, v) as f64, st.v[step.d].e - f_s);
+                (sv - step.mv[t]) / h + step.ku[t]
+            })
+            .sum()
+    }
+
+    /// Pass U on every hart, u₁ = u₀ + h·v₁ (and, where there is room, the step's velocity
+    /// change for the next step's start), then the tool nodes at their prescribed values.
+    fn advance(
+        &mut self,
+        shape: Shape,
+        tool: &[[f32; 3]],
+        steps: &[Step],
+        phases: &mut Phases,
+    ) -> Result<(), ErrorCode> {
+        let n = to_usize(shape.n);
+        let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let room = self.history_room(n);
+        let (tools, st) = self.dynamic.parts().map_err(dynamic)?;
+        let nodes: heapless::Vec<usize, MAX_TOOL_NODES> =
+            tools.iter().map(|t| t.s.node as usize).collect();
+        let h = Scalar::of_f64(f64::from(st.params.h));
+        let mut sat = 0;
+        let lins: heapless::Vec<Lin, MAX_DIRECTIONS> = steps
+            .iter()
+            .map(|step| {
+                let u = Block {
+                    e: self.solution[step.d].unwrap_or(0),
+                    bound: st.u_bound[step.d],
+                };
+                Lin::new(h, st.v[step.d], false, Some(u), &mut sat)
+            })
+            .collect();
+        let diffs: heapless::Vec<Difference, MAX_DIRECTIONS> = steps
+            .iter()
+            .map(|step| Difference::new(st.v[step.d], step.v0))
+            .collect();
+        let mut ors = [[(0u32, 0u32); MAX_DIRECTIONS]; MAX_HARTS];
+        {
+            let Storage {
+                directions,
+                responses,
+                ..
+            } = &mut self.store;
+            let spare = SharedSlice::new(responses);
+            let mut us: [&mut [i32]; MAX_DIRECTIONS] = Default::default();
+            let mut vs: [&[i32]; MAX_DIRECTIONS] = Default::default();
+            for (d, v) in directions.iter_mut().enumerate() {
+                us[d] = v.x.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?;
+                vs[d] = v.x0.get(..n).ok_or(ErrorCode::ChunkTooLong)?;
+            }
+            let us = us.map(SharedSlice::new);
+            let out = SharedSlice::new(&mut ors);
+            let (lins, diffs) = (&lins, &diffs);
+            let task = |hart: usize| {
+                let range = share(n, harts, hart);
+                for (lane, step) in steps.iter().enumerate() {
+                    let (d, lo, hi) = (step.d, range.start, range.end);
+                    let at = |k| Self::history_at(n, d, k);
+                    // SAFETY: each hart writes only its own share of u and of the history's Δv
+                    // and its own slot; v and v₀ are only read.
+                    unsafe {
+                        let history = room.then(|| {
+                            let (v0_at, dv_at) = (at(1).start, at(0).start);
+                            (
+                                &spare.as_slice()[v0_at + lo..v0_at + hi],
+                                spare.slice_mut(dv_at + lo..dv_at + hi),
+                                &diffs[lane],
+                            )
+                        });
+                        out.slice_mut(hart..hart + 1)[0][lane] = advance_share(
+                            us[d].slice_mut(range.clone()),
+                            &vs[d][range.clone()],
+                            &lins[lane],
+                            history,
+                        );
+                    }
+                }
+            };
+            let t = self.exec.now();
+            let counts = self.exec.run_measured(harts, &task);
+            let critical = slowest(&counts[..harts]);
+            phases.add(self.exec.now().since(t), critical);
+        }
+        for (lane, step) in steps.iter().enumerate() {
+            let e = lins[lane].e;
+            let u = self.store.directions[step.d]
+                .x
+                .get_mut(..n)
+                .unwrap_or(&mut []);
+            let mut or = ors[..harts].iter().fold(0, |o, s| o | s[lane].0);
+            for (t, &node) in nodes.iter().enumerate() {
+                let r = ldexp(f64::from(tool[t][step.d]), -e);
+                let m = (if r >= 0.0 { r + 0.5 } else { r - 0.5 }) as i64;
+                if let Some(ui) = u.get_mut(node) {
+                    *ui = m.clamp(-(1 << 30) + 1, (1 << 30) - 1) as i32;
+                    or |= magnitude_bits(*ui);
+                }
+            }
+            self.solution[step.d] = Some(e);
+            st.u_bound[step.d] = if or == 0 { 0 } else { bound_of(or) };
+            let dv_or = ors[..harts].iter().fold(0, |o, s| o | s[lane].1);
+            // The next step extrapolates only from a checked residual and a kept history.
+            st.history[step.d] = match (step.kept, st.residual[step.d]) {
+                (Some((d0, r1)), Some(_)) if room => Some(History {
+                    dv: Block {
+                        e: diffs[lane].e,
+                        bound: if dv_or == 0 { 0 } else { bound_of(dv_or) },
+                    },
+                    d0,
+                    r1,
+                }),
+                _ => None,
+            };
+        }
+        Ok(())
+    }
+
+    fn dynamic_state(&self) -> Option<&crate::dynamics::Stepping> {
+        self.dynamic.state()
+    }
+}
