@@ -156,6 +156,69 @@ mod tests {
         }
     }
 
+    /// A minimal little-endian RISC-V ELF32: `segments` as (address, file bytes, memory size),
+    /// the entry at the first segment.
+    fn elf(segments: &[(u32, &[u8], u32)]) -> Vec<u8> {
+        const EHDR: usize = 52;
+        const PHDR: usize = 32;
+        let mut out = vec![0u8; EHDR];
+        out[..7].copy_from_slice(&[0x7F, b'E', b'L', b'F', 1, 1, 1]);
+        let header: [(usize, u32, usize); 9] = [
+            (16, 2, 2),                     // e_type: EXEC
+            (18, u32::from(EM_RISCV), 2),   // e_machine
+            (20, 1, 4),                     // e_version
+            (24, segments[0].0, 4),         // e_entry
+            (28, EHDR as u32, 4),           // e_phoff
+            (40, EHDR as u32, 2),           // e_ehsize
+            (42, PHDR as u32, 2),           // e_phentsize
+            (44, segments.len() as u32, 2), // e_phnum
+            (46, 40, 2),                    // e_shentsize
+        ];
+        for (at, value, size) in header {
+            out[at..at + size].copy_from_slice(&value.to_le_bytes()[..size]);
+        }
+        let mut offset = (EHDR + PHDR * segments.len()) as u32;
+        for &(address, bytes, memsz) in segments {
+            for value in [
+                PT_LOAD,
+                offset,
+                address,
+                address,
+                bytes.len() as u32,
+                memsz,
+                6,
+                4,
+            ] {
+                out.extend_from_slice(&value.to_le_bytes());
+            }
+            offset += bytes.len() as u32;
+        }
+        for &(_, bytes, _) in segments {
+            out.extend_from_slice(bytes);
+        }
+        out
+    }
+
+    /// `.bss` and the stack (memory size beyond the file's bytes) are not shipped: the start-up
+    /// code zeroes `.bss`, and sending its zeros would only lengthen every flash.
+    #[test]
+    fn memory_past_the_file_contents_is_left_out_of_the_image() {
+        let text = [0x13u8, 0, 0, 0, 0x6F, 0, 0, 0];
+        let data = [1u8, 2, 3, 4];
+        let elf = elf(&[
+            (0x4000_0000, &text, text.len() as u32),
+            (0x4000_0010, &data, 0x10_0000), // .data followed by 1 MiB of .bss
+            (0x4010_0010, &[], 0x1_0000),    // a NOLOAD stack: no file bytes at all
+        ]);
+        let image = FlashImage::from_elf(&elf).unwrap();
+        let mut expected = text.to_vec();
+        expected.resize(0x10, 0); // the gap between the segments
+        expected.extend_from_slice(&data);
+        assert_eq!(image.bytes, expected);
+        assert_eq!(image.header().length, 0x14);
+        assert_eq!(image.header().crc32, CRC32.checksum(&expected));
+    }
+
     /// Uses the firmware ELF (`cargo xtask firmware`); skipped without it, which only happens
     /// outside `cargo xtask test`.
     #[test]
