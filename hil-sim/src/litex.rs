@@ -13,7 +13,9 @@
 //!   The simulator (`obj_dir/Vsim`) starts in that folder.
 //! - **The serial line**: the simulator binds all interfaces and takes one client; socat
 //!   connects to it (retrying until it listens) and offers a pty at [`LitexSim::serial_path`].
-//!   The simulator drops UART output while no client is connected, and models no baud rate.
+//!   The simulator drops UART output while no client is connected. It hands the SoC received
+//!   bytes at the build's pace (`deform_soc.py --uart-baud`: 9,600 baud for the BIOS shape, one
+//!   byte per clock otherwise; a run may override it, [`LitexConfig::with_uart_pace`]).
 //! - **Clean-up** is by PID: dropping a [`LitexSim`] kills and reaps socat and the simulator it
 //!   started, and removes the run folder. Both die with the process that started them however it
 //!   ends ([`crate::child`]); the folder of a run whose process is gone is removed at the next

@@ -4,6 +4,7 @@
 //! Needs QEMU and the firmware, and for the LiteX case the LiteX set-up and its firmware, like the
 //! other hardware-in-the-loop tests.
 
+use std::os::unix::process::CommandExt;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::thread;
@@ -19,13 +20,26 @@ fn start_with_children(
     within: Duration,
 ) -> (Child, Vec<ProcessInfo>) {
     let log = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("signals-{}.log", args[0]));
-    let mut deform = Command::new(env!("CARGO_BIN_EXE_deform"))
+    let mut deform = Command::new(env!("CARGO_BIN_EXE_deform"));
+    deform
         .args(args)
         .stdin(Stdio::null())
         .stdout(Stdio::null())
-        .stderr(std::fs::File::create(&log).unwrap())
-        .spawn()
-        .expect("the deform binary runs");
+        .stderr(std::fs::File::create(&log).unwrap());
+    // An ignored signal stays ignored across exec: a test run started in the background of a
+    // non-interactive shell (`cargo xtask test &`, nohup) hands SIGINT to deform as ignored, and
+    // a command without its own handler (`deform solve`) would then never see Ctrl-C. The test
+    // is about deform, not about how its runner was started, so deform starts with both
+    // signals at their default action, as from a terminal.
+    // SAFETY: only async-signal-safe calls (signal) between fork and exec.
+    unsafe {
+        deform.pre_exec(|| {
+            libc::signal(libc::SIGINT, libc::SIG_DFL);
+            libc::signal(libc::SIGTERM, libc::SIG_DFL);
+            Ok(())
+        });
+    }
+    let mut deform = deform.spawn().expect("the deform binary runs");
     let deadline = Instant::now() + within;
     loop {
         let children = children_of(deform.id());
