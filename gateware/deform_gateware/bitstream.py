@@ -214,7 +214,12 @@ def main():
     # This environment's Python first (the BIOS build runs `python3 -m litex...`).
     os.environ["PATH"] = os.pathsep.join([os.path.dirname(sys.executable),
                                           os.environ.get("PATH", "")])
-    report = build(args, out)
+    try:
+        report = build(args, out)
+    except KeyboardInterrupt:
+        # The running stage's tool is killed by then (run_stage); no report, no bitstream.
+        log("bitstream: interrupted")
+        return 130
     text = json.dumps(report)
     write_atomic(os.path.join(out, "report.json"), json.dumps(report, indent=1))
     print(text)

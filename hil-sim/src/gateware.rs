@@ -163,6 +163,9 @@ pub struct SocReport {
     pub nodes: u64,
 }
 
+/// The lines of a failed tool's output an error quotes.
+const FAILED_LINES: usize = 40;
+
 /// Runs a gateware Python module with `args` in the venv, its stdout's last line being a JSON
 /// report. Its stderr (the stages and their times) goes to ours as it comes. The Python process
 /// is a [`crate::child`]: it dies with this one, and its tools with it (bitstream.py asks the
@@ -184,10 +187,13 @@ fn run_report<T: serde::de::DeserializeOwned>(
         .map_err(|source| GatewareError::Start { what, source })?;
     let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
     if !out.status.success() {
+        // Its stdout is mostly LiteX's and the BIOS build's chatter: the end is what failed.
+        let lines: Vec<&str> = stdout.lines().collect();
+        let tail = lines[lines.len().saturating_sub(FAILED_LINES)..].join("\n");
         return Err(GatewareError::Failed {
             what,
             status: out.status,
-            output: stdout,
+            output: tail,
         });
     }
     let last = stdout.lines().last().unwrap_or_default();

@@ -123,6 +123,7 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
     check_synthesis_venv(&litex_dir())?;
     let dir = workspace.join("target/bitstream").join(&board);
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    // Fail before the first build, not an hour in, if the gathered report cannot be read.
     let mut builds = read_builds(&dir.join("report.json"))?;
     for (i, &n) in mvus.iter().enumerate() {
         let out = build_dir(workspace, &board, n);
@@ -143,6 +144,8 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
         let report =
             build_bitstream(&build, &out).with_context(|| format!("building the {n}-MVU SoC"))?;
         eprintln!("    built in {:.0?}", started.elapsed());
+        // Read again: another run may have added builds meanwhile.
+        builds = read_builds(&dir.join("report.json"))?;
         record(&mut builds, report);
         write_reports(&dir, &board, &builds)?;
     }
