@@ -154,6 +154,7 @@ def tool_argv(command):
 
 def build(args, out):
     """Runs the stages; returns report.json's content."""
+    commit = gateware_commit()  # before the build: the sources it reads
     soc = ulx3s_soc(args.mvus)
     gateware = os.path.join(out, "gateware")
     name = soc.platform.name
@@ -172,7 +173,7 @@ def build(args, out):
     toolchain = soc.platform.toolchain
     stages["yosys"] = run_stage("yosys", tool_argv(toolchain._yosys.get_yosys_call("script")),
                                 gateware, "yosys.log")
-    report = dict(board=args.board, mvus=args.mvus, seed=args.seed, commit=gateware_commit(),
+    report = dict(board=args.board, mvus=args.mvus, seed=args.seed, commit=commit,
                   yosys=yosys_cells(os.path.join(gateware, name + ".rpt")), pnr=None,
                   bitstream=None, stages=stages)
     report.update(zip(("words", "tiles", "nodes"), capacity(args.mvus)))
