@@ -155,15 +155,15 @@ def tool_argv(command):
 def build(args, out):
     """Runs the stages; returns report.json's content."""
     commit = gateware_commit()  # before the build: the sources it reads
+    stages = {}
+    log("--> LiteX: the SoC, its BIOS, the Verilog and the tools' scripts")
+    started = time.monotonic()
     soc = ulx3s_soc(args.mvus)
     gateware = os.path.join(out, "gateware")
     name = soc.platform.name
     bitstream = os.path.join(gateware, name + ".bit")
     remove(os.path.join(out, "report.json"), bitstream, os.path.join(gateware, name + ".svf"),
            os.path.join(gateware, REPORT))
-    stages = {}
-    log("--> LiteX: the BIOS, the Verilog and the tools' scripts")
-    started = time.monotonic()
     builder = Builder(soc, output_dir=out, csr_json=os.path.join(out, "csr.json"))
     builder.build(run=False, seed=args.seed)
     stages["litex"] = round(time.monotonic() - started, 1)
