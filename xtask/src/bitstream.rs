@@ -26,14 +26,16 @@ const MAX_MVUS: u32 = 8;
 const LFE5U_85F_MULTIPLIERS: u64 = 156;
 
 pub const USAGE: &str = "\
-  bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--no-pnr]
+  bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--no-pnr | --report-only]
                      build deform's SoC with each number of hardware MVUs, one at a time,
                      into an ECP5 bitstream (YoWASP Yosys, nextpnr-ecp5, ecppack; each stage
                      printed with its time) in target/bitstream/BOARD-<N>mvu/, and gather the
                      resources, Fmax and Fig. 5-1 plot of every build so far in
                      target/bitstream/BOARD/ (report.md, report.json,
                      multipliers_per_mvu.svg). --seed: nextpnr's (default 1); --no-pnr:
-                     stop after Yosys (cell counts only: no Fmax, no bitstream)";
+                     stop after Yosys (cell counts only: no Fmax, no bitstream);
+                     --report-only: build nothing, rewrite report.md and the plot from
+                     report.json";
 
 /// What the command line asks for.
 #[derive(Debug, PartialEq, Eq)]
@@ -45,6 +47,10 @@ pub enum Request {
         seed: u32,
         no_pnr: bool,
     },
+    /// Rewrite report.md and the plot from the gathered report.json.
+    Report {
+        board: String,
+    },
 }
 
 /// Parses `bitstream`'s arguments (those after the command's name).
@@ -53,6 +59,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
     let mut mvus = DEFAULT_MVUS.to_vec();
     let mut seed = 1;
     let mut no_pnr = false;
+    let mut report_only = false;
     let mut it = args.iter();
     while let Some(flag) = it.next() {
         let mut value = || {
@@ -62,6 +69,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
         match flag.as_str() {
             "-h" | "--help" => return Ok(Request::Help),
             "--no-pnr" => no_pnr = true,
+            "--report-only" => report_only = true,
             "--board" => board = Some(value()?.clone()),
             "--mvus" => mvus = parse_mvus(value()?)?,
             "--seed" => {
@@ -79,6 +87,12 @@ pub fn parse(args: &[String]) -> Result<Request> {
             "--board {board}: the bitstream builds for {} only",
             BOARDS.join(", ")
         );
+    }
+    if report_only {
+        if no_pnr {
+            bail!("--report-only builds nothing: --no-pnr does not go with it");
+        }
+        return Ok(Request::Report { board });
     }
     Ok(Request::Build {
         board,
@@ -111,6 +125,16 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
     let (board, mvus, seed, no_pnr) = match parse(args)? {
         Request::Help => {
             println!("usage: cargo xtask\n{USAGE}");
+            return Ok(());
+        }
+        Request::Report { board } => {
+            let dir = workspace.join("target/bitstream").join(&board);
+            let builds = read_builds(&dir.join("report.json"))?;
+            if builds.is_empty() {
+                bail!("{} has no builds yet", dir.join("report.json").display());
+            }
+            write_reports(&dir, &board, &builds)?;
+            print!("{}", markdown(&board, &builds));
             return Ok(());
         }
         Request::Build {
@@ -321,6 +345,12 @@ mod tests {
             }
         );
         assert_eq!(parse(&args("--help")).unwrap(), Request::Help);
+        assert_eq!(
+            parse(&args("--report-only --board ulx3s")).unwrap(),
+            Request::Report {
+                board: "ulx3s".into()
+            }
+        );
         assert_eq!(parse(&args("--board nope -h")).unwrap(), Request::Help);
     }
 
@@ -336,6 +366,7 @@ mod tests {
         assert!(error("--board ulx3s --mvus -1").contains("not `-1`"));
         assert!(error("--board ulx3s --seed x").contains("--seed takes a number"));
         assert!(error("--board ulx3s --fast").contains("does not take `--fast`"));
+        assert!(error("--board ulx3s --report-only --no-pnr").contains("does not go with it"));
     }
 
     fn usage(used: u64) -> Usage {
