@@ -260,7 +260,7 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
             .find(|r| r.mvus == 0 && r.seed == b.seed)
             .and_then(|r| r.pnr.as_ref());
         let (placed, fmax, versus) = match (&b.pnr, baseline) {
-            (None, _) => ("—".into(), "not run (--no-pnr)".into(), "—".into()),
+            (None, _) => ("—".into(), "not placed (Yosys only)".into(), "—".into()),
             (Some(p), base) => (
                 format!(
                     "{} / {} / {} of {} / {} / {}{}",
@@ -421,7 +421,7 @@ mod tests {
         assert!(rows[0].starts_with("| 0 | 1 |") && rows[0].contains("| 50.0 | — |"));
         assert!(rows[2].starts_with("| 4 | 1 |") && rows[2].contains("| -10.0 % |"));
         assert!(rows[3].starts_with("| 4 | 2 |") && rows[3].contains("| +10.0 % |"));
-        assert!(rows[4].starts_with("| 8 | 1 |") && rows[4].contains("not run (--no-pnr)"));
+        assert!(rows[4].starts_with("| 8 | 1 |") && rows[4].contains("not placed (Yosys only)"));
         assert!(rows[4].contains("yosys 12"), "{}", rows[4]);
     }
 
