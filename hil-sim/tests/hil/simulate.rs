@@ -196,3 +196,67 @@ fn the_needle_insertion_example_follows_its_keyframes() {
     );
     assert_alive(&mut qemu);
 }
+
+/// `deform simulate examples/needle-insertion.toml --steps 6 --dt 0.25` with simulate's own
+/// defaults (fused, predicted, warm): the series runs as superposed live frames (issue 19 item
+/// 2), not on the extrapolation 2u(t−1) − u(t−2). Every step says so, the closing line names
+/// the predictor, and every step after the first (where the extrapolation has one solution at
+/// most to start from, and needs iterations) takes 0 CG iterations; each still matches f64.
+#[test]
+fn simulate_takes_the_superposed_path_for_a_prescribed_tool() {
+    use deform_host::simulate::plan::{Overrides, SeriesPlan};
+    use deform_host::simulate::sink::Totals;
+
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/needle-insertion.toml"
+    );
+    let overrides = Overrides {
+        steps: Some(6),
+        dt: Some(0.25),
+        ..Overrides::default()
+    };
+    let resolved =
+        SeriesPlan::load(Some(std::path::Path::new(path)), &overrides).expect("resolves");
+    let model = Model::build(&resolved.spec).expect("model builds");
+    let params = StepParams {
+        predict: true,
+        fuse: true,
+        tol: 1e-5,
+        ..params(true)
+    };
+    let mut qemu = boot();
+    let mut target = connect(&qemu);
+    let step_model = |t: f64| resolved.model_at(t);
+    let mut totals = Totals::default();
+    let steps = simulate_with(
+        &mut target,
+        &model,
+        resolved.schedule,
+        Some(&step_model as StepModel),
+        None,
+        params,
+        |_| {},
+        |s| totals.add(s, params.tol),
+    )
+    .expect("simulate on QEMU");
+    assert_eq!(steps.len(), 6);
+    for s in &steps {
+        let dev = s.deviation.expect("checked against f64");
+        println!(
+            "step {} t = {}: superposed {}, {} iterations, {} cycles, deviation {dev:.2e}",
+            s.step, s.t, s.superposed, s.iterations, s.cycles
+        );
+        assert!(s.superposed, "step {}: not a superposed frame", s.step);
+        assert!(dev < 1e-4, "step {}: deviation {dev:e}", s.step);
+        if s.step > 1 {
+            assert_eq!(s.iterations, 0, "step {}", s.step);
+        }
+    }
+    let closing = totals.quasi_static_lines(&params, false);
+    assert!(
+        closing.contains("superposed live frames"),
+        "the closing line names the predictor: {closing}"
+    );
+    assert_alive(&mut qemu);
+}
