@@ -53,14 +53,15 @@ impl Phases {
 
 /// A measuring build's choice (`DEFORM_STEP_PHASE=rotate cargo xtask firmware`): frame k of a
 /// session reports in its `cycles`, instead of the whole step's cost, the critical path of
-/// phase k mod 11 of [`PHASES`] (0: the whole step), so that one run breaks a step's cost down
+/// phase k mod 13 of [`PHASES`] (0: the whole step), so that one run breaks a step's cost down
 /// by phase in exact counts (docs/PERFORMANCE.md, "The dynamic step by phase"). Unset in every
 /// normal build.
 const STEP_PHASE: Option<&str> = option_env!("DEFORM_STEP_PHASE");
 
 /// The phases a measuring build reports, in the step's order (`iteration`, the solve's first
-/// iteration, is part of `solve`, which also holds its set-up and closing check).
-const PHASES: [&str; 11] = [
+/// iteration, is part of `solve`, which also holds its set-up and closing check; so are the
+/// solve's MVU phases, `iteration_mvu` the first iteration's and `other_mvu` the rest).
+const PHASES: [&str; 13] = [
     "step",
     "ku",
     "rhs_plan",
@@ -70,6 +71,8 @@ const PHASES: [&str; 11] = [
     "residual",
     "solve",
     "iteration",
+    "iteration_mvu",
+    "other_mvu",
     "force",
     "advance",
 ];
@@ -321,6 +324,14 @@ impl<E: Executor> Session<'_, E> {
             let (report, outcomes) = self.solve_step(shape, &mut steps, r_start, &mut phases)?;
             probe.mark("solve", || cost(&self.exec, &phases));
             probe.set("iteration", report.per_iteration.critical());
+            // The first iteration's MVU phase, and the solve's other MVU phases (the closing
+            // check's pass in a one-iteration step).
+            let mvu = report.per_iteration.mvu_critical;
+            probe.set("iteration_mvu", mvu);
+            probe.set(
+                "other_mvu",
+                report.whole_solve.mvu_critical.saturating_sub(mvu),
+            );
             residual = report.residual;
             iterations = report.iterations;
             for step in &mut steps {
