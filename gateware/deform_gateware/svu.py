@@ -136,7 +136,11 @@ class Svu(Module, AutoCSR):
         self.submodules.r = Bram(WORD, LANES * nodes, primitive=primitive)
         self.submodules.x = Bram(WORD, LANES * nodes, primitive=primitive)
 
-        self._pipeline(nb)
+        control, running = self._issue(nb)
+        s_control, s_entry, operand, own_a, own_b = self._operands(control)
+        z_a, z_control = self._update(s_control, s_entry, operand, own_a, own_b)
+        self.latency = LATENCY + 1 + self._mul_latency + 1 + self._sum_squares(
+            z_a, z_control, running)
 
     def _csrs(self):
         self.n = CSRStorage(32, description="Elements in the pass (0 .. nodes)")
@@ -168,11 +172,10 @@ class Svu(Module, AutoCSR):
         self.x_or = CSRStatus(WORD, description="Pass XP: OR of |x| (one's complement)")
         self.p_or = CSRStatus(WORD, description="Pass XP: OR of |p| (one's complement)")
 
-    def _pipeline(self, nb):
+    def _issue(self, nb):
+        """I: one element per clock from ``start``; returns what travels with each element
+        (valid, last, index), ``bram.LATENCY`` clocks later, and the ``running`` flag."""
         d = self.direction.storage
-        xp = self.pass_xp.storage
-
-        # I: issue one element per clock.
         issuing = Signal()
         index = Signal(nb + 1)
         count = self.n.storage
@@ -185,7 +188,7 @@ class Svu(Module, AutoCSR):
             self.r.read[0].adr.eq(adr_mem), self.x.read[0].adr.eq(adr_mem),
             self.p_read.adr.eq(index), self.kp_read.adr.eq(index),
         ]
-        done = Signal()
+        self.done = done = Signal()
         running = Signal()
         self.comb += self.busy.status.eq(running)
         self.sync += [
@@ -203,9 +206,13 @@ class Svu(Module, AutoCSR):
         ]
         # What travels with an element: valid, last, its index.
         control = Cat(issuing, last, index[0:nb])
-        at_s = self._delay(control, LATENCY)
+        return self._delay(control, LATENCY), running
 
-        # S: the lanes, the narrowing, the shifts; registered.
+    def _operands(self, at_s):
+        """S: the lanes of p and Kp, the narrowing, the shifts, registered: the multipliers'
+        operand and the own terms."""
+        d = self.direction.storage
+        xp = self.pass_xp.storage
         p_entry = self.p_read.dat
         kp = Signal((SUM_BITS, True))
         p_lane = Signal(WORD)
@@ -227,7 +234,7 @@ class Svu(Module, AutoCSR):
         operand = Signal((WORD, True))      # narrowed Kp (R) or old p (XP)
         own_a = Signal(WORD)                # own r (R) or own x (XP)
         own_b = Signal(WORD)                # own r into p (XP)
-        s_control = Signal(len(control))
+        s_control = Signal(len(at_s))
         s_entry = Signal(LANES * P_BITS)
         self.sync += [
             operand.eq(Mux(xp, old, narrowed)),
@@ -237,12 +244,18 @@ class Svu(Module, AutoCSR):
             own_b.eq(own_term(r_in, self.r_into_p_left.storage, self.r_into_p_right.storage)),
             s_control.eq(at_s), s_entry.eq(p_entry),
         ]
+        return s_control, s_entry, operand, own_a, own_b
 
+    def _update(self, s_control, s_entry, operand, own_a, own_b):
+        """M, Z: the products, z = high word + own term (registered), the write-backs and the
+        ORs of pass XP; returns z_a (new r or x) and what travels with it."""
+        d = self.direction.storage
+        xp = self.pass_xp.storage
         # M: the rounded term (α·Kp or α·p) and the floored one (β·p).
         rounded_mul = Multiplier(WORD, WORD)
         floored_mul = Multiplier(WORD, WORD)
         self.submodules += rounded_mul, floored_mul
-        mul_latency = rounded_mul.latency
+        self._mul_latency = mul_latency = rounded_mul.latency
         self.comb += [
             rounded_mul.a.eq(Mux(xp, self.x_mult.storage, self.r_mult.storage)),
             rounded_mul.b.eq(operand),
@@ -258,7 +271,7 @@ class Svu(Module, AutoCSR):
         self.comb += rounded.eq(rounded_mul.p + (1 << (WORD - 1)))
         z_a = Signal((WORD, True))          # new r (R) or new x (XP)
         z_b = Signal((WORD, True))          # new p[d] (XP)
-        z_control = Signal(len(control))
+        z_control = Signal(len(s_control))
         z_entry = Signal(LANES * P_BITS)
         self.sync += [
             z_a.eq(rounded[WORD:2 * WORD] + m_own_a),
@@ -280,8 +293,12 @@ class Svu(Module, AutoCSR):
         self.sync += If(z_valid & xp,
             If(self.x_update.storage, self.x_or.status.eq(self.x_or.status | magnitude_bits(z_a))),
             If(self.p_update.storage, self.p_or.status.eq(self.p_or.status | magnitude_bits(z_b))))
+        return z_a, z_control
 
-        # Q, A: pass R's square, its block of 16 and the total.
+    def _sum_squares(self, z_a, z_control, running):
+        """Q, A: pass R's square, its block of 16 and the total; the end of the pass.
+        Returns the square's latency."""
+        xp = self.pass_xp.storage
         square_mul = Multiplier(WORD, WORD)
         self.submodules += square_mul
         self.comb += [square_mul.a.eq(z_a), square_mul.b.eq(z_a)]
@@ -300,8 +317,8 @@ class Svu(Module, AutoCSR):
                     self.rr.status.eq(self.rr.status + block_sum), block.eq(0),
                 ).Else(block.eq(block_sum))),
         ]
-        self.comb += done.eq(q_valid & q_last)
-        self.latency = LATENCY + 1 + mul_latency + 1 + square_mul.latency
+        self.comb += self.done.eq(q_valid & q_last)
+        return square_mul.latency
 
     def _delay(self, signal, clocks):
         """``signal`` ``clocks`` clocks later, through a chain of registers."""
