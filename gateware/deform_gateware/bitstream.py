@@ -79,7 +79,7 @@ def _die_with_parent():
 
 def run_stage(name, argv, cwd, logfile):
     """Runs one tool with its output in cwd/logfile; prints the stage and its seconds. On an
-    interrupt the tool is killed (``Popen.__exit__`` waits for it) before the exception goes on."""
+    interrupt the tool is killed and waited for before the exception goes on."""
     log("--> %s (log: %s)" % (name, os.path.join(cwd, logfile)))
     started = time.monotonic()
     with open(os.path.join(cwd, logfile), "w") as f, \
@@ -89,6 +89,7 @@ def run_stage(name, argv, cwd, logfile):
             status = p.wait()
         except BaseException:
             p.kill()
+            p.wait()  # Popen's own exit skips the wait on a KeyboardInterrupt
             raise
     seconds = round(time.monotonic() - started, 1)
     if status != 0:
