@@ -83,13 +83,18 @@ class StageTest(unittest.TestCase):
     def test_an_interrupted_stage_kills_its_tool(self):
         with tempfile.TemporaryDirectory() as d:
             pid_file = os.path.join(d, "pid")
-            # The interrupt arrives as Ctrl-C's would, in the main thread, while it waits.
+            # The interrupt arrives as Ctrl-C's would, in the main thread, while it waits (with
+            # Python's handler even where SIGINT came in ignored, as under a background shell).
+            previous = signal.signal(signal.SIGINT, signal.default_int_handler)
             timer = threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGINT))
             timer.start()
-            with self.assertRaises(KeyboardInterrupt):
-                bitstream.run_stage("sleep", ["sh", "-c", "echo $$ > %s; exec sleep 60" % pid_file],
-                                    d, "sleep.log")
-            timer.join()
+            try:
+                with self.assertRaises(KeyboardInterrupt):
+                    bitstream.run_stage("sleep", ["sh", "-c", "echo $$ > %s; exec sleep 60"
+                                                  % pid_file], d, "sleep.log")
+            finally:
+                timer.join()
+                signal.signal(signal.SIGINT, previous)
             with open(pid_file) as f:
                 pid = int(f.read())
         with self.assertRaises(ProcessLookupError):
