@@ -21,8 +21,9 @@ MULT18X18D, DP16KD, ...), nextpnr's use of the device and the system clock's Fma
 report.json and the bitstream are removed before a build and written only by a build that got
 that far, so neither is ever a stale or half-written file.
 
-With more than four MVUs the MVUs get half the memories (512 rows, 2048 words), so that eight
-fit the LFE5U-85F's 208 block RAMs beside the SoC's (BIOS ROM and caches: about 55).
+With more than four MVUs the MVUs get half the memories (512 rows, 2048 words). Meant to let
+eight fit the LFE5U-85F's 208 block RAMs, it is not enough: Yosys counts 259 DP16KD for eight
+(40 of them the SoC's own; docs/PERFORMANCE.md).
 """
 
 import argparse
