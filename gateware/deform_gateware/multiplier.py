@@ -133,15 +133,22 @@ class Multiplier(Module):
     def _small_product(self, small, shift, width, b, b_width):
         """small (signed, ``width`` bits, at bit ``shift`` of a) times b by shift-and-add in
         logic: the terms (shift, value), each the registered sum of two of small's bits times
-        b (one adder in the clock, as long as a block's product takes; the tree adds them)."""
-        def bit_term(k):
-            return Mux(small[k], -(b << k) if k == width - 1 else (b << k), 0)
+        b (one adder in the clock, as long as a block's product takes; the tree adds them).
+        The sign bit's term is subtracted, not added negated: a negation is a carry chain of
+        its own, in series with the adder's."""
+        def magnitude(k):
+            return Mux(small[k], b << k, 0)
         terms = []
         for k in range(0, width, 2):
             out = Signal((b_width + min(width, k + 2) + 1, True))
             if k + 1 < width:
-                self.sync += out.eq(bit_term(k) + bit_term(k + 1))
+                if k + 1 == width - 1:
+                    self.sync += out.eq(magnitude(k) - magnitude(k + 1))
+                else:
+                    self.sync += out.eq(magnitude(k) + magnitude(k + 1))
+            elif k == width - 1:
+                self.sync += out.eq(0 - magnitude(k))
             else:
-                self.sync += out.eq(bit_term(k))
+                self.sync += out.eq(magnitude(k))
             terms.append((shift, out))
         return terms

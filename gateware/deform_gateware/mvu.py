@@ -34,21 +34,21 @@ The word pipeline (no stage ever stalls; the fetch waits instead):
     E   an ER word's sums (and rows, flags) go into the write-back queue
 
 The write-back takes queue entries one part at a time (the own row, then the mirror row of a
-mirrored tile) into a register, S, and from there through W (read Kp and p at the row), U (store
-the first write-back of the row in this phase, or add; the block RAMs' data is there) and R
-(write Kp, OR the magnitudes into max |Kp| if this was the row's last write-back). U hands p[row]
-and the sums to the pᵀKp sequencer, which multiplies each lane's 32-bit p by the sum's low and
-high halves in turn (2 clocks per direction) and accumulates Σ p·low and Σ p·high; the array
-joins them into pᵀKp. A part leaves S at most every other clock, never onto a row still being
-written nor before the sequencer can take its job; the decision is an AND of registers (the
-queue's pop, the row compares and the sequencer's count are each made a clock ahead), not the
-long path from the queue's memory to its own pop that it was. The fetch stops while the queue could overflow;
-``stalls`` counts those clocks.
+mirrored tile) into a register, S, and from there through W (read Kp and p at the row), W2
+(their data registered beside the adders), U (store the first write-back of the row in this
+phase, or add) and R (write Kp, OR the magnitudes into max |Kp| if this was the row's last
+write-back). U hands p[row] and the sums to the pᵀKp sequencer, which multiplies each lane's
+32-bit p by the sum's low and high halves in turn (2 clocks per direction) and accumulates
+Σ p·low and Σ p·high; the array joins them into pᵀKp. A part leaves S at most every other
+clock, never onto a row still being written nor before the sequencer can take its job; the
+decision is an AND of registers (the queue's pop, the row compares and the sequencer's count
+are each made a clock ahead), not the long path from the queue's memory to its own pop that it
+was. The fetch stops while the queue could overflow; ``stalls`` counts those clocks.
 """
 
 from migen import (Module, Signal, Memory, Array, Cat, If, FSM, NextState, NextValue,
                    Replicate)
-from migen.genlib.fifo import SyncFIFO
+from migen.genlib.fifo import SyncFIFOBuffered
 
 from deform_gateware.bram import Bram, LATENCY
 from deform_gateware.multiplier import Multiplier
@@ -151,7 +151,9 @@ class Mvu(Module):
         wa = Signal(bits_for(self.words_depth + 1))
         next_tile = Signal(bits_for(self.tiles_depth + 1))   # the header `tile_rd` shows
         issue = Signal()
-        self.queue = queue = SyncFIFO(self._entry_width(), QUEUE_DEPTH)
+        # The write-back queue: its head a register (the memory's read is registered), so that
+        # what the write-back decides from it starts at a register, not at a memory read.
+        self.queue = queue = SyncFIFOBuffered(self._entry_width(), QUEUE_DEPTH)
         self.submodules += queue
 
         # F2: decode, in the tile context; `tile_rd` shows the next tile's header.
@@ -248,18 +250,22 @@ class Mvu(Module):
             If(self.start & (self.length != 0),
                 NextValue(fresh, 1), NextValue(self.stalls, 0),
                 NextState("FIRST_TILE")))
+        # `at_end` is `wa == length`, a register of its own (made from wa's next value): the
+        # compare of the word address is then no path into the state register, which fans out
+        # to every memory's port multiplexer and sits far from the fetch.
+        at_end = Signal()
         fsm.act("FIRST_TILE",
-            NextValue(next_tile, 1), NextValue(wa, 0),
+            NextValue(next_tile, 1), NextValue(wa, 0), NextValue(at_end, 0),
             NextValue(row, next_row_base), NextValue(col_base, next_col_base),
             NextValue(mirror_col_base, next_mirror_col_base),
             NextValue(mirrored, next_mirrored),
             NextState("RUN"))
         fsm.act("RUN",
             self.words.read[0].adr.eq(wa),
-            issue.eq((wa != self.length) & room),
-            If(issue, NextValue(wa, wa + 1)),
-            If((wa != self.length) & ~room, NextValue(self.stalls, self.stalls + 1)),
-            If(wa == self.length, NextState("DRAIN")))
+            issue.eq(~at_end & room),
+            If(issue, NextValue(wa, wa + 1), NextValue(at_end, wa + 1 == self.length)),
+            If(~at_end & ~room, NextValue(self.stalls, self.stalls + 1)),
+            If(at_end, NextState("DRAIN")))
         drained = Signal()
         fsm.act("DRAIN", If(drained, NextState("IDLE")))
         self.comb += self.busy.eq(~fsm.ongoing("IDLE"))
@@ -316,16 +322,18 @@ class Mvu(Module):
         mirror_pending = Signal()
 
         # A part (a row, its sums, first/last) through the stages S (the next part, in a
-        # register of its own), W (Kp and p read at its row: the block RAMs), U (update: store
-        # or add) and R (write Kp, OR the magnitudes of a finished row). A part may not leave S
-        # while a part ahead of it has yet to write its row, nor while a part is in W (its pᵀKp
-        # job would be due in the same clock), so parts leave S at most every other clock; S
-        # refills in the clock between. Every input of that decision is a register: the pop of
-        # the queue, the row compares and the sequencer's count each happen a clock ahead.
+        # register of its own), W and W2 (Kp and p read at its row: the block RAMs, then a
+        # register of their data beside the adders, which the block may be placed far from),
+        # U (update: store or add) and R (write Kp, OR the magnitudes of a finished row). A part
+        # may not leave S while a part ahead of it has yet to write its row, nor while a part
+        # is in W (its pᵀKp job would be due in the same clock), so parts leave S at most every
+        # other clock; S refills in the clock between. Every input of that decision is a
+        # register: the pop of the queue, the row compares and the sequencer's count each
+        # happen a clock ahead.
         def part():
             return dict(valid=Signal(), row=Signal(nb), first=Signal(), last=Signal(),
                         sums=[Signal((SUM_BITS, True)) for _ in range(LANES)])
-        s, w, u, r = part(), part(), part(), part()
+        s, w, w2, u, r = part(), part(), part(), part(), part()
 
         # The pᵀKp sequencer: a job is p[row] (3 lanes) and the part's sums; it feeds the
         # multiplier one product per clock, lane by lane, low half then high half.
@@ -334,25 +342,26 @@ class Mvu(Module):
         left = Signal(3)      # products of the job still to feed
         step = Signal(3)      # 2·lane + half of the next one
         seq_busy = Signal()
-        # A part leaving S now reaches U (and hands over its job) LATENCY clocks later, when the
-        # sequencer must be feeding its last product at the latest: `free_soon` says so for
-        # this clock, computed in the clock before from what `left` and the valid bits become.
+        # A part leaving S now reaches U (and hands over its job) LATENCY + 1 clocks later, when
+        # the sequencer must be feeding its last product at the latest: with a part in W2 or U
+        # (it hands over its job of 2·directions products first) only one direction allows
+        # that, else at most LATENCY + 2 products may be left. `free_soon` says so for this
+        # clock, computed in the clock before from what `left` and the valid bits become.
         free_soon = Signal(reset=1)
         left_next = Signal(3)
-        due_next = Signal(3)
         job = Cat(0, self.directions)      # 2·directions products
         self.comb += [
             seq_busy.eq(left != 0),
             If(u["valid"], left_next.eq(job)).Elif(seq_busy, left_next.eq(left - 1)).Else(
                 left_next.eq(left)),
-            If(w["valid"], due_next.eq(job)).Else(due_next.eq(left_next)),
         ]
-        self.sync += free_soon.eq(due_next <= LATENCY + 1)
+        self.sync += If(w["valid"] | w2["valid"], free_soon.eq(self.directions == 1)).Else(
+            free_soon.eq(left_next <= LATENCY + 2))
 
         # S refills while empty: the mirror part of the entry taken last, else the queue's head.
         load = Signal()
         take = Signal()
-        hazard = Signal()     # S's row is that of the part in U or R
+        hazard = Signal()     # S's row is that of the part in W2, U or R
         next_row = Signal(nb)
         self.comb += [
             load.eq(~s["valid"] & (mirror_pending | queue.readable)),
@@ -362,8 +371,7 @@ class Mvu(Module):
             take.eq(s["valid"] & ~hazard & ~w["valid"] & free_soon),
         ]
         self.sync += [
-            hazard.eq((w["valid"] & (w["row"] == next_row))
-                      | (u["valid"] & (u["row"] == next_row))),
+            hazard.eq(Cat(*[x["valid"] & (x["row"] == next_row) for x in (w, w2, u)]) != 0),
             If(~s["valid"],
                 s["valid"].eq(load),
                 If(mirror_pending,
@@ -386,13 +394,17 @@ class Mvu(Module):
         self.sync += [
             w["valid"].eq(take), w["row"].eq(s["row"]), w["first"].eq(s["first"]),
             w["last"].eq(s["last"]), *[x.eq(y) for x, y in zip(w["sums"], s["sums"])],
-            u["valid"].eq(w["valid"]), u["row"].eq(w["row"]), u["first"].eq(w["first"]),
-            u["last"].eq(w["last"]), *[x.eq(y) for x, y in zip(u["sums"], w["sums"])],
+            *[st for a, b in ((w, w2), (w2, u)) for st in
+              [b["valid"].eq(a["valid"]), b["row"].eq(a["row"]), b["first"].eq(a["first"]),
+               b["last"].eq(a["last"]), *[x.eq(y) for x, y in zip(b["sums"], a["sums"])]]],
         ]
 
         # U: store or add (Kp and p at the row have arrived), and hand over to pᵀKp.
-        old, fill_old = lanes(kp_rd.dat, SUM_BITS)
-        p_lanes, fill_p = lanes(p_at_row.dat, P_BITS)
+        kp_at_u = Signal(len(kp_rd.dat))
+        p_at_u = Signal(len(p_at_row.dat))
+        self.sync += [kp_at_u.eq(kp_rd.dat), p_at_u.eq(p_at_row.dat)]
+        old, fill_old = lanes(kp_at_u, SUM_BITS)
+        p_lanes, fill_p = lanes(p_at_u, P_BITS)
         self.comb += fill_old + fill_p
         self.sync += [
             r["valid"].eq(u["valid"]), r["row"].eq(u["row"]), r["last"].eq(u["last"]),
@@ -414,7 +426,7 @@ class Mvu(Module):
             *[j.eq(p) for j, p in zip(job_p, p_lanes)],
             *[j.eq(x) for j, x in zip(job_sums, u["sums"])],
         ).Elif(seq_busy, step.eq(step + 1), left.eq(left - 1))
-        stages = [s["valid"], w["valid"], u["valid"], r["valid"]]
+        stages = [s["valid"], w["valid"], w2["valid"], u["valid"], r["valid"]]
 
         # The products p · (low or high half of a sum), accumulated by half: a zero-extended
         # low half and a sign-extended high half, so Σ p·sum = Σ p·low + 2^32 · Σ p·high.
@@ -448,7 +460,7 @@ class Mvu(Module):
 
         # Done once nothing is in flight anywhere.
         self.comb += drained.eq(
-            (Cat(*in_pipe, *stages) == 0) & ~queue.readable & ~mirror_pending
+            (Cat(*in_pipe, *stages) == 0) & (queue.level == 0) & ~mirror_pending
             & ~seq_busy & ~mul.valid & ~self._mul_in_flight(mul))
 
     def _mul_in_flight(self, mul):
