@@ -175,15 +175,15 @@ fn the_gateware_matches_the_portable_kernel_bit_for_bit() {
 ///
 /// The gate's MVU is the CI size (`MvuSize::Ci`): the unit and pipeline of the ECP5 builds, with
 /// every block RAM, multiplier and row compare of theirs, but a 1,024-word memory and a 16-entry
-/// tile table, to shorten synthesis, placement and routing (the full size took 20-23 minutes on
-/// 2 shared cores). The full-size unit's figures are a benchmark in docs/PERFORMANCE.md
-/// (`python -m deform_gateware.synth --out DIR`).
+/// tile table, to shorten synthesis, placement and routing (4-6 minutes on 2 shared cores; the
+/// full size took 4-23 minutes, depending on the load). The full-size unit's figures are a
+/// benchmark in docs/PERFORMANCE.md (`python -m deform_gateware.synth --out DIR`).
 ///
-/// Ignored in the gate while the target is missed (119.8 MHz at full size, seed 1: the block
-/// RAM's Kp read routed far to the write-back's 64-bit add; see docs/PERFORMANCE.md). Run it
+/// Ignored in the gate while the target is missed (120.8 MHz at full size, seed 1: routing from
+/// the write-back's wide select into its row-hazard compare; see docs/PERFORMANCE.md). Run it
 /// with `cargo test -p deform-hil-sim --test hil -- --ignored one_mvu`.
 #[test]
-#[ignore = "minutes of synthesis; the 133 MHz target is missed (119.8 MHz), see docs/PERFORMANCE.md"]
+#[ignore = "minutes of synthesis; the 133 MHz target is missed (120.8 MHz), see docs/PERFORMANCE.md"]
 fn one_mvu_fits_the_ecp5_and_meets_133_mhz() {
     // Not under /tmp: the tools run in YoWASP's sandbox, which has a /tmp of its own.
     let out = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/gateware/synth-mvu");
