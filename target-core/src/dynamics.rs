@@ -61,6 +61,8 @@ pub struct Stepping {
     /// The exponent of the current step's field frames (`ReadField`), fixed at its first chunk
     /// so that every chunk of a step's field shares it; cleared by each step.
     pub field_exponent: Option<i8>,
+    /// Frames since `DynamicStart` (a measuring build's phase choice, `dynamic_glue.rs`).
+    pub frames: u32,
 }
 
 /// The last step's velocity change Δv₀ = v₀ − v₋₁, right-hand side change d₀ = b₀ − b₋₁ and
@@ -154,6 +156,7 @@ impl Dynamic {
             ku_or: [0; 3],
             history: [None; 3],
             field_exponent: None,
+            frames: 0,
         }))
     }
 }

@@ -133,21 +133,36 @@ impl Storage<'_> {
     }
 }
 
-/// What a solve or an MVU pass borrows of the store at once: a matrix's tiles and words (the
-/// resident ones, or the stiffness copy's), the direction vectors and the work arrays.
+/// What a solve or an MVU pass borrows of the store at once: a matrix (the resident words, or
+/// the stiffness copy's), the work arrays and the direction vectors.
 struct Parts<'s, 'a> {
-    tiles: &'s [TileHeader],
-    words: &'s [u32],
+    matrix: Matrix<'s>,
+    work: Work<'s>,
     directions: &'s mut [DirectionStorage<'a>; MAX_DIRECTIONS],
-    p: &'s mut [Lanes],
-    kp: &'s mut [Sums],
-    partial: &'s mut [Sums],
+}
+
+/// Which words a pass reads: the resident matrix's, or the stiffness copy's (a dynamic
+/// session's K, with its own fractional bits).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Words {
+    Resident,
+    Stiffness { frac_bits: u8 },
 }
 
 impl<'a> Storage<'a> {
-    /// The parts for a matrix of `shape`, its words from the stiffness copy if `stiffness`;
-    /// `None` where the shape does not fit the store.
-    fn parts(&mut self, shape: Shape, stiffness: bool) -> Option<Parts<'_, 'a>> {
+    /// The parts for a matrix of `shape` planned by `plan`, its words chosen by `which`. A
+    /// shape that does not fit the store (the upload's checks make that impossible) is
+    /// refused as too large for its capacity, `max_n`.
+    fn parts<'s>(
+        &'s mut self,
+        shape: Shape,
+        which: Words,
+        plan: &'s Plan,
+    ) -> Result<Parts<'s, 'a>, ErrorCode> {
+        let too_large = ErrorCode::DimensionTooLarge {
+            requested: shape.n,
+            capacity: to_u32(self.max_n()),
+        };
         let Storage {
             words,
             tiles,
@@ -158,14 +173,27 @@ impl<'a> Storage<'a> {
             stiffness: copy,
             ..
         } = self;
-        let words: &[u32] = if stiffness { copy } else { words };
-        Some(Parts {
-            tiles: tiles.get(..to_usize(shape.tiles))?,
-            words: words.get(..to_usize(shape.words))?,
+        let (words, frac_bits): (&[u32], u8) = match which {
+            Words::Resident => (words, shape.frac_bits),
+            Words::Stiffness { frac_bits } => (copy, frac_bits),
+        };
+        let n = to_usize(shape.n);
+        let (Some(tiles), Some(words)) = (
+            tiles.get(..to_usize(shape.tiles)),
+            words.get(..to_usize(shape.words)),
+        ) else {
+            return Err(too_large);
+        };
+        Ok(Parts {
+            matrix: Matrix {
+                n,
+                frac_bits,
+                tiles,
+                words,
+                plan,
+            },
+            work: Work { p, kp, partial },
             directions,
-            p,
-            kp,
-            partial,
         })
     }
 }
@@ -862,17 +890,11 @@ impl<'a, E: Executor> Session<'a, E> {
             };
         }
         let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
-        let Some(Parts {
-            tiles,
-            words,
+        let Parts {
+            matrix,
+            work,
             directions: vectors,
-            p,
-            kp,
-            partial,
-        }) = self.store.parts(shape, false)
-        else {
-            return Err(too_large);
-        };
+        } = self.store.parts(shape, Words::Resident, &plan)?;
         let mut systems: heapless::Vec<System<'_>, MAX_DIRECTIONS> = heapless::Vec::new();
         for (d, v) in vectors.iter_mut().enumerate() {
             if !which.contains(&d) {
@@ -919,14 +941,6 @@ impl<'a, E: Executor> Session<'a, E> {
                 *solution = None;
             }
         }
-        let matrix = Matrix {
-            n,
-            frac_bits: shape.frac_bits,
-            tiles,
-            words,
-            plan: &plan,
-        };
-        let work = Work { p, kp, partial };
         if let Ok(started) = self.live.started_mut() {
             started.field_exponent = None;
             started.base = None;

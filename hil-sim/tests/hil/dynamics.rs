@@ -448,6 +448,10 @@ fn target_resident_dynamic_frames_follow_the_f64_stepper() {
     );
     println!("bytes per frame (median): {up} up, {down} down");
     assert!(up <= 64 && down <= 64, "{up} B up, {down} B down");
+    // Every frame's count: a measuring firmware (`DEFORM_STEP_PHASE=rotate`) reports one
+    // phase of the step in each frame's (target-core's dynamic_glue.rs), which this line
+    // carries out for the breakdown.
+    println!("cycles per frame: {cycles:?}");
     let later = &cycles[1..];
     println!(
         "target-resident dynamic frames, 8³ B, h = 1 ms, 8 MVUs: first {} cycles, then mean {:.0}, max {}; worst error {worst:.2e} of the peak |u|",

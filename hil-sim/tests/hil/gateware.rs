@@ -23,6 +23,8 @@ use deform_target_core::testkit::mvu::{
 };
 use serde_json::{json, Value};
 
+mod svu_vectors;
+
 /// The simulated array's capacity (the gateware tests build it with these): that of the ECP5
 /// builds, and small memories keep Migen's simulator quick to set up.
 const CAPACITY: Capacity = Capacity {
@@ -146,6 +148,7 @@ fn vectors() -> Value {
         "capacity": {"nodes": CAPACITY.nodes, "words": CAPACITY.words, "tiles": CAPACITY.tiles},
         "decoded_words": decoded_words(),
         "cases": cases,
+        "svu": svu_vectors::vectors(),
     })
 }
 

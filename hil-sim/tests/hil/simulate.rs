@@ -126,15 +126,9 @@ fn the_nonlinear_model_updates_values_only_and_matches_a_fresh_upload() {
     assert_alive(&mut qemu);
 }
 
-/// `deform simulate examples/needle-insertion.toml --steps 6 --dt 0.25`: the keyframed tip
-/// displacement (0 → −2 over t = 0 … 1, then held) is met at every step, and every step
-/// matches the f64 reference.
-#[test]
-fn the_needle_insertion_example_follows_its_keyframes() {
-    use deform_host::model::Node;
-    use deform_host::scenario::value_at;
+/// `deform simulate examples/needle-insertion.toml --steps 6 --dt 0.25`'s series and model.
+fn needle_insertion() -> (deform_host::simulate::plan::SeriesPlan, Model) {
     use deform_host::simulate::plan::{Overrides, SeriesPlan};
-
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/../examples/needle-insertion.toml"
@@ -147,24 +141,47 @@ fn the_needle_insertion_example_follows_its_keyframes() {
     let resolved =
         SeriesPlan::load(Some(std::path::Path::new(path)), &overrides).expect("resolves");
     assert_eq!(resolved.schedule, Schedule { steps: 6, dt: 0.25 });
-    let sim = resolved.simulation.clone().expect("[simulation]");
     let model = Model::build(&resolved.spec).expect("model builds");
-    let tip = model.grid().index(Node::new(5, 5, 9)).unwrap();
+    (resolved, model)
+}
 
-    let mut qemu = boot();
-    let mut target = connect(&qemu);
+/// The series `resolved` of `model` on the target of `qemu`, solved with `params`.
+fn simulate_series(
+    qemu: &deform_hil_sim::Qemu,
+    resolved: &deform_host::simulate::plan::SeriesPlan,
+    model: &Model,
+    params: StepParams,
+    on_step: impl FnMut(&deform_host::simulate::StepResult),
+) -> Vec<deform_host::simulate::StepResult> {
+    let mut target = connect(qemu);
     let step_model = |t: f64| resolved.model_at(t);
-    let steps = simulate_with(
+    simulate_with(
         &mut target,
-        &model,
+        model,
         resolved.schedule,
         Some(&step_model as StepModel),
         None,
-        params(true),
+        params,
         |_| {},
-        |_| {},
+        on_step,
     )
-    .expect("simulate on QEMU");
+    .expect("simulate on QEMU")
+}
+
+/// `deform simulate examples/needle-insertion.toml --steps 6 --dt 0.25`: the keyframed tip
+/// displacement (0 → −2 over t = 0 … 1, then held) is met at every step, and every step
+/// matches the f64 reference.
+#[test]
+fn the_needle_insertion_example_follows_its_keyframes() {
+    use deform_host::model::Node;
+    use deform_host::scenario::value_at;
+
+    let (resolved, model) = needle_insertion();
+    let sim = resolved.simulation.clone().expect("[simulation]");
+    let tip = model.grid().index(Node::new(5, 5, 9)).unwrap();
+
+    let mut qemu = boot();
+    let steps = simulate_series(&qemu, &resolved, &model, params(true), |_| {});
     assert_eq!(steps.len(), 6);
     for s in &steps {
         let want = value_at(&sim.displace[0].keyframes, s.t);
@@ -193,6 +210,48 @@ fn the_needle_insertion_example_follows_its_keyframes() {
         steps[1].u[2][tip].round(),
         -1.0,
         "t = 0.5 is half of the 0 → −2 ramp"
+    );
+    assert_alive(&mut qemu);
+}
+
+/// `deform simulate examples/needle-insertion.toml --steps 6 --dt 0.25` with simulate's own
+/// defaults (fused, predicted, warm): the series runs as superposed live frames (issue 19 item
+/// 2), not on the extrapolation 2u(t−1) − u(t−2). Every step says so, the closing line names
+/// the predictor, and every step after the first (where the extrapolation has one solution at
+/// most to start from, and needs iterations) takes 0 CG iterations; each still matches f64.
+#[test]
+fn simulate_takes_the_superposed_path_for_a_prescribed_tool() {
+    use deform_host::simulate::sink::Totals;
+
+    let (resolved, model) = needle_insertion();
+    let params = StepParams {
+        predict: true,
+        fuse: true,
+        tol: 1e-5,
+        ..params(true)
+    };
+    let mut qemu = boot();
+    let mut totals = Totals::default();
+    let steps = simulate_series(&qemu, &resolved, &model, params, |s| {
+        totals.add(s, params.tol)
+    });
+    assert_eq!(steps.len(), 6);
+    for s in &steps {
+        let dev = s.deviation.expect("checked against f64");
+        println!(
+            "step {} t = {}: superposed {}, {} iterations, {} cycles, deviation {dev:.2e}",
+            s.step, s.t, s.superposed, s.iterations, s.cycles
+        );
+        assert!(s.superposed, "step {}: not a superposed frame", s.step);
+        assert!(dev < 1e-4, "step {}: deviation {dev:e}", s.step);
+        if s.step > 1 {
+            assert_eq!(s.iterations, 0, "step {}", s.step);
+        }
+    }
+    let closing = totals.quasi_static_lines(&params, false);
+    assert!(
+        closing.contains("superposed live frames"),
+        "the closing line names the predictor: {closing}"
     );
     assert_alive(&mut qemu);
 }

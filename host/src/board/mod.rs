@@ -31,12 +31,12 @@ use crate::flash::{
 use crate::link::{open_serial, Link, LinkStats, Target, Timeouts};
 pub use flags::{BoardFlags, LogFlags, LogOptions, TargetFlags, TargetKind};
 
+/// SoC clocks per received byte when deform's own SFL client flashes the simulated BIOS SoC
+/// (see [`Board::flash_litex_bios`]): 115,200 baud at the SoC's nominal 1 MHz.
+const SIMULATED_BIOS_UART_PACE: u32 = 87;
+
 /// Harts a QEMU board gets when `--mvus` does not say: the most a target may have
 /// ([`deform_shared::protocol::MAX_HARTS`]), so that by default every MVU is used.
-/// SoC clocks per received byte when deform's own SFL client flashes the simulated BIOS SoC
-/// (see [`Board::flash_litex_bios`]): 38,400 baud at the SoC's nominal 1 MHz.
-const SIMULATED_BIOS_UART_PACE: u32 = 260;
-
 pub const DEFAULT_QEMU_HARTS: u8 = deform_shared::protocol::MAX_HARTS as u8;
 
 /// Where to run.
@@ -214,8 +214,8 @@ impl Board {
                 // deform's own SFL client keeps one 68-byte frame in flight, so the BIOS's
                 // 128-byte receive ring cannot overflow: the SoC may hand it bytes faster than
                 // the BIOS shape's default pace, which is set for stock litex_term's 128 frames
-                // in flight (hil-sim/litex/deform_soc.py). Measured at 260 clocks a byte
-                // (38,400 baud at the nominal 1 MHz): 2,593 frames, none resent.
+                // in flight (hil-sim/litex/deform_soc.py). Measured at 87 clocks a byte
+                // (115,200 baud at the nominal 1 MHz): 3,819 frames, none resent.
                 let config = LitexConfig::bios().with_uart_pace(SIMULATED_BIOS_UART_PACE);
                 let sim = LitexSim::start(&config)
                     .context("starting the simulated LiteX SoC with its BIOS")?;

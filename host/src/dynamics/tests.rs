@@ -107,6 +107,28 @@ fn one_oscillator_is_the_exact_backward_euler_recurrence() {
     }
 }
 
+/// The energy `deform simulate --dynamic` writes in its `energy` column, against the hand
+/// computation for one spring: ½·(m·v² summed over the moving directions + k·u²). Neither
+/// max |u| nor max |v| (which it was once suspected to repeat).
+#[test]
+fn the_energy_is_kinetic_plus_elastic_by_hand() {
+    let (m, k) = (2.0, 5.0);
+    let model = oscillator(k, 0.0);
+    let system = DynamicSystem::new(&model, &DynamicsSpec::uniform(m, [0.3; 3])).unwrap();
+    let (a, b, c) = (0.4, -1.5, 0.25);
+    let u = [vec![0.0, a], vec![0.0; 2], vec![0.0; 2]];
+    let v = [vec![0.0, b], vec![0.0, c], vec![0.0; 2]];
+    let want = 0.5 * (m * b * b + m * c * c + k * a * a);
+    let got = system.energy(&u, &v);
+    assert!((got - want).abs() <= 1e-12 * want, "{got} vs {want}");
+    assert_ne!(got, a);
+    // At rest and undeformed there is none; u alone is elastic, v alone kinetic.
+    let zero = [vec![0.0; 2], vec![0.0; 2], vec![0.0; 2]];
+    assert_eq!(system.energy(&zero, &zero), 0.0);
+    assert!((system.energy(&u, &zero) - 0.5 * k * a * a).abs() <= 1e-12);
+    assert!((system.energy(&zero, &v) - 0.5 * m * (b * b + c * c)).abs() <= 1e-12);
+}
+
 /// Error at T = 2 s against the closed form, halving h each time.
 fn convergence(scheme: Scheme) -> Vec<f64> {
     let (m, beta, k, f, end) = (1.0, 0.4, 9.0, 1.0, 2.0f64);

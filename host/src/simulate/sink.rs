@@ -268,6 +268,9 @@ mod tests {
         assert_eq!(column("solves"), "0");
         assert_eq!(column("cycles"), "99000");
         assert_eq!(column("bytes_received"), "800");
+        // The energy is the step's own, not max |u| repeated.
+        assert_eq!(column("max_u"), "2.5e-3");
+        assert_eq!(column("energy"), "5e-1");
         let r = result();
         let row = StepRow(&r);
         assert_eq!(row.header(), "step,t,iterations,residual,max_u,cycles");

@@ -51,6 +51,74 @@ impl Phases {
     }
 }
 
+/// A measuring build's choice (`DEFORM_STEP_PHASE=rotate cargo xtask firmware`): frame k of a
+/// session reports in its `cycles`, instead of the whole step's cost, the critical path of
+/// phase k mod 13 of [`PHASES`] (0: the whole step), so that one run breaks a step's cost down
+/// by phase in exact counts (docs/PERFORMANCE.md, "The dynamic step by phase"). Unset in every
+/// normal build.
+const STEP_PHASE: Option<&str> = option_env!("DEFORM_STEP_PHASE");
+
+/// The phases a measuring build reports, in the step's order (`iteration`, the solve's first
+/// iteration, is part of `solve`, which also holds its set-up and closing check; so are the
+/// solve's MVU phases, `iteration_mvu` the first iteration's and `other_mvu` the rest).
+const PHASES: [&str; 13] = [
+    "step",
+    "ku",
+    "rhs_plan",
+    "rhs_pass",
+    "tool_rows",
+    "predict",
+    "residual",
+    "solve",
+    "iteration",
+    "iteration_mvu",
+    "other_mvu",
+    "force",
+    "advance",
+];
+
+/// The step's cost at the end of each phase, for [`STEP_PHASE`].
+#[derive(Default)]
+struct PhaseProbe {
+    /// The cost when the last phase ended.
+    last: PhaseCounters,
+    /// Each phase's own cost, in [`PHASES`]' order.
+    costs: [PhaseCounters; PHASES.len()],
+}
+
+impl PhaseProbe {
+    /// Phase `phase` ended with the step's cost at `cost()`. Nothing in a normal build (the
+    /// clock is not even read).
+    fn mark(&mut self, phase: &str, cost: impl FnOnce() -> PhaseCounters) {
+        if STEP_PHASE.is_none() {
+            return;
+        }
+        let cost = cost();
+        self.set(phase, cost.saturating_sub(self.last));
+        self.last = cost;
+    }
+
+    /// Phase `phase` (within another) cost `cost`.
+    fn set(&mut self, phase: &str, cost: PhaseCounters) {
+        if STEP_PHASE.is_none() {
+            return;
+        }
+        if let Some(k) = PHASES.iter().position(|&p| p == phase) {
+            self.costs[k] = cost;
+        }
+    }
+
+    /// What frame `frame` reports: the whole step's `cost`, or in a measuring build one
+    /// phase's (0 where the step did not run it).
+    fn report(&self, frame: u32, cost: PhaseCounters) -> PhaseCounters {
+        let phase = frame as usize % PHASES.len();
+        match STEP_PHASE {
+            Some("rotate") if phase != 0 => self.costs[phase],
+            _ => cost,
+        }
+    }
+}
+
 /// A real multiplier as a fixed-point integer m·2^−shift (m below 2^40, so a 21-bit raw value
 /// times it stays within `i64`).
 #[derive(Debug, Clone, Copy, Default)]
@@ -88,8 +156,6 @@ struct Step {
     d: usize,
     plan: RhsPlan,
     sums: RhsSums,
-    /// The tool's velocities v₁t (real units) in this direction.
-    velocity: [f64; MAX_TOOL_NODES],
     /// Per tool node, what its couplings' raw values of S and K are multiplied by on the rows
     /// they couple to, in b's (the resident S's) units: v₁t·2^−F_S, and h·u₀t·2^−F_K with
     /// the scales of S and K folded in (the resident K lacks the tool's columns).
@@ -103,6 +169,15 @@ struct Step {
     /// What this step keeps for the next one: d₁'s narrowed block and r₀f's (where the last
     /// solve left a checked r).
     kept: Option<(Block, Block)>,
+}
+
+/// A step's tool terms as [`Session::plan_rhs`] forms them, before its plan (see [`Step`]).
+#[derive(Default)]
+struct ToolTerms {
+    s_mult: [f64; MAX_TOOL_NODES],
+    k_mult: [f64; MAX_TOOL_NODES],
+    ku: [f64; MAX_TOOL_NODES],
+    mv: [f64; MAX_TOOL_NODES],
 }
 
 impl<E: Executor> Session<'_, E> {
@@ -220,16 +295,51 @@ impl<E: Executor> Session<'_, E> {
         let mut phases = Phases::default();
         let mut force = [0f64; 3];
         let (mut residual, mut iterations) = (0f64, 0u32);
+        // The step's cost so far: hart 0's clock with each parallel phase's critical path in
+        // place of its wall time.
+        let cost = |exec: &E, phases: &Phases| {
+            exec.now()
+                .since(t0)
+                .saturating_sub(phases.on_hart0)
+                .saturating_add(phases.critical)
+        };
+        let mut probe = PhaseProbe::default();
         if !active.is_empty() {
             self.stiffness_product(shape, &active, &mut phases)?;
-            let mut steps = self.form_rhs(shape, tool, &active, &mut phases)?;
-            let (report, outcomes) = self.solve_step(shape, &mut steps, &mut phases)?;
+            probe.mark("ku", || cost(&self.exec, &phases));
+            // b₁ and d = b₁ − b₀ of every active direction (d in Kp's lane): planned, pass B on
+            // every hart, the tool rows on hart 0.
+            let mut stash = Stash::new();
+            let mut steps = self.plan_rhs(shape, tool, &active, &mut stash)?;
+            probe.mark("rhs_plan", || cost(&self.exec, &phases));
+            let n = to_usize(shape.n);
+            self.rhs_pass(n, &mut steps, &mut phases)?;
+            probe.mark("rhs_pass", || cost(&self.exec, &phases));
+            self.tool_rows(&mut steps, &stash)?;
+            probe.mark("tool_rows", || cost(&self.exec, &phases));
+            self.predict(n, &steps, &mut phases)?;
+            probe.mark("predict", || cost(&self.exec, &phases));
+            let r_start = self.start_residuals(n, &mut steps, &mut phases)?;
+            probe.mark("residual", || cost(&self.exec, &phases));
+            let (report, outcomes) = self.solve_step(shape, &mut steps, r_start, &mut phases)?;
+            probe.mark("solve", || cost(&self.exec, &phases));
+            probe.set("iteration", report.per_iteration.critical());
+            // The first iteration's MVU phase, and the solve's other MVU phases (the closing
+            // check's pass in a one-iteration step).
+            let mvu = report.per_iteration.mvu_critical;
+            probe.set("iteration_mvu", mvu);
+            probe.set(
+                "other_mvu",
+                report.whole_solve.mvu_critical.saturating_sub(mvu),
+            );
             residual = report.residual;
             iterations = report.iterations;
             for step in &mut steps {
                 force[step.d] = self.tool_force(shape, step, outcomes[step.d]);
             }
+            probe.mark("force", || cost(&self.exec, &phases));
             self.advance(shape, tool, &steps, &mut phases)?;
+            probe.mark("advance", || cost(&self.exec, &phases));
         }
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
         for (a, b) in st.tool_u.iter_mut().zip(tool) {
@@ -239,12 +349,8 @@ impl<E: Executor> Session<'_, E> {
         if !force.iter().all(|&v| (v as f32).is_finite()) {
             return Err(ErrorCode::Live(LiveError::NotFinite));
         }
-        let cost = self
-            .exec
-            .now()
-            .since(t0)
-            .saturating_sub(phases.on_hart0)
-            .saturating_add(phases.critical);
+        st.frames = st.frames.wrapping_add(1);
+        let cost = probe.report(st.frames, cost(&self.exec, &phases));
         let (cycles, stall_cycles) = live_glue::live_counts(cost);
         Ok(Response::LiveFrame(FrameReport {
             force: force.map(|v| v as f32),
@@ -274,31 +380,19 @@ impl<E: Executor> Session<'_, E> {
         };
         let n = to_usize(shape.n);
         let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
-        let Some(Parts {
-            tiles,
-            words,
+        let Parts {
+            matrix,
+            work,
             directions,
-            p,
-            kp,
-            partial,
-        }) = self.store.parts(shape, true)
-        else {
-            return Err(ErrorCode::ChunkTooLong);
-        };
+        } = self
+            .store
+            .parts(shape, Words::Stiffness { frac_bits }, &plan)?;
         let mut us: heapless::Vec<&mut [i32], MAX_DIRECTIONS> = heapless::Vec::new();
         for (d, v) in directions.iter_mut().enumerate() {
             if active.contains(&d) {
                 let _ = us.push(v.x.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?);
             }
         }
-        let matrix = Matrix {
-            n,
-            frac_bits,
-            tiles,
-            words,
-            plan: &plan,
-        };
-        let work = Work { p, kp, partial };
         let product = cg::product(&matrix, &mut us, work, &self.exec).map_err(ErrorCode::Solve)?;
         phases.add(product.on_hart0, product.critical);
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
@@ -309,15 +403,16 @@ impl<E: Executor> Session<'_, E> {
         Ok(())
     }
 
-    /// The tool's velocities and force terms, then pass B on every hart and the tool rows on
-    /// hart 0: b₁ and d = b₁ − b₀ of every active direction (d in Kp's lane). Returns the
-    /// steps' plans and sums.
-    fn form_rhs(
+    /// The tool's velocities and force terms and pass B's plans of every active direction, and
+    /// b₀ at the tool's rows into `stash`, which pass B ([`Self::rhs_pass`]) then overwrites
+    /// and the tool rows ([`Self::tool_rows`]) read. (The stash is the caller's: at 4 kB,
+    /// returning it by value cost more copying than the rows' work.)
+    fn plan_rhs(
         &mut self,
         shape: Shape,
         tool: &[[f32; 3]],
         active: &[usize],
-        phases: &mut Phases,
+        stash: &mut Stash,
     ) -> Result<heapless::Vec<Step, MAX_DIRECTIONS>, ErrorCode> {
         let (n, f_s) = (to_usize(shape.n), i32::from(shape.frac_bits));
         let StiffnessState::Complete { frac_bits } = self.stiffness else {
@@ -337,24 +432,13 @@ impl<E: Executor> Session<'_, E> {
                 dir.x0.get(..n).unwrap_or(&[]),
             );
             let (e_u, e_v) = (self.solution[d].unwrap_or(0), st.v[d].e);
-            let mut step = Step {
-                d,
-                plan: RhsPlan::new(m, h, st.v[d], 0, 0, 0.0, 0, &mut sat),
-                sums: RhsSums::default(),
-                velocity: [0.0; MAX_TOOL_NODES],
-                s_mult: [0.0; MAX_TOOL_NODES],
-                k_mult: [0.0; MAX_TOOL_NODES],
-                ku: [0.0; MAX_TOOL_NODES],
-                mv: [0.0; MAX_TOOL_NODES],
-                v0: st.v[d],
-                kept: None,
-            };
+            // The tool's terms first; the plan, which needs them, last.
+            let mut step = ToolTerms::default();
             let mut tool_part = 0f64;
             for (t, dt) in tools.iter().enumerate() {
                 let node = dt.s.node as usize;
                 let u_then = f64::from(st.tool_u[t][d]);
                 let velocity = (f64::from(tool[t][d]) - u_then) / h;
-                step.velocity[t] = velocity;
                 step.s_mult[t] = ldexp(velocity, -f_s);
                 step.k_mult[t] = ldexp(h * u_then, -f_k - s_scale);
                 let own_u = u.get(node).copied().unwrap_or(0);
@@ -373,7 +457,7 @@ impl<E: Executor> Session<'_, E> {
                     column(&dt.s) * step.s_mult[t].abs() + column(&dt.k) * step.k_mult[t].abs();
             }
             let e_old = self.rhs[d].exponent(SessionStep::NoRhs)?;
-            step.plan = RhsPlan::new(
+            let plan = RhsPlan::new(
                 ldexp(m, -s_scale),
                 ldexp(h, -s_scale),
                 st.v[d],
@@ -383,7 +467,17 @@ impl<E: Executor> Session<'_, E> {
                 e_old,
                 &mut sat,
             );
-            let _ = steps.push(step);
+            let _ = steps.push(Step {
+                d,
+                plan,
+                sums: RhsSums::default(),
+                s_mult: step.s_mult,
+                k_mult: step.k_mult,
+                ku: step.ku,
+                mv: step.mv,
+                v0: st.v[d],
+                kept: None,
+            });
         }
         if sat != 0 {
             return Err(ErrorCode::Solve(SolveFailure::NotPositiveDefinite {
@@ -391,7 +485,7 @@ impl<E: Executor> Session<'_, E> {
             }));
         }
         // b₀ at the tool's rows, before pass B overwrites it.
-        let mut stash: Stash = heapless::Vec::new();
+        stash.clear();
         for dt in tools {
             let rows = core::iter::once(dt.s.node).chain(dt.s.row.iter().map(|c| c.column));
             for row in rows {
@@ -405,8 +499,6 @@ impl<E: Executor> Session<'_, E> {
                 let _ = stash.push((row, old));
             }
         }
-        self.rhs_pass(n, &mut steps, phases)?;
-        self.tool_rows(&mut steps, &stash)?;
         Ok(steps)
     }
 
@@ -473,10 +565,16 @@ impl<E: Executor> Session<'_, E> {
             // Per tool node, its couplings' multipliers in b's units as fixed-point integers:
             // a raw value times one is a product and a rounded shift, no soft float per row.
             let e = step.plan.e;
-            let ms: [Fixed; MAX_TOOL_NODES] =
-                core::array::from_fn(|t| Fixed::of(ldexp(step.s_mult[t], -e)));
-            let mk: [Fixed; MAX_TOOL_NODES] =
-                core::array::from_fn(|t| Fixed::of(ldexp(step.k_mult[t], -e)));
+            // Only the tools there are: each is a soft-float multiply and more.
+            let fixed = |mult: &[f64; MAX_TOOL_NODES], t: usize| {
+                if t < tools.len() {
+                    Fixed::of(ldexp(mult[t], -e))
+                } else {
+                    Fixed::default()
+                }
+            };
+            let ms: [Fixed; MAX_TOOL_NODES] = core::array::from_fn(|t| fixed(&step.s_mult, t));
+            let mk: [Fixed; MAX_TOOL_NODES] = core::array::from_fn(|t| fixed(&step.k_mult, t));
             for &(row, old) in stash {
                 let i = row as usize;
                 let Some(bi) = b.get_mut(i) else { continue };
@@ -518,11 +616,10 @@ impl<E: Executor> Session<'_, E> {
         &mut self,
         shape: Shape,
         steps: &mut [Step],
+        r_start: [Option<GivenResidual>; MAX_DIRECTIONS],
         phases: &mut Phases,
     ) -> Result<(SolveReport, [Outcome; MAX_DIRECTIONS]), ErrorCode> {
         let n = to_usize(shape.n);
-        self.predict(n, steps, phases)?;
-        let r_start = self.start_residuals(n, steps, phases)?;
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
         let params = SolveParams {
             max_iterations: st.params.max_iterations,
@@ -533,17 +630,11 @@ impl<E: Executor> Session<'_, E> {
         };
         let v_exponents = st.v.map(|b| b.e);
         let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
-        let Some(Parts {
-            tiles,
-            words,
+        let Parts {
+            matrix,
+            work,
             directions,
-            p,
-            kp,
-            partial,
-        }) = self.store.parts(shape, false)
-        else {
-            return Err(ErrorCode::ChunkTooLong);
-        };
+        } = self.store.parts(shape, Words::Resident, &plan)?;
         let mut systems: heapless::Vec<System<'_>, MAX_DIRECTIONS> = heapless::Vec::new();
         for (d, v) in directions.iter_mut().enumerate() {
             let Some(lane) = steps.iter().position(|s| s.d == d) else {
@@ -563,14 +654,6 @@ impl<E: Executor> Session<'_, E> {
                 outcome: Outcome::default(),
             });
         }
-        let matrix = Matrix {
-            n,
-            frac_bits: shape.frac_bits,
-            tiles,
-            words,
-            plan: &plan,
-        };
-        let work = Work { p, kp, partial };
         let report = cg::solve(&matrix, &mut systems, work, &params, &self.exec)
             .map_err(ErrorCode::Solve)?;
         let (on_hart0, critical) = live_glue::solve_cost(&report);
