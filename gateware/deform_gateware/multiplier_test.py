@@ -50,6 +50,11 @@ class MultiplierTest(unittest.TestCase):
         # pᵀKp: a p lane times 33 bits (a zero- or sign-extended half of a 64-bit row sum).
         self.check(32, 33)
 
+    def test_top_slices_of_three_and_five_bits_in_logic(self):
+        # Odd-width top slices: the sign bit's term stands alone.
+        self.check(20, 32)
+        self.check(22, 32)
+
     def test_operands_in_one_block(self):
         self.check(18, 18)
 

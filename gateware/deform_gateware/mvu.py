@@ -24,25 +24,31 @@ The word pipeline (no stage ever stalls; the fetch waits instead):
 
     F0  fetch the word memory at ``wa``
     F1  (block RAM)
-    F2  decode EM/ER/column/value/flags; the p addresses from the tile context
-    F3  (block RAM)
-    F4  p is there: the multipliers take value x p for 3 lanes, own and mirrored
-    M.. the multipliers' pipeline (``Multiplier.latency`` clocks)
+    F2  decode EM/ER/column/value/flags, in the tile context
+    F3  the p addresses, registered (``col_base + c``, ``n - 1 - col_base - c``)
+    F4  (block RAM)
+    F5  p is there: the multipliers take value x p for 3 lanes, own and mirrored
+    M.. the multipliers' pipeline (``Multiplier.latency`` clocks; on the ECP5 the DSP blocks'
+        own input and output registers are two of them)
     A   accumulate, 64 bits per lane; an ER word's sums are complete after it
     E   an ER word's sums (and rows, flags) go into the write-back queue
 
 The write-back takes queue entries one part at a time (the own row, then the mirror row of a
-mirrored tile), three clocks each: read Kp and p at the row, wait, then store (the first
-write-back of the row in this phase) or add, OR the magnitudes into max |Kp| if this was the
-row's last write-back, and hand p[row] and the sums to the pᵀKp sequencer, which multiplies each
-lane's 32-bit p by the sum's low and high halves in turn (2 clocks per direction) and
-accumulates Σ p·low and Σ p·high; the array joins them into pᵀKp. The fetch stops while the
-queue could overflow; ``stalls`` counts those clocks.
+mirrored tile) into a register, S, and from there through W (read Kp and p at the row), W2
+(their data registered beside the adders), U (store the first write-back of the row in this
+phase, or add) and R (write Kp, OR the magnitudes into max |Kp| if this was the row's last
+write-back). U hands p[row] and the sums to the pᵀKp sequencer, which multiplies each lane's
+32-bit p by the sum's low and high halves in turn (2 clocks per direction) and accumulates
+Σ p·low and Σ p·high; the array joins them into pᵀKp. A part leaves S at most every other
+clock, never onto a row still being written nor before the sequencer can take its job; the
+decision is an AND of registers (the queue's pop, the row compares and the sequencer's count
+are each made a clock ahead), not the long path from the queue's memory to its own pop that it
+was. The fetch stops while the queue could overflow; ``stalls`` counts those clocks.
 """
 
 from migen import (Module, Signal, Memory, Array, Cat, If, FSM, NextState, NextValue,
                    Replicate)
-from migen.genlib.fifo import SyncFIFO
+from migen.genlib.fifo import SyncFIFOBuffered
 
 from deform_gateware.bram import Bram, LATENCY
 from deform_gateware.multiplier import Multiplier
@@ -91,6 +97,7 @@ class Mvu(Module):
 
     def __init__(self, words, tiles, nodes, primitive=False):
         self.words_depth, self.tiles_depth, self.nodes_depth = words, tiles, nodes
+        self.primitive = primitive
         nb = bits_for(nodes)
         self.node_bits = nb
 
@@ -144,7 +151,9 @@ class Mvu(Module):
         wa = Signal(bits_for(self.words_depth + 1))
         next_tile = Signal(bits_for(self.tiles_depth + 1))   # the header `tile_rd` shows
         issue = Signal()
-        self.queue = queue = SyncFIFO(self._entry_width(), QUEUE_DEPTH)
+        # The write-back queue: its head a register (the memory's read is registered), so that
+        # what the write-back decides from it starts at a register, not at a memory read.
+        self.queue = queue = SyncFIFOBuffered(self._entry_width(), QUEUE_DEPTH)
         self.submodules += queue
 
         # F2: decode, in the tile context; `tile_rd` shows the next tile's header.
@@ -169,21 +178,24 @@ class Mvu(Module):
             advance.eq(f2_valid & decode.em),
         ]
 
-        # F3/F4 (p from the block RAM) and the multipliers.
+        # F3..F5: the p addresses, registered at F3, then the block RAM; p is there at F5. The
+        # word's control and value travel alongside.
         control_bits = 1 + 1 + 4 + 2 * nb + 1
-        f3 = Signal(control_bits)
-        f3_value = Signal((VALUE_BITS, True))
-        f4 = Signal(control_bits)
-        f4_value = Signal((VALUE_BITS, True))
         mirror_row = Signal(nb)
         self.comb += mirror_row.eq(self.last_row - row)
+        f = [(Signal(control_bits), Signal((VALUE_BITS, True))) for _ in range(1 + LATENCY)]
         self.sync += [
-            f3.eq(Cat(f2_valid, decode.er, decode.flags, row, mirror_row, mirrored)),
-            f3_value.eq(decode.value),
-            f4.eq(f3), f4_value.eq(f3_value),
+            f[0][0].eq(Cat(f2_valid, decode.er, decode.flags, row, mirror_row, mirrored)),
+            f[0][1].eq(decode.value),
+            *[dst.eq(src) for k in range(1, len(f)) for dst, src in zip(f[k], f[k - 1])],
         ]
-        own_mul = [Multiplier(VALUE_BITS, P_BITS) for _ in range(LANES)]
-        mirror_mul = [Multiplier(VALUE_BITS, P_BITS) for _ in range(LANES)]
+        last_control, last_value = f[-1]
+        p_own_adr = Signal(nb)
+        p_mirror_adr = Signal(nb)
+        self.sync += [p_own_adr.eq(col_base + decode.column),
+                      p_mirror_adr.eq(mirror_col_base - decode.column)]
+        own_mul = [Multiplier(VALUE_BITS, P_BITS, self.primitive) for _ in range(LANES)]
+        mirror_mul = [Multiplier(VALUE_BITS, P_BITS, self.primitive) for _ in range(LANES)]
         self.submodules += own_mul + mirror_mul
         latency = own_mul[0].latency
         p_own_lanes, fill_own = lanes(self.p_col.read[0].dat, P_BITS)
@@ -191,12 +203,12 @@ class Mvu(Module):
         self.comb += fill_own + fill_mirror
         for lane in range(LANES):
             self.comb += [
-                own_mul[lane].a.eq(f4_value), own_mul[lane].b.eq(p_own_lanes[lane]),
-                mirror_mul[lane].a.eq(f4_value), mirror_mul[lane].b.eq(p_mirror_lanes[lane]),
+                own_mul[lane].a.eq(last_value), own_mul[lane].b.eq(p_own_lanes[lane]),
+                mirror_mul[lane].a.eq(last_value), mirror_mul[lane].b.eq(p_mirror_lanes[lane]),
             ]
         # The control of each word, delayed alongside the multipliers.
         delayed = [Signal(control_bits) for _ in range(latency)]
-        self.sync += delayed[0].eq(f4)
+        self.sync += delayed[0].eq(last_control)
         for k in range(1, latency):
             self.sync += delayed[k].eq(delayed[k - 1])
         a = dict(valid=Signal(), er=Signal(), flags=Signal(4), row=Signal(nb),
@@ -226,7 +238,8 @@ class Mvu(Module):
         ]
 
         # F0: fetch while the queue has room for every ER word that may be in flight.
-        in_flight = LATENCY + 2 + latency + 2
+        # (F1, F2, F3..F5, the multipliers, E, and the word being fetched.)
+        in_flight = LATENCY + len(f) + latency + 2
         room = Signal()
         self.comb += room.eq(queue.level < QUEUE_DEPTH - in_flight)
         fsm = FSM(reset_state="IDLE")
@@ -237,18 +250,22 @@ class Mvu(Module):
             If(self.start & (self.length != 0),
                 NextValue(fresh, 1), NextValue(self.stalls, 0),
                 NextState("FIRST_TILE")))
+        # `at_end` is `wa == length`, a register of its own (made from wa's next value): the
+        # compare of the word address is then no path into the state register, which fans out
+        # to every memory's port multiplexer and sits far from the fetch.
+        at_end = Signal()
         fsm.act("FIRST_TILE",
-            NextValue(next_tile, 1), NextValue(wa, 0),
+            NextValue(next_tile, 1), NextValue(wa, 0), NextValue(at_end, 0),
             NextValue(row, next_row_base), NextValue(col_base, next_col_base),
             NextValue(mirror_col_base, next_mirror_col_base),
             NextValue(mirrored, next_mirrored),
             NextState("RUN"))
         fsm.act("RUN",
             self.words.read[0].adr.eq(wa),
-            issue.eq((wa != self.length) & room),
-            If(issue, NextValue(wa, wa + 1)),
-            If((wa != self.length) & ~room, NextValue(self.stalls, self.stalls + 1)),
-            If(wa == self.length, NextState("DRAIN")))
+            issue.eq(~at_end & room),
+            If(issue, NextValue(wa, wa + 1), NextValue(at_end, wa + 1 == self.length)),
+            If(~at_end & ~room, NextValue(self.stalls, self.stalls + 1)),
+            If(at_end, NextState("DRAIN")))
         drained = Signal()
         fsm.act("DRAIN", If(drained, NextState("IDLE")))
         self.comb += self.busy.eq(~fsm.ongoing("IDLE"))
@@ -265,17 +282,17 @@ class Mvu(Module):
             ).Elif(f2_valid & decode.er,
                 row.eq(row + 1)),
         ]
-        # The p reads of F2: p[col_base + c], p[n - 1 - col_base - c]; the array's while idle.
+        # The p reads of F3: p[col_base + c], p[n - 1 - col_base - c]; the array's while idle.
         self.comb += [
             If(idle,
                 self.p_col.read[0].adr.eq(self.bus_p.adr),
                 self.p_col.read[1].adr.eq(self.bus_p.adr),
             ).Else(
-                self.p_col.read[0].adr.eq(col_base + decode.column),
-                self.p_col.read[1].adr.eq(mirror_col_base - decode.column)),
+                self.p_col.read[0].adr.eq(p_own_adr),
+                self.p_col.read[1].adr.eq(p_mirror_adr)),
         ]
-        self._drained_parts = (drained, fetched + [f3[0], f4[0], a["valid"], e["valid"]]
-                               + [d[0] for d in delayed])
+        self._drained_parts = (drained, fetched + [c[0] for c, _ in f]
+                               + [a["valid"], e["valid"]] + [d[0] for d in delayed])
 
     def _entry_width(self):
         nb = self.node_bits
@@ -304,14 +321,19 @@ class Mvu(Module):
         mirror = [Signal((SUM_BITS, True)) for _ in range(LANES)]
         mirror_pending = Signal()
 
-        # A part (a row, its sums, first/last) through the stages S (select: read Kp and p at
-        # its row), W (the block RAMs), U (update: store or add) and R (write Kp, OR the
-        # magnitudes of a finished row). Parts follow each other as closely as every clock,
-        # except that a part may not read a row that a part ahead of it has yet to write.
+        # A part (a row, its sums, first/last) through the stages S (the next part, in a
+        # register of its own), W and W2 (Kp and p read at its row: the block RAMs, then a
+        # register of their data beside the adders, which the block may be placed far from),
+        # U (update: store or add) and R (write Kp, OR the magnitudes of a finished row). A part
+        # may not leave S while a part ahead of it has yet to write its row, nor while a part
+        # is in W (its pᵀKp job would be due in the same clock), so parts leave S at most every
+        # other clock; S refills in the clock between. Every input of that decision is a
+        # register: the pop of the queue, the row compares and the sequencer's count each
+        # happen a clock ahead.
         def part():
             return dict(valid=Signal(), row=Signal(nb), first=Signal(), last=Signal(),
                         sums=[Signal((SUM_BITS, True)) for _ in range(LANES)])
-        w, u, r = part(), part(), part()
+        s, w, w2, u, r = part(), part(), part(), part(), part()
 
         # The pᵀKp sequencer: a job is p[row] (3 lanes) and the part's sums; it feeds the
         # multiplier one product per clock, lane by lane, low half then high half.
@@ -320,56 +342,69 @@ class Mvu(Module):
         left = Signal(3)      # products of the job still to feed
         step = Signal(3)      # 2·lane + half of the next one
         seq_busy = Signal()
-        # A part selected now reaches U (and hands over its job) LATENCY clocks later, when
-        # the sequencer must be feeding its last product at the latest; no part may be in W
-        # then either (its job would be due at the same time).
-        free_soon = Signal()
-        # What `left` will have counted down from: a job being handed over now (a part in U)
-        # starts at 2·directions.
-        due = Signal(3)
+        # A part leaving S now reaches U (and hands over its job) LATENCY + 1 clocks later, when
+        # the sequencer must be feeding its last product at the latest: with a part in W2 or U
+        # (it hands over its job of 2·directions products first) only one direction allows
+        # that, else at most LATENCY + 2 products may be left. `free_soon` says so for this
+        # clock, computed in the clock before from what `left` and the valid bits become.
+        free_soon = Signal(reset=1)
+        left_next = Signal(3)
+        job = Cat(0, self.directions)      # 2·directions products
         self.comb += [
             seq_busy.eq(left != 0),
-            If(u["valid"], due.eq(Cat(0, self.directions))).Else(due.eq(left)),
-            free_soon.eq(due <= LATENCY + 1),
+            If(u["valid"], left_next.eq(job)).Elif(seq_busy, left_next.eq(left - 1)).Else(
+                left_next.eq(left)),
         ]
+        self.sync += If(w["valid"] | w2["valid"], free_soon.eq(self.directions == 1)).Else(
+            free_soon.eq(left_next <= LATENCY + 2))
 
-        select_row = Signal(nb)
-        take_own = Signal()
-        take_mirror = Signal()
-        clear = Signal()
+        # S refills while empty: the mirror part of the entry taken last, else the queue's head.
+        load = Signal()
+        take = Signal()
+        hazard = Signal()     # S's row is that of the part in W2, U or R
+        next_row = Signal(nb)
         self.comb += [
-            If(mirror_pending, select_row.eq(mirror_row)).Else(select_row.eq(d_row)),
-            clear.eq(free_soon & ~w["valid"]
-                     & ~(u["valid"] & (u["row"] == select_row))
-                     & ~(r["valid"] & (r["row"] == select_row))),
-            take_mirror.eq(mirror_pending & clear),
-            take_own.eq(~mirror_pending & queue.readable & clear),
-            queue.re.eq(take_own),
+            load.eq(~s["valid"] & (mirror_pending | queue.readable)),
+            queue.re.eq(~s["valid"] & ~mirror_pending),
+            If(s["valid"], next_row.eq(s["row"])).Elif(mirror_pending,
+                next_row.eq(mirror_row)).Else(next_row.eq(d_row)),
+            take.eq(s["valid"] & ~hazard & ~w["valid"] & free_soon),
         ]
-        self.comb += If(idle, kp_rd.adr.eq(self.bus_kp.adr)).Else(kp_rd.adr.eq(select_row))
-        self.comb += p_at_row.adr.eq(select_row)
         self.sync += [
-            w["valid"].eq(take_own | take_mirror),
-            w["row"].eq(select_row),
-            If(take_own,
-                mirror_row.eq(d_mirror_row), flags.eq(d_flags),
-                *[m.eq(d) for m, d in zip(mirror, d_mirror)],
-                mirror_pending.eq(d_mirrored),
-                w["first"].eq(d_flags[FIRST_OWN]), w["last"].eq(d_flags[LAST_OWN]),
-                *[x.eq(d) for x, d in zip(w["sums"], d_own)],
-            ),
-            If(take_mirror,
-                mirror_pending.eq(0),
-                w["first"].eq(flags[FIRST_MIRROR]), w["last"].eq(flags[LAST_MIRROR]),
-                *[x.eq(m) for x, m in zip(w["sums"], mirror)],
-            ),
-            u["valid"].eq(w["valid"]), u["row"].eq(w["row"]), u["first"].eq(w["first"]),
-            u["last"].eq(w["last"]), *[x.eq(y) for x, y in zip(u["sums"], w["sums"])],
+            hazard.eq(Cat(*[x["valid"] & (x["row"] == next_row) for x in (w, w2, u)]) != 0),
+            If(~s["valid"],
+                s["valid"].eq(load),
+                If(mirror_pending,
+                    mirror_pending.eq(0),
+                    s["row"].eq(mirror_row),
+                    s["first"].eq(flags[FIRST_MIRROR]), s["last"].eq(flags[LAST_MIRROR]),
+                    *[x.eq(m) for x, m in zip(s["sums"], mirror)],
+                ).Else(
+                    mirror_pending.eq(queue.readable & d_mirrored),
+                    mirror_row.eq(d_mirror_row), flags.eq(d_flags),
+                    *[m.eq(d) for m, d in zip(mirror, d_mirror)],
+                    s["row"].eq(d_row),
+                    s["first"].eq(d_flags[FIRST_OWN]), s["last"].eq(d_flags[LAST_OWN]),
+                    *[x.eq(d) for x, d in zip(s["sums"], d_own)],
+                ),
+            ).Elif(take, s["valid"].eq(0)),
+        ]
+        self.comb += If(idle, kp_rd.adr.eq(self.bus_kp.adr)).Else(kp_rd.adr.eq(s["row"]))
+        self.comb += p_at_row.adr.eq(s["row"])
+        self.sync += [
+            w["valid"].eq(take), w["row"].eq(s["row"]), w["first"].eq(s["first"]),
+            w["last"].eq(s["last"]), *[x.eq(y) for x, y in zip(w["sums"], s["sums"])],
+            *[st for a, b in ((w, w2), (w2, u)) for st in
+              [b["valid"].eq(a["valid"]), b["row"].eq(a["row"]), b["first"].eq(a["first"]),
+               b["last"].eq(a["last"]), *[x.eq(y) for x, y in zip(b["sums"], a["sums"])]]],
         ]
 
         # U: store or add (Kp and p at the row have arrived), and hand over to pᵀKp.
-        old, fill_old = lanes(kp_rd.dat, SUM_BITS)
-        p_lanes, fill_p = lanes(p_at_row.dat, P_BITS)
+        kp_at_u = Signal(len(kp_rd.dat))
+        p_at_u = Signal(len(p_at_row.dat))
+        self.sync += [kp_at_u.eq(kp_rd.dat), p_at_u.eq(p_at_row.dat)]
+        old, fill_old = lanes(kp_at_u, SUM_BITS)
+        p_lanes, fill_p = lanes(p_at_u, P_BITS)
         self.comb += fill_old + fill_p
         self.sync += [
             r["valid"].eq(u["valid"]), r["row"].eq(u["row"]), r["last"].eq(u["last"]),
@@ -391,11 +426,11 @@ class Mvu(Module):
             *[j.eq(p) for j, p in zip(job_p, p_lanes)],
             *[j.eq(x) for j, x in zip(job_sums, u["sums"])],
         ).Elif(seq_busy, step.eq(step + 1), left.eq(left - 1))
-        stages = [w["valid"], u["valid"], r["valid"]]
+        stages = [s["valid"], w["valid"], w2["valid"], u["valid"], r["valid"]]
 
         # The products p · (low or high half of a sum), accumulated by half: a zero-extended
         # low half and a sign-extended high half, so Σ p·sum = Σ p·low + 2^32 · Σ p·high.
-        mul = Multiplier(P_BITS, 33)
+        mul = Multiplier(P_BITS, 33, self.primitive)
         self.submodules += mul
         lane_sel = Signal(2)
         high = Signal()
@@ -425,7 +460,7 @@ class Mvu(Module):
 
         # Done once nothing is in flight anywhere.
         self.comb += drained.eq(
-            (Cat(*in_pipe, *stages) == 0) & ~queue.readable & ~mirror_pending
+            (Cat(*in_pipe, *stages) == 0) & (queue.level == 0) & ~mirror_pending
             & ~seq_busy & ~mul.valid & ~self._mul_in_flight(mul))
 
     def _mul_in_flight(self, mul):

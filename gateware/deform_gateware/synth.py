@@ -1,7 +1,7 @@
 """One MVU alone, synthesised for an ECP5 with open tools (YoWASP's Yosys and nextpnr-ecp5 from
 PyPI), out of context: does it fit an LFE5U-85F and close timing at the thesis's 133 MHz?
 
-    python -m deform_gateware.synth --out DIR [--freq 133] [--speed 6] [--seed 1]
+    python -m deform_gateware.synth --out DIR [--size full|ci] [--freq 133] [--speed 6] [--seed 1]
 
 writes DIR/mvu.v (Migen's Verilog of ``mvu.Mvu``), DIR/mvu.json (Yosys), DIR/report.json
 (nextpnr's timing and utilisation) and prints a summary as one JSON object on stdout: LUT4s,
@@ -27,6 +27,13 @@ from deform_gateware.mvu import Mvu
 DEVICE = ["--85k", "--package", "CABGA381"]
 # The MVU's capacity in the ECP5 builds (bitstream.py uses the same for up to four MVUs).
 WORDS, TILES, NODES = 4096, 256, 1024
+# Capacities by name: ``full`` is the ECP5 builds' (the benchmark in docs/PERFORMANCE.md);
+# ``ci`` is the gate's check, the same unit and pipeline with a smaller word memory and tile
+# table (1,024 words, 16 tiles; p and Kp keep their 1,024 rows, so every block RAM, multiplier
+# and row compare is the full unit's). Measured at seed 1: ~700 LUT4 (the full tile table's
+# 16-way read multiplexer) and 7 DP16KD fewer; its place and route was not much shorter here
+# (255-358 s against 250-325 s for the full size at a similar load).
+SIZES = {"full": (WORDS, TILES, NODES), "ci": (1024, 16, NODES)}
 
 
 def tool(name):
@@ -70,6 +77,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", required=True)
+    parser.add_argument("--size", choices=sorted(SIZES), default="full")
     parser.add_argument("--freq", type=float, default=133.0)
     parser.add_argument("--speed", default="6")
     parser.add_argument("--seed", default="1")
@@ -78,7 +86,8 @@ def main():
     if out.startswith("/tmp/"):
         raise SystemExit("--out must not be under /tmp (YoWASP's sandbox has its own /tmp)")
     os.makedirs(out, exist_ok=True)
-    unit = Mvu(WORDS, TILES, NODES, primitive=True)
+    words, tiles, nodes = SIZES[args.size]
+    unit = Mvu(words, tiles, nodes, primitive=True)
     convert(unit, ios=unit_ports(unit), name="mvu").write(os.path.join(out, "mvu.v"))
     run([tool("yosys"), "-q", "-p", "read_verilog mvu.v; synth_ecp5 -top mvu -json mvu.json; "
          "tee -o yosys_stat.txt stat"], out, "yosys.log")
@@ -88,7 +97,7 @@ def main():
         "--report", "report.json"], out, "nextpnr.log")
     with open(os.path.join(out, "report.json")) as f:
         result = summary(json.load(f), args.freq)
-    result.update(words=WORDS, tiles=TILES, nodes=NODES, speed=args.speed, seed=args.seed)
+    result.update(words=words, tiles=tiles, nodes=nodes, speed=args.speed, seed=args.seed)
     print(json.dumps(result))
 
 

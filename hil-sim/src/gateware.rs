@@ -203,11 +203,31 @@ fn run_report<T: serde::de::DeserializeOwned>(
     })
 }
 
+/// The capacity of the MVU that `synthesize_mvu` builds (synth.py's `SIZES`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MvuSize {
+    /// The ECP5 builds' MVU (4,096 words, 256 tiles, 1,024 rows): the benchmark.
+    Full,
+    /// The same unit and pipeline with 1,024 words and 16 tiles: the gate's check, which
+    /// places and routes in a fraction of the time.
+    Ci,
+}
+
+impl MvuSize {
+    fn name(self) -> &'static str {
+        match self {
+            MvuSize::Full => "full",
+            MvuSize::Ci => "ci",
+        }
+    }
+}
+
 /// Synthesises one MVU alone for the LFE5U-85F at speed grade `speed`, out of context, asking
 /// nextpnr for `freq_mhz` (outputs in `out`, which must not be under /tmp: YoWASP's sandbox has
 /// its own).
 pub fn synthesize_mvu(
     out: &Path,
+    size: MvuSize,
     freq_mhz: f64,
     speed: u8,
     seed: u32,
@@ -215,6 +235,8 @@ pub fn synthesize_mvu(
     let args = [
         "--out".to_string(),
         out.display().to_string(),
+        "--size".into(),
+        size.name().into(),
         "--freq".into(),
         freq_mhz.to_string(),
         "--speed".into(),

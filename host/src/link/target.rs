@@ -541,14 +541,25 @@ fn expect_ack_reply(request: &Request, reply: Response) -> Result<(), LinkError>
 /// hold the first for a second). On a noisy line that is what gets the handshake through:
 /// waiting seconds between fresh `Hello`s left five tries in ten seconds, each lost half the time
 /// at a byte-error rate of 1e-2.
+///
+/// Only `timeouts.handshake` bounds it, not the cap on quiet retransmissions
+/// ([`LinkConfig::retries`]): a target that is still booting is silent exactly like an absent
+/// one, and a slow one (a simulated SoC clearing its memory under load) took longer than the
+/// ~30 s that 16 doubling retransmissions last, whatever handshake time the caller allowed.
 fn hello<P: Port>(link: &mut Link<P>, timeouts: &Timeouts) -> Result<TargetInfo, LinkError> {
     let request = Request::Hello {
         protocol_version: PROTOCOL_VERSION,
     };
     let request_timeout = link.timeout();
+    let config = link.config();
     link.set_timeout(timeouts.handshake);
+    link.set_config(LinkConfig {
+        retries: u32::MAX,
+        ..config
+    });
     let answer = link.request(&request);
     link.set_timeout(request_timeout);
+    link.set_config(config);
     match answer {
         Ok(Response::Hello(info)) if info.protocol_version == PROTOCOL_VERSION => Ok(info),
         Ok(Response::Hello(info)) => Err(LinkError::VersionMismatch {

@@ -393,6 +393,33 @@ fn a_silent_target_fails_the_handshake_in_time() {
 }
 
 #[test]
+fn a_target_silent_past_the_retries_still_answers_within_the_handshake_time() {
+    let (host, target) = UnixStream::pair().unwrap();
+    let mut hellos = 0;
+    // Silent for the first six copies of the Hello (a board still booting), then answers.
+    serve(target, move |received| match received {
+        Received::Request(req) => {
+            hellos += 1;
+            if hellos > 6 {
+                answer_frame(req.seq, Response::Hello(info()))
+            } else {
+                Vec::new()
+            }
+        }
+        Received::Unreadable(_) => Vec::new(),
+    });
+    let timeouts = Timeouts {
+        retransmit: Duration::from_millis(10),
+        retries: 2,
+        ..quick()
+    };
+    let target = Target::handshake(Link::new(host), timeouts).unwrap();
+    assert_eq!(target.stats().retransmits, 6);
+    // The cap applies again to the requests after the handshake.
+    assert_eq!(target.link.config().retries, 2);
+}
+
+#[test]
 fn a_solution_chunk_at_the_wrong_offset_is_a_protocol_error() {
     let (host, target) = UnixStream::pair().unwrap();
     serve(target, |received| match received {
