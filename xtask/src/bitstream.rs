@@ -1,0 +1,453 @@
+//! `cargo xtask bitstream`: deform's SoC with 0 to 8 hardware MVUs built for an ECP5 board
+//! (gateware/deform_gateware/bitstream.py through hil-sim's gateware module), and the report of
+//! every build: resources, Fmax, the Fmax lost against the SoC without MVUs, Fig. 5-1.
+//!
+//! The report in `target/bitstream/BOARD/` gathers builds across runs, one row per MVU count,
+//! seed and depth (with or without place and route), each with the gateware commit it built:
+//! the SoCs are built one at a time and a big one takes long, so a sweep is often several runs,
+//! and a second seed is a row beside the first, not in its place. It is rewritten after each
+//! build, whole or not at all, so an interrupted sweep keeps the builds it finished.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use deform_hil_sim::gateware::{build_bitstream, check_synthesis_venv, SocBuild, SocReport};
+use deform_hil_sim::litex::litex_dir;
+use deform_host::output::file::write_atomic;
+
+/// The boards `bitstream` builds for.
+pub const BOARDS: &[&str] = &["ulx3s"];
+/// The MVU counts a sweep builds by default: 0 is the Fmax comparison's baseline.
+const DEFAULT_MVUS: &[u32] = &[0, 1, 2, 4, 8];
+/// The MVU array's most MVUs (the firmware's and the SoC's limit).
+const MAX_MVUS: u32 = 8;
+/// An LFE5U-85F's MULT18X18D, for the plot when no build was placed.
+const LFE5U_85F_MULTIPLIERS: u64 = 156;
+
+pub const USAGE: &str = "\
+  bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--no-pnr | --report-only]
+                     build deform's SoC with each number of hardware MVUs, one at a time,
+                     into an ECP5 bitstream (YoWASP Yosys, nextpnr-ecp5, ecppack; each stage
+                     printed with its time) in target/bitstream/BOARD-<N>mvu/, and gather the
+                     resources, Fmax and Fig. 5-1 plot of every build so far in
+                     target/bitstream/BOARD/ (report.md, report.json,
+                     multipliers_per_mvu.svg). --seed: nextpnr's (default 1); --no-pnr:
+                     stop after Yosys (cell counts only: no Fmax, no bitstream);
+                     --report-only: build nothing, rewrite report.md and the plot from
+                     report.json";
+
+/// What the command line asks for.
+#[derive(Debug, PartialEq, Eq)]
+pub enum Request {
+    Help,
+    Build {
+        board: String,
+        mvus: Vec<u32>,
+        seed: u32,
+        no_pnr: bool,
+    },
+    /// Rewrite report.md and the plot from the gathered report.json.
+    Report {
+        board: String,
+    },
+}
+
+/// Parses `bitstream`'s arguments (those after the command's name).
+pub fn parse(args: &[String]) -> Result<Request> {
+    let mut board = None;
+    let mut mvus = DEFAULT_MVUS.to_vec();
+    let mut seed = 1;
+    let mut no_pnr = false;
+    let mut report_only = false;
+    let mut it = args.iter();
+    while let Some(flag) = it.next() {
+        let mut value = || {
+            it.next()
+                .with_context(|| format!("bitstream: {flag} needs a value\n\n{USAGE}"))
+        };
+        match flag.as_str() {
+            "-h" | "--help" => return Ok(Request::Help),
+            "--no-pnr" => no_pnr = true,
+            "--report-only" => report_only = true,
+            "--board" => board = Some(value()?.clone()),
+            "--mvus" => mvus = parse_mvus(value()?)?,
+            "--seed" => {
+                let value = value()?;
+                seed = value
+                    .parse()
+                    .with_context(|| format!("--seed takes a number, not `{value}`"))?;
+            }
+            other => bail!("bitstream does not take `{other}`\n\n{USAGE}"),
+        }
+    }
+    let board = board.with_context(|| format!("bitstream needs --board\n\n{USAGE}"))?;
+    if !BOARDS.contains(&board.as_str()) {
+        bail!(
+            "--board {board}: the bitstream builds for {} only",
+            BOARDS.join(", ")
+        );
+    }
+    if report_only {
+        if no_pnr {
+            bail!("--report-only builds nothing: --no-pnr does not go with it");
+        }
+        return Ok(Request::Report { board });
+    }
+    Ok(Request::Build {
+        board,
+        mvus,
+        seed,
+        no_pnr,
+    })
+}
+
+/// `0,4,8`: MVU counts from 0 to [`MAX_MVUS`], each once.
+fn parse_mvus(value: &str) -> Result<Vec<u32>> {
+    let mut mvus = Vec::new();
+    for item in value.split(',') {
+        let n: u32 = item.trim().parse().with_context(|| {
+            format!("--mvus takes MVU counts separated by commas (0,4), not `{value}`")
+        })?;
+        if n > MAX_MVUS {
+            bail!("--mvus {n}: the MVU array has at most {MAX_MVUS} MVUs");
+        }
+        if mvus.contains(&n) {
+            bail!("--mvus {value}: {n} is there twice");
+        }
+        mvus.push(n);
+    }
+    Ok(mvus)
+}
+
+/// Runs `cargo xtask bitstream ARGS`.
+pub fn run(args: &[String], workspace: &Path) -> Result<()> {
+    let (board, mvus, seed, no_pnr) = match parse(args)? {
+        Request::Help => {
+            println!("usage: cargo xtask\n{USAGE}");
+            return Ok(());
+        }
+        Request::Report { board } => {
+            let dir = workspace.join("target/bitstream").join(&board);
+            let builds = read_builds(&dir.join("report.json"))?;
+            if builds.is_empty() {
+                bail!("{} has no builds yet", dir.join("report.json").display());
+            }
+            write_reports(&dir, &board, &builds)?;
+            print!("{}", markdown(&board, &builds));
+            return Ok(());
+        }
+        Request::Build {
+            board,
+            mvus,
+            seed,
+            no_pnr,
+        } => (board, mvus, seed, no_pnr),
+    };
+    check_synthesis_venv(&litex_dir())?;
+    let dir = workspace.join("target/bitstream").join(&board);
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    // Fail before the first build, not an hour in, if the gathered report cannot be read.
+    let mut builds = read_builds(&dir.join("report.json"))?;
+    for (i, &n) in mvus.iter().enumerate() {
+        let out = build_dir(workspace, &board, n);
+        eprintln!(
+            "\n==> [{}/{}] {board}: the SoC with {n} MVU(s), seed {seed}{} ({})",
+            i + 1,
+            mvus.len(),
+            if no_pnr { ", Yosys only" } else { "" },
+            out.display()
+        );
+        let started = Instant::now();
+        let build = SocBuild {
+            board: board.clone(),
+            mvus: n,
+            seed,
+            no_pnr,
+        };
+        let report =
+            build_bitstream(&build, &out).with_context(|| format!("building the {n}-MVU SoC"))?;
+        eprintln!("    built in {:.0?}", started.elapsed());
+        // Read again: another run may have added builds meanwhile.
+        builds = read_builds(&dir.join("report.json"))?;
+        record(&mut builds, report);
+        write_reports(&dir, &board, &builds)?;
+    }
+    print!("\n{}", markdown(&board, &builds));
+    eprintln!("report: {}", dir.join("report.md").display());
+    Ok(())
+}
+
+/// The builds gathered so far (none if there is no report yet).
+fn read_builds(path: &Path) -> Result<Vec<SocReport>> {
+    match std::fs::read_to_string(path) {
+        Ok(text) => serde_json::from_str(&text).with_context(|| {
+            format!(
+                "{} is not a report of this version: delete it to start a new one",
+                path.display()
+            )
+        }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Vec::new()),
+        Err(e) => Err(e).with_context(|| format!("reading {}", path.display())),
+    }
+}
+
+/// Adds `report` to `builds`, in place of an earlier build of the same count, seed and depth.
+fn record(builds: &mut Vec<SocReport>, report: SocReport) {
+    let key = |r: &SocReport| (r.mvus, r.seed, r.pnr.is_some());
+    builds.retain(|b| key(b) != key(&report));
+    builds.push(report);
+    builds.sort_by_key(key);
+}
+
+/// report.json, report.md and the Fig. 5-1 plot, each whole or not at all.
+fn write_reports(dir: &Path, board: &str, builds: &[SocReport]) -> Result<()> {
+    write_atomic(&dir.join("report.json"), |out| {
+        Ok(serde_json::to_writer_pretty(out, builds)?)
+    })?;
+    write_atomic(&dir.join("report.md"), |out| {
+        Ok(std::io::Write::write_all(
+            out,
+            markdown(board, builds).as_bytes(),
+        )?)
+    })?;
+    plot(dir, builds)
+}
+
+/// Fig. 5-1: Yosys's MULT18X18D per MVU count (the same for every seed), drawn in a scratch
+/// folder and renamed into `dir` once both files are whole (the plot code writes in place).
+fn plot(dir: &Path, builds: &[SocReport]) -> Result<()> {
+    let mut points: Vec<(f64, f64)> = Vec::new();
+    for b in builds {
+        let x = f64::from(b.mvus);
+        if !points.iter().any(|&(m, _)| m == x) {
+            points.push((x, b.yosys.mult18x18d as f64));
+        }
+    }
+    let available = builds
+        .iter()
+        .find_map(|b| b.pnr.as_ref().map(|p| p.mult18x18d.available))
+        .unwrap_or(LFE5U_85F_MULTIPLIERS);
+    let scratch = dir.join(".plot.part");
+    let _ = std::fs::remove_dir_all(&scratch);
+    std::fs::create_dir_all(&scratch)?;
+    let files = deform_host::bench::plots::multipliers_per_mvu(&points, available as f64, &scratch);
+    let moved = files.and_then(|files| {
+        files.iter().try_for_each(|f| {
+            let name = f.file_name().context("a plot without a name")?;
+            Ok(std::fs::rename(f, dir.join(name))?)
+        })
+    });
+    let _ = std::fs::remove_dir_all(&scratch);
+    moved.context("drawing multipliers_per_mvu")
+}
+
+/// The report's table: Yosys's cells, nextpnr's use and Fmax, the Fmax against the SoC without
+/// MVUs on the same seed, each stage's time, the gateware built.
+pub fn markdown(board: &str, builds: &[SocReport]) -> String {
+    let mut md = format!(
+        "# deform's SoC on the {board} (LFE5U-85F, speed grade 6), synthesised\n\n\
+         Yosys's cells (LUT4 and CCU2C apart; nextpnr counts both as TRELLIS_COMB), nextpnr's \
+         use of the device and the system clock's Fmax (asked: 50 MHz). \"vs. 0 MVUs\": the \
+         Fmax against the SoC without MVUs placed with the same seed.\n\n\
+         | MVUs | seed | LUT4 | CCU2C | FF | MULT18X18D | DP16KD | placed: COMB / FF / DP16KD of the device | Fmax (MHz) | vs. 0 MVUs | words / tiles / rows per MVU | stages (s) | gateware |\n\
+         |---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---|---|---|\n"
+    );
+    for b in builds {
+        let y = &b.yosys;
+        let baseline = builds
+            .iter()
+            .find(|r| r.mvus == 0 && r.seed == b.seed)
+            .and_then(|r| r.pnr.as_ref());
+        let (placed, fmax, versus) = match (&b.pnr, baseline) {
+            (None, _) => ("—".into(), "not placed (Yosys only)".into(), "—".into()),
+            (Some(p), base) => (
+                format!(
+                    "{} / {} / {} of {} / {} / {}{}",
+                    p.lut4.used,
+                    p.ff.used,
+                    p.dp16kd.used,
+                    p.lut4.available,
+                    p.ff.available,
+                    p.dp16kd.available,
+                    if p.fits { "" } else { " (does not fit)" }
+                ),
+                format!("{:.1}", p.fmax_mhz),
+                match base {
+                    Some(base) if b.mvus > 0 => {
+                        format!("{:+.1} %", 100.0 * (p.fmax_mhz / base.fmax_mhz - 1.0))
+                    }
+                    _ => "—".into(),
+                },
+            ),
+        };
+        let stages = ["litex", "yosys", "nextpnr", "ecppack"]
+            .iter()
+            .filter_map(|s| b.stages.get(*s).map(|t| format!("{s} {t:.0}")))
+            .collect::<Vec<_>>()
+            .join(", ");
+        md += &format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {placed} | {fmax} | {versus} | {} / {} / {} | {stages} | {} |\n",
+            b.mvus,
+            b.seed,
+            y.lut4,
+            y.ccu2c,
+            y.trellis_ff,
+            y.mult18x18d,
+            y.dp16kd,
+            b.words,
+            b.tiles,
+            b.nodes,
+            b.commit.as_deref().unwrap_or("?"),
+        );
+    }
+    md
+}
+
+/// Where a build of `mvus` MVUs lands: `target/bitstream/BOARD-<N>mvu`.
+pub fn build_dir(workspace: &Path, board: &str, mvus: u32) -> PathBuf {
+    workspace
+        .join("target/bitstream")
+        .join(format!("{board}-{mvus}mvu"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use deform_hil_sim::gateware::{Placed, Usage, YosysCells};
+
+    fn args(line: &str) -> Vec<String> {
+        line.split_whitespace().map(String::from).collect()
+    }
+
+    fn error(line: &str) -> String {
+        format!("{:#}", parse(&args(line)).unwrap_err())
+    }
+
+    #[test]
+    fn arguments_parse_with_defaults() {
+        assert_eq!(
+            parse(&args("--board ulx3s")).unwrap(),
+            Request::Build {
+                board: "ulx3s".into(),
+                mvus: vec![0, 1, 2, 4, 8],
+                seed: 1,
+                no_pnr: false
+            }
+        );
+        assert_eq!(
+            parse(&args("--mvus 0,4 --no-pnr --board ulx3s --seed 2")).unwrap(),
+            Request::Build {
+                board: "ulx3s".into(),
+                mvus: vec![0, 4],
+                seed: 2,
+                no_pnr: true
+            }
+        );
+        assert_eq!(parse(&args("--help")).unwrap(), Request::Help);
+        assert_eq!(
+            parse(&args("--report-only --board ulx3s")).unwrap(),
+            Request::Report {
+                board: "ulx3s".into()
+            }
+        );
+        assert_eq!(parse(&args("--board nope -h")).unwrap(), Request::Help);
+    }
+
+    #[test]
+    fn bad_arguments_say_what_is_wrong() {
+        assert!(error("").contains("needs --board"));
+        assert!(error("--board orangecrab").contains("builds for ulx3s only"));
+        assert!(error("--board ulx3s --mvus").contains("--mvus needs a value"));
+        assert!(error("--board ulx3s --mvus 0,x").contains("not `0,x`"));
+        assert!(error("--board ulx3s --mvus 0,,4").contains("not `0,,4`"));
+        assert!(error("--board ulx3s --mvus 9").contains("at most 8"));
+        assert!(error("--board ulx3s --mvus 4,4").contains("4 is there twice"));
+        assert!(error("--board ulx3s --mvus -1").contains("not `-1`"));
+        assert!(error("--board ulx3s --seed x").contains("--seed takes a number"));
+        assert!(error("--board ulx3s --fast").contains("does not take `--fast`"));
+        assert!(error("--board ulx3s --report-only --no-pnr").contains("does not go with it"));
+    }
+
+    fn usage(used: u64) -> Usage {
+        Usage {
+            used,
+            available: 1000,
+        }
+    }
+
+    fn build(mvus: u32, seed: u32, fmax: Option<f64>) -> SocReport {
+        SocReport {
+            board: "ulx3s".into(),
+            mvus,
+            seed,
+            commit: Some("abc".into()),
+            yosys: YosysCells {
+                lut4: 100,
+                ccu2c: 10,
+                trellis_ff: 50,
+                mult18x18d: 4 + 4 * u64::from(mvus),
+                dp16kd: 55,
+            },
+            pnr: fmax.map(|fmax_mhz| Placed {
+                lut4: usage(120),
+                ff: usage(50),
+                mult18x18d: usage(8),
+                dp16kd: usage(55),
+                fmax_mhz,
+                target_mhz: 50.0,
+                fits: true,
+                meets_timing: fmax_mhz >= 50.0,
+            }),
+            bitstream: None,
+            stages: [("yosys".to_string(), 12.0)].into_iter().collect(),
+            words: 4096,
+            tiles: 256,
+            nodes: 1024,
+        }
+    }
+
+    #[test]
+    fn the_report_compares_each_fmax_with_the_same_seeds_baseline() {
+        let mut builds = Vec::new();
+        record(&mut builds, build(4, 1, Some(45.0)));
+        record(&mut builds, build(0, 1, Some(50.0)));
+        record(&mut builds, build(0, 2, Some(40.0)));
+        record(&mut builds, build(4, 2, Some(44.0)));
+        record(&mut builds, build(8, 1, None));
+        let md = markdown("ulx3s", &builds);
+        let rows: Vec<&str> = md.lines().filter(|l| l.starts_with("| ")).skip(1).collect();
+        assert_eq!(rows.len(), 5, "{md}");
+        assert!(rows[0].starts_with("| 0 | 1 |") && rows[0].contains("| 50.0 | — |"));
+        assert!(rows[2].starts_with("| 4 | 1 |") && rows[2].contains("| -10.0 % |"));
+        assert!(rows[3].starts_with("| 4 | 2 |") && rows[3].contains("| +10.0 % |"));
+        assert!(rows[4].starts_with("| 8 | 1 |") && rows[4].contains("not placed (Yosys only)"));
+        assert!(rows[4].contains("yosys 12"), "{}", rows[4]);
+    }
+
+    #[test]
+    fn a_new_build_replaces_the_same_count_seed_and_depth_only() {
+        let mut builds = Vec::new();
+        record(&mut builds, build(4, 1, None));
+        record(&mut builds, build(4, 1, Some(45.0)));
+        record(&mut builds, build(4, 1, Some(47.0)));
+        assert_eq!(builds.len(), 2);
+        assert_eq!(builds[1].pnr.as_ref().unwrap().fmax_mhz, 47.0);
+    }
+
+    #[test]
+    fn reports_are_written_whole_and_read_back() {
+        let dir = std::env::temp_dir().join(format!("deform-bitstream-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let builds = vec![build(0, 1, Some(50.0)), build(2, 1, None)];
+        write_reports(&dir, "ulx3s", &builds).unwrap();
+        assert_eq!(read_builds(&dir.join("report.json")).unwrap(), builds);
+        assert!(dir.join("multipliers_per_mvu.svg").is_file());
+        assert!(!dir.join(".plot.part").exists());
+        std::fs::write(dir.join("report.json"), "[{\"old\": 1}]").unwrap();
+        let err = read_builds(&dir.join("report.json")).unwrap_err();
+        assert!(format!("{err:#}").contains("delete it"), "{err:#}");
+        assert!(read_builds(&dir.join("none.json")).unwrap().is_empty());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
