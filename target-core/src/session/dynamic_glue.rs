@@ -156,14 +156,7 @@ struct Step {
     d: usize,
     plan: RhsPlan,
     sums: RhsSums,
-    /// Per tool node, what its couplings' raw values of S and K are multiplied by on the rows
-    /// they couple to, in b's (the resident S's) units: v₁t·2^−F_S, and h·u₀t·2^−F_K with
-    /// the scales of S and K folded in (the resident K lacks the tool's columns).
-    s_mult: [f64; MAX_TOOL_NODES],
-    k_mult: [f64; MAX_TOOL_NODES],
-    /// Per tool node, (K·u₀)_t and m·v₀t (real units), for the force.
-    ku: [f64; MAX_TOOL_NODES],
-    mv: [f64; MAX_TOOL_NODES],
+    terms: ToolTerms,
     /// v₀'s block before the start's extrapolation.
     v0: Block,
     /// What this step keeps for the next one: d₁'s narrowed block and r₀f's (where the last
@@ -171,11 +164,16 @@ struct Step {
     kept: Option<(Block, Block)>,
 }
 
-/// A step's tool terms as [`Session::plan_rhs`] forms them, before its plan (see [`Step`]).
-#[derive(Default)]
+/// A step's tool terms, which [`Session::plan_rhs`] forms before the step's plan (which needs
+/// them).
+#[derive(Debug, Clone, Copy, Default)]
 struct ToolTerms {
+    /// Per tool node, what its couplings' raw values of S and K are multiplied by on the rows
+    /// they couple to, in b's (the resident S's) units: v₁t·2^−F_S, and h·u₀t·2^−F_K with
+    /// the scales of S and K folded in (the resident K lacks the tool's columns).
     s_mult: [f64; MAX_TOOL_NODES],
     k_mult: [f64; MAX_TOOL_NODES],
+    /// Per tool node, (K·u₀)_t and m·v₀t (real units), for the force.
     ku: [f64; MAX_TOOL_NODES],
     mv: [f64; MAX_TOOL_NODES],
 }
@@ -433,17 +431,17 @@ impl<E: Executor> Session<'_, E> {
             );
             let (e_u, e_v) = (self.solution[d].unwrap_or(0), st.v[d].e);
             // The tool's terms first; the plan, which needs them, last.
-            let mut step = ToolTerms::default();
+            let mut terms = ToolTerms::default();
             let mut tool_part = 0f64;
             for (t, dt) in tools.iter().enumerate() {
                 let node = dt.s.node as usize;
                 let u_then = f64::from(st.tool_u[t][d]);
                 let velocity = (f64::from(tool[t][d]) - u_then) / h;
-                step.s_mult[t] = ldexp(velocity, -f_s);
-                step.k_mult[t] = ldexp(h * u_then, -f_k - s_scale);
+                terms.s_mult[t] = ldexp(velocity, -f_s);
+                terms.k_mult[t] = ldexp(h * u_then, -f_k - s_scale);
                 let own_u = u.get(node).copied().unwrap_or(0);
-                step.ku[t] = ldexp(row_sum(&dt.k, own_u, u) as f64, e_u - f_k);
-                step.mv[t] = m * ldexp(f64::from(v.get(node).copied().unwrap_or(0)), e_v);
+                terms.ku[t] = ldexp(row_sum(&dt.k, own_u, u) as f64, e_u - f_k);
+                terms.mv[t] = m * ldexp(f64::from(v.get(node).copied().unwrap_or(0)), e_v);
                 // Σ|q| over the row in integers (exact: at most 1 + MAX_TOOL_ROW values below
                 // 2^21), converted once.
                 let column = |r: &ToolRow| -> f64 {
@@ -454,7 +452,7 @@ impl<E: Executor> Session<'_, E> {
                     sum as f64
                 };
                 tool_part +=
-                    column(&dt.s) * step.s_mult[t].abs() + column(&dt.k) * step.k_mult[t].abs();
+                    column(&dt.s) * terms.s_mult[t].abs() + column(&dt.k) * terms.k_mult[t].abs();
             }
             let e_old = self.rhs[d].exponent(SessionStep::NoRhs)?;
             let plan = RhsPlan::new(
@@ -471,10 +469,7 @@ impl<E: Executor> Session<'_, E> {
                 d,
                 plan,
                 sums: RhsSums::default(),
-                s_mult: step.s_mult,
-                k_mult: step.k_mult,
-                ku: step.ku,
-                mv: step.mv,
+                terms,
                 v0: st.v[d],
                 kept: None,
             });
@@ -573,8 +568,10 @@ impl<E: Executor> Session<'_, E> {
                     Fixed::default()
                 }
             };
-            let ms: [Fixed; MAX_TOOL_NODES] = core::array::from_fn(|t| fixed(&step.s_mult, t));
-            let mk: [Fixed; MAX_TOOL_NODES] = core::array::from_fn(|t| fixed(&step.k_mult, t));
+            let ms: [Fixed; MAX_TOOL_NODES] =
+                core::array::from_fn(|t| fixed(&step.terms.s_mult, t));
+            let mk: [Fixed; MAX_TOOL_NODES] =
+                core::array::from_fn(|t| fixed(&step.terms.k_mult, t));
             for &(row, old) in stash {
                 let i = row as usize;
                 let Some(bi) = b.get_mut(i) else { continue };
@@ -872,7 +869,7 @@ impl<E: Executor> Session<'_, E> {
                 let node = dt.s.node as usize;
                 let own = v.get(node).copied().unwrap_or(0);
                 let sv = ldexp(row_sum(&dt.s, own, v) as f64, st.v[step.d].e - f_s);
-                (sv - step.mv[t]) / h + step.ku[t]
+                (sv - step.terms.mv[t]) / h + step.terms.ku[t]
             })
             .sum()
     }
