@@ -113,8 +113,8 @@ fn main() -> ExitCode {
             }
             other => Err(anyhow::anyhow!(
                 "firmware takes `--board qemu` or `--board litex`, not `{}`\n\n{}",
-                usage(),
-                other.join(" ")
+                other.join(" "),
+                usage()
             )),
         },
         Some("run") => run(&args[1..]),
