@@ -13,15 +13,13 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use deform_hil_sim::gateware::{build_bitstream, check_synthesis_venv, SocBuild, SocReport};
-use deform_hil_sim::litex::litex_dir;
+use deform_hil_sim::litex::{litex_dir, MAX_MVUS};
 use deform_host::output::file::write_atomic;
 
 /// The boards `bitstream` builds for.
 pub const BOARDS: &[&str] = &["ulx3s"];
 /// The MVU counts a sweep builds by default: 0 is the Fmax comparison's baseline.
 const DEFAULT_MVUS: &[u32] = &[0, 1, 2, 4, 8];
-/// The MVU array's most MVUs (the firmware's and the SoC's limit).
-const MAX_MVUS: u32 = 8;
 /// An LFE5U-85F's MULT18X18D, for the plot when no build was placed.
 const LFE5U_85F_MULTIPLIERS: u64 = 156;
 
@@ -109,7 +107,7 @@ fn parse_mvus(value: &str) -> Result<Vec<u32>> {
         let n: u32 = item.trim().parse().with_context(|| {
             format!("--mvus takes MVU counts separated by commas (0,4), not `{value}`")
         })?;
-        if n > MAX_MVUS {
+        if n > u32::from(MAX_MVUS) {
             bail!("--mvus {n}: the MVU array has at most {MAX_MVUS} MVUs");
         }
         if mvus.contains(&n) {
