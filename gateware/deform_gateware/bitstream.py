@@ -27,7 +27,6 @@ eight fit the LFE5U-85F's 208 block RAMs, it is not enough: Yosys counts 259 DP1
 """
 
 import argparse
-import ctypes
 import json
 import os
 import re
@@ -40,7 +39,7 @@ import time
 from litex.soc.integration.builder import Builder
 
 from deform_gateware.mvu_array import add_to_soc
-from deform_gateware.synth import summary, tool
+from deform_gateware.synth import log, run_stage, summary, tool
 
 BOARDS = ("ulx3s",)
 SYS_CLK_FREQ = 50e6
@@ -64,42 +63,6 @@ def ulx3s_soc(mvus):
     words, tiles, nodes = capacity(mvus)
     add_to_soc(soc, mvus, words=words, tiles=tiles, nodes=nodes, primitive=True)
     return soc
-
-
-def log(message):
-    print(message, file=sys.stderr, flush=True)
-
-
-def _die_with_parent():
-    """In the forked tool, before exec: the kernel SIGKILLs it when this process dies, however
-    it dies (a SIGKILL included), so no Yosys or nextpnr runs on after an interrupted build."""
-    libc = ctypes.CDLL(None, use_errno=True)
-    pr_set_pdeathsig = 1
-    libc.prctl(pr_set_pdeathsig, signal.SIGKILL)
-
-
-def run_stage(name, argv, cwd, logfile):
-    """Runs one tool with its output in cwd/logfile; prints the stage and its seconds. On an
-    interrupt the tool is killed and waited for before the exception goes on."""
-    log("--> %s (log: %s)" % (name, os.path.join(cwd, logfile)))
-    started = time.monotonic()
-    with open(os.path.join(cwd, logfile), "w") as f, \
-            subprocess.Popen(argv, cwd=cwd, stdout=f, stderr=subprocess.STDOUT,
-                             stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent) as p:
-        try:
-            status = p.wait()
-        except BaseException:
-            p.kill()
-            p.wait()  # Popen's own exit skips the wait on a KeyboardInterrupt
-            raise
-    seconds = round(time.monotonic() - started, 1)
-    if status != 0:
-        with open(os.path.join(cwd, logfile)) as f:
-            tail = "".join(f.readlines()[-30:])
-        raise SystemExit("%s failed (exit %d) after %.0f s; the end of %s:\n%s"
-                         % (name, status, seconds, logfile, tail))
-    log("    %s: %.0f s" % (name, seconds))
-    return seconds
 
 
 def yosys_cells(rpt):

@@ -14,10 +14,13 @@ to DIR, which must not be under /tmp.
 """
 
 import argparse
+import ctypes
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 
 from migen.fhdl.verilog import convert
 
@@ -49,12 +52,40 @@ def unit_ports(unit):
     return ports
 
 
-def run(cmd, cwd, log):
-    with open(os.path.join(cwd, log), "w") as f:
-        result = subprocess.run(cmd, cwd=cwd, stdout=f, stderr=subprocess.STDOUT)
-    if result.returncode != 0:
-        raise SystemExit("%s failed (%d); see %s" % (cmd[0], result.returncode,
-                                                      os.path.join(cwd, log)))
+def log(message):
+    print(message, file=sys.stderr, flush=True)
+
+
+def _die_with_parent():
+    """In the forked tool, before exec: the kernel SIGKILLs it when this process dies, however
+    it dies (a SIGKILL included), so no Yosys or nextpnr runs on after an interrupted build."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    pr_set_pdeathsig = 1
+    libc.prctl(pr_set_pdeathsig, signal.SIGKILL)
+
+
+def run_stage(name, argv, cwd, logfile):
+    """Runs one tool with its output in cwd/logfile; prints the stage and its seconds. On an
+    interrupt the tool is killed and waited for before the exception goes on."""
+    log("--> %s (log: %s)" % (name, os.path.join(cwd, logfile)))
+    started = time.monotonic()
+    with open(os.path.join(cwd, logfile), "w") as f, \
+            subprocess.Popen(argv, cwd=cwd, stdout=f, stderr=subprocess.STDOUT,
+                             stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent) as p:
+        try:
+            status = p.wait()
+        except BaseException:
+            p.kill()
+            p.wait()  # Popen's own exit skips the wait on a KeyboardInterrupt
+            raise
+    seconds = round(time.monotonic() - started, 1)
+    if status != 0:
+        with open(os.path.join(cwd, logfile)) as f:
+            tail = "".join(f.readlines()[-30:])
+        raise SystemExit("%s failed (exit %d) after %.0f s; the end of %s:\n%s"
+                         % (name, status, seconds, logfile, tail))
+    log("    %s: %.0f s" % (name, seconds))
+    return seconds
 
 
 def summary(report, freq):
@@ -89,9 +120,10 @@ def main():
     words, tiles, nodes = SIZES[args.size]
     unit = Mvu(words, tiles, nodes, primitive=True)
     convert(unit, ios=unit_ports(unit), name="mvu").write(os.path.join(out, "mvu.v"))
-    run([tool("yosys"), "-q", "-p", "read_verilog mvu.v; synth_ecp5 -top mvu -json mvu.json; "
-         "tee -o yosys_stat.txt stat"], out, "yosys.log")
-    run([tool("nextpnr-ecp5")] + DEVICE + [
+    run_stage("yosys", [tool("yosys"), "-q", "-p",
+                        "read_verilog mvu.v; synth_ecp5 -top mvu -json mvu.json; "
+                        "tee -o yosys_stat.txt stat"], out, "yosys.log")
+    run_stage("nextpnr-ecp5", [tool("nextpnr-ecp5")] + DEVICE + [
         "--speed", args.speed, "--freq", str(args.freq), "--seed", args.seed,
         "--json", "mvu.json", "--out-of-context", "--timing-allow-fail",
         "--report", "report.json"], out, "nextpnr.log")
