@@ -26,7 +26,7 @@ use deform_shared::word::{VALUE_MAX, VALUE_MIN};
 use heapless::Vec;
 
 use crate::kernel::Sums;
-use crate::predict::scale;
+use crate::predict::{scale, scale_low};
 use crate::svu::{
     magnitude_bits, magnitude_bound, normalising_shift, sum_squares, term, Block, Lin, Narrow,
     Scalar, Term,
@@ -337,9 +337,11 @@ impl Difference {
         }
     }
 
+    /// The result keeps the low 32 bits of the exact difference of the rounded terms, so each
+    /// term is formed in `i32` ([`scale_low`]).
     #[inline(always)]
     pub fn apply(&self, a: i32, b: i32) -> i32 {
-        (scale(i64::from(a), self.shift_a) - scale(i64::from(b), self.shift_b)) as i32
+        scale_low(a, self.shift_a).wrapping_sub(scale_low(b, self.shift_b))
     }
 }
 
@@ -413,27 +415,27 @@ pub fn residual_share(
     history: Option<(&mut [i32], &mut [i32])>,
 ) -> (u128, u32) {
     let mut or = 0;
-    // v·2^(e_v − e) for a shift s = e − e_v, rounded to nearest.
-    let term = |v: i64, s: i32| scale(v, s);
+    // v·2^(e_v − e) for a shift s = e − e_v, rounded to nearest. r₀ keeps the low 32 bits of
+    // the sum of the terms, so the `i32` ones are formed in `i32` ([`scale_low`]) and only d₁,
+    // an `i64`, is shifted in `i64`.
+    let d_term = |v: i64| scale(v, plan.d_shift) as i32;
     match history {
         Some((d_hist, r_hist)) => {
             for (((ri, ki), dh), rh) in r.iter_mut().zip(kp).zip(d_hist).zip(r_hist) {
                 let d1 = ki[lane];
-                let r0 = i64::from(*ri);
-                let mut z = term(d1, plan.d_shift) + term(r0, plan.r_shift);
+                let mut z = d_term(d1).wrapping_add(scale_low(*ri, plan.r_shift));
                 if let Some((sd, sr)) = plan.extrapolated {
-                    z -= term(i64::from(*dh), sd) + term(i64::from(*rh), sr);
+                    z = z.wrapping_sub(scale_low(*dh, sd).wrapping_add(scale_low(*rh, sr)));
                 }
                 *dh = plan.keep.apply(d1);
                 *rh = *ri;
-                *ri = z as i32;
+                *ri = z;
                 or |= magnitude_bits(*ri);
             }
         }
         None => {
             for (ri, ki) in r.iter_mut().zip(kp) {
-                let z = term(ki[lane], plan.d_shift) + term(i64::from(*ri), plan.r_shift);
-                *ri = z as i32;
+                *ri = d_term(ki[lane]).wrapping_add(scale_low(*ri, plan.r_shift));
                 or |= magnitude_bits(*ri);
             }
         }
