@@ -26,7 +26,7 @@ use deform_shared::word::{VALUE_MAX, VALUE_MIN};
 use heapless::Vec;
 
 use crate::kernel::Sums;
-use crate::predict::{scale, scale_low};
+use crate::predict::{scale, scale_low, scale_low_wide};
 use crate::svu::{
     magnitude_bits, magnitude_bound, normalising_shift, sum_squares, term, Block, Lin, Narrow,
     Scalar, Term,
@@ -416,9 +416,9 @@ pub fn residual_share(
 ) -> (u128, u32) {
     let mut or = 0;
     // v·2^(e_v − e) for a shift s = e − e_v, rounded to nearest. r₀ keeps the low 32 bits of
-    // the sum of the terms, so the `i32` ones are formed in `i32` ([`scale_low`]) and only d₁,
-    // an `i64`, is shifted in `i64`.
-    let d_term = |v: i64| scale(v, plan.d_shift) as i32;
+    // the sum of the terms, so each is formed as its low word: the `i32` ones in `i32`
+    // ([`scale_low`]), d₁ (an `i64` below 2^62: the MVU's row sums) from its two words.
+    let d_term = |v: i64| scale_low_wide(v, plan.d_shift);
     match history {
         Some((d_hist, r_hist)) => {
             for (((ri, ki), dh), rh) in r.iter_mut().zip(kp).zip(d_hist).zip(r_hist) {
