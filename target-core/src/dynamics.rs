@@ -36,6 +36,9 @@ use crate::svu::{
 #[derive(Default)]
 pub struct Dynamic {
     tools: Vec<DynamicTool, MAX_TOOL_NODES>,
+    /// Per tool, Σ|q| over its row of S and over its row of K (raw values, exact as `u64`,
+    /// converted once): pass B's plan bounds the tool's part of b with them every step.
+    magnitudes: Vec<[f64; 2], MAX_TOOL_NODES>,
     started: Option<Stepping>,
 }
 
@@ -86,13 +89,18 @@ impl Dynamic {
         &self.tools
     }
 
+    /// Per tool, Σ|q| over its rows of S and K, in the order of [`Dynamic::tools`].
+    pub fn row_magnitudes(&self) -> &[[f64; 2]] {
+        &self.magnitudes
+    }
+
     pub fn state(&self) -> Option<&Stepping> {
         self.started.as_ref()
     }
 
     /// The tool set and the stepping state, borrowed together.
     pub fn parts(&mut self) -> Result<(&[DynamicTool], &mut Stepping), DynamicError> {
-        let Dynamic { tools, started } = self;
+        let Dynamic { tools, started, .. } = self;
         Ok((tools, started.as_mut().ok_or(DynamicError::NotStarted)?))
     }
 
@@ -100,17 +108,21 @@ impl Dynamic {
     pub fn add_tool(&mut self, tool: DynamicTool, n: u32) -> Result<(), LiveDynamicError> {
         if self.started.take().is_some() {
             self.tools.clear();
+            self.magnitudes.clear();
         }
         let node = Self::check_tool(&tool, n)?;
         if self.tools.iter().any(|t| t.s.node == node) {
             return Err(LiveError::DuplicateNode { node }.into());
         }
+        let magnitudes = [row_magnitude(&tool.s), row_magnitude(&tool.k)];
         self.tools.push(tool).map_err(|_| {
-            LiveError::TooManyNodes {
+            LiveDynamicError::from(LiveError::TooManyNodes {
                 max: MAX_TOOL_NODES as u8,
-            }
-            .into()
-        })
+            })
+        })?;
+        // As many slots as tools: this push cannot fail where the tool's did not.
+        let _ = self.magnitudes.push(magnitudes);
+        Ok(())
     }
 
     /// A tool's faults, or its node: S's and K's rows name the same node and columns, all
@@ -457,6 +469,16 @@ pub fn predict_share(v: &mut [i32], v0: &mut [i32], dv: &[i32], lin: Option<&Lin
         or |= magnitude_bits(*vi);
     }
     or
+}
+
+/// Σ|q| over a tool row's diagonal and couplings, in integers (exact: at most 1 + MAX_TOOL_ROW
+/// values below 2^21), converted once.
+fn row_magnitude(r: &deform_shared::live::ToolRow) -> f64 {
+    let sum: u64 = core::iter::once(r.diagonal)
+        .chain(r.row.iter().map(|c| c.value))
+        .map(|q| u64::from(q.unsigned_abs()))
+        .sum();
+    sum as f64
 }
 
 /// A tool row's Σ raw·x over its diagonal (with `own`, the node's own value) and couplings

@@ -458,6 +458,8 @@ impl<E: Executor> Session<'_, E> {
         let StiffnessState::Complete { frac_bits } = self.stiffness else {
             return Err(dynamic(DynamicError::NoStiffness));
         };
+        let magnitudes: heapless::Vec<[f64; 2], MAX_TOOL_NODES> =
+            self.dynamic.row_magnitudes().iter().copied().collect();
         let (tools, st) = self.dynamic.parts().map_err(dynamic)?;
         // K's raw values are K·2^(F − k_scale); b is kept in the resident S's units, b·2^−s_scale.
         let f_k = i32::from(frac_bits) - i32::from(st.params.k_scale);
@@ -484,17 +486,9 @@ impl<E: Executor> Session<'_, E> {
                 let own_u = u.get(node).copied().unwrap_or(0);
                 terms.ku[t] = ldexp(row_sum(&dt.k, own_u, u) as f64, e_u - f_k);
                 terms.mv[t] = m * ldexp(f64::from(v.get(node).copied().unwrap_or(0)), e_v);
-                // Σ|q| over the row in integers (exact: at most 1 + MAX_TOOL_ROW values below
-                // 2^21), converted once.
-                let column = |r: &ToolRow| -> f64 {
-                    let sum: u64 = core::iter::once(r.diagonal)
-                        .chain(r.row.iter().map(|c| c.value))
-                        .map(|q| u64::from(q.unsigned_abs()))
-                        .sum();
-                    sum as f64
-                };
-                tool_part +=
-                    column(&dt.s) * terms.s_mult[t].abs() + column(&dt.k) * terms.k_mult[t].abs();
+                // Σ|q| over the rows of S and K, formed once per tool set.
+                let [column_s, column_k] = magnitudes.get(t).copied().unwrap_or_default();
+                tool_part += column_s * terms.s_mult[t].abs() + column_k * terms.k_mult[t].abs();
             }
             let e_old = self.rhs[d].exponent(SessionStep::NoRhs)?;
             let plan = RhsPlan::new(
