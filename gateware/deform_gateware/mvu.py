@@ -262,7 +262,7 @@ class Mvu(Module):
             self.words.read[0].adr.eq(self.bus_word.adr),
             NextValue(ahead_tile, 0),
             If(self.start & (self.length != 0),
-                NextValue(fresh, 1), NextValue(self.stalls, 0), NextValue(self.busy, 1),
+                NextValue(fresh, 1), NextValue(self.busy, 1),
                 NextState("HEADER")))
         fsm.act("HEADER",      # tile 0's header into `header`
             NextValue(header, tile_rd.dat_r), NextValue(ahead_tile, 1),
@@ -271,6 +271,7 @@ class Mvu(Module):
         # compare of the word address is then no path into the state register, which fans out
         # to every memory's port multiplexer and sits far from the fetch.
         at_end = Signal()
+        stalled = Signal()    # RUN, and no room for the next word
         fsm.act("FIRST_TILE",  # tile 0's context from `header`, tile 1's header into it
             NextValue(header, tile_rd.dat_r), NextValue(ahead_tile, 2),
             NextValue(wa, 0), NextValue(at_end, 0),
@@ -282,8 +283,17 @@ class Mvu(Module):
             self.words.read[0].adr.eq(wa),
             issue.eq(~at_end & room),
             If(issue, NextValue(wa, wa + 1), NextValue(at_end, wa + 1 == self.length)),
-            If(~at_end & ~room, NextValue(self.stalls, self.stalls + 1)),
+            stalled.eq(~at_end & ~room),
             If(at_end, NextState("DRAIN")))
+        # `stalls` counts a clock late, from a register (`stalled` of the clock before), and
+        # clears at a start from the inputs and `busy`: its 32 enables then hang on no decode
+        # of the state (that path, through the start's decode, was the last critical one).
+        stalled_before = Signal()
+        self.sync += [
+            stalled_before.eq(stalled),
+            If(self.start & ~self.busy & (self.length != 0), self.stalls.eq(0)).Elif(
+                stalled_before, self.stalls.eq(self.stalls + 1)),
+        ]
         drained = Signal()
         fsm.act("DRAIN", If(drained, NextValue(self.busy, 0), NextState("IDLE")))
 
@@ -480,10 +490,12 @@ class Mvu(Module):
                     self.p_kp_low[lane].eq(self.p_kp_low[lane] + mul.p)))
 
         # Done once nothing is in flight anywhere; a register, a clock late (in DRAIN nothing
-        # enters the pipeline, so what was empty stays empty): the queue's level (a sum) and
-        # this wide AND are then no path into the state register.
+        # enters the pipeline, so what was empty stays empty): this wide AND is then no path
+        # into the state register. The queue counts as empty from its head's valid bit and its
+        # memory's count, not from `level`, their sum (a carry chain that was a critical path).
         self.sync += drained.eq(
-            (Cat(*in_pipe, *stages) == 0) & (queue.level == 0) & ~mirror_pending
+            (Cat(*in_pipe, *stages) == 0) & ~queue.readable & (queue.fifo.level == 0)
+            & ~mirror_pending
             & ~seq_busy & ~mul.valid & ~self._mul_in_flight(mul))
 
     def _mul_in_flight(self, mul):
