@@ -1399,14 +1399,22 @@ fn finish<E: Executor>(solver: Solver<'_, '_, '_, E>) -> (SolveReport, [i32; MAX
     (report, solver.x_exponents)
 }
 
-/// √x for x ≥ 0 without std: Newton's method from a power-of-two first guess.
+/// √x for x ≥ 0 without std: Newton's method from a power-of-two first guess, at most 8
+/// steps. A step that leaves g unchanged has reached a fixed point, which every later step
+/// would return again, so the loop stops there with the same result: each step is a soft-f64
+/// division on the target, and from within √2 of the root the fifth step usually repeats the
+/// fourth.
 fn sqrt(x: f64) -> f64 {
     if x <= 0.0 || !x.is_finite() {
         return if x == 0.0 { 0.0 } else { x.max(0.0) };
     }
     let mut g = ldexp(1.0, floor_log2(x) / 2);
     for _ in 0..8 {
-        g = 0.5 * (g + x / g);
+        let next = 0.5 * (g + x / g);
+        if next == g {
+            break;
+        }
+        g = next;
     }
     g
 }

@@ -26,7 +26,7 @@ use deform_shared::word::{VALUE_MAX, VALUE_MIN};
 use heapless::Vec;
 
 use crate::kernel::Sums;
-use crate::predict::scale;
+use crate::predict::{scale, scale_low, scale_low_wide};
 use crate::svu::{
     magnitude_bits, magnitude_bound, normalising_shift, sum_squares, term, Block, Lin, Narrow,
     Scalar, Term,
@@ -36,6 +36,9 @@ use crate::svu::{
 #[derive(Default)]
 pub struct Dynamic {
     tools: Vec<DynamicTool, MAX_TOOL_NODES>,
+    /// Per tool, Σ|q| over its row of S and over its row of K (raw values, exact as `u64`,
+    /// converted once): pass B's plan bounds the tool's part of b with them every step.
+    magnitudes: Vec<[f64; 2], MAX_TOOL_NODES>,
     started: Option<Stepping>,
 }
 
@@ -86,13 +89,18 @@ impl Dynamic {
         &self.tools
     }
 
+    /// Per tool, Σ|q| over its rows of S and K, in the order of [`Dynamic::tools`].
+    pub fn row_magnitudes(&self) -> &[[f64; 2]] {
+        &self.magnitudes
+    }
+
     pub fn state(&self) -> Option<&Stepping> {
         self.started.as_ref()
     }
 
     /// The tool set and the stepping state, borrowed together.
     pub fn parts(&mut self) -> Result<(&[DynamicTool], &mut Stepping), DynamicError> {
-        let Dynamic { tools, started } = self;
+        let Dynamic { tools, started, .. } = self;
         Ok((tools, started.as_mut().ok_or(DynamicError::NotStarted)?))
     }
 
@@ -100,17 +108,21 @@ impl Dynamic {
     pub fn add_tool(&mut self, tool: DynamicTool, n: u32) -> Result<(), LiveDynamicError> {
         if self.started.take().is_some() {
             self.tools.clear();
+            self.magnitudes.clear();
         }
         let node = Self::check_tool(&tool, n)?;
         if self.tools.iter().any(|t| t.s.node == node) {
             return Err(LiveError::DuplicateNode { node }.into());
         }
+        let magnitudes = [row_magnitude(&tool.s), row_magnitude(&tool.k)];
         self.tools.push(tool).map_err(|_| {
-            LiveError::TooManyNodes {
+            LiveDynamicError::from(LiveError::TooManyNodes {
                 max: MAX_TOOL_NODES as u8,
-            }
-            .into()
-        })
+            })
+        })?;
+        // As many slots as tools: this push cannot fail where the tool's did not.
+        let _ = self.magnitudes.push(magnitudes);
+        Ok(())
     }
 
     /// A tool's faults, or its node: S's and K's rows name the same node and columns, all
@@ -337,9 +349,11 @@ impl Difference {
         }
     }
 
+    /// The result keeps the low 32 bits of the exact difference of the rounded terms, so each
+    /// term is formed in `i32` ([`scale_low`]).
     #[inline(always)]
     pub fn apply(&self, a: i32, b: i32) -> i32 {
-        (scale(i64::from(a), self.shift_a) - scale(i64::from(b), self.shift_b)) as i32
+        scale_low(a, self.shift_a).wrapping_sub(scale_low(b, self.shift_b))
     }
 }
 
@@ -413,27 +427,27 @@ pub fn residual_share(
     history: Option<(&mut [i32], &mut [i32])>,
 ) -> (u128, u32) {
     let mut or = 0;
-    // v·2^(e_v − e) for a shift s = e − e_v, rounded to nearest.
-    let term = |v: i64, s: i32| scale(v, s);
+    // v·2^(e_v − e) for a shift s = e − e_v, rounded to nearest. r₀ keeps the low 32 bits of
+    // the sum of the terms, so each is formed as its low word: the `i32` ones in `i32`
+    // ([`scale_low`]), d₁ (an `i64` below 2^62: the MVU's row sums) from its two words.
+    let d_term = |v: i64| scale_low_wide(v, plan.d_shift);
     match history {
         Some((d_hist, r_hist)) => {
             for (((ri, ki), dh), rh) in r.iter_mut().zip(kp).zip(d_hist).zip(r_hist) {
                 let d1 = ki[lane];
-                let r0 = i64::from(*ri);
-                let mut z = term(d1, plan.d_shift) + term(r0, plan.r_shift);
+                let mut z = d_term(d1).wrapping_add(scale_low(*ri, plan.r_shift));
                 if let Some((sd, sr)) = plan.extrapolated {
-                    z -= term(i64::from(*dh), sd) + term(i64::from(*rh), sr);
+                    z = z.wrapping_sub(scale_low(*dh, sd).wrapping_add(scale_low(*rh, sr)));
                 }
                 *dh = plan.keep.apply(d1);
                 *rh = *ri;
-                *ri = z as i32;
+                *ri = z;
                 or |= magnitude_bits(*ri);
             }
         }
         None => {
             for (ri, ki) in r.iter_mut().zip(kp) {
-                let z = term(ki[lane], plan.d_shift) + term(i64::from(*ri), plan.r_shift);
-                *ri = z as i32;
+                *ri = d_term(ki[lane]).wrapping_add(scale_low(*ri, plan.r_shift));
                 or |= magnitude_bits(*ri);
             }
         }
@@ -455,6 +469,16 @@ pub fn predict_share(v: &mut [i32], v0: &mut [i32], dv: &[i32], lin: Option<&Lin
         or |= magnitude_bits(*vi);
     }
     or
+}
+
+/// Σ|q| over a tool row's diagonal and couplings, in integers (exact: at most 1 + MAX_TOOL_ROW
+/// values below 2^21), converted once.
+fn row_magnitude(r: &deform_shared::live::ToolRow) -> f64 {
+    let sum: u64 = core::iter::once(r.diagonal)
+        .chain(r.row.iter().map(|c| c.value))
+        .map(|q| u64::from(q.unsigned_abs()))
+        .sum();
+    sum as f64
 }
 
 /// A tool row's Σ raw·x over its diagonal (with `own`, the node's own value) and couplings

@@ -38,6 +38,39 @@ pub(crate) fn scale(v: i64, s: i32) -> i64 {
     }
 }
 
+/// `scale(i64::from(v), s) as i32`, the low 32 bits of the rounded shift, in `i32` alone: a
+/// pass that keeps only those bits of a sum of such terms (an `i32` result) need not form them
+/// in `i64`, whose variable shifts take several instructions each on RV32. Rounding to nearest
+/// is the floor plus the bit below the cut; left shifts of 32 or more, and right shifts of 32
+/// or more of an `i32`, leave no low bits.
+#[inline(always)]
+pub(crate) fn scale_low(v: i32, s: i32) -> i32 {
+    match s {
+        -31..=-1 => v.wrapping_shl((-s) as u32),
+        0 => v,
+        1..=31 => (v >> s) + ((v >> (s - 1)) & 1),
+        _ => 0,
+    }
+}
+
+/// `scale(v, s) as i32` for an `i64` v below 2^62 in magnitude, from its two words: the same
+/// low word without a 64-bit shift (see [`scale_low`]).
+#[inline(always)]
+pub(crate) fn scale_low_wide(v: i64, s: i32) -> i32 {
+    let (lo, hi) = (v as u32, (v >> 32) as i32);
+    match s {
+        -31..=-1 => (lo as i32).wrapping_shl((-s) as u32),
+        0 => lo as i32,
+        1..=31 => {
+            let low = (lo >> s) | ((hi as u32) << (32 - s));
+            low.wrapping_add((lo >> (s - 1)) & 1) as i32
+        }
+        32 => hi.wrapping_add((lo >> 31) as i32),
+        33..=62 => (hi >> (s - 32)).wrapping_add((hi >> (s - 33)) & 1),
+        _ => 0,
+    }
+}
+
 /// Overwrites `x` (u(t−1), exponent `e1`) with 2u(t−1) − u(t−2) (u(t−2) in `kept`, exponent
 /// `e2`) and `kept` with u(t−1): afterwards `kept` holds what the next prediction needs. Returns
 /// the exponents of the prediction now in `x`. Every mantissa written stays below 2^29.
@@ -67,6 +100,69 @@ pub fn extrapolate(x: &mut [i32], e1: i32, kept: &mut [i32], e2: i32) -> i32 {
 
 #[cfg(test)]
 mod tests {
+    /// [`scale_low_wide`] is [`scale`]'s low 32 bits for every shift and `i64` values up to
+    /// 2^62 in magnitude.
+    #[test]
+    fn scale_low_wide_is_the_low_word_of_scale() {
+        let big = (1i64 << 62) - 1;
+        let values = [
+            0,
+            1,
+            -1,
+            3,
+            -3,
+            big,
+            -big,
+            1 << 40,
+            -(1 << 40) + 7,
+            0x0123_4567_89ab_cdef,
+        ];
+        let spread = (0..3000i64).map(|k| (k - 1500) * 3_074_457_345_618_258 + k * 977);
+        for v in values.into_iter().chain(spread) {
+            for s in -80..80 {
+                assert_eq!(
+                    super::scale_low_wide(v, s),
+                    super::scale(v, s) as i32,
+                    "{v} {s}"
+                );
+            }
+        }
+    }
+
+    /// [`scale_low`] is [`scale`]'s low 32 bits for every shift and the `i32` extremes.
+    #[test]
+    fn scale_low_is_the_low_word_of_scale() {
+        let values = [
+            0,
+            1,
+            -1,
+            2,
+            -2,
+            3,
+            -3,
+            0x1234_5678,
+            -0x1234_5679,
+            (1 << 29) + 1,
+            -(1 << 30) + 3,
+            i32::MAX,
+            i32::MIN,
+            i32::MAX - 1,
+            i32::MIN + 1,
+        ];
+        for v in values
+            .into_iter()
+            .chain((0..2000).map(|k| k * 1_073_741 - 1_073_741_000))
+        {
+            for s in -80..80 {
+                assert_eq!(
+                    super::scale_low(v, s),
+                    super::scale(i64::from(v), s) as i32,
+                    "{v} {s}"
+                );
+            }
+        }
+    }
+
     use super::*;
 
     fn value(m: &[i32], e: i32) -> Vec<f64> {

@@ -18,8 +18,10 @@
 //! a long-running request (`Solve`) that the target acknowledged may wait its own, longer,
 //! deadline. So a noisy line that keeps moving is never given up on, however many frames it
 //! damages, while a dead one fails within the timeout; a passed deadline first reads what the
-//! line already holds, since the time may have gone on this side while replies waited. Nothing here can block longer than those
-//! bounds: every read and write on the port is bounded by the time left.
+//! line already holds, since the time may have gone on this side while replies waited, and time
+//! this process was stopped (a wait that ended far later than asked) moves the deadlines rather
+//! than counting as the target's silence. Nothing here can block longer than those bounds: every
+//! read and write on the port is bounded by the time left.
 
 use std::collections::VecDeque;
 use std::io::ErrorKind;
@@ -39,6 +41,22 @@ pub const DEFAULT_REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// The least retransmit timeout, however fast the target answers.
 const MIN_RETRANSMIT: Duration = Duration::from_millis(20);
+
+/// How much later than asked a wait for the line may end before the link takes it that this
+/// process was not running (see [`paused_past`]). A loaded machine wakes a poll late by
+/// milliseconds, rarely by a few hundred.
+const PAUSE: Duration = Duration::from_secs(1);
+
+/// How long this process was stopped, if a wait that was to end at `wake` ended more than
+/// [`PAUSE`] after it: a suspended laptop, a stopped process, or a stalled virtual machine,
+/// which stops a QEMU target with it. That time says nothing about the target, so the link's
+/// deadlines move by it rather than failing a run whose target had no time to answer: a
+/// passed deadline only gets a few milliseconds of reading, too little for a target that has
+/// to handle the frame sent again after the pause.
+fn paused_past(wake: Instant) -> Option<Duration> {
+    let late = Instant::now().saturating_duration_since(wake);
+    (late > PAUSE).then_some(late)
+}
 
 /// Retransmission settings.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -364,13 +382,23 @@ impl<P: Port> Link<P> {
                 wake = wake.max(now + Duration::from_millis(5));
             }
             let (corrupt, received) = (self.stats.corrupt_frames, self.stats.bytes_received);
-            let progressed = match self.receive(wake)? {
+            let frame = self.receive(wake)?;
+            let paused = paused_past(wake);
+            if let Some(paused) = paused {
+                progress += paused;
+                for entry in window.iter_mut() {
+                    if let Some(at) = entry.accepted.as_mut() {
+                        *at += paused;
+                    }
+                }
+            }
+            let progressed = match frame {
                 None => false,
                 Some(up) => self.on_frame(up, &mut window)?,
             };
             if progressed {
                 progress = Instant::now();
-            } else if let Some(timeout) = expired {
+            } else if let Some(timeout) = expired.filter(|_| paused.is_none()) {
                 return Err(timeout);
             }
             // What the line did, for the chunk and window (see `adapt`).

@@ -148,7 +148,49 @@ impl Fixed {
 
 /// b₀ at the rows a tool node writes (its own and its couplings'), per direction, kept on hart
 /// 0 while pass B overwrites b: at most every tool node and its row.
-type Stash = heapless::Vec<(u32, [i32; MAX_DIRECTIONS]), { MAX_TOOL_NODES * (MAX_TOOL_ROW + 1) }>;
+type Stash = heapless::Vec<StashRow, { MAX_TOOL_NODES * (MAX_TOOL_ROW + 1) }>;
+
+/// One row of the [`Stash`]: its index, b₀ there per direction, and which tool terms write it.
+#[derive(Debug, Clone, Copy)]
+struct StashRow {
+    row: u32,
+    old: [i32; MAX_DIRECTIONS],
+    writer: Writer,
+}
+
+/// Which tool terms write a stashed row, found once while the stash is built so that
+/// [`Session::tool_rows`] does not search every tool's row for every stashed row (a quadratic
+/// search that cost more than the rows' arithmetic).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Writer {
+    /// Tool `t`'s own row: S_tt·v₁t, whatever else couples to it.
+    Own(u8),
+    /// Only tool `t` couples to it, first at position `k` of its row.
+    Single { t: u8, k: u8 },
+    /// Several tools couple to it: every tool's row is searched, as in the general case.
+    Many,
+}
+
+/// Whether a tool row's node and columns are all distinct, told cheaply: the columns rise
+/// strictly and none is the node.
+fn distinct_rows(r: &ToolRow) -> bool {
+    r.row.windows(2).all(|w| w[0].column < w[1].column) && r.row.iter().all(|c| c.column != r.node)
+}
+
+impl Writer {
+    /// The writer of a row first stashed with `self` and met again with `later`. Nodes are
+    /// distinct (`DuplicateNode`), so at most one tool owns a row; a row repeated within one
+    /// tool's couplings keeps its first position (the one a search finds).
+    fn and(self, later: Writer) -> Writer {
+        match (self, later) {
+            (Writer::Own(t), _) | (_, Writer::Own(t)) => Writer::Own(t),
+            (Writer::Single { t, k }, Writer::Single { t: t2, .. }) if t == t2 => {
+                Writer::Single { t, k }
+            }
+            _ => Writer::Many,
+        }
+    }
+}
 
 /// One active direction of a step: its index and what its passes planned and measured.
 #[derive(Debug, Clone, Copy)]
@@ -416,6 +458,8 @@ impl<E: Executor> Session<'_, E> {
         let StiffnessState::Complete { frac_bits } = self.stiffness else {
             return Err(dynamic(DynamicError::NoStiffness));
         };
+        let magnitudes: heapless::Vec<[f64; 2], MAX_TOOL_NODES> =
+            self.dynamic.row_magnitudes().iter().copied().collect();
         let (tools, st) = self.dynamic.parts().map_err(dynamic)?;
         // K's raw values are K·2^(F − k_scale); b is kept in the resident S's units, b·2^−s_scale.
         let f_k = i32::from(frac_bits) - i32::from(st.params.k_scale);
@@ -442,17 +486,9 @@ impl<E: Executor> Session<'_, E> {
                 let own_u = u.get(node).copied().unwrap_or(0);
                 terms.ku[t] = ldexp(row_sum(&dt.k, own_u, u) as f64, e_u - f_k);
                 terms.mv[t] = m * ldexp(f64::from(v.get(node).copied().unwrap_or(0)), e_v);
-                // Σ|q| over the row in integers (exact: at most 1 + MAX_TOOL_ROW values below
-                // 2^21), converted once.
-                let column = |r: &ToolRow| -> f64 {
-                    let sum: u64 = core::iter::once(r.diagonal)
-                        .chain(r.row.iter().map(|c| c.value))
-                        .map(|q| u64::from(q.unsigned_abs()))
-                        .sum();
-                    sum as f64
-                };
-                tool_part +=
-                    column(&dt.s) * terms.s_mult[t].abs() + column(&dt.k) * terms.k_mult[t].abs();
+                // Σ|q| over the rows of S and K, formed once per tool set.
+                let [column_s, column_k] = magnitudes.get(t).copied().unwrap_or_default();
+                tool_part += column_s * terms.s_mult[t].abs() + column_k * terms.k_mult[t].abs();
             }
             let e_old = self.rhs[d].exponent(SessionStep::NoRhs)?;
             let plan = RhsPlan::new(
@@ -479,19 +515,30 @@ impl<E: Executor> Session<'_, E> {
                 iteration: 0,
             }));
         }
-        // b₀ at the tool's rows, before pass B overwrites it.
+        // b₀ at the tool's rows, before pass B overwrites it, and who writes each row.
         stash.clear();
-        for dt in tools {
-            let rows = core::iter::once(dt.s.node).chain(dt.s.row.iter().map(|c| c.column));
-            for row in rows {
-                if stash.iter().any(|(r, _)| *r == row) {
+        for (t, dt) in tools.iter().enumerate() {
+            let t = t as u8;
+            let rows = core::iter::once((dt.s.node, Writer::Own(t))).chain(
+                (dt.s.row.iter().enumerate())
+                    .map(|(k, c)| (c.column, Writer::Single { t, k: k as u8 })),
+            );
+            // The first tool's rows need no search where its columns rise strictly and skip
+            // its node (the host sends them so, in its CSR's order): none can repeat.
+            let fresh = stash.is_empty() && distinct_rows(&dt.s);
+            for (row, writer) in rows {
+                let seen = (!fresh)
+                    .then(|| stash.iter_mut().find(|e| e.row == row))
+                    .flatten();
+                if let Some(entry) = seen {
+                    entry.writer = entry.writer.and(writer);
                     continue;
                 }
                 let old = core::array::from_fn(|d| {
                     let b = &self.store.directions[d].b;
                     b.get(row as usize).copied().unwrap_or(0)
                 });
-                let _ = stash.push((row, old));
+                let _ = stash.push(StashRow { row, old, writer });
             }
         }
         Ok(steps)
@@ -572,19 +619,27 @@ impl<E: Executor> Session<'_, E> {
                 core::array::from_fn(|t| fixed(&step.terms.s_mult, t));
             let mk: [Fixed; MAX_TOOL_NODES] =
                 core::array::from_fn(|t| fixed(&step.terms.k_mult, t));
-            for &(row, old) in stash {
+            // Tool t's coupling at position k of its row: S's and K's terms.
+            let coupling = |t: usize, k: usize| {
+                let (s, k_row) = (&tools[t].s.row, &tools[t].k.row);
+                let ks = k_row.get(k).map_or(0, |c| c.value);
+                ms[t].times(s[k].value) + mk[t].times(ks)
+            };
+            for entry in stash {
+                let (row, old) = (entry.row, entry.old);
                 let i = row as usize;
                 let Some(bi) = b.get_mut(i) else { continue };
                 let formed = *bi;
                 let mut value = i64::from(formed);
-                if let Some(t) = tools.iter().position(|dt| dt.s.node == row) {
+                match entry.writer {
                     // A tool node's own row: S_tt·v₁t, whatever else couples to it.
-                    value = ms[t].times(tools[t].s.diagonal);
-                } else {
-                    for (t, dt) in tools.iter().enumerate() {
-                        if let Some(k) = dt.s.row.iter().position(|c| c.column == row) {
-                            let ks = dt.k.row.get(k).map_or(0, |c| c.value);
-                            value -= ms[t].times(dt.s.row[k].value) + mk[t].times(ks);
+                    Writer::Own(t) => value = ms[t as usize].times(tools[t as usize].s.diagonal),
+                    Writer::Single { t, k } => value -= coupling(t as usize, k as usize),
+                    Writer::Many => {
+                        for (t, dt) in tools.iter().enumerate() {
+                            if let Some(k) = dt.s.row.iter().position(|c| c.column == row) {
+                                value -= coupling(t, k);
+                            }
                         }
                     }
                 }
@@ -988,5 +1043,24 @@ impl<E: Executor> Session<'_, E> {
 
     fn dynamic_state(&self) -> Option<&crate::dynamics::Stepping> {
         self.dynamic.state()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Writer;
+
+    /// The writer found while stashing equals what searching every tool's row finds: the
+    /// owning tool first, else a single coupling tool at its first position, else all.
+    #[test]
+    fn a_stashed_rows_writer_is_what_a_search_would_find() {
+        let single = |t, k| Writer::Single { t, k };
+        assert_eq!(single(0, 3).and(Writer::Own(1)), Writer::Own(1));
+        assert_eq!(Writer::Own(1).and(single(2, 0)), Writer::Own(1));
+        assert_eq!(Writer::Many.and(Writer::Own(2)), Writer::Own(2));
+        // A column repeated in one tool's row: the first position stays.
+        assert_eq!(single(0, 3).and(single(0, 7)), single(0, 3));
+        assert_eq!(single(0, 3).and(single(1, 0)), Writer::Many);
+        assert_eq!(Writer::Many.and(single(1, 0)), Writer::Many);
     }
 }
