@@ -10,8 +10,10 @@ Memories (all loaded between phases by the MVU array's bus; the unit only reads 
 - ``words`` (block RAM): 36-bit entries, the instruction words of its tiles back to back and
   the write-back flags of each ER word (``word.FIRST_OWN`` ...);
 - ``tiles`` (distributed RAM, read in the same clock): per tile ``row_base``, ``col_base``,
-  ``n - 1 - col_base`` and the mirrored bit; EM moves to the next one (the table's read
-  address is a register, ``next_tile``: nothing stands between it and the table);
+  ``n - 1 - col_base`` and the mirrored bit; EM moves to the next one. The next tile's header
+  waits in a register (``header``) and the table is read one tile further ahead (its address,
+  ``ahead_tile``, a register too), so an EM loads the tile context from a register, and the
+  table's read (its 16-way multiplexer) ends in ``header``, not in the context's registers;
 - ``p_col`` (block RAM): p (three 32-bit lanes per node), read twice per clock: at column
   ``col_base + c`` and, for a mirrored tile, at ``n - 1 - col_base - c``;
 - ``p_row`` (block RAM): another copy of p, read at the row of each write-back (for pᵀKp);
@@ -43,7 +45,12 @@ write-back). U hands p[row] and the sums to the pᵀKp sequencer, which multipli
 clock, never onto a row still being written nor before the sequencer can take its job; the
 decision is an AND of registers (the queue's pop, the row compares and the sequencer's count
 are each made a clock ahead), not the long path from the queue's memory to its own pop that it
-was. The fetch stops while the queue could overflow; ``stalls`` counts those clocks.
+was. The fetch stops while the queue could overflow (its room, too, is decided a clock ahead,
+with one entry more in reserve); ``stalls`` counts those clocks.
+
+A phase: IDLE, HEADER (tile 0's header into ``header``), FIRST_TILE, RUN (one word fetched per
+clock), DRAIN (until nothing is in flight: ``drained``, a register, so a clock late). ``busy``
+is a register set and cleared with the state's own transitions, not a decode of the state.
 """
 
 from migen import (Module, Signal, Memory, Array, Cat, If, FSM, NextState, NextValue,
@@ -106,7 +113,9 @@ class Mvu(Module):
         self.last_row = Signal(nb)              # n - 1
         self.directions = Signal(2)             # 1..3
         self.length = Signal(bits_for(words + 1))  # words to run (0: sit the phase out)
-        # Status and results.
+        # Status and results. `busy` is "not in IDLE", a register of its own beside the state:
+        # it selects every memory port between the array's bus and the unit, so it fans out
+        # across the whole unit, and a decode of the state in front of it was a critical path.
         self.busy = Signal()
         self.stalls = Signal(32)
         self.p_kp_low = [Signal((HALF_SUM_BITS, True)) for _ in range(LANES)]
@@ -149,14 +158,15 @@ class Mvu(Module):
     def _pipeline(self, tile_rd, idle):
         nb = self.node_bits
         wa = Signal(bits_for(self.words_depth + 1))
-        next_tile = Signal(bits_for(self.tiles_depth + 1))   # the header `tile_rd` shows
+        ahead_tile = Signal(bits_for(self.tiles_depth + 1))   # the header `tile_rd` shows
         issue = Signal()
         # The write-back queue: its head a register (the memory's read is registered), so that
         # what the write-back decides from it starts at a register, not at a memory read.
         self.queue = queue = SyncFIFOBuffered(self._entry_width(), QUEUE_DEPTH)
         self.submodules += queue
 
-        # F2: decode, in the tile context; `tile_rd` shows the next tile's header.
+        # F2: decode, in the tile context; `header` holds the next tile's header and `tile_rd`
+        # shows the one after it.
         decode = InstructionWord()
         self.submodules += decode
         fetched = [Signal() for _ in range(LATENCY)]   # F1, F2 valid
@@ -169,12 +179,12 @@ class Mvu(Module):
         next_col_base = Signal(nb)
         next_mirror_col_base = Signal(nb)
         next_mirrored = Signal()
+        header = Signal(len(tile_rd.dat_r))
         advance = Signal()
         self.comb += [
             decode.entry.eq(self.words.read[0].dat),
-            tile_rd.adr.eq(next_tile),
-            Cat(next_row_base, next_col_base, next_mirror_col_base, next_mirrored).eq(
-                tile_rd.dat_r),
+            tile_rd.adr.eq(ahead_tile),
+            Cat(next_row_base, next_col_base, next_mirror_col_base, next_mirrored).eq(header),
             advance.eq(f2_valid & decode.em),
         ]
 
@@ -239,23 +249,32 @@ class Mvu(Module):
 
         # F0: fetch while the queue has room for every ER word that may be in flight.
         # (F1, F2, F3..F5, the multipliers, E, and the word being fetched.)
+        # `room` is a register, made from the level of the clock before: the queue's level (its
+        # memory's count plus the head register) and the compare are then no path into the
+        # fetch's registers (`wa`, `at_end`, `stalls`). The level may have grown by one since,
+        # so the bound keeps one entry more in reserve.
         in_flight = LATENCY + len(f) + latency + 2
         room = Signal()
-        self.comb += room.eq(queue.level < QUEUE_DEPTH - in_flight)
+        self.sync += room.eq(queue.level < QUEUE_DEPTH - in_flight - 1)
         fsm = FSM(reset_state="IDLE")
         self.submodules.fsm = fsm
         fsm.act("IDLE",
             self.words.read[0].adr.eq(self.bus_word.adr),
-            NextValue(next_tile, 0),
+            NextValue(ahead_tile, 0),
             If(self.start & (self.length != 0),
-                NextValue(fresh, 1), NextValue(self.stalls, 0),
-                NextState("FIRST_TILE")))
+                NextValue(fresh, 1), NextValue(self.busy, 1),
+                NextState("HEADER")))
+        fsm.act("HEADER",      # tile 0's header into `header`
+            NextValue(header, tile_rd.dat_r), NextValue(ahead_tile, 1),
+            NextState("FIRST_TILE"))
         # `at_end` is `wa == length`, a register of its own (made from wa's next value): the
         # compare of the word address is then no path into the state register, which fans out
         # to every memory's port multiplexer and sits far from the fetch.
         at_end = Signal()
-        fsm.act("FIRST_TILE",
-            NextValue(next_tile, 1), NextValue(wa, 0), NextValue(at_end, 0),
+        stalled = Signal()    # RUN, and no room for the next word
+        fsm.act("FIRST_TILE",  # tile 0's context from `header`, tile 1's header into it
+            NextValue(header, tile_rd.dat_r), NextValue(ahead_tile, 2),
+            NextValue(wa, 0), NextValue(at_end, 0),
             NextValue(row, next_row_base), NextValue(col_base, next_col_base),
             NextValue(mirror_col_base, next_mirror_col_base),
             NextValue(mirrored, next_mirrored),
@@ -264,18 +283,26 @@ class Mvu(Module):
             self.words.read[0].adr.eq(wa),
             issue.eq(~at_end & room),
             If(issue, NextValue(wa, wa + 1), NextValue(at_end, wa + 1 == self.length)),
-            If(~at_end & ~room, NextValue(self.stalls, self.stalls + 1)),
+            stalled.eq(~at_end & ~room),
             If(at_end, NextState("DRAIN")))
+        # `stalls` counts a clock late, from a register (`stalled` of the clock before), and
+        # clears at a start from the inputs and `busy`: its 32 enables then hang on no decode
+        # of the state (that path, through the start's decode, was the last critical one).
+        stalled_before = Signal()
+        self.sync += [
+            stalled_before.eq(stalled),
+            If(self.start & ~self.busy & (self.length != 0), self.stalls.eq(0)).Elif(
+                stalled_before, self.stalls.eq(self.stalls + 1)),
+        ]
         drained = Signal()
-        fsm.act("DRAIN", If(drained, NextState("IDLE")))
-        self.comb += self.busy.eq(~fsm.ongoing("IDLE"))
+        fsm.act("DRAIN", If(drained, NextValue(self.busy, 0), NextState("IDLE")))
 
         # F0 -> F2 valid bits, and the tile context at F2.
         self.sync += [
             fetched[0].eq(issue),
             *[fetched[k].eq(fetched[k - 1]) for k in range(1, LATENCY)],
             If(advance,
-                next_tile.eq(next_tile + 1),
+                ahead_tile.eq(ahead_tile + 1), header.eq(tile_rd.dat_r),
                 row.eq(next_row_base), col_base.eq(next_col_base),
                 mirror_col_base.eq(next_mirror_col_base),
                 mirrored.eq(next_mirrored),
@@ -362,16 +389,20 @@ class Mvu(Module):
         load = Signal()
         take = Signal()
         hazard = Signal()     # S's row is that of the part in W2, U or R
-        next_row = Signal(nb)
+        # The row S holds in the next clock is one of three candidates (S's own, the pending
+        # mirror row, the queue head's); each is compared with W, W2 and U on its own and the
+        # select comes last, so `mirror_pending` (placed among the wide S and mirror registers
+        # it selects) drives one LUT before `hazard`, not the row multiplexer and the compares.
+        def conflicts(candidate):
+            return Cat(*[x["valid"] & (x["row"] == candidate) for x in (w, w2, u)]) != 0
         self.comb += [
             load.eq(~s["valid"] & (mirror_pending | queue.readable)),
             queue.re.eq(~s["valid"] & ~mirror_pending),
-            If(s["valid"], next_row.eq(s["row"])).Elif(mirror_pending,
-                next_row.eq(mirror_row)).Else(next_row.eq(d_row)),
             take.eq(s["valid"] & ~hazard & ~w["valid"] & free_soon),
         ]
         self.sync += [
-            hazard.eq(Cat(*[x["valid"] & (x["row"] == next_row) for x in (w, w2, u)]) != 0),
+            If(s["valid"], hazard.eq(conflicts(s["row"]))).Elif(mirror_pending,
+                hazard.eq(conflicts(mirror_row))).Else(hazard.eq(conflicts(d_row))),
             If(~s["valid"],
                 s["valid"].eq(load),
                 If(mirror_pending,
@@ -458,9 +489,13 @@ class Mvu(Module):
                 If(out_tag[0], self.p_kp_high[lane].eq(self.p_kp_high[lane] + mul.p)).Else(
                     self.p_kp_low[lane].eq(self.p_kp_low[lane] + mul.p)))
 
-        # Done once nothing is in flight anywhere.
-        self.comb += drained.eq(
-            (Cat(*in_pipe, *stages) == 0) & (queue.level == 0) & ~mirror_pending
+        # Done once nothing is in flight anywhere; a register, a clock late (in DRAIN nothing
+        # enters the pipeline, so what was empty stays empty): this wide AND is then no path
+        # into the state register. The queue counts as empty from its head's valid bit and its
+        # memory's count, not from `level`, their sum (a carry chain that was a critical path).
+        self.sync += drained.eq(
+            (Cat(*in_pipe, *stages) == 0) & ~queue.readable & (queue.fifo.level == 0)
+            & ~mirror_pending
             & ~seq_busy & ~mul.valid & ~self._mul_in_flight(mul))
 
     def _mul_in_flight(self, mul):
