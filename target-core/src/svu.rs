@@ -891,38 +891,32 @@ mod riscv {
         };
     }
 
-    /// Pass R over whole blocks of 16 elements, own shift $own: the block's 16 squares summed
-    /// in (lo, hi) and folded into the 96-bit (w0, w1, w2) at its end. The body is one block
-    /// unrolled, so the pointers' increments, the branch and the block bookkeeping are paid
-    /// once per 16 elements (the quad loop below handles what is left).
-    macro_rules! pass_r_blocks {
-        ($own:literal, $kp:ident, $r:ident, $end:ident, $m:ident, $s:ident, $k:ident,
-         $w0:ident, $w1:ident, $w2:ident, $or:ident) => {
-            // SAFETY: reads Kp and reads/writes r within the blocks the caller sized `end` to.
+    /// Folds a block's (lo, hi) into the 96-bit (w0, w1, w2).
+    macro_rules! r_fold {
+        () => {
+            concat!(
+                "add {w0}, {w0}, {lo}\n",
+                "sltu {lo}, {w0}, {lo}\n",
+                "add {w1}, {w1}, {hi}\n",
+                "sltu {hi}, {w1}, {hi}\n",
+                "add {w1}, {w1}, {lo}\n",
+                "sltu {lo}, {w1}, {lo}\n",
+                "add {w2}, {w2}, {hi}\n",
+                "add {w2}, {w2}, {lo}\n",
+            )
+        };
+    }
+
+    /// One of pass R's loops (`body`) with its operands; `extra` names the loop's own
+    /// (lo and hi, and any other scratch register).
+    macro_rules! pass_r_asm {
+        ([$($body:tt)*], $kp:ident, $r:ident, $end:ident, $m:ident, $s:ident, $k:ident,
+         $w0:ident, $w1:ident, $w2:ident, $or:ident, $($extra:tt)*) => {
+            // SAFETY: reads Kp and reads/writes r within the elements the caller sized `end`
+            // to.
             unsafe {
                 asm!(
-                    concat!(
-                        "5:\n",
-                        r_pair!($own, "0", "4", "24", "28", "0", "4", r_squares_first),
-                        r_pair!($own, "48", "52", "72", "76", "8", "12"),
-                        r_pair!($own, "96", "100", "120", "124", "16", "20"),
-                        r_pair!($own, "144", "148", "168", "172", "24", "28"),
-                        r_pair!($own, "192", "196", "216", "220", "32", "36"),
-                        r_pair!($own, "240", "244", "264", "268", "40", "44"),
-                        r_pair!($own, "288", "292", "312", "316", "48", "52"),
-                        r_pair!($own, "336", "340", "360", "364", "56", "60"),
-                        "addi {kp}, {kp}, 384\n",
-                        "addi {r}, {r}, 64\n",
-                        "add {w0}, {w0}, {lo}\n",
-                        "sltu {lo}, {w0}, {lo}\n",
-                        "add {w1}, {w1}, {hi}\n",
-                        "sltu {hi}, {w1}, {hi}\n",
-                        "add {w1}, {w1}, {lo}\n",
-                        "sltu {lo}, {w1}, {lo}\n",
-                        "add {w2}, {w2}, {hi}\n",
-                        "add {w2}, {w2}, {lo}\n",
-                        "bltu {r}, {end}, 5b\n",
-                    ),
+                    concat!($($body)*),
                     kp = inout(reg) $kp => _,
                     r = inout(reg) $r => _,
                     end = in(reg) $end,
@@ -934,8 +928,6 @@ mod riscv {
                     w1 = inout(reg) $w1,
                     w2 = inout(reg) $w2,
                     or = inout(reg) $or,
-                    lo = out(reg) _,
-                    hi = out(reg) _,
                     a0 = out(reg) _,
                     a1 = out(reg) _,
                     b0 = out(reg) _,
@@ -944,68 +936,68 @@ mod riscv {
                     yb = out(reg) _,
                     ma = out(reg) _,
                     mb = out(reg) _,
+                    $($extra)*
                     options(nostack),
                 );
             }
         };
     }
 
+    /// Pass R over whole blocks of 16 elements, own shift $own: the block's 16 squares summed
+    /// in (lo, hi) and folded into the 96-bit (w0, w1, w2) at its end. The body is one block
+    /// unrolled, so the pointers' increments, the branch and the block bookkeeping are paid
+    /// once per 16 elements (the quad loop below handles what is left).
+    macro_rules! pass_r_blocks {
+        ($own:literal, $($args:ident),*) => {
+            pass_r_asm!(
+                [
+                    "5:\n",
+                    r_pair!($own, "0", "4", "24", "28", "0", "4", r_squares_first),
+                    r_pair!($own, "48", "52", "72", "76", "8", "12"),
+                    r_pair!($own, "96", "100", "120", "124", "16", "20"),
+                    r_pair!($own, "144", "148", "168", "172", "24", "28"),
+                    r_pair!($own, "192", "196", "216", "220", "32", "36"),
+                    r_pair!($own, "240", "244", "264", "268", "40", "44"),
+                    r_pair!($own, "288", "292", "312", "316", "48", "52"),
+                    r_pair!($own, "336", "340", "360", "364", "56", "60"),
+                    "addi {kp}, {kp}, 384\n",
+                    "addi {r}, {r}, 64\n",
+                    r_fold!(),
+                    "bltu {r}, {end}, 5b\n",
+                ],
+                $($args),*,
+                lo = out(reg) _,
+                hi = out(reg) _,
+            )
+        };
+    }
+
     /// Pass R over whole quads, own shift $own: blocks of 16 squares in (lo, hi), folded into
     /// the 96-bit (w0, w1, w2) at each block's end.
     macro_rules! pass_r_quads {
-        ($own:literal, $kp:ident, $r:ident, $end:ident, $m:ident, $s:ident, $k:ident,
-         $w0:ident, $w1:ident, $w2:ident, $or:ident) => {
-            // SAFETY: reads Kp and reads/writes r within the quads the caller sized `end` to.
-            unsafe {
-                asm!(
-                    concat!(
-                        "3:\n",
-                        "addi {blk}, {r}, 64\n",
-                        "bltu {blk}, {end}, 4f\n",
-                        "mv {blk}, {end}\n",
-                        "4:\n",
-                        r_pair!($own, "0", "4", "24", "28", "0", "4"),
-                        r_pair!($own, "48", "52", "72", "76", "8", "12"),
-                        "addi {kp}, {kp}, 96\n",
-                        "addi {r}, {r}, 16\n",
-                        "bltu {r}, {blk}, 4b\n",
-                        "add {w0}, {w0}, {lo}\n",
-                        "sltu {lo}, {w0}, {lo}\n",
-                        "add {w1}, {w1}, {hi}\n",
-                        "sltu {hi}, {w1}, {hi}\n",
-                        "add {w1}, {w1}, {lo}\n",
-                        "sltu {lo}, {w1}, {lo}\n",
-                        "add {w2}, {w2}, {hi}\n",
-                        "add {w2}, {w2}, {lo}\n",
-                        "li {lo}, 0\n",
-                        "li {hi}, 0\n",
-                        "bltu {r}, {end}, 3b\n",
-                    ),
-                    kp = inout(reg) $kp => _,
-                    r = inout(reg) $r => _,
-                    end = in(reg) $end,
-                    m = in(reg) $m,
-                    s = in(reg) $s,
-                    t = in(reg) 32 - $s,
-                    k = in(reg) $k,
-                    w0 = inout(reg) $w0,
-                    w1 = inout(reg) $w1,
-                    w2 = inout(reg) $w2,
-                    or = inout(reg) $or,
-                    lo = inout(reg) 0u32 => _,
-                    hi = inout(reg) 0u32 => _,
-                    blk = out(reg) _,
-                    a0 = out(reg) _,
-                    a1 = out(reg) _,
-                    b0 = out(reg) _,
-                    b1 = out(reg) _,
-                    ya = out(reg) _,
-                    yb = out(reg) _,
-                    ma = out(reg) _,
-                    mb = out(reg) _,
-                    options(nostack),
-                );
-            }
+        ($own:literal, $($args:ident),*) => {
+            pass_r_asm!(
+                [
+                    "3:\n",
+                    "addi {blk}, {r}, 64\n",
+                    "bltu {blk}, {end}, 4f\n",
+                    "mv {blk}, {end}\n",
+                    "4:\n",
+                    r_pair!($own, "0", "4", "24", "28", "0", "4"),
+                    r_pair!($own, "48", "52", "72", "76", "8", "12"),
+                    "addi {kp}, {kp}, 96\n",
+                    "addi {r}, {r}, 16\n",
+                    "bltu {r}, {blk}, 4b\n",
+                    r_fold!(),
+                    "li {lo}, 0\n",
+                    "li {hi}, 0\n",
+                    "bltu {r}, {end}, 3b\n",
+                ],
+                $($args),*,
+                lo = inout(reg) 0u32 => _,
+                hi = inout(reg) 0u32 => _,
+                blk = out(reg) _,
+            )
         };
     }
 
@@ -1130,31 +1122,15 @@ mod riscv {
         };
     }
 
-    /// Pass XP over whole blocks of 16 elements, own shifts $xown (x) and $rown (r): the
-    /// body unrolled over the block, so the three pointers' increments and the branch are paid
-    /// once per 16 elements (the quad loop below handles what is left).
-    macro_rules! pass_xp_blocks {
-        ($xown:literal, $rown:literal, $p:ident, $x:ident, $r:ident, $end:ident, $k:ident,
-         $sx:ident, $sr:ident, $ax2:ident, $bp:ident, $ox:ident, $op:ident) => {
-            // SAFETY: reads r and reads/writes x and p's lane within the blocks the caller
+    /// One of pass XP's loops (`body`) with its operands.
+    macro_rules! pass_xp_asm {
+        ([$($body:tt)*], $p:ident, $x:ident, $r:ident, $end:ident, $k:ident, $sx:ident,
+         $sr:ident, $ax2:ident, $bp:ident, $ox:ident, $op:ident) => {
+            // SAFETY: reads r and reads/writes x and p's lane within the elements the caller
             // sized `end` to.
             unsafe {
                 asm!(
-                    concat!(
-                        "6:\n",
-                        xp_pair!($xown, $rown, "0", "16", "0", "4"),
-                        xp_pair!($xown, $rown, "32", "48", "8", "12"),
-                        xp_pair!($xown, $rown, "64", "80", "16", "20"),
-                        xp_pair!($xown, $rown, "96", "112", "24", "28"),
-                        xp_pair!($xown, $rown, "128", "144", "32", "36"),
-                        xp_pair!($xown, $rown, "160", "176", "40", "44"),
-                        xp_pair!($xown, $rown, "192", "208", "48", "52"),
-                        xp_pair!($xown, $rown, "224", "240", "56", "60"),
-                        "addi {p}, {p}, 256\n",
-                        "addi {x}, {x}, 64\n",
-                        "addi {r}, {r}, 64\n",
-                        "bltu {x}, {end}, 6b\n",
-                    ),
+                    concat!($($body)*),
                     p = inout(reg) $p => _,
                     x = inout(reg) $x => _,
                     r = inout(reg) $r => _,
@@ -1182,47 +1158,47 @@ mod riscv {
         };
     }
 
+    /// Pass XP over whole blocks of 16 elements, own shifts $xown (x) and $rown (r): the
+    /// body unrolled over the block, so the three pointers' increments and the branch are paid
+    /// once per 16 elements (the quad loop below handles what is left).
+    macro_rules! pass_xp_blocks {
+        ($xown:literal, $rown:literal, $($args:ident),*) => {
+            pass_xp_asm!(
+                [
+                    "6:\n",
+                    xp_pair!($xown, $rown, "0", "16", "0", "4"),
+                    xp_pair!($xown, $rown, "32", "48", "8", "12"),
+                    xp_pair!($xown, $rown, "64", "80", "16", "20"),
+                    xp_pair!($xown, $rown, "96", "112", "24", "28"),
+                    xp_pair!($xown, $rown, "128", "144", "32", "36"),
+                    xp_pair!($xown, $rown, "160", "176", "40", "44"),
+                    xp_pair!($xown, $rown, "192", "208", "48", "52"),
+                    xp_pair!($xown, $rown, "224", "240", "56", "60"),
+                    "addi {p}, {p}, 256\n",
+                    "addi {x}, {x}, 64\n",
+                    "addi {r}, {r}, 64\n",
+                    "bltu {x}, {end}, 6b\n",
+                ],
+                $($args),*
+            )
+        };
+    }
+
     /// Pass XP over whole quads, own shifts $xown (x) and $rown (r).
     macro_rules! pass_xp_quads {
-        ($xown:literal, $rown:literal, $p:ident, $x:ident, $r:ident, $end:ident, $k:ident,
-         $sx:ident, $sr:ident, $ax2:ident, $bp:ident, $ox:ident, $op:ident) => {
-            // SAFETY: reads r and reads/writes x and p's lane within the quads the caller
-            // sized `end` to.
-            unsafe {
-                asm!(
-                    concat!(
-                        "2:\n",
-                        xp_pair!($xown, $rown, "0", "16", "0", "4"),
-                        xp_pair!($xown, $rown, "32", "48", "8", "12"),
-                        "addi {p}, {p}, 64\n",
-                        "addi {x}, {x}, 16\n",
-                        "addi {r}, {r}, 16\n",
-                        "bltu {x}, {end}, 2b\n",
-                    ),
-                    p = inout(reg) $p => _,
-                    x = inout(reg) $x => _,
-                    r = inout(reg) $r => _,
-                    end = in(reg) $end,
-                    k = in(reg) $k,
-                    sx = in(reg) $sx,
-                    sr = in(reg) $sr,
-                    ax2 = in(reg) $ax2,
-                    bp = in(reg) $bp,
-                    ox = inout(reg) $ox,
-                    op = inout(reg) $op,
-                    pa = out(reg) _,
-                    pb = out(reg) _,
-                    xa = out(reg) _,
-                    xb = out(reg) _,
-                    ra = out(reg) _,
-                    rb = out(reg) _,
-                    ta = out(reg) _,
-                    tb = out(reg) _,
-                    ua = out(reg) _,
-                    ub = out(reg) _,
-                    options(nostack),
-                );
-            }
+        ($xown:literal, $rown:literal, $($args:ident),*) => {
+            pass_xp_asm!(
+                [
+                    "2:\n",
+                    xp_pair!($xown, $rown, "0", "16", "0", "4"),
+                    xp_pair!($xown, $rown, "32", "48", "8", "12"),
+                    "addi {p}, {p}, 64\n",
+                    "addi {x}, {x}, 16\n",
+                    "addi {r}, {r}, 16\n",
+                    "bltu {x}, {end}, 2b\n",
+                ],
+                $($args),*
+            )
         };
     }
 
@@ -1336,6 +1312,16 @@ mod tests {
         }
     }
 
+    /// A xorshift64 stream of test inputs from `seed`.
+    fn xorshift(mut seed: u64) -> impl FnMut() -> u64 {
+        move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        }
+    }
+
     /// The assembly pass XP rounds x's term with `mulhsu` by 2·mult (mult ≥ 0), plus one,
     /// halved: the same as [`mulh_rounded`] for every input.
     #[test]
@@ -1345,13 +1331,7 @@ mod tests {
             let t = ((i64::from(v) as i128 * i128::from(m2)) >> 32) as i32;
             (t + 1) >> 1
         };
-        let mut seed = 0x9E37_79B9_7F4A_7C15u64;
-        let mut next = || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed
-        };
+        let mut next = xorshift(0x9E37_79B9_7F4A_7C15u64);
         let edges = [
             0,
             1,
@@ -1461,13 +1441,7 @@ mod tests {
 
     #[test]
     fn the_long_division_is_exact() {
-        let mut seed = 0x2545_F491_4F6C_DD1Du64;
-        let mut next = || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed
-        };
+        let mut next = xorshift(0x2545_F491_4F6C_DD1Du64);
         let edges = [
             1u32 << 31,
             (1 << 31) + 1,
