@@ -767,14 +767,16 @@ pub fn check_bound(bound: u64, sat: &mut u32) {
 /// solves against the host's, which runs the portable loops).
 ///
 /// - Pass R for a right-narrowed K·p (K·p beyond 2^31, the usual case) with r's own term, the
-///   own shift left or right: 19.6 instructions per element (36 per pair of elements, the loop
-///   and the fold of each 16 squares into the 96-bit total amortised).
-/// - Pass XP updating both x and p, each own shift left or right: 22 per element (42 per
-///   pair, 4 per four elements for the pointers and the branch).
+///   own shift left or right: 40 instructions per pair of elements (36 for a block's first,
+///   whose squares start the block's sum), and 11 per block of 16 for the pointers, the fold
+///   of its squares into the 96-bit total and the branch: 20.4 per element.
+/// - Pass XP updating both x and p (x's coefficient α ≥ 0), each own shift left or right: 40
+///   per pair, and 4 per block of 16 for the pointers and the branch: 20.25 per element.
 ///
-/// Each loop body handles four elements (two pairs), so the pointers' increments and the
-/// branch are paid once per four; a slice's last `len % 4` elements go to the portable loop
-/// (with [`crate::exec::share`]'s shares of four only the last hart has any).
+/// Each loop body handles a block of 16 elements (eight pairs), so the pointers' increments,
+/// the branch and pass R's fold are paid once per 16; the whole quads after the last block go
+/// to a loop of four per iteration, and a slice's last `len % 4` elements to the portable
+/// loop (with [`crate::exec::share`]'s shares of four only the last hart has any).
 ///
 /// # Scheduling
 ///
@@ -797,6 +799,10 @@ mod riscv {
     /// r at $ra and $rb of `r`; the own shift is the instruction $own.
     macro_rules! r_pair {
         ($own:literal, $ka:literal, $kah:literal, $kb:literal, $kbh:literal, $ra:literal, $rb:literal) => {
+            r_pair!($own, $ka, $kah, $kb, $kbh, $ra, $rb, r_squares_added)
+        };
+        ($own:literal, $ka:literal, $kah:literal, $kb:literal, $kbh:literal, $ra:literal, $rb:literal,
+         $sum:ident) => {
             concat!(
                 "lw {a0}, ",
                 $ka,
@@ -846,6 +852,16 @@ mod riscv {
                 "mulh {ya}, {ya}, {ya}\n",
                 "mul {mb}, {yb}, {yb}\n",
                 "mulh {yb}, {yb}, {yb}\n",
+                $sum!(),
+            )
+        };
+    }
+
+    /// The pair's squares (ma, ya) and (mb, yb) added into the block's (lo, hi), with their
+    /// high words ORed into `or`.
+    macro_rules! r_squares_added {
+        () => {
+            concat!(
                 "add {lo}, {lo}, {ma}\n",
                 "sltu {ma}, {lo}, {ma}\n",
                 "add {hi}, {hi}, {ya}\n",
@@ -860,37 +876,47 @@ mod riscv {
         };
     }
 
-    /// Pass R over whole quads, own shift $own: blocks of 16 squares in (lo, hi), folded into
-    /// the 96-bit (w0, w1, w2) at each block's end.
-    macro_rules! pass_r_quads {
-        ($own:literal, $kp:ident, $r:ident, $end:ident, $m:ident, $s:ident, $k:ident,
-         $w0:ident, $w1:ident, $w2:ident, $or:ident) => {
-            // SAFETY: reads Kp and reads/writes r within the quads the caller sized `end` to.
+    /// A block's first pair: its two squares start (lo, hi) rather than add to them, so the
+    /// block needs no zeroing and the pair one carry instead of two.
+    macro_rules! r_squares_first {
+        () => {
+            concat!(
+                "or {or}, {or}, {ya}\n",
+                "add {lo}, {ma}, {mb}\n",
+                "or {or}, {or}, {yb}\n",
+                "add {hi}, {ya}, {yb}\n",
+                "sltu {mb}, {lo}, {mb}\n",
+                "add {hi}, {hi}, {mb}\n",
+            )
+        };
+    }
+
+    /// Folds a block's (lo, hi) into the 96-bit (w0, w1, w2).
+    macro_rules! r_fold {
+        () => {
+            concat!(
+                "add {w0}, {w0}, {lo}\n",
+                "sltu {lo}, {w0}, {lo}\n",
+                "add {w1}, {w1}, {hi}\n",
+                "sltu {hi}, {w1}, {hi}\n",
+                "add {w1}, {w1}, {lo}\n",
+                "sltu {lo}, {w1}, {lo}\n",
+                "add {w2}, {w2}, {hi}\n",
+                "add {w2}, {w2}, {lo}\n",
+            )
+        };
+    }
+
+    /// One of pass R's loops (`body`) with its operands; `extra` names the loop's own
+    /// (lo and hi, and any other scratch register).
+    macro_rules! pass_r_asm {
+        ([$($body:tt)*], $kp:ident, $r:ident, $end:ident, $m:ident, $s:ident, $k:ident,
+         $w0:ident, $w1:ident, $w2:ident, $or:ident, $($extra:tt)*) => {
+            // SAFETY: reads Kp and reads/writes r within the elements the caller sized `end`
+            // to.
             unsafe {
                 asm!(
-                    concat!(
-                        "3:\n",
-                        "addi {blk}, {r}, 64\n",
-                        "bltu {blk}, {end}, 4f\n",
-                        "mv {blk}, {end}\n",
-                        "4:\n",
-                        r_pair!($own, "0", "4", "24", "28", "0", "4"),
-                        r_pair!($own, "48", "52", "72", "76", "8", "12"),
-                        "addi {kp}, {kp}, 96\n",
-                        "addi {r}, {r}, 16\n",
-                        "bltu {r}, {blk}, 4b\n",
-                        "add {w0}, {w0}, {lo}\n",
-                        "sltu {lo}, {w0}, {lo}\n",
-                        "add {w1}, {w1}, {hi}\n",
-                        "sltu {hi}, {w1}, {hi}\n",
-                        "add {w1}, {w1}, {lo}\n",
-                        "sltu {lo}, {w1}, {lo}\n",
-                        "add {w2}, {w2}, {hi}\n",
-                        "add {w2}, {w2}, {lo}\n",
-                        "li {lo}, 0\n",
-                        "li {hi}, 0\n",
-                        "bltu {r}, {end}, 3b\n",
-                    ),
+                    concat!($($body)*),
                     kp = inout(reg) $kp => _,
                     r = inout(reg) $r => _,
                     end = in(reg) $end,
@@ -902,9 +928,6 @@ mod riscv {
                     w1 = inout(reg) $w1,
                     w2 = inout(reg) $w2,
                     or = inout(reg) $or,
-                    lo = inout(reg) 0u32 => _,
-                    hi = inout(reg) 0u32 => _,
-                    blk = out(reg) _,
                     a0 = out(reg) _,
                     a1 = out(reg) _,
                     b0 = out(reg) _,
@@ -913,9 +936,68 @@ mod riscv {
                     yb = out(reg) _,
                     ma = out(reg) _,
                     mb = out(reg) _,
+                    $($extra)*
                     options(nostack),
                 );
             }
+        };
+    }
+
+    /// Pass R over whole blocks of 16 elements, own shift $own: the block's 16 squares summed
+    /// in (lo, hi) and folded into the 96-bit (w0, w1, w2) at its end. The body is one block
+    /// unrolled, so the pointers' increments, the branch and the block bookkeeping are paid
+    /// once per 16 elements (the quad loop below handles what is left).
+    macro_rules! pass_r_blocks {
+        ($own:literal, $($args:ident),*) => {
+            pass_r_asm!(
+                [
+                    "5:\n",
+                    r_pair!($own, "0", "4", "24", "28", "0", "4", r_squares_first),
+                    r_pair!($own, "48", "52", "72", "76", "8", "12"),
+                    r_pair!($own, "96", "100", "120", "124", "16", "20"),
+                    r_pair!($own, "144", "148", "168", "172", "24", "28"),
+                    r_pair!($own, "192", "196", "216", "220", "32", "36"),
+                    r_pair!($own, "240", "244", "264", "268", "40", "44"),
+                    r_pair!($own, "288", "292", "312", "316", "48", "52"),
+                    r_pair!($own, "336", "340", "360", "364", "56", "60"),
+                    "addi {kp}, {kp}, 384\n",
+                    "addi {r}, {r}, 64\n",
+                    r_fold!(),
+                    "bltu {r}, {end}, 5b\n",
+                ],
+                $($args),*,
+                lo = out(reg) _,
+                hi = out(reg) _,
+            )
+        };
+    }
+
+    /// Pass R over whole quads, own shift $own: blocks of 16 squares in (lo, hi), folded into
+    /// the 96-bit (w0, w1, w2) at each block's end.
+    macro_rules! pass_r_quads {
+        ($own:literal, $($args:ident),*) => {
+            pass_r_asm!(
+                [
+                    "3:\n",
+                    "addi {blk}, {r}, 64\n",
+                    "bltu {blk}, {end}, 4f\n",
+                    "mv {blk}, {end}\n",
+                    "4:\n",
+                    r_pair!($own, "0", "4", "24", "28", "0", "4"),
+                    r_pair!($own, "48", "52", "72", "76", "8", "12"),
+                    "addi {kp}, {kp}, 96\n",
+                    "addi {r}, {r}, 16\n",
+                    "bltu {r}, {blk}, 4b\n",
+                    r_fold!(),
+                    "li {lo}, 0\n",
+                    "li {hi}, 0\n",
+                    "bltu {r}, {end}, 3b\n",
+                ],
+                $($args),*,
+                lo = inout(reg) 0u32 => _,
+                hi = inout(reg) 0u32 => _,
+                blk = out(reg) _,
+            )
         };
     }
 
@@ -930,19 +1012,39 @@ mod riscv {
         if quads == 0 || d >= MAX_DIRECTIONS || !(1..=31).contains(&s) {
             return None;
         }
+        let blocks = n & !(SQUARE_BLOCK - 1);
         let (mut w0, mut w1, mut w2, mut or) = (0u32, 0u32, 0u32, 0u32);
         let kp_ptr = kp.as_ptr().cast::<u8>().wrapping_add(8 * d);
         let r_ptr = r.as_mut_ptr();
-        let end = r_ptr.wrapping_add(quads);
         let m = plan.lin.term.mult;
-        if own.right == 0 {
-            let k = own.left;
-            pass_r_quads!("sll", kp_ptr, r_ptr, end, m, s, k, w0, w1, w2, or);
-        } else {
-            let k = own.right;
-            pass_r_quads!("sra", kp_ptr, r_ptr, end, m, s, k, w0, w1, w2, or);
+        // Whole blocks first (the portable loop's chunks of 16), then the quads that are left
+        // (the last chunk's whole quads; its last `len % 4` go to the portable loop).
+        let (kp_rest, r_rest) = (
+            kp_ptr.wrapping_add(blocks * size_of::<Sums>()),
+            r_ptr.wrapping_add(blocks),
+        );
+        let (block_end, end) = (r_rest, r_ptr.wrapping_add(quads));
+        let (k, left) = amount(own);
+        macro_rules! both {
+            ($own:literal) => {{
+                if blocks > 0 {
+                    pass_r_blocks!($own, kp_ptr, r_ptr, block_end, m, s, k, w0, w1, w2, or);
+                }
+                if quads > blocks {
+                    pass_r_quads!($own, kp_rest, r_rest, end, m, s, k, w0, w1, w2, or);
+                }
+            }};
         }
-        let (tail, tail_or) = portable_pass_r(&mut r[quads..n], &kp[quads..n], d, plan);
+        if left {
+            both!("sll");
+        } else {
+            both!("sra");
+        }
+        let (tail, tail_or) = if quads < n {
+            portable_pass_r(&mut r[quads..n], &kp[quads..n], d, plan)
+        } else {
+            (0, 0)
+        };
         let total = u128::from(w0) | (u128::from(w1) << 32) | (u128::from(w2) << 64);
         Some((total + tail, or | tail_or))
     }
@@ -980,16 +1082,14 @@ mod riscv {
                 " {ra}, {ra}, {sr}\n",
                 $rown,
                 " {rb}, {rb}, {sr}\n",
-                "mul {ta}, {ax}, {pa}\n",
-                "mulh {ua}, {ax}, {pa}\n",
-                "mul {tb}, {ax}, {pb}\n",
-                "mulh {ub}, {ax}, {pb}\n",
+                "mulhsu {ta}, {pa}, {ax2}\n",
+                "mulhsu {tb}, {pb}, {ax2}\n",
                 "mulh {pa}, {bp}, {pa}\n",
                 "mulh {pb}, {bp}, {pb}\n",
-                "srli {ta}, {ta}, 31\n",
-                "srli {tb}, {tb}, 31\n",
-                "add {xa}, {xa}, {ua}\n",
-                "add {xb}, {xb}, {ub}\n",
+                "addi {ta}, {ta}, 1\n",
+                "addi {tb}, {tb}, 1\n",
+                "srai {ta}, {ta}, 1\n",
+                "srai {tb}, {tb}, 1\n",
                 "add {ra}, {ra}, {pa}\n",
                 "add {rb}, {rb}, {pb}\n",
                 "add {xa}, {xa}, {ta}\n",
@@ -1022,23 +1122,15 @@ mod riscv {
         };
     }
 
-    /// Pass XP over whole quads, own shifts $xown (x) and $rown (r).
-    macro_rules! pass_xp_quads {
-        ($xown:literal, $rown:literal, $p:ident, $x:ident, $r:ident, $end:ident, $k:ident,
-         $sx:ident, $sr:ident, $ax:ident, $bp:ident, $ox:ident, $op:ident) => {
-            // SAFETY: reads r and reads/writes x and p's lane within the quads the caller
+    /// One of pass XP's loops (`body`) with its operands.
+    macro_rules! pass_xp_asm {
+        ([$($body:tt)*], $p:ident, $x:ident, $r:ident, $end:ident, $k:ident, $sx:ident,
+         $sr:ident, $ax2:ident, $bp:ident, $ox:ident, $op:ident) => {
+            // SAFETY: reads r and reads/writes x and p's lane within the elements the caller
             // sized `end` to.
             unsafe {
                 asm!(
-                    concat!(
-                        "2:\n",
-                        xp_pair!($xown, $rown, "0", "16", "0", "4"),
-                        xp_pair!($xown, $rown, "32", "48", "8", "12"),
-                        "addi {p}, {p}, 64\n",
-                        "addi {x}, {x}, 16\n",
-                        "addi {r}, {r}, 16\n",
-                        "bltu {x}, {end}, 2b\n",
-                    ),
+                    concat!($($body)*),
                     p = inout(reg) $p => _,
                     x = inout(reg) $x => _,
                     r = inout(reg) $r => _,
@@ -1046,7 +1138,7 @@ mod riscv {
                     k = in(reg) $k,
                     sx = in(reg) $sx,
                     sr = in(reg) $sr,
-                    ax = in(reg) $ax,
+                    ax2 = in(reg) $ax2,
                     bp = in(reg) $bp,
                     ox = inout(reg) $ox,
                     op = inout(reg) $op,
@@ -1065,6 +1157,53 @@ mod riscv {
             }
         };
     }
+
+    /// Pass XP over whole blocks of 16 elements, own shifts $xown (x) and $rown (r): the
+    /// body unrolled over the block, so the three pointers' increments and the branch are paid
+    /// once per 16 elements (the quad loop below handles what is left).
+    macro_rules! pass_xp_blocks {
+        ($xown:literal, $rown:literal, $($args:ident),*) => {
+            pass_xp_asm!(
+                [
+                    "6:\n",
+                    xp_pair!($xown, $rown, "0", "16", "0", "4"),
+                    xp_pair!($xown, $rown, "32", "48", "8", "12"),
+                    xp_pair!($xown, $rown, "64", "80", "16", "20"),
+                    xp_pair!($xown, $rown, "96", "112", "24", "28"),
+                    xp_pair!($xown, $rown, "128", "144", "32", "36"),
+                    xp_pair!($xown, $rown, "160", "176", "40", "44"),
+                    xp_pair!($xown, $rown, "192", "208", "48", "52"),
+                    xp_pair!($xown, $rown, "224", "240", "56", "60"),
+                    "addi {p}, {p}, 256\n",
+                    "addi {x}, {x}, 64\n",
+                    "addi {r}, {r}, 64\n",
+                    "bltu {x}, {end}, 6b\n",
+                ],
+                $($args),*
+            )
+        };
+    }
+
+    /// Pass XP over whole quads, own shifts $xown (x) and $rown (r).
+    macro_rules! pass_xp_quads {
+        ($xown:literal, $rown:literal, $($args:ident),*) => {
+            pass_xp_asm!(
+                [
+                    "2:\n",
+                    xp_pair!($xown, $rown, "0", "16", "0", "4"),
+                    xp_pair!($xown, $rown, "32", "48", "8", "12"),
+                    "addi {p}, {p}, 64\n",
+                    "addi {x}, {x}, 16\n",
+                    "addi {r}, {r}, 16\n",
+                    "bltu {x}, {end}, 2b\n",
+                ],
+                $($args),*
+            )
+        };
+    }
+
+    /// Elements per iteration of pass XP's unrolled loop.
+    const XP_BLOCK: usize = 16;
 
     /// The shift instruction's amount and whether it is a left shift.
     fn amount(s: Shift) -> (u32, bool) {
@@ -1099,28 +1238,51 @@ mod riscv {
         if quads == 0 || d >= MAX_DIRECTIONS || xl.term.shift != pl.term.shift {
             return None;
         }
+        let blocks = n & !(XP_BLOCK - 1);
         let (mut ox, mut op) = (0u32, 0u32);
         let p_ptr = p.as_mut_ptr().cast::<u8>().wrapping_add(4 * d);
         let x_ptr = x.as_mut_ptr();
         let r_ptr = r.as_ptr();
-        let end = x_ptr.wrapping_add(quads);
+        // Whole blocks first, then the quads that are left.
+        let (p_rest, x_rest, r_rest) = (
+            p_ptr.wrapping_add(blocks * size_of::<Lanes>()),
+            x_ptr.wrapping_add(blocks),
+            r_ptr.wrapping_add(blocks),
+        );
+        let (block_end, end) = (x_rest, x_ptr.wrapping_add(quads));
         let (k, ax, bp) = (xl.term.shift, xl.term.mult, pl.term.mult);
+        // 2·ax as an unsigned multiplier: x's rounded term in three instructions (`mulhsu`,
+        // +1, halved) instead of four. α ≥ 0 (a quotient of two non-negative scalars) keeps
+        // ax ≥ 0; any other sign goes to the portable loop.
+        let Ok(ax2) = u32::try_from(ax).map(|a| a << 1) else {
+            return None;
+        };
         let ((sx, x_left), (sr, r_left)) = (amount(x_own), amount(r_own));
-        match (x_left, r_left) {
-            (true, true) => {
-                pass_xp_quads!("sll", "sll", p_ptr, x_ptr, r_ptr, end, k, sx, sr, ax, bp, ox, op)
-            }
-            (true, false) => {
-                pass_xp_quads!("sll", "sra", p_ptr, x_ptr, r_ptr, end, k, sx, sr, ax, bp, ox, op)
-            }
-            (false, true) => {
-                pass_xp_quads!("sra", "sll", p_ptr, x_ptr, r_ptr, end, k, sx, sr, ax, bp, ox, op)
-            }
-            (false, false) => {
-                pass_xp_quads!("sra", "sra", p_ptr, x_ptr, r_ptr, end, k, sx, sr, ax, bp, ox, op)
-            }
+        macro_rules! both {
+            ($xown:literal, $rown:literal) => {{
+                if blocks > 0 {
+                    pass_xp_blocks!(
+                        $xown, $rown, p_ptr, x_ptr, r_ptr, block_end, k, sx, sr, ax2, bp, ox, op
+                    );
+                }
+                if quads > blocks {
+                    pass_xp_quads!(
+                        $xown, $rown, p_rest, x_rest, r_rest, end, k, sx, sr, ax2, bp, ox, op
+                    );
+                }
+            }};
         }
-        let (tx, tp) = portable_pass_xp(&mut x[quads..n], &mut p[quads..n], &r[quads..n], d, plan);
+        match (x_left, r_left) {
+            (true, true) => both!("sll", "sll"),
+            (true, false) => both!("sll", "sra"),
+            (false, true) => both!("sra", "sll"),
+            (false, false) => both!("sra", "sra"),
+        }
+        let (tx, tp) = if quads < n {
+            portable_pass_xp(&mut x[quads..n], &mut p[quads..n], &r[quads..n], d, plan)
+        } else {
+            (0, 0)
+        };
         Some((ox | tx, op | tp))
     }
 }
@@ -1147,6 +1309,73 @@ mod tests {
                 u64::from(z.unsigned_abs()) < bound_of_squares((sq >> 32) as u32),
                 "{z}"
             );
+        }
+    }
+
+    /// A xorshift64 stream of test inputs from `seed`.
+    fn xorshift(mut seed: u64) -> impl FnMut() -> u64 {
+        move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        }
+    }
+
+    /// The assembly pass XP rounds x's term with `mulhsu` by 2·mult (mult ≥ 0), plus one,
+    /// halved: the same as [`mulh_rounded`] for every input.
+    #[test]
+    fn the_halved_rounding_equals_the_rounded_high_word() {
+        let via_mulhsu = |mult: i32, v: i32| {
+            let m2 = u64::from(u32::try_from(mult).unwrap() << 1);
+            let t = ((i64::from(v) as i128 * i128::from(m2)) >> 32) as i32;
+            (t + 1) >> 1
+        };
+        let mut next = xorshift(0x9E37_79B9_7F4A_7C15u64);
+        let edges = [
+            0,
+            1,
+            2,
+            3,
+            (1 << 30) - 1,
+            1 << 30,
+            (1 << 30) + 1,
+            i32::MAX - 1,
+            i32::MAX,
+        ];
+        let values = [
+            0,
+            1,
+            -1,
+            2,
+            -2,
+            1 << 29,
+            -(1 << 29),
+            i32::MAX,
+            i32::MIN,
+            i32::MIN + 1,
+        ];
+        for &m in &edges {
+            for &v in &values {
+                assert_eq!(via_mulhsu(m, v), mulh_rounded(m, v), "{m} {v}");
+            }
+        }
+        for _ in 0..200_000 {
+            let w = next();
+            let m = (w as u32 >> 1) as i32;
+            let v = (w >> 32) as i32;
+            assert_eq!(via_mulhsu(m, v), mulh_rounded(m, v), "{m} {v}");
+            // Products whose low word sits at the rounding edge (±2^31 and one either side).
+            let m = m | 1 << 30;
+            assert_eq!(via_mulhsu(m, v >> 3), mulh_rounded(m, v >> 3), "{m} {v}");
+        }
+        for m in [1i32 << 30, 3 << 29, i32::MAX] {
+            for v in [-(1 << 20), 1 << 20, 12345, -12345] {
+                for dv in -2..=2 {
+                    let v = v + dv;
+                    assert_eq!(via_mulhsu(m, v), mulh_rounded(m, v), "{m} {v}");
+                }
+            }
         }
     }
 
@@ -1212,13 +1441,7 @@ mod tests {
 
     #[test]
     fn the_long_division_is_exact() {
-        let mut seed = 0x2545_F491_4F6C_DD1Du64;
-        let mut next = || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed
-        };
+        let mut next = xorshift(0x2545_F491_4F6C_DD1Du64);
         let edges = [
             1u32 << 31,
             (1 << 31) + 1,
