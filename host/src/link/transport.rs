@@ -42,20 +42,27 @@ pub const DEFAULT_REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
 /// The least retransmit timeout, however fast the target answers.
 const MIN_RETRANSMIT: Duration = Duration::from_millis(20);
 
-/// How much later than asked a wait for the line may end before the link takes it that this
-/// process was not running (see [`paused_past`]). A loaded machine wakes a poll late by
-/// milliseconds, rarely by a few hundred.
-const PAUSE: Duration = Duration::from_secs(1);
+/// How long a step of this side (a wait for the line that ended later than asked, one write)
+/// may take before the link takes it that this side was held (see [`held_past`]). A loaded
+/// machine wakes a poll late by milliseconds, rarely by a few hundred.
+const HELD: Duration = Duration::from_secs(1);
 
-/// How long this process was stopped, if a wait that was to end at `wake` ended more than
-/// [`PAUSE`] after it: a suspended laptop, a stopped process, or a stalled virtual machine,
-/// which stops a QEMU target with it. That time says nothing about the target, so the link's
-/// deadlines move by it rather than failing a run whose target had no time to answer: a
-/// passed deadline only gets a few milliseconds of reading, too little for a target that has
-/// to handle the frame sent again after the pause.
-fn paused_past(wake: Instant) -> Option<Duration> {
+/// How long this side was held, if a wait for the line that was to end at `wake` ended more
+/// than [`HELD`] after it (else zero): a suspended laptop, a stopped process, or a stalled
+/// virtual machine, which stops a QEMU target with it. That time says nothing about the
+/// target, so the link's deadlines move by it rather than failing a run whose target had no
+/// time to answer: a passed deadline only gets a few milliseconds of reading, too little for a
+/// target that has to handle the frame sent again after the stop. A write held up longer than
+/// [`HELD`] moves them the same way ([`Link::write`]): whatever held it, the host could not
+/// watch the line meanwhile, and a port that never drains still fails, when the write's own
+/// timeout runs out ([`LinkError::WriteStalled`]).
+fn held_past(wake: Instant) -> Duration {
     let late = Instant::now().saturating_duration_since(wake);
-    (late > PAUSE).then_some(late)
+    if late > HELD {
+        late
+    } else {
+        Duration::ZERO
+    }
 }
 
 /// Retransmission settings.
@@ -163,6 +170,9 @@ pub struct Link<P: Port = Box<dyn SerialPort>> {
     rttvar: Duration,
     /// Chunk size and window, adapted to the line (see [`super::adapt`]).
     adapt: Adaptive,
+    /// Time this side was held (see [`held_past`]) since the run loop last moved its deadlines
+    /// by it.
+    held: Duration,
 }
 
 impl Link<Box<dyn SerialPort>> {
@@ -188,6 +198,7 @@ impl<P: Port> Link<P> {
             srtt: None,
             rttvar: Duration::ZERO,
             adapt: Adaptive::new(WINDOW),
+            held: Duration::ZERO,
         }
     }
 
@@ -290,6 +301,7 @@ impl<P: Port> Link<P> {
     ) -> Result<(), LinkError> {
         let mut window: VecDeque<InFlight> = VecDeque::new();
         let mut failure: Option<LinkError> = None;
+        self.held = Duration::ZERO;
         let mut exhausted = false;
         // When the target last acknowledged anything new: the deadline counts from here.
         let mut progress = Instant::now();
@@ -383,22 +395,23 @@ impl<P: Port> Link<P> {
             }
             let (corrupt, received) = (self.stats.corrupt_frames, self.stats.bytes_received);
             let frame = self.receive(wake)?;
-            let paused = paused_past(wake);
-            if let Some(paused) = paused {
-                progress += paused;
-                for entry in window.iter_mut() {
-                    if let Some(at) = entry.accepted.as_mut() {
-                        *at += paused;
-                    }
-                }
-            }
+            self.held += held_past(wake);
             let progressed = match frame {
                 None => false,
                 Some(up) => self.on_frame(up, &mut window)?,
             };
+            let held = std::mem::take(&mut self.held);
+            if !held.is_zero() {
+                progress += held;
+                for entry in window.iter_mut() {
+                    if let Some(at) = entry.accepted.as_mut() {
+                        *at += held;
+                    }
+                }
+            }
             if progressed {
                 progress = Instant::now();
-            } else if let Some(timeout) = expired.filter(|_| paused.is_none()) {
+            } else if let Some(timeout) = expired.filter(|_| held.is_zero()) {
                 return Err(timeout);
             }
             // What the line did, for the chunk and window (see `adapt`).
@@ -686,9 +699,11 @@ impl<P: Port> Link<P> {
 
     fn write(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
         // A target that is slow to drain its input may hold up the write, but not forever.
+        let started = Instant::now();
         self.port.set_timeout(self.timeout)?;
         self.port.write_all(bytes).map_err(io_error)?;
         self.port.flush().map_err(io_error)?;
+        self.held += held_past(started);
         self.flushed = true;
         self.stats.bytes_sent += bytes.len() as u64;
         self.adapt.traffic(bytes.len());

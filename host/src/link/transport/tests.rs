@@ -442,22 +442,41 @@ fn replies_waiting_on_the_line_are_read_before_a_deadline_fails_the_run() {
     assert_eq!(replies, 4);
 }
 
-/// A port whose first read stops for `pause` with the target (the machine both run on was
-/// stalled, as a virtual machine or a suspended laptop is), then reports no data, as a poll
-/// that woke late.
+/// A port that stops for `pause` with the target (the machine both run on was stalled, as a
+/// virtual machine or a suspended laptop is) in its first read (which then reports no data, as
+/// a poll that woke late) or, with `in_write`, in its first write.
 struct StoppedOnce {
     inner: UnixStream,
     pause: Option<Duration>,
+    in_write: bool,
     stopped: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl StoppedOnce {
+    fn new(inner: UnixStream, in_write: bool) -> Self {
+        StoppedOnce {
+            inner,
+            pause: Some(Duration::from_millis(1500)),
+            in_write,
+            stopped: Default::default(),
+        }
+    }
+
+    fn stop(&mut self) -> bool {
+        use std::sync::atomic::Ordering::SeqCst;
+        let Some(pause) = self.pause.take() else {
+            return false;
+        };
+        self.stopped.store(true, SeqCst);
+        thread::sleep(pause);
+        self.stopped.store(false, SeqCst);
+        true
+    }
 }
 
 impl Read for StoppedOnce {
     fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-        use std::sync::atomic::Ordering::SeqCst;
-        if let Some(pause) = self.pause.take() {
-            self.stopped.store(true, SeqCst);
-            thread::sleep(pause);
-            self.stopped.store(false, SeqCst);
+        if !self.in_write && self.stop() {
             return Err(std::io::ErrorKind::TimedOut.into());
         }
         self.inner.read(buf)
@@ -466,6 +485,9 @@ impl Read for StoppedOnce {
 
 impl Write for StoppedOnce {
     fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        if self.in_write {
+            self.stop();
+        }
         self.inner.write(buf)
     }
     fn flush(&mut self) -> std::io::Result<()> {
@@ -479,23 +501,15 @@ impl Port for StoppedOnce {
     }
 }
 
-/// A stop of the whole machine longer than the deadline (1.5 s on 0.3 s) is not the target's
-/// silence: the target, stopped too, answers 50 ms after it, and the request succeeds. Before,
-/// the passed deadline gave it 5 ms and the run failed with one retransmission, as a loaded CI
-/// machine showed on a QEMU target.
-#[test]
-fn a_stop_of_the_machine_longer_than_the_deadline_is_not_the_targets_silence() {
-    use std::sync::atomic::{AtomicBool, Ordering::SeqCst};
+/// A link with a 0.3 s timeout over a [`StoppedOnce`] port to a target that answers 50 ms
+/// after it is let go on, or never with `silent`.
+fn stopped_once(in_write: bool, silent: bool) -> Link<StoppedOnce> {
+    use std::sync::atomic::Ordering::SeqCst;
     let (host, target) = UnixStream::pair().unwrap();
-    let stopped = std::sync::Arc::new(AtomicBool::new(false));
-    let port = StoppedOnce {
-        inner: host,
-        pause: Some(Duration::from_millis(1500)),
-        stopped: stopped.clone(),
-    };
-    let mut link = Link::new(port).with_timeout(Duration::from_millis(300));
+    let port = StoppedOnce::new(host, in_write);
+    let stopped = port.stopped.clone();
     serve(target, move |received| match received {
-        Received::Request(req) => {
+        Received::Request(req) if !silent => {
             thread::sleep(Duration::from_millis(10));
             while stopped.load(SeqCst) {
                 thread::sleep(Duration::from_millis(1));
@@ -503,26 +517,32 @@ fn a_stop_of_the_machine_longer_than_the_deadline_is_not_the_targets_silence() {
             thread::sleep(Duration::from_millis(50));
             answer_frame(req.seq, Response::Ack)
         }
-        Received::Unreadable(_) => Vec::new(),
+        _ => Vec::new(),
     });
-    let started = Instant::now();
-    link.request(&end(7))
-        .unwrap_or_else(|e| panic!("a stop failed the request: {e}"));
-    assert!(started.elapsed() >= Duration::from_millis(1500));
-    // A target that stays silent after a stop still fails, within the deadline after it.
-    let (host, _silent) = UnixStream::pair().unwrap();
-    let port = StoppedOnce {
-        inner: host,
-        pause: Some(Duration::from_millis(1500)),
-        stopped: std::sync::Arc::new(AtomicBool::new(false)),
-    };
-    let mut link = Link::new(port).with_timeout(Duration::from_millis(300));
-    let started = Instant::now();
-    let err = link.request(&end(7)).unwrap_err();
-    assert!(matches!(err, LinkError::Timeout { .. }), "{err:?}");
-    assert!(
-        started.elapsed() < Duration::from_millis(2500),
-        "{:?}",
-        started.elapsed()
-    );
+    Link::new(port).with_timeout(Duration::from_millis(300))
+}
+
+/// A stop of the whole machine longer than the deadline (1.5 s on 0.3 s), in a wait for the
+/// line or in a write, is not the target's silence: the target, stopped too, answers 50 ms
+/// after it, and the request succeeds. Before, the passed deadline gave it 5 ms and the run
+/// failed after one or two retransmissions, as a loaded CI machine showed on QEMU targets.
+/// A target that stays silent after a stop still fails, within the deadline after it.
+#[test]
+fn a_stop_of_the_machine_longer_than_the_deadline_is_not_the_targets_silence() {
+    for in_write in [false, true] {
+        let mut link = stopped_once(in_write, false);
+        let started = Instant::now();
+        link.request(&end(7))
+            .unwrap_or_else(|e| panic!("a stop (in a write: {in_write}) failed the request: {e}"));
+        assert!(started.elapsed() >= Duration::from_millis(1500));
+        let mut link = stopped_once(in_write, true);
+        let started = Instant::now();
+        let err = link.request(&end(7)).unwrap_err();
+        assert!(matches!(err, LinkError::Timeout { .. }), "{err:?}");
+        assert!(
+            started.elapsed() < Duration::from_millis(2500),
+            "{:?}",
+            started.elapsed()
+        );
+    }
 }
