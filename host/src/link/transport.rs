@@ -19,9 +19,10 @@
 //! deadline. So a noisy line that keeps moving is never given up on, however many frames it
 //! damages, while a dead one fails within the timeout; a passed deadline first reads what the
 //! line already holds, since the time may have gone on this side while replies waited, and time
-//! this process was stopped (a wait that ended far later than asked) moves the deadlines rather
-//! than counting as the target's silence. Nothing here can block longer than those bounds: every
-//! read and write on the port is bounded by the time left.
+//! this side could not watch the line (a wait that ended far later than asked, a write held up
+//! for over a second) moves the deadlines rather than counting as the target's silence. Nothing
+//! here can block longer than those bounds: every read and write on the port is bounded by the
+//! time left.
 
 use std::collections::VecDeque;
 use std::io::ErrorKind;
