@@ -453,6 +453,9 @@ struct Engine<'e, 'a, E: Executor> {
 impl<E: Executor> Engine<'_, '_, E> {
     /// Runs one parallel phase, every hart's share measured (one hart at a time: see
     /// [`Executor::run_measured`]), and charges hart 0's serial work since the previous phase.
+    /// Inlined: as a call of its own, its register saves and restores fell on hart 0's serial
+    /// path at every phase.
+    #[inline(always)]
     fn run(&self, task: &(dyn Fn(usize) + Sync), clock: &mut Clock, mvu: bool) {
         clock.flush_serial(self.exec);
         let counts = self.exec.run_measured(self.harts, task);
@@ -851,6 +854,8 @@ struct Solver<'s, 'e, 'a, E: Executor> {
     systems_b: [&'s [i32]; MAX_DIRECTIONS],
     state: [Direction; MAX_DIRECTIONS],
     x_exponents: [i32; MAX_DIRECTIONS],
+    /// Pass XP's plans of the iteration in progress (kept here to be reset in place).
+    xp_plans: [PassXP; MAX_DIRECTIONS],
     iterations: u32,
     sat: u32,
     clock: Clock,
@@ -1017,7 +1022,12 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             r_plans[d] = Some(self.r_plan(d, alphas[d].negate(), st.p, true));
         }
         self.engine.pass_r(&r_plans, &mut self.clock);
-        let mut xp_plans = [PassXP::NONE; MAX_DIRECTIONS];
+        // Reset field by field: a fresh `[PassXP::NONE; MAX_DIRECTIONS]` compiles to a 48-byte
+        // `memcpy` of the constant per direction on hart 0's serial path; this stores only the
+        // `None` tags.
+        for plan in &mut self.xp_plans {
+            (plan.x, plan.p) = (None, None);
+        }
         let mut verify = [false; MAX_DIRECTIONS];
         for (d, plan) in r_plans.iter().enumerate() {
             let Some(plan) = plan else { continue };
@@ -1026,7 +1036,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             let st = &mut self.state[d];
             st.r_exact = false;
             let x = Lin::new(alphas[d], st.p, false, Some(st.x), &mut self.sat);
-            xp_plans[d].x = Some(x);
+            self.xp_plans[d].x = Some(x);
             if st.converged || st.iterations >= self.params.max_iterations {
                 st.active = false;
                 // Converged on the recursive residual: check it against b − A·x.
@@ -1035,11 +1045,11 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             }
             // β = r_newᵀr_new / rᵀr
             let beta = Scalar::quotient(st.rr_scalar, rr_old).scale2(2 * (st.r.e - e_old));
-            xp_plans[d].p = Some(Lin::new(beta, st.p, false, Some(st.r), &mut self.sat));
+            self.xp_plans[d].p = Some(Lin::new(beta, st.p, false, Some(st.r), &mut self.sat));
         }
-        self.engine.pass_xp(&xp_plans, &mut self.clock);
+        self.engine.pass_xp(&self.xp_plans, &mut self.clock);
         let outs = self.engine.outs();
-        for (d, plan) in xp_plans.iter().enumerate() {
+        for (d, plan) in self.xp_plans.iter().enumerate() {
             let st = &mut self.state[d];
             if let Some(lin) = plan.x {
                 let or = outs.iter().fold(0u32, |o, out| o | out.x_or[d]);
@@ -1198,6 +1208,7 @@ pub fn solve(
         systems_b,
         state,
         x_exponents,
+        xp_plans: [PassXP::NONE; MAX_DIRECTIONS],
         iterations: 0,
         sat: 0,
         clock,
