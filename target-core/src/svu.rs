@@ -332,6 +332,7 @@ impl Scalar {
     /// a/b: the mantissas' quotient floored to 32 bits, ⌊m_a·2^k/m_b⌋ with k = 32 if m_a < m_b
     /// and 31 otherwise, so that it lies in [2^31, 2^32). A zero `b` gives zero (callers
     /// refuse it first).
+    #[inline(always)]
     pub fn quotient(a: Scalar, b: Scalar) -> Scalar {
         if a.m == 0 || b.m == 0 {
             return Scalar::ZERO;
@@ -392,6 +393,7 @@ impl Lin {
     ///
     /// The bound |c|·‖u‖ + ‖y‖ is formed from 32-bit parts rounded up, so it is an upper
     /// bound, and z's exponent is the smallest that keeps it below 2^[`BOUND_BITS`] units.
+    #[inline(always)]
     pub fn new(c: Scalar, u: Block, u_normalised: bool, own: Option<Block>, sat: &mut u32) -> Lin {
         let ku = if u_normalised {
             0
@@ -481,6 +483,7 @@ impl Default for Narrow {
 impl Narrow {
     /// The narrowing for max |Kp| ≤ `max`, and the narrowed block's exponent offset and bound.
     /// Counts max ≥ 2^62 (which the MVU's bounds rule out) as a saturation.
+    #[inline(always)]
     pub fn new(max: u64, sat: &mut u32) -> (Narrow, i32, u64) {
         if max >= 1 << 62 {
             *sat += 1;
