@@ -371,6 +371,7 @@ impl Direction {
     };
 
     /// Takes Σr² = `rr` of the residual block `r` as the current one.
+    #[inline(always)]
     fn set_residual(&mut self, rr: u128, r: Block) {
         self.rr = rr;
         self.rr_scalar = Scalar::of_u128(rr);
@@ -884,6 +885,9 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
     /// Pass R's plan for direction d: r ← c·K·v (+ r if `keep`), where K·v is in the MVU's
     /// results, `kp_max` the harts' OR of its magnitudes, and v's block is `v` (p, or x when
     /// computing b − A·x).
+    /// Inlined: hart 0 plans on the serial path, where the call's argument traffic costs more
+    /// than the body.
+    #[inline(always)]
     fn r_plan(&mut self, d: usize, c: Scalar, v: Block, keep: bool, kp_max: u64) -> PassR {
         let (narrow, e_offset, bound) = Narrow::new(bound_of_u64(kp_max), &mut self.sat);
         let kp = Block {
