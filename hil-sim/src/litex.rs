@@ -78,6 +78,20 @@ const GATEWARE_SOURCES: &[&str] = &[
 /// The most hardware MVUs an SoC may have (the gateware's MVU array).
 pub const MAX_MVUS: u8 = 8;
 
+/// The hardware MVUs of the SoC the HIL tests compare with the software MVU phase.
+pub const TEST_MVUS: u8 = 4;
+
+/// The SoCs the tests simulate: the firmware in main RAM without and with [`TEST_MVUS`]
+/// hardware MVUs, and the stock BIOS. `cargo xtask setup` Verilates them ahead (minutes each),
+/// so that a set-up machine's test run does not; a test asking for another SoC builds it itself.
+pub fn test_socs() -> [SocConfig; 3] {
+    [
+        SocConfig::default(),
+        SocConfig::default().with_mvus(TEST_MVUS),
+        SocConfig::default().with_bios(),
+    ]
+}
+
 /// The firmware build configured for the SoC that [`SocConfig::default`] generates.
 const COMMITTED_CSR_JSON: &str = "firmware/boards/litex-vexriscv/csr.json";
 
@@ -836,6 +850,20 @@ mod tests {
         assert_ne!(a.key(), a.clone().with_mvus(4).key());
         assert!(a.clone().with_mvus(4).key().starts_with("ram-4mvu-"));
         assert!(a.key().starts_with("ram-") && a.clone().with_bios().key().starts_with("bios-"));
+    }
+
+    #[test]
+    fn set_up_builds_the_socs_the_tests_run_on() {
+        let built = test_socs();
+        let elf = PathBuf::from("fw.elf");
+        for used in [
+            LitexConfig::new(&elf).soc,
+            LitexConfig::new(&elf).with_mvus(TEST_MVUS).soc,
+            LitexConfig::bios().with_uart_pace(500).soc,
+        ] {
+            assert!(built.contains(&used), "{used:?} is not built by set-up");
+        }
+        assert!(!built.contains(&LitexConfig::new(&elf).with_mvus(2).soc));
     }
 
     #[test]

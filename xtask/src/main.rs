@@ -4,7 +4,8 @@
 //! - `setup`: installs what a fresh machine lacks: the RISC-V target, clippy and rustfmt, QEMU,
 //!   Debian's Chromium and chromedriver (the browser test of `deform live --serve`), and for the
 //!   LiteX target Verilator, its libraries, the RISC-V binutils and GCC (the stock BIOS), socat,
-//!   and the LiteX Python packages in a venv under `target/litex`.
+//!   and the LiteX Python packages in a venv under `target/litex`; then it generates and
+//!   Verilates the three LiteX SoCs the tests simulate (cached there, ~10 minutes once).
 //! - `firmware [--board qemu|litex]`: builds the firmware ELF for QEMU `virt` (and the serial
 //!   loader), or for a LiteX VexRiscv SoC.
 //! - `run [-- ARGS…]`: the Rust target and QEMU if missing, firmware, then `deform solve ARGS…`
@@ -29,7 +30,7 @@ use anyhow::{bail, Context, Result};
 // `deform --target qemu` at it, and which QEMU runs it: one definition, in hil-sim.
 use deform_hil_sim::gateware::SYNTHESIS_PYTHON_PACKAGES;
 use deform_hil_sim::litex::{
-    litex_dir, LITEX_FIRMWARE_BUILD_PATH, LITEX_FIRMWARE_ENV, LITEX_PYTHON_PACKAGES,
+    litex_dir, test_socs, Soc, LITEX_FIRMWARE_BUILD_PATH, LITEX_FIRMWARE_ENV, LITEX_PYTHON_PACKAGES,
 };
 use deform_hil_sim::{
     is_executable, qemu_binary, FIRMWARE_BUILD_PATH, FIRMWARE_ENV, LOADER_BUILD_PATH, LOADER_ENV,
@@ -86,7 +87,8 @@ const USAGE: &str = "usage: cargo xtask <command>
 
 commands:
   setup              install the RISC-V target, clippy, rustfmt, QEMU, Chromium and the
-                     LiteX toolchain (Verilator, RISC-V GCC, socat, a Python venv) if missing
+                     LiteX toolchain (Verilator, RISC-V GCC, socat, a Python venv) if missing,
+                     then Verilate the LiteX SoCs the tests simulate (once, cached)
   firmware [--board qemu|litex]
                      build the firmware ELF (firmware/, release): for QEMU `virt` with the
                      serial loader (default), or for the LiteX VexRiscv SoC
@@ -208,7 +210,8 @@ fn setup() -> Result<()> {
     setup_rust()?;
     setup_qemu()?;
     setup_chromium()?;
-    setup_litex()
+    setup_litex()?;
+    setup_litex_socs()
 }
 
 fn setup_rust() -> Result<()> {
@@ -398,6 +401,49 @@ fn setup_litex() -> Result<()> {
         apt::install(LITEX_PACKAGES, "the LiteX toolchain")?;
     }
     setup_litex_venv()
+}
+
+/// The simulated LiteX SoCs the tests run on ([`test_socs`]), generated and Verilated now if
+/// their cache folders lack a finished build: minutes each, which belong to setting a machine
+/// up rather than to every first test run. They build side by side, so that one's single-
+/// threaded steps (LiteX's generator, Verilator itself) overlap another's compiles.
+fn setup_litex_socs() -> Result<()> {
+    let socs = test_socs();
+    let keys: Vec<String> = socs.iter().map(|soc| soc.key()).collect();
+    let missing: Vec<_> = socs
+        .iter()
+        .filter(|soc| !litex_dir().join(soc.key()).join("built").is_file())
+        .collect();
+    if missing.is_empty() {
+        eprintln!("==> simulated LiteX SoCs: present ({})", keys.join(", "));
+        return Ok(());
+    }
+    eprintln!(
+        "==> generate and Verilate {} simulated LiteX SoC(s) for the tests (a few minutes each, \
+         once; logs in each folder's build.log under {})",
+        missing.len(),
+        litex_dir().display()
+    );
+    let started = Instant::now();
+    let results: Vec<_> = std::thread::scope(|scope| {
+        let builds: Vec<_> = missing
+            .iter()
+            .map(|&soc| scope.spawn(move || Soc::ensure(soc)))
+            .collect();
+        builds.into_iter().map(|build| build.join()).collect()
+    });
+    for (soc, result) in missing.iter().zip(results) {
+        match result {
+            Ok(Ok(_)) => {}
+            Ok(Err(e)) => bail!("building the simulated SoC {}: {e}", soc.key()),
+            Err(_) => bail!(
+                "building the simulated SoC {}: the build thread panicked",
+                soc.key()
+            ),
+        }
+    }
+    eprintln!("    ok ({:.1?})", started.elapsed());
+    Ok(())
 }
 
 /// The venv with [`LITEX_PYTHON_PACKAGES`]; a file in it records what was installed, so a
