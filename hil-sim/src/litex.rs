@@ -271,6 +271,17 @@ impl SocConfig {
     }
 }
 
+/// Where an SoC build is, for a caller that shows its progress ([`Soc::ensure_reporting`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum BuildStage {
+    /// LiteX generates the SoC's Verilog (and, with the BIOS, builds the BIOS).
+    Generating,
+    /// Verilator translates it and the C++ compiler builds the simulator.
+    Verilating,
+    /// Done, in this many seconds.
+    Built { seconds: f64 },
+}
+
 /// A generated and Verilated SoC in its cache folder.
 #[derive(Debug, Clone)]
 pub struct Soc {
@@ -282,6 +293,23 @@ impl Soc {
     /// The SoC for `config`, built now if its folder lacks a finished build. Prints the wall
     /// time of a build to stderr.
     pub fn ensure(config: &SocConfig) -> Result<Soc, LitexError> {
+        Self::ensure_reporting(config, |stage| match stage {
+            BuildStage::Generating => eprintln!(
+                "hil-sim: generating and Verilating the LiteX SoC {} (once; about 2-3 minutes)",
+                litex_dir().join(config.key()).display()
+            ),
+            BuildStage::Verilating => {}
+            BuildStage::Built { seconds } => {
+                eprintln!("hil-sim: LiteX SoC built in {seconds:.1} s")
+            }
+        })
+    }
+
+    /// The same, telling `report` each stage of a build (nothing when the SoC is cached).
+    pub fn ensure_reporting(
+        config: &SocConfig,
+        mut report: impl FnMut(BuildStage),
+    ) -> Result<Soc, LitexError> {
         let base = litex_dir();
         let python = base.join("venv/bin/python");
         if !python.is_file() {
@@ -307,10 +335,7 @@ impl Soc {
         let started = Instant::now();
         let _ = fs::remove_dir_all(&dir);
         fs::create_dir_all(&dir).map_err(io(format!("creating {}", dir.display())))?;
-        eprintln!(
-            "hil-sim: generating and Verilating the LiteX SoC {} (once; about 2-3 minutes)",
-            dir.display()
-        );
+        report(BuildStage::Generating);
         let log = dir.join("build.log");
         // The BIOS build runs `python3 -m litex…` itself: the venv's python must come first.
         let venv_bin = base.join("venv/bin");
@@ -330,6 +355,7 @@ impl Soc {
             .args(config.args())
             .current_dir(&dir);
         run_logged("generating the SoC (litex)", &mut generate, &log)?;
+        report(BuildStage::Verilating);
         let mut verilate = Command::new("bash");
         verilate
             .arg("build_sim.sh")
@@ -341,12 +367,9 @@ impl Soc {
         for lib in ["software/libc", "software/libcompiler_rt"] {
             let _ = fs::remove_dir_all(dir.join(lib));
         }
-        fs::write(&done, format!("{:.1}\n", started.elapsed().as_secs_f64()))
-            .map_err(io("marking the build done"))?;
-        eprintln!(
-            "hil-sim: LiteX SoC built in {:.1} s",
-            started.elapsed().as_secs_f64()
-        );
+        let seconds = started.elapsed().as_secs_f64();
+        fs::write(&done, format!("{seconds:.1}\n")).map_err(io("marking the build done"))?;
+        report(BuildStage::Built { seconds });
         Ok(soc)
     }
 

@@ -21,6 +21,7 @@
 
 use std::env;
 use std::ffi::OsString;
+use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode};
 use std::time::Instant;
@@ -30,7 +31,8 @@ use anyhow::{bail, Context, Result};
 // `deform --target qemu` at it, and which QEMU runs it: one definition, in hil-sim.
 use deform_hil_sim::gateware::SYNTHESIS_PYTHON_PACKAGES;
 use deform_hil_sim::litex::{
-    litex_dir, test_socs, Soc, LITEX_FIRMWARE_BUILD_PATH, LITEX_FIRMWARE_ENV, LITEX_PYTHON_PACKAGES,
+    litex_dir, test_socs, BuildStage, Soc, LITEX_FIRMWARE_BUILD_PATH, LITEX_FIRMWARE_ENV,
+    LITEX_PYTHON_PACKAGES,
 };
 use deform_hil_sim::{
     is_executable, qemu_binary, FIRMWARE_BUILD_PATH, FIRMWARE_ENV, LOADER_BUILD_PATH, LOADER_ENV,
@@ -425,10 +427,16 @@ fn setup_litex_socs() -> Result<()> {
         litex_dir().display()
     );
     let started = Instant::now();
+    let progress = indicatif::MultiProgress::new();
     let results: Vec<_> = std::thread::scope(|scope| {
         let builds: Vec<_> = missing
             .iter()
-            .map(|&soc| scope.spawn(move || Soc::ensure(soc)))
+            .map(|&soc| {
+                let spinner = soc_spinner(&progress, &soc.key());
+                scope.spawn(move || {
+                    Soc::ensure_reporting(soc, |stage| show_stage(&spinner, &soc.key(), stage))
+                })
+            })
             .collect();
         builds.into_iter().map(|build| build.join()).collect()
     });
@@ -442,8 +450,46 @@ fn setup_litex_socs() -> Result<()> {
             ),
         }
     }
-    eprintln!("    ok ({:.1?})", started.elapsed());
+    // Finished spinners leave the cursor at the end of their last line.
+    let end_of_spinners = if std::io::stderr().is_terminal() {
+        "\n"
+    } else {
+        ""
+    };
+    eprintln!("{end_of_spinners}    ok ({:.1?})", started.elapsed());
     Ok(())
+}
+
+/// A spinner with the elapsed time for one SoC's build on a terminal; hidden elsewhere (a CI
+/// log gets [`show_stage`]'s plain lines instead).
+fn soc_spinner(progress: &indicatif::MultiProgress, key: &str) -> indicatif::ProgressBar {
+    if !std::io::stderr().is_terminal() {
+        return indicatif::ProgressBar::hidden();
+    }
+    let spinner = progress.add(indicatif::ProgressBar::new_spinner());
+    if let Ok(style) =
+        indicatif::ProgressStyle::with_template("    {spinner} {prefix}: {msg} {elapsed}")
+    {
+        spinner.set_style(style);
+    }
+    spinner.set_prefix(key.to_string());
+    spinner.enable_steady_tick(std::time::Duration::from_millis(200));
+    spinner
+}
+
+fn show_stage(spinner: &indicatif::ProgressBar, key: &str, stage: BuildStage) {
+    let what = match stage {
+        BuildStage::Generating => "generating (LiteX)".to_string(),
+        BuildStage::Verilating => "Verilating and compiling the simulator".to_string(),
+        BuildStage::Built { seconds } => format!("built in {seconds:.0} s"),
+    };
+    if spinner.is_hidden() {
+        eprintln!("    {key}: {what}");
+    } else if matches!(stage, BuildStage::Built { .. }) {
+        spinner.finish_with_message(what);
+    } else {
+        spinner.set_message(what);
+    }
 }
 
 /// The venv with [`LITEX_PYTHON_PACKAGES`]; a file in it records what was installed, so a
