@@ -356,9 +356,14 @@ impl Soc {
             .current_dir(&dir);
         run_logged("generating the SoC (litex)", &mut generate, &log)?;
         report(BuildStage::Verilating);
+        // LiteX's Makefile runs `make -j$(JOBS)`, unbounded when JOBS is empty: one SoC's
+        // build then runs every C++ file's compiler at once (43 of them, 3.3 GB, seen on this
+        // 2-core machine), and set-up builds three SoCs side by side. As many as the cores.
+        let jobs = thread::available_parallelism().map_or(2, |n| n.get());
         let mut verilate = Command::new("bash");
         verilate
             .arg("build_sim.sh")
+            .env("JOBS", jobs.to_string())
             .current_dir(dir.join("gateware"));
         run_logged("the Verilator build", &mut verilate, &log)?;
         // The BIOS's C library build trees (picolibc's meson tree alone is ~430 MB) are needed
