@@ -371,6 +371,7 @@ impl Direction {
     };
 
     /// Takes Σr² = `rr` of the residual block `r` as the current one.
+    #[inline(always)]
     fn set_residual(&mut self, rr: u128, r: Block) {
         self.rr = rr;
         self.rr_scalar = Scalar::of_u128(rr);
@@ -453,6 +454,9 @@ struct Engine<'e, 'a, E: Executor> {
 impl<E: Executor> Engine<'_, '_, E> {
     /// Runs one parallel phase, every hart's share measured (one hart at a time: see
     /// [`Executor::run_measured`]), and charges hart 0's serial work since the previous phase.
+    /// Inlined: as a call of its own, its register saves and restores fell on hart 0's serial
+    /// path at every phase.
+    #[inline(always)]
     fn run(&self, task: &(dyn Fn(usize) + Sync), clock: &mut Clock, mvu: bool) {
         clock.flush_serial(self.exec);
         let counts = self.exec.run_measured(self.harts, task);
@@ -851,6 +855,10 @@ struct Solver<'s, 'e, 'a, E: Executor> {
     systems_b: [&'s [i32]; MAX_DIRECTIONS],
     state: [Direction; MAX_DIRECTIONS],
     x_exponents: [i32; MAX_DIRECTIONS],
+    /// Pass XP's plans and α of the iteration in progress, kept here rather than in fresh
+    /// arrays: initialising those costs hart 0 a `memcpy` or `memset` every iteration.
+    xp_plans: [PassXP; MAX_DIRECTIONS],
+    alphas: [Scalar; MAX_DIRECTIONS],
     iterations: u32,
     sat: u32,
     clock: Clock,
@@ -875,13 +883,12 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
     }
 
     /// Pass R's plan for direction d: r ← c·K·v (+ r if `keep`), where K·v is in the MVU's
-    /// results and v's block is `v` (p, or x when computing b − A·x).
-    fn r_plan(&mut self, d: usize, c: Scalar, v: Block, keep: bool) -> PassR {
-        let kp_max = self
-            .engine
-            .outs()
-            .iter()
-            .fold(0u64, |o, out| o | out.kp_or[d]);
+    /// results, `kp_max` the harts' OR of its magnitudes, and v's block is `v` (p, or x when
+    /// computing b − A·x).
+    /// Inlined: hart 0 plans on the serial path, where the call's argument traffic costs more
+    /// than the body.
+    #[inline(always)]
+    fn r_plan(&mut self, d: usize, c: Scalar, v: Block, keep: bool, kp_max: u64) -> PassR {
         let (narrow, e_offset, bound) = Narrow::new(bound_of_u64(kp_max), &mut self.sat);
         let kp = Block {
             e: v.e - self.f() + e_offset,
@@ -896,8 +903,10 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
     /// Folds pass R's results for direction d into its state.
     fn take_r(&mut self, d: usize, plan: PassR) {
         let outs = self.engine.outs();
-        let rr: u128 = outs.iter().map(|o| o.rr[d]).sum();
-        let or = outs.iter().fold(0u32, |o, out| o | out.r_or[d]);
+        // One sweep over the harts for both: each loop costs hart 0 its own bookkeeping.
+        let (rr, or) = outs
+            .iter()
+            .fold((0u128, 0u32), |(rr, or), o| (rr + o.rr[d], or | o.r_or[d]));
         let bound = bound_of_squares(or);
         check_bound(bound, &mut self.sat);
         let r = Block {
@@ -937,7 +946,8 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         let mut plans = [None; MAX_DIRECTIONS];
         for d in (0..self.directions()).filter(|&d| which[d]) {
             let keep = shifts[d].is_none();
-            plans[d] = Some(self.r_plan(d, Scalar::ONE.negate(), self.state[d].x, keep));
+            let kp_max = self.engine.outs().iter().fold(0, |o, out| o | out.kp_or[d]);
+            plans[d] = Some(self.r_plan(d, Scalar::ONE.negate(), self.state[d].x, keep, kp_max));
         }
         self.engine.pass_r(&plans, &mut self.clock);
         for (d, plan) in plans.iter().enumerate() {
@@ -998,13 +1008,20 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         self.engine.mvu(&mut self.clock);
         let t = self.engine.exec.now();
         let mut r_plans = [None; MAX_DIRECTIONS];
-        let mut alphas = [Scalar::ZERO; MAX_DIRECTIONS];
+        // By index: `d` indexes the state, the harts' results and α as well, and the iterator
+        // form compiles to 9 more instructions of hart 0's serial work per iteration.
+        #[allow(clippy::needless_range_loop)]
         for d in 0..self.directions() {
             if !self.state[d].active {
                 continue;
             }
             self.state[d].iterations += 1;
-            let p_kp: i128 = self.engine.outs().iter().map(|o| o.p_kp[d]).sum();
+            // pᵀKp and the OR of |Kp| in one sweep over the harts.
+            let (p_kp, kp_max) = self
+                .engine
+                .outs()
+                .iter()
+                .fold((0i128, 0u64), |(s, or), o| (s + o.p_kp[d], or | o.kp_or[d]));
             if p_kp <= 0 {
                 return Err(SolveFailure::NotPositiveDefinite {
                     iteration: self.iterations,
@@ -1012,12 +1029,18 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             }
             let st = &self.state[d];
             // α = rᵀr / pᵀKp; exponents: 2e_r and 2e_p − F.
-            alphas[d] = Scalar::quotient(st.rr_scalar, Scalar::of_i128(p_kp))
+            let alpha = Scalar::quotient(st.rr_scalar, Scalar::of_i128(p_kp))
                 .scale2(2 * st.r.e - 2 * st.p.e + self.f());
-            r_plans[d] = Some(self.r_plan(d, alphas[d].negate(), st.p, true));
+            self.alphas[d] = alpha;
+            r_plans[d] = Some(self.r_plan(d, alpha.negate(), st.p, true, kp_max));
         }
         self.engine.pass_r(&r_plans, &mut self.clock);
-        let mut xp_plans = [PassXP::NONE; MAX_DIRECTIONS];
+        // Reset field by field: a fresh `[PassXP::NONE; MAX_DIRECTIONS]` compiles to a 48-byte
+        // `memcpy` of the constant per direction on hart 0's serial path; this stores only the
+        // `None` tags.
+        for plan in &mut self.xp_plans {
+            (plan.x, plan.p) = (None, None);
+        }
         let mut verify = [false; MAX_DIRECTIONS];
         for (d, plan) in r_plans.iter().enumerate() {
             let Some(plan) = plan else { continue };
@@ -1025,8 +1048,8 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             self.take_r(d, *plan);
             let st = &mut self.state[d];
             st.r_exact = false;
-            let x = Lin::new(alphas[d], st.p, false, Some(st.x), &mut self.sat);
-            xp_plans[d].x = Some(x);
+            let x = Lin::new(self.alphas[d], st.p, false, Some(st.x), &mut self.sat);
+            self.xp_plans[d].x = Some(x);
             if st.converged || st.iterations >= self.params.max_iterations {
                 st.active = false;
                 // Converged on the recursive residual: check it against b − A·x.
@@ -1035,26 +1058,30 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             }
             // β = r_newᵀr_new / rᵀr
             let beta = Scalar::quotient(st.rr_scalar, rr_old).scale2(2 * (st.r.e - e_old));
-            xp_plans[d].p = Some(Lin::new(beta, st.p, false, Some(st.r), &mut self.sat));
+            self.xp_plans[d].p = Some(Lin::new(beta, st.p, false, Some(st.r), &mut self.sat));
         }
-        self.engine.pass_xp(&xp_plans, &mut self.clock);
+        self.engine.pass_xp(&self.xp_plans, &mut self.clock);
         let outs = self.engine.outs();
-        for (d, plan) in xp_plans.iter().enumerate() {
+        for (d, plan) in self.xp_plans.iter().enumerate() {
+            if plan.x.is_none() && plan.p.is_none() {
+                continue;
+            }
             let st = &mut self.state[d];
+            let (x_or, p_or) = outs
+                .iter()
+                .fold((0u32, 0u32), |(x, p), o| (x | o.x_or[d], p | o.p_or[d]));
             if let Some(lin) = plan.x {
-                let or = outs.iter().fold(0u32, |o, out| o | out.x_or[d]);
                 st.x = Block {
                     e: lin.e,
-                    bound: bound_of(or),
+                    bound: bound_of(x_or),
                 };
                 check_bound(st.x.bound, &mut self.sat);
                 self.x_exponents[d] = lin.e;
             }
             if let Some(lin) = plan.p {
-                let or = outs.iter().fold(0u32, |o, out| o | out.p_or[d]);
                 st.p = Block {
                     e: lin.e,
-                    bound: bound_of(or),
+                    bound: bound_of(p_or),
                 };
                 check_bound(st.p.bound, &mut self.sat);
             }
@@ -1198,6 +1225,8 @@ pub fn solve(
         systems_b,
         state,
         x_exponents,
+        xp_plans: [PassXP::NONE; MAX_DIRECTIONS],
+        alphas: [Scalar::ZERO; MAX_DIRECTIONS],
         iterations: 0,
         sat: 0,
         clock,
