@@ -36,7 +36,8 @@ The word pipeline (no stage ever stalls; the fetch waits instead):
     A   accumulate, 64 bits per lane; an ER word's sums are complete after it
     E   an ER word's sums (and rows, flags) go into the write-back queue
 
-The write-back takes queue entries one part at a time (the own row, then the mirror row of a
+The write-back queue (``write_back_queue.WriteBackQueue``) has its head in a register and decides
+its memory's pop from registers beside it. The write-back takes queue entries one part at a time (the own row, then the mirror row of a
 mirrored tile) into a register, S, and from there through W (read Kp and p at the row), W2
 (their data registered beside the adders), U (store the first write-back of the row in this
 phase, or add) and R (write Kp, OR the magnitudes into max |Kp| if this was the row's last
@@ -58,11 +59,11 @@ decode as a register of its own (a clock after ``start``, in HEADER), not on the
 
 from migen import (Module, Signal, Array, Cat, If, FSM, NextState, NextValue,
                    Replicate)
-from migen.genlib.fifo import SyncFIFOBuffered
 
 from deform_gateware.bram import Bram, LATENCY
 from deform_gateware.multiplier import Multiplier
 from deform_gateware.tile_table import TileTable
+from deform_gateware.write_back_queue import WriteBackQueue
 from deform_gateware.word import (InstructionWord, ENTRY_BITS, VALUE_BITS, FIRST_OWN, LAST_OWN,
                                   FIRST_MIRROR, LAST_MIRROR)
 
@@ -162,7 +163,7 @@ class Mvu(Module):
         issue = Signal()
         # The write-back queue: its head a register (the memory's read is registered), so that
         # what the write-back decides from it starts at a register, not at a memory read.
-        self.queue = queue = SyncFIFOBuffered(self._entry_width(), QUEUE_DEPTH)
+        self.queue = queue = WriteBackQueue(self._entry_width(), QUEUE_DEPTH)
         self.submodules += queue
 
         # F2: decode, in the tile context; `header` holds the next tile's header and the tile
@@ -395,6 +396,12 @@ class Mvu(Module):
         # S refills while empty: the mirror part of the entry taken last, else the queue's head.
         load = Signal()
         take = Signal()
+        wants_head = Signal(reset=1)
+        # S's row twice: `s["row"]` for the row compares and W, and its complement `s_row_n` for
+        # the address pins of the ~17 block RAMs of Kp and p at the row, which pulled the one
+        # register far from the compares (a critical path; complemented, so that Yosys does not
+        # merge the two registers).
+        s_row_n = Signal(nb, reset=(1 << nb) - 1)
         hazard = Signal()     # S's row is that of the part in W2, U or R
         # The row S holds in the next clock is one of three candidates (S's own, the pending
         # mirror row, the queue head's); each is compared with W, W2 and U on its own and the
@@ -404,9 +411,15 @@ class Mvu(Module):
             return Cat(*[x["valid"] & (x["row"] == candidate) for x in (w, w2, u)]) != 0
         self.comb += [
             load.eq(~s["valid"] & (mirror_pending | queue.readable)),
-            queue.re.eq(~s["valid"] & ~mirror_pending),
+            queue.re.eq(wants_head),
             take.eq(s["valid"] & ~hazard & ~w["valid"] & free_soon),
         ]
+        # `wants_head` is ~S.valid & ~mirror_pending, as a register of its own, made from their
+        # next values: those two sit among the ~200 S and mirror bits they select, far from the
+        # queue, and the queue's pop (its memory's read enable and level counter) hung on them
+        # through a LUT placed among them, a critical path out to them and back.
+        self.sync += If(~s["valid"], wants_head.eq(~load)).Elif(take,
+            wants_head.eq(~mirror_pending)).Else(wants_head.eq(0))
         self.sync += [
             If(s["valid"], hazard.eq(conflicts(s["row"]))).Elif(mirror_pending,
                 hazard.eq(conflicts(mirror_row))).Else(hazard.eq(conflicts(d_row))),
@@ -414,21 +427,21 @@ class Mvu(Module):
                 s["valid"].eq(load),
                 If(mirror_pending,
                     mirror_pending.eq(0),
-                    s["row"].eq(mirror_row),
+                    s["row"].eq(mirror_row), s_row_n.eq(~mirror_row),
                     s["first"].eq(flags[FIRST_MIRROR]), s["last"].eq(flags[LAST_MIRROR]),
                     *[x.eq(m) for x, m in zip(s["sums"], mirror)],
                 ).Else(
                     mirror_pending.eq(queue.readable & d_mirrored),
                     mirror_row.eq(d_mirror_row), flags.eq(d_flags),
                     *[m.eq(d) for m, d in zip(mirror, d_mirror)],
-                    s["row"].eq(d_row),
+                    s["row"].eq(d_row), s_row_n.eq(~d_row),
                     s["first"].eq(d_flags[FIRST_OWN]), s["last"].eq(d_flags[LAST_OWN]),
                     *[x.eq(d) for x, d in zip(s["sums"], d_own)],
                 ),
             ).Elif(take, s["valid"].eq(0)),
         ]
-        self.comb += If(idle, kp_rd.adr.eq(self.bus_kp.adr)).Else(kp_rd.adr.eq(s["row"]))
-        self.comb += p_at_row.adr.eq(s["row"])
+        self.comb += If(idle, kp_rd.adr.eq(self.bus_kp.adr)).Else(kp_rd.adr.eq(~s_row_n))
+        self.comb += p_at_row.adr.eq(~s_row_n)
         self.sync += [
             w["valid"].eq(take), w["row"].eq(s["row"]), w["first"].eq(s["first"]),
             w["last"].eq(s["last"]), *[x.eq(y) for x, y in zip(w["sums"], s["sums"])],
