@@ -117,7 +117,12 @@ pub struct Placed {
 }
 
 /// What the synthesis of one MVU alone (gateware/deform_gateware/synth.py) reports.
+///
+/// Read through a `serde_json::Value` ([`TryFrom`]), not a derived `Deserialize`: serde's
+/// `flatten` buffers numbers, and with serde_json's `arbitrary_precision` (which defmt-decoder
+/// turns on in this workspace) a buffered number is a map, so `fmax_mhz` would not read as f64.
 #[derive(Debug, Clone, PartialEq, serde::Deserialize, serde::Serialize)]
+#[serde(try_from = "serde_json::Value")]
 pub struct SynthReport {
     #[serde(flatten)]
     pub placed: Placed,
@@ -126,6 +131,29 @@ pub struct SynthReport {
     pub tiles: u64,
     pub nodes: u64,
     pub seed: serde_json::Value,
+}
+
+impl TryFrom<serde_json::Value> for SynthReport {
+    type Error = serde_json::Error;
+
+    fn try_from(value: serde_json::Value) -> Result<Self, Self::Error> {
+        #[derive(serde::Deserialize)]
+        struct Capacity {
+            words: u64,
+            tiles: u64,
+            nodes: u64,
+            seed: serde_json::Value,
+        }
+        let placed = serde_json::from_value(value.clone())?;
+        let capacity: Capacity = serde_json::from_value(value)?;
+        Ok(SynthReport {
+            placed,
+            words: capacity.words,
+            tiles: capacity.tiles,
+            nodes: capacity.nodes,
+            seed: capacity.seed,
+        })
+    }
 }
 
 /// Yosys's cell counts of a whole SoC (synth_ecp5's final statistics): what a build that stops
@@ -298,6 +326,23 @@ pub fn build_bitstream(build: &SocBuild, out: &Path) -> Result<SocReport, Gatewa
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_synthesis_report_reads_as_synth_py_prints_it() {
+        let line = r#"{"lut4": {"used": 5683, "available": 83640}, "ff": {"used": 5362, "available": 83640}, "mult18x18d": {"used": 16, "available": 156}, "dp16kd": {"used": 25, "available": 208}, "fmax_mhz": 141.4, "target_mhz": 133.0, "fits": true, "meets_timing": true, "words": 1024, "tiles": 16, "nodes": 1024, "speed": "6", "seed": "1"}"#;
+        let report: SynthReport = serde_json::from_str(line).unwrap();
+        assert_eq!(report.placed.fmax_mhz, 141.4);
+        assert_eq!(report.placed.lut4.used, 5683);
+        assert!(report.placed.fits && report.placed.meets_timing);
+        assert_eq!((report.words, report.tiles, report.nodes), (1024, 16, 1024));
+        for bad in [
+            line.replace("141.4", "\"fast\""),
+            line.replace(r#""words": 1024, "#, ""),
+            "{}".to_string(),
+        ] {
+            assert!(serde_json::from_str::<SynthReport>(&bad).is_err(), "{bad}");
+        }
+    }
 
     #[test]
     fn a_missing_venv_or_tool_points_to_setup() {

@@ -78,6 +78,20 @@ const GATEWARE_SOURCES: &[&str] = &[
 /// The most hardware MVUs an SoC may have (the gateware's MVU array).
 pub const MAX_MVUS: u8 = 8;
 
+/// The hardware MVUs of the SoC the HIL tests compare with the software MVU phase.
+pub const TEST_MVUS: u8 = 4;
+
+/// The SoCs the tests simulate: the firmware in main RAM without and with [`TEST_MVUS`]
+/// hardware MVUs, and the stock BIOS. `cargo xtask setup` Verilates them ahead (minutes each),
+/// so that a set-up machine's test run does not; a test asking for another SoC builds it itself.
+pub fn test_socs() -> [SocConfig; 3] {
+    [
+        SocConfig::default(),
+        SocConfig::default().with_mvus(TEST_MVUS),
+        SocConfig::default().with_bios(),
+    ]
+}
+
 /// The firmware build configured for the SoC that [`SocConfig::default`] generates.
 const COMMITTED_CSR_JSON: &str = "firmware/boards/litex-vexriscv/csr.json";
 
@@ -257,6 +271,17 @@ impl SocConfig {
     }
 }
 
+/// Where an SoC build is, for a caller that shows its progress ([`Soc::ensure_reporting`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum BuildStage {
+    /// LiteX generates the SoC's Verilog (and, with the BIOS, builds the BIOS).
+    Generating,
+    /// Verilator translates it and the C++ compiler builds the simulator.
+    Verilating,
+    /// Done, in this many seconds.
+    Built { seconds: f64 },
+}
+
 /// A generated and Verilated SoC in its cache folder.
 #[derive(Debug, Clone)]
 pub struct Soc {
@@ -268,6 +293,23 @@ impl Soc {
     /// The SoC for `config`, built now if its folder lacks a finished build. Prints the wall
     /// time of a build to stderr.
     pub fn ensure(config: &SocConfig) -> Result<Soc, LitexError> {
+        Self::ensure_reporting(config, |stage| match stage {
+            BuildStage::Generating => eprintln!(
+                "hil-sim: generating and Verilating the LiteX SoC {} (once; about 2-3 minutes)",
+                litex_dir().join(config.key()).display()
+            ),
+            BuildStage::Verilating => {}
+            BuildStage::Built { seconds } => {
+                eprintln!("hil-sim: LiteX SoC built in {seconds:.1} s")
+            }
+        })
+    }
+
+    /// The same, telling `report` each stage of a build (nothing when the SoC is cached).
+    pub fn ensure_reporting(
+        config: &SocConfig,
+        mut report: impl FnMut(BuildStage),
+    ) -> Result<Soc, LitexError> {
         let base = litex_dir();
         let python = base.join("venv/bin/python");
         if !python.is_file() {
@@ -293,10 +335,7 @@ impl Soc {
         let started = Instant::now();
         let _ = fs::remove_dir_all(&dir);
         fs::create_dir_all(&dir).map_err(io(format!("creating {}", dir.display())))?;
-        eprintln!(
-            "hil-sim: generating and Verilating the LiteX SoC {} (once; about 2-3 minutes)",
-            dir.display()
-        );
+        report(BuildStage::Generating);
         let log = dir.join("build.log");
         // The BIOS build runs `python3 -m litex…` itself: the venv's python must come first.
         let venv_bin = base.join("venv/bin");
@@ -316,9 +355,15 @@ impl Soc {
             .args(config.args())
             .current_dir(&dir);
         run_logged("generating the SoC (litex)", &mut generate, &log)?;
+        report(BuildStage::Verilating);
+        // LiteX's Makefile runs `make -j$(JOBS)`, unbounded when JOBS is empty: one SoC's
+        // build then runs every C++ file's compiler at once (43 of them, 3.3 GB, seen on this
+        // 2-core machine), and set-up builds three SoCs side by side. As many as the cores.
+        let jobs = thread::available_parallelism().map_or(2, |n| n.get());
         let mut verilate = Command::new("bash");
         verilate
             .arg("build_sim.sh")
+            .env("JOBS", jobs.to_string())
             .current_dir(dir.join("gateware"));
         run_logged("the Verilator build", &mut verilate, &log)?;
         // The BIOS's C library build trees (picolibc's meson tree alone is ~430 MB) are needed
@@ -327,12 +372,9 @@ impl Soc {
         for lib in ["software/libc", "software/libcompiler_rt"] {
             let _ = fs::remove_dir_all(dir.join(lib));
         }
-        fs::write(&done, format!("{:.1}\n", started.elapsed().as_secs_f64()))
-            .map_err(io("marking the build done"))?;
-        eprintln!(
-            "hil-sim: LiteX SoC built in {:.1} s",
-            started.elapsed().as_secs_f64()
-        );
+        let seconds = started.elapsed().as_secs_f64();
+        fs::write(&done, format!("{seconds:.1}\n")).map_err(io("marking the build done"))?;
+        report(BuildStage::Built { seconds });
         Ok(soc)
     }
 
@@ -836,6 +878,20 @@ mod tests {
         assert_ne!(a.key(), a.clone().with_mvus(4).key());
         assert!(a.clone().with_mvus(4).key().starts_with("ram-4mvu-"));
         assert!(a.key().starts_with("ram-") && a.clone().with_bios().key().starts_with("bios-"));
+    }
+
+    #[test]
+    fn set_up_builds_the_socs_the_tests_run_on() {
+        let built = test_socs();
+        let elf = PathBuf::from("fw.elf");
+        for used in [
+            LitexConfig::new(&elf).soc,
+            LitexConfig::new(&elf).with_mvus(TEST_MVUS).soc,
+            LitexConfig::bios().with_uart_pace(500).soc,
+        ] {
+            assert!(built.contains(&used), "{used:?} is not built by set-up");
+        }
+        assert!(!built.contains(&LitexConfig::new(&elf).with_mvus(2).soc));
     }
 
     #[test]

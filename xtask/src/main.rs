@@ -4,7 +4,8 @@
 //! - `setup`: installs what a fresh machine lacks: the RISC-V target, clippy and rustfmt, QEMU,
 //!   Debian's Chromium and chromedriver (the browser test of `deform live --serve`), and for the
 //!   LiteX target Verilator, its libraries, the RISC-V binutils and GCC (the stock BIOS), socat,
-//!   and the LiteX Python packages in a venv under `target/litex`.
+//!   and the LiteX Python packages in a venv under `target/litex`; then it generates and
+//!   Verilates the three LiteX SoCs the tests simulate (cached there, ~10 minutes once).
 //! - `firmware [--board qemu|litex]`: builds the firmware ELF for QEMU `virt` (and the serial
 //!   loader), or for a LiteX VexRiscv SoC.
 //! - `run [-- ARGS…]`: the Rust target and QEMU if missing, firmware, then `deform solve ARGS…`
@@ -20,6 +21,7 @@
 
 use std::env;
 use std::ffi::OsString;
+use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode};
 use std::time::Instant;
@@ -29,7 +31,8 @@ use anyhow::{bail, Context, Result};
 // `deform --target qemu` at it, and which QEMU runs it: one definition, in hil-sim.
 use deform_hil_sim::gateware::SYNTHESIS_PYTHON_PACKAGES;
 use deform_hil_sim::litex::{
-    litex_dir, LITEX_FIRMWARE_BUILD_PATH, LITEX_FIRMWARE_ENV, LITEX_PYTHON_PACKAGES,
+    litex_dir, test_socs, BuildStage, Soc, LITEX_FIRMWARE_BUILD_PATH, LITEX_FIRMWARE_ENV,
+    LITEX_PYTHON_PACKAGES,
 };
 use deform_hil_sim::{
     is_executable, qemu_binary, FIRMWARE_BUILD_PATH, FIRMWARE_ENV, LOADER_BUILD_PATH, LOADER_ENV,
@@ -86,7 +89,8 @@ const USAGE: &str = "usage: cargo xtask <command>
 
 commands:
   setup              install the RISC-V target, clippy, rustfmt, QEMU, Chromium and the
-                     LiteX toolchain (Verilator, RISC-V GCC, socat, a Python venv) if missing
+                     LiteX toolchain (Verilator, RISC-V GCC, socat, a Python venv) if missing,
+                     then Verilate the LiteX SoCs the tests simulate (once, cached)
   firmware [--board qemu|litex]
                      build the firmware ELF (firmware/, release): for QEMU `virt` with the
                      serial loader (default), or for the LiteX VexRiscv SoC
@@ -208,7 +212,8 @@ fn setup() -> Result<()> {
     setup_rust()?;
     setup_qemu()?;
     setup_chromium()?;
-    setup_litex()
+    setup_litex()?;
+    setup_litex_socs()
 }
 
 fn setup_rust() -> Result<()> {
@@ -398,6 +403,93 @@ fn setup_litex() -> Result<()> {
         apt::install(LITEX_PACKAGES, "the LiteX toolchain")?;
     }
     setup_litex_venv()
+}
+
+/// The simulated LiteX SoCs the tests run on ([`test_socs`]), generated and Verilated now if
+/// their cache folders lack a finished build: minutes each, which belong to setting a machine
+/// up rather than to every first test run. They build side by side, so that one's single-
+/// threaded steps (LiteX's generator, Verilator itself) overlap another's compiles.
+fn setup_litex_socs() -> Result<()> {
+    let socs = test_socs();
+    let keys: Vec<String> = socs.iter().map(|soc| soc.key()).collect();
+    let missing: Vec<_> = socs
+        .iter()
+        .filter(|soc| !litex_dir().join(soc.key()).join("built").is_file())
+        .collect();
+    if missing.is_empty() {
+        eprintln!("==> simulated LiteX SoCs: present ({})", keys.join(", "));
+        return Ok(());
+    }
+    eprintln!(
+        "==> generate and Verilate {} simulated LiteX SoC(s) for the tests (a few minutes each, \
+         once; logs in each folder's build.log under {})",
+        missing.len(),
+        litex_dir().display()
+    );
+    let started = Instant::now();
+    let progress = indicatif::MultiProgress::new();
+    let results: Vec<_> = std::thread::scope(|scope| {
+        let builds: Vec<_> = missing
+            .iter()
+            .map(|&soc| {
+                let spinner = soc_spinner(&progress, &soc.key());
+                scope.spawn(move || {
+                    Soc::ensure_reporting(soc, |stage| show_stage(&spinner, &soc.key(), stage))
+                })
+            })
+            .collect();
+        builds.into_iter().map(|build| build.join()).collect()
+    });
+    for (soc, result) in missing.iter().zip(results) {
+        match result {
+            Ok(Ok(_)) => {}
+            Ok(Err(e)) => bail!("building the simulated SoC {}: {e}", soc.key()),
+            Err(_) => bail!(
+                "building the simulated SoC {}: the build thread panicked",
+                soc.key()
+            ),
+        }
+    }
+    // Finished spinners leave the cursor at the end of their last line.
+    let end_of_spinners = if std::io::stderr().is_terminal() {
+        "\n"
+    } else {
+        ""
+    };
+    eprintln!("{end_of_spinners}    ok ({:.1?})", started.elapsed());
+    Ok(())
+}
+
+/// A spinner with the elapsed time for one SoC's build on a terminal; hidden elsewhere (a CI
+/// log gets [`show_stage`]'s plain lines instead).
+fn soc_spinner(progress: &indicatif::MultiProgress, key: &str) -> indicatif::ProgressBar {
+    if !std::io::stderr().is_terminal() {
+        return indicatif::ProgressBar::hidden();
+    }
+    let spinner = progress.add(indicatif::ProgressBar::new_spinner());
+    if let Ok(style) =
+        indicatif::ProgressStyle::with_template("    {spinner} {prefix}: {msg} {elapsed}")
+    {
+        spinner.set_style(style);
+    }
+    spinner.set_prefix(key.to_string());
+    spinner.enable_steady_tick(std::time::Duration::from_millis(200));
+    spinner
+}
+
+fn show_stage(spinner: &indicatif::ProgressBar, key: &str, stage: BuildStage) {
+    let what = match stage {
+        BuildStage::Generating => "generating (LiteX)".to_string(),
+        BuildStage::Verilating => "Verilating and compiling the simulator".to_string(),
+        BuildStage::Built { seconds } => format!("built in {seconds:.0} s"),
+    };
+    if spinner.is_hidden() {
+        eprintln!("    {key}: {what}");
+    } else if matches!(stage, BuildStage::Built { .. }) {
+        spinner.finish_with_message(what);
+    } else {
+        spinner.set_message(what);
+    }
 }
 
 /// The venv with [`LITEX_PYTHON_PACKAGES`]; a file in it records what was installed, so a

@@ -182,12 +182,9 @@ fn the_gateware_matches_the_portable_kernel_bit_for_bit() {
 /// full size took 4-23 minutes, depending on the load). The full-size unit's figures are a
 /// benchmark in docs/PERFORMANCE.md (`python -m deform_gateware.synth --out DIR`).
 ///
-/// Ignored in the gate: it was missed at 120.8 MHz; now the CI size reaches 141.4 MHz at seed 1
-/// (207 s here) and the full size 136.9 / 137.6 / 131.0 MHz at seeds 1 / 2 / 3, so whether the
-/// gate pays its minutes is still to be decided (see docs/PERFORMANCE.md). Run it with
-/// `cargo test -p deform-hil-sim --test hil -- --ignored one_mvu`.
+/// Part of the gate since the CI size reached 141.4 MHz at seed 1 in 207 s (fmax2 branch) and
+/// `cargo xtask setup` took the SoCs' Verilation out of the test run, which made room for it.
 #[test]
-#[ignore = "minutes of synthesis (CI size: 141.4 MHz at seed 1, 207 s), see docs/PERFORMANCE.md"]
 fn one_mvu_fits_the_ecp5_and_meets_133_mhz() {
     // Not under /tmp: the tools run in YoWASP's sandbox, which has a /tmp of its own.
     let out = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/gateware/synth-mvu");

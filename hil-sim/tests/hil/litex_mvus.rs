@@ -6,13 +6,14 @@
 //! one alone. Then `deform solve --target litex --mvus 4`'s own path refines to 1e-10.
 //!
 //! Needs `cargo xtask setup`, both firmwares (`cargo xtask firmware`, `cargo xtask firmware
-//! --board litex`); the first run builds the 4-MVU SoC (a few minutes, cached).
+//! --board litex`); set-up builds the 4-MVU SoC (a few minutes, cached; a run without it builds
+//! it first).
 
 use crate::support;
 
 use std::time::{Duration, Instant};
 
-use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim};
+use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim, TEST_MVUS};
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_host::board::BoardChoice;
 use deform_host::encode::{encode_with, EncodeOptions, Partition};
@@ -21,8 +22,8 @@ use deform_host::model::{Axis, Connection, Grid, Model, ModelSpec, Node, PointLo
 use deform_host::solve::solve_model;
 use deform_shared::protocol::{SolveParams, SolveReport, Start};
 
-/// The hardware MVUs of the SoC these tests build.
-const MVUS: u8 = 4;
+/// The hardware MVUs of the SoC these tests run on (`cargo xtask setup` builds it).
+const MVUS: u8 = TEST_MVUS;
 
 fn timeouts() -> Timeouts {
     Timeouts {

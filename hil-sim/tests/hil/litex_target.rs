@@ -2,8 +2,8 @@
 //! cycle by Verilator (hil-sim's `litex` module), driven through `deform solve`'s own code path.
 //!
 //! Needs `cargo xtask setup` (Verilator, socat, the LiteX venv) and the LiteX firmware
-//! (`cargo xtask firmware --board litex`, or `$DEFORM_LITEX_FIRMWARE`); the first run builds the
-//! SoC (about 2 minutes, cached in target/litex). The simulator runs about 0.8 M cycles per
+//! (`cargo xtask firmware --board litex`, or `$DEFORM_LITEX_FIRMWARE`); set-up builds the SoC
+//! (about 3 minutes, cached in target/litex; a run without it builds it first). The simulator runs about 0.8 M cycles per
 //! second, so the systems here are small.
 
 use crate::support;
