@@ -9,11 +9,12 @@ Memories (all loaded between phases by the MVU array's bus; the unit only reads 
 
 - ``words`` (block RAM): 36-bit entries, the instruction words of its tiles back to back and
   the write-back flags of each ER word (``word.FIRST_OWN`` ...);
-- ``tiles`` (distributed RAM, read in the same clock): per tile ``row_base``, ``col_base``,
-  ``n - 1 - col_base`` and the mirrored bit; EM moves to the next one. The next tile's header
-  waits in a register (``header``) and the table is read one tile further ahead (its address,
-  ``ahead_tile``, a register too), so an EM loads the tile context from a register, and the
-  table's read (its 16-way multiplexer) ends in ``header``, not in the context's registers;
+- ``tiles`` (``tile_table.TileTable``, distributed RAM read in tile order): per tile
+  ``row_base``, ``col_base``, ``n - 1 - col_base`` and the mirrored bit; EM moves to the next
+  one. The next tile's header waits in a register (``header``) and the table's cursor is one
+  tile further ahead, its entry shown from registers, so an EM loads the tile context from a
+  register and ``header`` from a 2-way select of registers; the table's read ends in the
+  table's own registers, not in the unit's;
 - ``p_col`` (block RAM): p (three 32-bit lanes per node), read twice per clock: at column
   ``col_base + c`` and, for a mirrored tile, at ``n - 1 - col_base - c``;
 - ``p_row`` (block RAM): another copy of p, read at the row of each write-back (for pᵀKp);
@@ -35,7 +36,8 @@ The word pipeline (no stage ever stalls; the fetch waits instead):
     A   accumulate, 64 bits per lane; an ER word's sums are complete after it
     E   an ER word's sums (and rows, flags) go into the write-back queue
 
-The write-back takes queue entries one part at a time (the own row, then the mirror row of a
+The write-back queue (``write_back_queue.WriteBackQueue``) has its head in a register and decides
+its memory's pop from registers beside it. The write-back takes queue entries one part at a time (the own row, then the mirror row of a
 mirrored tile) into a register, S, and from there through W (read Kp and p at the row), W2
 (their data registered beside the adders), U (store the first write-back of the row in this
 phase, or add) and R (write Kp, OR the magnitudes into max |Kp| if this was the row's last
@@ -50,15 +52,18 @@ with one entry more in reserve); ``stalls`` counts those clocks.
 
 A phase: IDLE, HEADER (tile 0's header into ``header``), FIRST_TILE, RUN (one word fetched per
 clock), DRAIN (until nothing is in flight: ``drained``, a register, so a clock late). ``busy``
-is a register set and cleared with the state's own transitions, not a decode of the state.
+is a register set and cleared with the state's own transitions, not a decode of the state; what
+a start resets or loads (``stalls``, ``fresh``, the tile context) hangs on ``go``, the start's
+decode as a register of its own (a clock after ``start``, in HEADER), not on the state's.
 """
 
-from migen import (Module, Signal, Memory, Array, Cat, If, FSM, NextState, NextValue,
+from migen import (Module, Signal, Array, Cat, If, FSM, NextState, NextValue,
                    Replicate)
-from migen.genlib.fifo import SyncFIFOBuffered
 
 from deform_gateware.bram import Bram, LATENCY
 from deform_gateware.multiplier import Multiplier
+from deform_gateware.tile_table import TileTable
+from deform_gateware.write_back_queue import WriteBackQueue
 from deform_gateware.word import (InstructionWord, ENTRY_BITS, VALUE_BITS, FIRST_OWN, LAST_OWN,
                                   FIRST_MIRROR, LAST_MIRROR)
 
@@ -127,10 +132,7 @@ class Mvu(Module):
         self.submodules.p_col = Bram(LANES * P_BITS, nodes, read_ports=2, primitive=primitive)
         self.submodules.p_row = Bram(LANES * P_BITS, nodes, primitive=primitive)
         self.submodules.kp = Bram(LANES * SUM_BITS, nodes, primitive=primitive)
-        self.specials.tile_mem = tile_mem = Memory(3 * nb + 1, tiles)
-        tile_rd = tile_mem.get_port(async_read=True)
-        tile_wr = tile_mem.get_port(write_capable=True)
-        self.specials += tile_rd, tile_wr
+        self.submodules.tiles = TileTable(3 * nb + 1, tiles)
         self.bus_word = BusPort(bits_for(words), ENTRY_BITS)
         self.bus_tile = BusPort(bits_for(tiles), 3 * nb + 1)   # write only
         self.bus_p = BusPort(nb, LANES * P_BITS)   # writes both copies, reads p_col
@@ -141,8 +143,8 @@ class Mvu(Module):
             self.words.adr.eq(self.bus_word.adr), self.words.dat_w.eq(self.bus_word.dat_w),
             self.words.we.eq(self.bus_word.we & idle),
             self.bus_word.dat_r.eq(self.words.read[0].dat),
-            tile_wr.adr.eq(self.bus_tile.adr), tile_wr.dat_w.eq(self.bus_tile.dat_w),
-            tile_wr.we.eq(self.bus_tile.we & idle),
+            self.tiles.adr.eq(self.bus_tile.adr), self.tiles.dat_w.eq(self.bus_tile.dat_w),
+            self.tiles.we.eq(self.bus_tile.we & idle), self.tiles.rewind.eq(idle),
             self.p_col.adr.eq(self.bus_p.adr), self.p_col.dat_w.eq(self.bus_p.dat_w),
             self.p_col.we.eq(self.bus_p.we & idle),
             self.p_row.adr.eq(self.bus_p.adr), self.p_row.dat_w.eq(self.bus_p.dat_w),
@@ -150,23 +152,22 @@ class Mvu(Module):
             self.bus_p.dat_r.eq(self.p_col.read[1].dat),
             self.bus_kp.dat_r.eq(self.kp.read[0].dat),
         ]
-        self._pipeline(tile_rd, idle)
+        self._pipeline(idle)
         self._write_back(idle)
 
     # The word pipeline -------------------------------------------------------------------------
 
-    def _pipeline(self, tile_rd, idle):
+    def _pipeline(self, idle):
         nb = self.node_bits
         wa = Signal(bits_for(self.words_depth + 1))
-        ahead_tile = Signal(bits_for(self.tiles_depth + 1))   # the header `tile_rd` shows
         issue = Signal()
         # The write-back queue: its head a register (the memory's read is registered), so that
         # what the write-back decides from it starts at a register, not at a memory read.
-        self.queue = queue = SyncFIFOBuffered(self._entry_width(), QUEUE_DEPTH)
+        self.queue = queue = WriteBackQueue(self._entry_width(), QUEUE_DEPTH)
         self.submodules += queue
 
-        # F2: decode, in the tile context; `header` holds the next tile's header and `tile_rd`
-        # shows the one after it.
+        # F2: decode, in the tile context; `header` holds the next tile's header and the tile
+        # table's cursor is at the one after it.
         decode = InstructionWord()
         self.submodules += decode
         fetched = [Signal() for _ in range(LATENCY)]   # F1, F2 valid
@@ -179,11 +180,10 @@ class Mvu(Module):
         next_col_base = Signal(nb)
         next_mirror_col_base = Signal(nb)
         next_mirrored = Signal()
-        header = Signal(len(tile_rd.dat_r))
+        header = Signal(len(self.tiles.dat))
         advance = Signal()
         self.comb += [
             decode.entry.eq(self.words.read[0].dat),
-            tile_rd.adr.eq(ahead_tile),
             Cat(next_row_base, next_col_base, next_mirror_col_base, next_mirrored).eq(header),
             advance.eq(f2_valid & decode.em),
         ]
@@ -226,6 +226,11 @@ class Mvu(Module):
         self.comb += Cat(a["valid"], a["er"], a["flags"], a["row"], a["mirror_row"],
                          a["mirrored"]).eq(delayed[-1])
 
+        # `go`: a phase starts (the start's decode, from the inputs and `busy`, as a register of
+        # its own, a clock after `start`); it clears `stalls` and sets `fresh`.
+        go = Signal()
+        self.sync += go.eq(self.start & ~self.busy & (self.length != 0))
+
         # A: accumulate; E: an ER word's sums into the queue.
         own_acc = [Signal((SUM_BITS, True)) for _ in range(LANES)]
         mirror_acc = [Signal((SUM_BITS, True)) for _ in range(LANES)]
@@ -235,8 +240,12 @@ class Mvu(Module):
         for lane in range(LANES):
             for acc, mul in ((own_acc[lane], own_mul[lane]), (mirror_acc[lane], mirror_mul[lane])):
                 self.sync += If(a["valid"], If(fresh, acc.eq(mul.p)).Else(acc.eq(acc + mul.p)))
+        # A phase's first word starts a row: `fresh` is set by `go` (a clock after the start, in
+        # HEADER, long before a word reaches A), not by the state's decode: `fresh` selects all
+        # 384 accumulator bits, so it sits among them, far from the state, and that decode
+        # routed to it was a critical path.
         self.sync += [
-            If(a["valid"], fresh.eq(a["er"])),
+            If(go, fresh.eq(1)).Elif(a["valid"], fresh.eq(a["er"])),
             e["valid"].eq(a["valid"] & a["er"]),
             e["flags"].eq(a["flags"]), e["row"].eq(a["row"]),
             e["mirror_row"].eq(a["mirror_row"]), e["mirrored"].eq(a["mirrored"]),
@@ -260,24 +269,17 @@ class Mvu(Module):
         self.submodules.fsm = fsm
         fsm.act("IDLE",
             self.words.read[0].adr.eq(self.bus_word.adr),
-            NextValue(ahead_tile, 0),
             If(self.start & (self.length != 0),
-                NextValue(fresh, 1), NextValue(self.busy, 1),
+                NextValue(self.busy, 1),
                 NextState("HEADER")))
-        fsm.act("HEADER",      # tile 0's header into `header`
-            NextValue(header, tile_rd.dat_r), NextValue(ahead_tile, 1),
-            NextState("FIRST_TILE"))
+        fsm.act("HEADER", NextState("FIRST_TILE"))    # tile 0's header into `header` (at `go`)
         # `at_end` is `wa == length`, a register of its own (made from wa's next value): the
         # compare of the word address is then no path into the state register, which fans out
         # to every memory's port multiplexer and sits far from the fetch.
         at_end = Signal()
         stalled = Signal()    # RUN, and no room for the next word
         fsm.act("FIRST_TILE",  # tile 0's context from `header`, tile 1's header into it
-            NextValue(header, tile_rd.dat_r), NextValue(ahead_tile, 2),
             NextValue(wa, 0), NextValue(at_end, 0),
-            NextValue(row, next_row_base), NextValue(col_base, next_col_base),
-            NextValue(mirror_col_base, next_mirror_col_base),
-            NextValue(mirrored, next_mirrored),
             NextState("RUN"))
         fsm.act("RUN",
             self.words.read[0].adr.eq(wa),
@@ -286,23 +288,29 @@ class Mvu(Module):
             stalled.eq(~at_end & ~room),
             If(at_end, NextState("DRAIN")))
         # `stalls` counts a clock late, from a register (`stalled` of the clock before), and
-        # clears at a start from the inputs and `busy`: its 32 enables then hang on no decode
-        # of the state (that path, through the start's decode, was the last critical one).
+        # clears at `go` (in HEADER, before the first stall can be counted): its 32 enables then
+        # hang on registers only, no decode of the state (that path was a critical one).
         stalled_before = Signal()
         self.sync += [
             stalled_before.eq(stalled),
-            If(self.start & ~self.busy & (self.length != 0), self.stalls.eq(0)).Elif(
-                stalled_before, self.stalls.eq(self.stalls + 1)),
+            If(go, self.stalls.eq(0)).Elif(stalled_before, self.stalls.eq(self.stalls + 1)),
         ]
         drained = Signal()
         fsm.act("DRAIN", If(drained, NextValue(self.busy, 0), NextState("IDLE")))
 
-        # F0 -> F2 valid bits, and the tile context at F2.
+        # F0 -> F2 valid bits, and the tile context at F2. The context moves to the next tile
+        # at an EM word, and twice at a start, from registers (`go` and `go` a clock later, in
+        # HEADER and FIRST_TILE: tile 0's header into `header`, then into the context), so no
+        # decode of the state drives these enables.
+        go_before = Signal()
+        shift = Signal()
+        self.comb += [shift.eq(advance | go | go_before), self.tiles.shift.eq(shift)]
         self.sync += [
+            go_before.eq(go),
             fetched[0].eq(issue),
             *[fetched[k].eq(fetched[k - 1]) for k in range(1, LATENCY)],
-            If(advance,
-                ahead_tile.eq(ahead_tile + 1), header.eq(tile_rd.dat_r),
+            If(shift,
+                header.eq(self.tiles.dat),
                 row.eq(next_row_base), col_base.eq(next_col_base),
                 mirror_col_base.eq(next_mirror_col_base),
                 mirrored.eq(next_mirrored),
@@ -388,6 +396,12 @@ class Mvu(Module):
         # S refills while empty: the mirror part of the entry taken last, else the queue's head.
         load = Signal()
         take = Signal()
+        wants_head = Signal(reset=1)
+        # S's row twice: `s["row"]` for the row compares and W, and its complement `s_row_n` for
+        # the address pins of the ~17 block RAMs of Kp and p at the row, which pulled the one
+        # register far from the compares (a critical path; complemented, so that Yosys does not
+        # merge the two registers).
+        s_row_n = Signal(nb, reset=(1 << nb) - 1)
         hazard = Signal()     # S's row is that of the part in W2, U or R
         # The row S holds in the next clock is one of three candidates (S's own, the pending
         # mirror row, the queue head's); each is compared with W, W2 and U on its own and the
@@ -397,9 +411,15 @@ class Mvu(Module):
             return Cat(*[x["valid"] & (x["row"] == candidate) for x in (w, w2, u)]) != 0
         self.comb += [
             load.eq(~s["valid"] & (mirror_pending | queue.readable)),
-            queue.re.eq(~s["valid"] & ~mirror_pending),
+            queue.re.eq(wants_head),
             take.eq(s["valid"] & ~hazard & ~w["valid"] & free_soon),
         ]
+        # `wants_head` is ~S.valid & ~mirror_pending, as a register of its own, made from their
+        # next values: those two sit among the ~200 S and mirror bits they select, far from the
+        # queue, and the queue's pop (its memory's read enable and level counter) hung on them
+        # through a LUT placed among them, a critical path out to them and back.
+        self.sync += If(~s["valid"], wants_head.eq(~load)).Elif(take,
+            wants_head.eq(~mirror_pending)).Else(wants_head.eq(0))
         self.sync += [
             If(s["valid"], hazard.eq(conflicts(s["row"]))).Elif(mirror_pending,
                 hazard.eq(conflicts(mirror_row))).Else(hazard.eq(conflicts(d_row))),
@@ -407,21 +427,21 @@ class Mvu(Module):
                 s["valid"].eq(load),
                 If(mirror_pending,
                     mirror_pending.eq(0),
-                    s["row"].eq(mirror_row),
+                    s["row"].eq(mirror_row), s_row_n.eq(~mirror_row),
                     s["first"].eq(flags[FIRST_MIRROR]), s["last"].eq(flags[LAST_MIRROR]),
                     *[x.eq(m) for x, m in zip(s["sums"], mirror)],
                 ).Else(
                     mirror_pending.eq(queue.readable & d_mirrored),
                     mirror_row.eq(d_mirror_row), flags.eq(d_flags),
                     *[m.eq(d) for m, d in zip(mirror, d_mirror)],
-                    s["row"].eq(d_row),
+                    s["row"].eq(d_row), s_row_n.eq(~d_row),
                     s["first"].eq(d_flags[FIRST_OWN]), s["last"].eq(d_flags[LAST_OWN]),
                     *[x.eq(d) for x, d in zip(s["sums"], d_own)],
                 ),
             ).Elif(take, s["valid"].eq(0)),
         ]
-        self.comb += If(idle, kp_rd.adr.eq(self.bus_kp.adr)).Else(kp_rd.adr.eq(s["row"]))
-        self.comb += p_at_row.adr.eq(s["row"])
+        self.comb += If(idle, kp_rd.adr.eq(self.bus_kp.adr)).Else(kp_rd.adr.eq(~s_row_n))
+        self.comb += p_at_row.adr.eq(~s_row_n)
         self.sync += [
             w["valid"].eq(take), w["row"].eq(s["row"]), w["first"].eq(s["first"]),
             w["last"].eq(s["last"]), *[x.eq(y) for x, y in zip(w["sums"], s["sums"])],

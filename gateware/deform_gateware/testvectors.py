@@ -63,7 +63,7 @@ def init_unit(unit, case, m):
     words = case["words"][m] if m < len(case["words"]) else []
     tiles = case["tiles"][m] if m < len(case["tiles"]) else []
     unit.words.memory.init = padded([word_entry(w, f) for w, f in words], unit.words_depth)
-    unit.tile_mem.init = padded([tile_entry(t, unit.node_bits) for t in tiles], unit.tiles_depth)
+    unit.tiles.init(tile_entry(t, unit.node_bits) for t in tiles)
     p = [p_entry(lanes) for lanes in case["phases"][0]["p"]]
     unit.p_col.memory.init = padded(p, unit.nodes_depth)
     unit.p_row.memory.init = padded(p, unit.nodes_depth)
