@@ -71,6 +71,8 @@ const GATEWARE_SOURCES: &[&str] = &[
     include_str!("../../gateware/deform_gateware/word.py"),
     include_str!("../../gateware/deform_gateware/multiplier.py"),
     include_str!("../../gateware/deform_gateware/bram.py"),
+    include_str!("../../gateware/deform_gateware/tile_table.py"),
+    include_str!("../../gateware/deform_gateware/write_back_queue.py"),
     include_str!("../../gateware/deform_gateware/mvu.py"),
     include_str!("../../gateware/deform_gateware/mvu_array.py"),
 ];
@@ -878,6 +880,32 @@ mod tests {
         assert_ne!(a.key(), a.clone().with_mvus(4).key());
         assert!(a.clone().with_mvus(4).key().starts_with("ram-4mvu-"));
         assert!(a.key().starts_with("ram-") && a.clone().with_bios().key().starts_with("bios-"));
+    }
+
+    /// Every gateware module the SoC imports (from mvu_array.py, transitively) is part of the
+    /// cache key: one left out would let an SoC built from its old text be reused.
+    #[test]
+    fn the_cache_key_covers_every_gateware_module_the_soc_imports() {
+        let dir = workspace_root().join("gateware/deform_gateware");
+        let mut todo = vec!["mvu_array".to_string()];
+        let mut seen = Vec::new();
+        while let Some(module) = todo.pop() {
+            if seen.contains(&module) {
+                continue;
+            }
+            let text = fs::read_to_string(dir.join(format!("{module}.py"))).unwrap();
+            assert!(
+                GATEWARE_SOURCES.contains(&text.as_str()),
+                "gateware/deform_gateware/{module}.py is not in GATEWARE_SOURCES"
+            );
+            for line in text.lines() {
+                if let Some(rest) = line.trim_start().strip_prefix("from deform_gateware.") {
+                    todo.push(rest.split_whitespace().next().unwrap().to_string());
+                }
+            }
+            seen.push(module);
+        }
+        assert!(seen.len() >= 7, "{seen:?}");
     }
 
     #[test]

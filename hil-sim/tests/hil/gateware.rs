@@ -182,8 +182,9 @@ fn the_gateware_matches_the_portable_kernel_bit_for_bit() {
 /// full size took 4-23 minutes, depending on the load). The full-size unit's figures are a
 /// benchmark in docs/PERFORMANCE.md (`python -m deform_gateware.synth --out DIR`).
 ///
-/// Part of the gate since the CI size reached 141.4 MHz at seed 1 in 207 s (fmax2 branch) and
-/// `cargo xtask setup` took the SoCs' Verilation out of the test run, which made room for it.
+/// Part of the gate since the CI size reached 141.4 MHz at seed 1 in 207 s (fmax2 branch; 146.7
+/// MHz in 199 s after fmax3) and `cargo xtask setup` took the SoCs' Verilation out of the test
+/// run, which made room for it.
 #[test]
 fn one_mvu_fits_the_ecp5_and_meets_133_mhz() {
     // Not under /tmp: the tools run in YoWASP's sandbox, which has a /tmp of its own.
