@@ -251,8 +251,8 @@ impl MvuSize {
 }
 
 /// Synthesises one MVU alone for the LFE5U-85F at speed grade `speed`, out of context, asking
-/// nextpnr for `freq_mhz` (outputs in `out`, which must not be under /tmp: YoWASP's sandbox has
-/// its own).
+/// nextpnr for `freq_mhz` (outputs in `out`, which may be anywhere: the tools see only paths
+/// relative to it).
 pub fn synthesize_mvu(
     out: &Path,
     size: MvuSize,

@@ -187,7 +187,8 @@ fn the_gateware_matches_the_portable_kernel_bit_for_bit() {
 /// run, which made room for it.
 #[test]
 fn one_mvu_fits_the_ecp5_and_meets_133_mhz() {
-    // Not under /tmp: the tools run in YoWASP's sandbox, which has a /tmp of its own.
+    // In the workspace, wherever it is (a clone under /tmp too: synth.py hands the tools only
+    // paths relative to this folder, which YoWASP's sandbox maps as it is).
     let out = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/gateware/synth-mvu");
     let report = synthesize_mvu(&out, MvuSize::Ci, 133.0, 6, 1).unwrap_or_else(|e| panic!("{e}"));
     println!(
