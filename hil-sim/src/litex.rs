@@ -307,6 +307,16 @@ impl Soc {
         })
     }
 
+    /// Whether the cache already holds a finished build of `config` (what [`Soc::ensure`]
+    /// checks before building).
+    pub fn is_built(config: &SocConfig) -> bool {
+        Self::done_marker(&litex_dir().join(config.key())).is_file()
+    }
+
+    fn done_marker(dir: &Path) -> PathBuf {
+        dir.join("built")
+    }
+
     /// The same, telling `report` each stage of a build (nothing when the SoC is cached).
     pub fn ensure_reporting(
         config: &SocConfig,
@@ -322,7 +332,7 @@ impl Soc {
             config: config.clone(),
             dir: dir.clone(),
         };
-        let done = dir.join("built");
+        let done = Self::done_marker(&dir);
         if done.is_file() {
             return Ok(soc);
         }

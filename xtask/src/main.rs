@@ -31,8 +31,8 @@ use anyhow::{bail, Context, Result};
 // `deform --target qemu` at it, and which QEMU runs it: one definition, in hil-sim.
 use deform_hil_sim::gateware::SYNTHESIS_PYTHON_PACKAGES;
 use deform_hil_sim::litex::{
-    litex_dir, test_socs, BuildStage, Soc, LITEX_FIRMWARE_BUILD_PATH, LITEX_FIRMWARE_ENV,
-    LITEX_PYTHON_PACKAGES,
+    litex_dir, test_socs, BuildStage, Soc, SocConfig, LITEX_FIRMWARE_BUILD_PATH,
+    LITEX_FIRMWARE_ENV, LITEX_PYTHON_PACKAGES,
 };
 use deform_hil_sim::{
     is_executable, qemu_binary, FIRMWARE_BUILD_PATH, FIRMWARE_ENV, LOADER_BUILD_PATH, LOADER_ENV,
@@ -411,12 +411,9 @@ fn setup_litex() -> Result<()> {
 /// threaded steps (LiteX's generator, Verilator itself) overlap another's compiles.
 fn setup_litex_socs() -> Result<()> {
     let socs = test_socs();
-    let keys: Vec<String> = socs.iter().map(|soc| soc.key()).collect();
-    let missing: Vec<_> = socs
-        .iter()
-        .filter(|soc| !litex_dir().join(soc.key()).join("built").is_file())
-        .collect();
+    let missing: Vec<_> = socs.iter().filter(|soc| !Soc::is_built(soc)).collect();
     if missing.is_empty() {
+        let keys: Vec<String> = socs.iter().map(SocConfig::key).collect();
         eprintln!("==> simulated LiteX SoCs: present ({})", keys.join(", "));
         return Ok(());
     }
