@@ -1,6 +1,7 @@
 """deform's SoC on an ECP5 board, built into a bitstream with open tools.
 
-    python -m deform_gateware.bitstream --board ulx3s --mvus N --out DIR [--seed S] [--no-pnr]
+    python -m deform_gateware.bitstream --board ulx3s --mvus N --out DIR [--seed S]
+        [--router router1|router2] [--no-pnr]
 
 The SoC is litex-boards' ULX3S target on an LFE5U-85F: a VexRiscv ``imac`` at 50 MHz, the
 board's SDRAM as main RAM at 0x4000_0000, the stock LiteX BIOS in ROM (which loads the firmware
@@ -20,6 +21,10 @@ MULT18X18D, DP16KD, ...), nextpnr's use of the device and the system clock's Fma
 ``--no-pnr``), the stages run with their seconds, the MVUs' capacity and the gateware's commit.
 report.json and the bitstream are removed before a build and written only by a build that got
 that far, so neither is ever a stale or half-written file.
+
+nextpnr routes with ``router2`` by default, not its own default ``router1``: ``router1`` routed the
+4-MVU SoC's 204k arcs at about 40 arcs/s on a 2-core machine (over an hour after 55 min of
+placement; docs/PERFORMANCE.md). ``--router router1`` gives the other; the report names the one used.
 
 With more than four MVUs the MVUs get half the memories (512 rows, 2048 words). Meant to let
 eight fit the LFE5U-85F's 208 block RAMs, it is not enough: Yosys counts 259 DP16KD for eight
@@ -44,6 +49,8 @@ from deform_gateware.synth import log, run_stage, summary, tool
 BOARDS = ("ulx3s",)
 SYS_CLK_FREQ = 50e6
 REPORT = "nextpnr-report.json"
+# nextpnr's routers; the first is this module's default (see the docstring for why).
+ROUTERS = ("router2", "router1")
 # Yosys's cells the report keeps (synth_ecp5's final statistics).
 YOSYS_CELLS = ("LUT4", "CCU2C", "TRELLIS_FF", "MULT18X18D", "ALU54B", "DP16KD",
                "TRELLIS_DPR16X4", "PFUMX", "L6MUX21")
@@ -138,14 +145,16 @@ def build(args, out):
     toolchain = soc.platform.toolchain
     stages["yosys"] = run_stage("yosys", tool_argv(toolchain._yosys.get_yosys_call("script")),
                                 gateware, "yosys.log")
-    report = dict(board=args.board, mvus=args.mvus, seed=args.seed, commit=commit,
+    report = dict(board=args.board, mvus=args.mvus, seed=args.seed, router=args.router,
+                  commit=commit,
                   yosys=yosys_cells(os.path.join(gateware, name + ".rpt")), pnr=None,
                   bitstream=None, stages=stages)
     report.update(zip(("words", "tiles", "nodes"), capacity(args.mvus)))
     if args.no_pnr:
         log("    --no-pnr: nextpnr-ecp5 and ecppack not run (no Fmax, no bitstream)")
         return report
-    pnr = tool_argv(toolchain._nextpnr.get_call("script")) + ["--report", REPORT]
+    pnr = tool_argv(toolchain._nextpnr.get_call("script")) + ["--report", REPORT,
+                                                              "--router", args.router]
     stages["nextpnr"] = run_stage("nextpnr-ecp5", pnr, gateware, "nextpnr.log")
     with open(os.path.join(gateware, REPORT)) as f:
         report["pnr"] = summary(json.load(f), SYS_CLK_FREQ / 1e6)
@@ -167,6 +176,8 @@ def main():
     parser.add_argument("--mvus", type=int, required=True)
     parser.add_argument("--out", required=True)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--router", choices=ROUTERS, default=ROUTERS[0],
+                        help="nextpnr's router (default %(default)s: see above why)")
     parser.add_argument("--no-pnr", action="store_true",
                         help="stop after Yosys: cell counts only, no place and route, no Fmax, "
                              "no bitstream")

@@ -12,7 +12,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use deform_hil_sim::gateware::{build_bitstream, check_synthesis_venv, SocBuild, SocReport};
+use deform_hil_sim::gateware::{
+    build_bitstream, check_synthesis_venv, Router, SocBuild, SocReport,
+};
 use deform_hil_sim::litex::{litex_dir, MAX_MVUS};
 use deform_host::output::file::write_atomic;
 
@@ -24,13 +26,17 @@ const DEFAULT_MVUS: &[u32] = &[0, 1, 2, 4, 8];
 const LFE5U_85F_MULTIPLIERS: u64 = 156;
 
 pub const USAGE: &str = "\
-  bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--no-pnr | --report-only]
+  bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--router router2|router1]
+            [--no-pnr | --report-only]
                      build deform's SoC with each number of hardware MVUs, one at a time,
                      into an ECP5 bitstream (YoWASP Yosys, nextpnr-ecp5, ecppack; each stage
                      printed with its time) in target/bitstream/BOARD-<N>mvu/, and gather the
                      resources, Fmax and Fig. 5-1 plot of every build so far in
                      target/bitstream/BOARD/ (report.md, report.json,
-                     multipliers_per_mvu.svg). --seed: nextpnr's (default 1); --no-pnr:
+                     multipliers_per_mvu.svg). --seed: nextpnr's (default 1); --router:
+                     nextpnr's (default router2: router1 took over an hour to route
+                     the 4-MVU SoC here; the 0-MVU baseline is compared on the same
+                     router); --no-pnr:
                      stop after Yosys (cell counts only: no Fmax, no bitstream);
                      --report-only: build nothing, rewrite report.md and the plot from
                      report.json";
@@ -43,6 +49,7 @@ pub enum Request {
         board: String,
         mvus: Vec<u32>,
         seed: u32,
+        router: Router,
         no_pnr: bool,
     },
     /// Rewrite report.md and the plot from the gathered report.json.
@@ -56,6 +63,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
     let mut board = None;
     let mut mvus = DEFAULT_MVUS.to_vec();
     let mut seed = 1;
+    let mut router = Router::default();
     let mut no_pnr = false;
     let mut report_only = false;
     let mut it = args.iter();
@@ -76,6 +84,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
                     .parse()
                     .with_context(|| format!("--seed takes a number, not `{value}`"))?;
             }
+            "--router" => router = value()?.parse().map_err(anyhow::Error::msg)?,
             other => bail!("bitstream does not take `{other}`\n\n{USAGE}"),
         }
     }
@@ -96,6 +105,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
         board,
         mvus,
         seed,
+        router,
         no_pnr,
     })
 }
@@ -120,7 +130,7 @@ fn parse_mvus(value: &str) -> Result<Vec<u32>> {
 
 /// Runs `cargo xtask bitstream ARGS`.
 pub fn run(args: &[String], workspace: &Path) -> Result<()> {
-    let (board, mvus, seed, no_pnr) = match parse(args)? {
+    let (board, mvus, seed, router, no_pnr) = match parse(args)? {
         Request::Help => {
             println!("usage: cargo xtask\n{USAGE}");
             return Ok(());
@@ -139,8 +149,9 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
             board,
             mvus,
             seed,
+            router,
             no_pnr,
-        } => (board, mvus, seed, no_pnr),
+        } => (board, mvus, seed, router, no_pnr),
     };
     check_synthesis_venv(&litex_dir())?;
     let dir = workspace.join("target/bitstream").join(&board);
@@ -150,7 +161,7 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
     for (i, &n) in mvus.iter().enumerate() {
         let out = build_dir(workspace, &board, n);
         eprintln!(
-            "\n==> [{}/{}] {board}: the SoC with {n} MVU(s), seed {seed}{} ({})",
+            "\n==> [{}/{}] {board}: the SoC with {n} MVU(s), seed {seed}, {router}{} ({})",
             i + 1,
             mvus.len(),
             if no_pnr { ", Yosys only" } else { "" },
@@ -161,6 +172,7 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
             board: board.clone(),
             mvus: n,
             seed,
+            router,
             no_pnr,
         };
         let report =
@@ -190,9 +202,10 @@ fn read_builds(path: &Path) -> Result<Vec<SocReport>> {
     }
 }
 
-/// Adds `report` to `builds`, in place of an earlier build of the same count, seed and depth.
+/// Adds `report` to `builds`, in place of an earlier build of the same count, seed and depth
+/// (and router, for a placed build: a Yosys-only build does not route).
 fn record(builds: &mut Vec<SocReport>, report: SocReport) {
-    let key = |r: &SocReport| (r.mvus, r.seed, r.pnr.is_some());
+    let key = |r: &SocReport| (r.mvus, r.seed, r.pnr.as_ref().map(|_| r.router));
     builds.retain(|b| key(b) != key(&report));
     builds.push(report);
     builds.sort_by_key(key);
@@ -241,21 +254,23 @@ fn plot(dir: &Path, builds: &[SocReport]) -> Result<()> {
 }
 
 /// The report's table: Yosys's cells, nextpnr's use and Fmax, the Fmax against the SoC without
-/// MVUs on the same seed, each stage's time, the gateware built.
+/// MVUs placed with the same seed and routed by the same router, each stage's time, the
+/// gateware built.
 pub fn markdown(board: &str, builds: &[SocReport]) -> String {
     let mut md = format!(
         "# deform's SoC on the {board} (LFE5U-85F, speed grade 6), synthesised\n\n\
          Yosys's cells (LUT4 and CCU2C apart; nextpnr counts both as TRELLIS_COMB), nextpnr's \
          use of the device and the system clock's Fmax (asked: 50 MHz). \"vs. 0 MVUs\": the \
-         Fmax against the SoC without MVUs placed with the same seed.\n\n\
-         | MVUs | seed | LUT4 | CCU2C | FF | MULT18X18D | DP16KD | placed: COMB / FF / DP16KD of the device | Fmax (MHz) | vs. 0 MVUs | words / tiles / rows per MVU | stages (s) | gateware |\n\
-         |---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---|---|---|\n"
+         Fmax against the SoC without MVUs placed with the same seed and routed by the same \
+         router.\n\n\
+         | MVUs | seed | router | LUT4 | CCU2C | FF | MULT18X18D | DP16KD | placed: COMB / FF / DP16KD of the device | Fmax (MHz) | vs. 0 MVUs | words / tiles / rows per MVU | stages (s) | gateware |\n\
+         |---:|---:|---|---:|---:|---:|---:|---:|---|---:|---:|---|---|---|\n"
     );
     for b in builds {
         let y = &b.yosys;
         let baseline = builds
             .iter()
-            .find(|r| r.mvus == 0 && r.seed == b.seed)
+            .find(|r| r.mvus == 0 && r.seed == b.seed && r.router == b.router)
             .and_then(|r| r.pnr.as_ref());
         let (placed, fmax, versus) = match (&b.pnr, baseline) {
             (None, _) => ("—".into(), "not placed (Yosys only)".into(), "—".into()),
@@ -285,9 +300,10 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
             .collect::<Vec<_>>()
             .join(", ");
         md += &format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {placed} | {fmax} | {versus} | {} / {} / {} | {stages} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {placed} | {fmax} | {versus} | {} / {} / {} | {stages} | {} |\n",
             b.mvus,
             b.seed,
+            if b.pnr.is_some() { b.router.to_string() } else { "—".into() },
             y.lut4,
             y.ccu2c,
             y.trellis_ff,
@@ -330,15 +346,20 @@ mod tests {
                 board: "ulx3s".into(),
                 mvus: vec![0, 1, 2, 4, 8],
                 seed: 1,
+                router: Router::Router2,
                 no_pnr: false
             }
         );
         assert_eq!(
-            parse(&args("--mvus 0,4 --no-pnr --board ulx3s --seed 2")).unwrap(),
+            parse(&args(
+                "--mvus 0,4 --no-pnr --board ulx3s --seed 2 --router router1"
+            ))
+            .unwrap(),
             Request::Build {
                 board: "ulx3s".into(),
                 mvus: vec![0, 4],
                 seed: 2,
+                router: Router::Router1,
                 no_pnr: true
             }
         );
@@ -363,6 +384,8 @@ mod tests {
         assert!(error("--board ulx3s --mvus 4,4").contains("4 is there twice"));
         assert!(error("--board ulx3s --mvus -1").contains("not `-1`"));
         assert!(error("--board ulx3s --seed x").contains("--seed takes a number"));
+        assert!(error("--board ulx3s --router fast").contains("router1 and router2, not `fast`"));
+        assert!(error("--board ulx3s --router").contains("--router needs a value"));
         assert!(error("--board ulx3s --fast").contains("does not take `--fast`"));
         assert!(error("--board ulx3s --report-only --no-pnr").contains("does not go with it"));
     }
@@ -379,6 +402,7 @@ mod tests {
             board: "ulx3s".into(),
             mvus,
             seed,
+            router: Router::Router2,
             commit: Some("abc".into()),
             yosys: YosysCells {
                 lut4: 100,
@@ -413,14 +437,20 @@ mod tests {
         record(&mut builds, build(0, 2, Some(40.0)));
         record(&mut builds, build(4, 2, Some(44.0)));
         record(&mut builds, build(8, 1, None));
+        // A router1 build of 4 MVUs with no router1 baseline: not compared with router2's.
+        let mut other_router = build(4, 1, Some(30.0));
+        other_router.router = Router::Router1;
+        record(&mut builds, other_router);
         let md = markdown("ulx3s", &builds);
         let rows: Vec<&str> = md.lines().filter(|l| l.starts_with("| ")).skip(1).collect();
-        assert_eq!(rows.len(), 5, "{md}");
-        assert!(rows[0].starts_with("| 0 | 1 |") && rows[0].contains("| 50.0 | — |"));
-        assert!(rows[2].starts_with("| 4 | 1 |") && rows[2].contains("| -10.0 % |"));
-        assert!(rows[3].starts_with("| 4 | 2 |") && rows[3].contains("| +10.0 % |"));
-        assert!(rows[4].starts_with("| 8 | 1 |") && rows[4].contains("not placed (Yosys only)"));
-        assert!(rows[4].contains("yosys 12"), "{}", rows[4]);
+        assert_eq!(rows.len(), 6, "{md}");
+        assert!(rows[0].starts_with("| 0 | 1 | router2 |") && rows[0].contains("| 50.0 | — |"));
+        assert!(rows[2].starts_with("| 4 | 1 | router1 |") && rows[2].contains("| 30.0 | — |"));
+        assert!(rows[3].starts_with("| 4 | 1 | router2 |") && rows[3].contains("| -10.0 % |"));
+        assert!(rows[4].starts_with("| 4 | 2 |") && rows[4].contains("| +10.0 % |"));
+        assert!(rows[5].starts_with("| 8 | 1 | — |"), "{}", rows[5]);
+        assert!(rows[5].contains("not placed (Yosys only)"));
+        assert!(rows[5].contains("yosys 12"), "{}", rows[5]);
     }
 
     #[test]
@@ -446,6 +476,15 @@ mod tests {
         let err = read_builds(&dir.join("report.json")).unwrap_err();
         assert!(format!("{err:#}").contains("delete it"), "{err:#}");
         assert!(read_builds(&dir.join("none.json")).unwrap().is_empty());
+        // A report gathered before the router was recorded: its builds were router1's.
+        let mut old: serde_json::Value = serde_json::to_value(&builds).unwrap();
+        old[0].as_object_mut().unwrap().remove("router");
+        std::fs::write(dir.join("report.json"), old.to_string()).unwrap();
+        let read = read_builds(&dir.join("report.json")).unwrap();
+        assert_eq!(
+            (read[0].router, read[1].router),
+            (Router::Router1, Router::Router2)
+        );
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }
