@@ -286,7 +286,7 @@ pub struct System<'a> {
 
 /// A residual the caller hands a solve with x₀ ([`System::r_start`]): r's exponent, Σr² of its
 /// mantissas (exact) and a bound on their magnitudes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GivenResidual {
     pub exponent: i32,
     pub rr: u128,
@@ -294,10 +294,16 @@ pub struct GivenResidual {
     /// Where it is already within the tolerance, check it against b − A·x by an exact pass
     /// before accepting x₀ (an estimate the caller cannot bound); else accept it as it is.
     pub verify: bool,
+    /// `Some(e)`: the caller proves ‖r − (b − A·x₀)‖₂ ≤ e (real units). The solve then carries
+    /// that bound through its updates ([`Outcome::drift`]) and accepts a converged recursive
+    /// residual without the exact pass wherever ‖r‖ + drift ≤ tol·‖b‖ is proven: the pass
+    /// costs a whole MVU pass, and the bound makes it redundant. `None`: verified as `verify`
+    /// says, as before.
+    pub drift: Option<f64>,
 }
 
 /// What a solve leaves in a system's r and x besides the mantissas.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Outcome {
     /// r's exponent, and a bound on max |r| (mantissa units).
     pub r_exponent: i32,
@@ -308,6 +314,73 @@ pub struct Outcome {
     pub r_exact: bool,
     /// A bound on max |x| (mantissa units).
     pub x_bound: u64,
+    /// A rigorous bound on ‖r − (b − A·x)‖₂ in real units for the mantissas returned (A·x of
+    /// the fixed-point matrix, exact): the start's error plus every update's rounding since
+    /// ([`drift_of_update`]). Infinite where the solve does not bound it: a saturation, or a
+    /// recursive r of a solve not given a bounded residual ([`GivenResidual::drift`]). A caller that carries r on to another solve needs it.
+    pub drift: f64,
+    /// The solve accepted r without an exact pass because the drift proved it
+    /// ([`GivenResidual::drift`]).
+    pub check_skipped: bool,
+}
+
+impl Default for Outcome {
+    /// Nothing known: an infinite drift.
+    fn default() -> Outcome {
+        Outcome {
+            r_exponent: 0,
+            r_bound: 0,
+            r_exact: false,
+            x_bound: 0,
+            drift: f64::INFINITY,
+            check_skipped: false,
+        }
+    }
+}
+
+/// The largest error, in units of r's new exponent, of an element of pass R's r ← r + c·K·p
+/// against the exact r + c·K·p (c the `Scalar` planned, K·p the exact `i64` row sums): ½ from
+/// rounding the term, below 1 from flooring r's own shift, ½ from the multiplier's rounding
+/// (at most 1 unit, clamped at 2^31 − 1, times |narrowed K·p| < 2^31 over 2^32) and below ½
+/// from flooring K·p's narrowing (below 1 narrowed unit times |mult| ≤ 2^31 over 2^32).
+pub const R_UPDATE_ERROR: f64 = 2.5;
+
+/// The largest error, in units of x's new exponent, of an element of pass XP's x ← x + α·p
+/// against the exact x + α·p (p as stored): ½ from rounding the term, below 1 from flooring
+/// x's own shift, ½ from the multiplier (at most 1 unit times |p shifted| < 2^31 over 2^32).
+pub const X_UPDATE_ERROR: f64 = 2.0;
+
+/// How much one iteration's updates move the recursive residual away from b − A·x, in real
+/// units (2-norm): pass R's rounding, [`R_UPDATE_ERROR`] units of 2^`e_r` per element, and
+/// A times pass XP's rounding of x, [`X_UPDATE_ERROR`] units of 2^`e_x` per element, each
+/// row of A·δx at most ‖A‖∞ = `a_inf` times max |δx|; √n for the 2-norm of n elements.
+/// Both passes use the same α and the same p, so nothing else separates r from b − A·x.
+pub fn drift_of_update(n: usize, a_inf: f64, e_r: i32, e_x: i32) -> f64 {
+    let root_n = crate::superpose::ceil_sqrt(n);
+    let per_element = ldexp(R_UPDATE_ERROR, e_r) + a_inf * ldexp(X_UPDATE_ERROR, e_x);
+    // Each f64 operation rounds by at most 2^−53 relatively: 2^−40 covers them.
+    root_n * per_element * (1.0 + ldexp(1.0, -40))
+}
+
+/// The drift of a residual formed by an exact MVU pass at exponent `e_r` ([`EXACT_PASS_ERROR`]
+/// units per element).
+pub fn drift_of_exact_pass(n: usize, e_r: i32) -> f64 {
+    crate::superpose::ceil_sqrt(n) * ldexp(EXACT_PASS_ERROR, e_r) * (1.0 + ldexp(1.0, -40))
+}
+
+/// Whether ‖r‖ + `drift` ≤ `tol`·‖b‖ is proven, hence ‖b − A·x‖ ≤ tol·‖b‖, from Σr² = `rr` at
+/// exponent `e_r` and Σb² = `bb` at `e_b` (mantissas, exact): ‖r‖ rounded up (`sqrt_up`, its
+/// input nudged up for the conversion's rounding) and the comparison made on squares with a
+/// margin of 2^−40 each way for the few f64 roundings.
+pub fn proves_tolerance(rr: u128, e_r: i32, bb: u128, e_b: i32, drift: f64, tol: f64) -> bool {
+    if !drift.is_finite() || bb == 0 {
+        return false;
+    }
+    let up = 1.0 + ldexp(1.0, -40);
+    let r_norm = ldexp(crate::superpose::sqrt_up(rr as f64 * up), e_r);
+    let lhs = (r_norm + drift) * up;
+    let rhs = tol * tol * ldexp(bb as f64, 2 * e_b) * (1.0 - ldexp(1.0, -40));
+    lhs * lhs * up <= rhs
 }
 
 /// The largest error, in units of r's exponent, of an element of b − A·x formed by an MVU pass
@@ -350,6 +423,12 @@ struct Direction {
     r_exact: bool,
     /// r was given ([`System::r_start`]): no b − A·x₀ at the start.
     given: bool,
+    /// The bound on ‖r − (b − A·x)‖₂ ([`Outcome::drift`]).
+    drift: f64,
+    /// A converged r may be accepted on the drift's proof ([`GivenResidual::drift`]).
+    skippable: bool,
+    /// It was ([`Outcome::check_skipped`]).
+    skipped: bool,
 }
 
 impl Direction {
@@ -368,6 +447,9 @@ impl Direction {
         replacements: 0,
         r_exact: false,
         given: false,
+        drift: 0.0,
+        skippable: false,
+        skipped: false,
     };
 
     /// Takes Σr² = `rr` of the residual block `r` as the current one.
@@ -862,6 +944,8 @@ struct Solver<'s, 'e, 'a, E: Executor> {
     iterations: u32,
     sat: u32,
     clock: Clock,
+    /// ‖A‖∞ in real units, for the drift of x's rounding ([`drift_of_update`]).
+    a_inf: f64,
 }
 
 impl<E: Executor> Solver<'_, '_, '_, E> {
@@ -916,6 +1000,18 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         self.state[d].set_residual(rr, r);
     }
 
+    /// Whether direction d's converged r may be accepted without an exact pass: the caller
+    /// asked for it, nothing saturated, and ‖r‖ + drift ≤ tol·‖b‖ is proven. Marks it
+    /// skipped if so.
+    fn proven(&mut self, d: usize) -> bool {
+        let st = &mut self.state[d];
+        let tol = self.params.tolerance;
+        st.skipped = st.skippable
+            && self.sat == 0
+            && proves_tolerance(st.rr, st.r.e, st.bb, st.b.e, st.drift, tol);
+        st.skipped
+    }
+
     /// The left shift of b onto K·x's exponent (direction d) for which K·x − b·2^s is formed
     /// exactly ([`Solver::residual_of`]), if there is one.
     fn b_shift(&self, d: usize) -> Option<u32> {
@@ -954,6 +1050,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             if let Some(plan) = plan {
                 self.take_r(d, *plan);
                 self.state[d].r_exact = true;
+                self.state[d].drift = drift_of_exact_pass(self.engine.a.n, plan.lin.e);
             }
         }
         charge(&mut self.clock.svu, t, self.engine.exec);
@@ -1050,10 +1147,14 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             st.r_exact = false;
             let x = Lin::new(self.alphas[d], st.p, false, Some(st.x), &mut self.sat);
             self.xp_plans[d].x = Some(x);
+            if st.skippable {
+                st.drift += drift_of_update(self.engine.a.n, self.a_inf, plan.lin.e, x.e);
+            }
             if st.converged || st.iterations >= self.params.max_iterations {
                 st.active = false;
-                // Converged on the recursive residual: check it against b − A·x.
-                verify[d] = st.converged && st.replacements < MAX_REPLACEMENTS;
+                // Converged on the recursive residual: check it against b − A·x, unless the
+                // drift proves it.
+                verify[d] = st.converged && st.replacements < MAX_REPLACEMENTS && !self.proven(d);
                 continue;
             }
             // β = r_newᵀr_new / rᵀr
@@ -1217,6 +1318,8 @@ pub fn solve(
             };
             state[d].set_residual(g.rr, r);
             state[d].given = true;
+            state[d].drift = g.drift.unwrap_or(f64::INFINITY);
+            state[d].skippable = g.drift.is_some();
         }
     }
     let mut solver = Solver {
@@ -1230,13 +1333,16 @@ pub fn solve(
         iterations: 0,
         sat: 0,
         clock,
+        a_inf: ldexp(plan.row_abs_max as f64, -(a.frac_bits as i32)),
     };
     charge(&mut solver.clock.svu, t0, exec);
     solver.start();
-    let unverified: [bool; MAX_DIRECTIONS] = core::array::from_fn(|d| {
+    let mut unverified = [false; MAX_DIRECTIONS];
+    for (d, g) in given.iter().enumerate().take(directions) {
         let st = &solver.state[d];
-        st.given && st.converged && given[d].is_some_and(|g| g.verify)
-    });
+        unverified[d] =
+            st.given && st.converged && g.is_some_and(|g| g.verify) && !solver.proven(d);
+    }
     solver.replace_residuals(unverified);
     while solver.state.iter().any(|s| s.active)
         && solver.iterations < params.max_iterations
@@ -1258,6 +1364,14 @@ pub fn solve(
             r_bound: st.r.bound,
             r_exact: st.r_exact,
             x_bound: st.x.bound,
+            // Tracked through the updates only where asked for (a few soft-f64 operations per
+            // iteration on hart 0); an exact pass's is always known.
+            drift: if solver.sat == 0 && (st.r_exact || st.skippable) {
+                st.drift
+            } else {
+                f64::INFINITY
+            },
+            check_skipped: st.skipped,
         }
     });
     let (report, x_exponents) = finish(solver);

@@ -774,6 +774,7 @@ fn a_given_residual_is_started_from_and_the_end_verified() {
                 rr,
                 bound: crate::svu::bound_of(or),
                 verify: true,
+                drift: None,
             }),
             outcome: Default::default(),
         }];
@@ -925,4 +926,349 @@ fn sqrt_stopping_at_a_fixed_point_equals_eight_newton_steps() {
     }
     assert!(checked > 400);
     assert_eq!(super::sqrt(0.0), 0.0);
+}
+
+/// A small xorshift generator: the drift tests' random systems, reproducible.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0
+    }
+    /// Uniform in [0, 1).
+    fn unit(&mut self) -> f64 {
+        (self.next() >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn below(&mut self, k: u64) -> u64 {
+        self.next() % k
+    }
+}
+
+/// A random symmetric, diagonally dominant (hence positive definite) sparse matrix of n rows:
+/// a few random couplings per row of random sign and size, the diagonal their magnitudes'
+/// sum times 1–2 plus a random mass (a dynamic step's S is of this kind).
+fn random_spd(n: usize, rng: &mut Rng) -> Vec<Vec<(usize, f64)>> {
+    let mut off = vec![Vec::new(); n];
+    for i in 0..n {
+        for _ in 0..3 {
+            let j = rng.below(n as u64) as usize;
+            if j != i && !off[i].iter().any(|&(c, _)| c == j) {
+                let v = (rng.unit() - 0.5) * 4.0;
+                off[i].push((j, v));
+                off[j].push((i, v));
+            }
+        }
+    }
+    let mass = 0.01 + rng.unit();
+    off.into_iter()
+        .enumerate()
+        .map(|(i, mut row)| {
+            let sum: f64 = row.iter().map(|&(_, v)| f64::abs(v)).sum();
+            row.push((i, sum * (1.0 + rng.unit()) + mass));
+            row.sort_by_key(|&(c, _)| c);
+            row
+        })
+        .collect()
+}
+
+/// v·2^(e − e0) exactly, asserting it fits an `i128` (the tests keep their exponents close).
+fn aligned(v: i128, e: i32, e0: i32) -> i128 {
+    let s = (e - e0) as u32;
+    let out = v.checked_shl(s).unwrap();
+    assert!(s < 127 && out >> s == v && out.unsigned_abs() < 1 << 120);
+    out
+}
+
+/// The exact b − A·x of the mantissas (A of `m`'s raw integers), each element at exponent
+/// `e0` as an `i128`.
+fn exact_residual(m: &Encoded, b: (&[i32], i32), x: (&[i32], i32), e0: i32) -> Vec<i128> {
+    let f = i32::from(m.frac_bits);
+    m.rows
+        .iter()
+        .zip(b.0)
+        .map(|(row, &bi)| {
+            let ax: i128 = row
+                .iter()
+                .map(|&(c, v)| {
+                    let raw = i128::from(quantize(v, m.frac_bits).unwrap());
+                    raw * i128::from(x.0[c])
+                })
+                .sum();
+            aligned(i128::from(bi), b.1, e0) - aligned(ax, x.1 - f, e0)
+        })
+        .collect()
+}
+
+/// ‖v‖₂ of elements at exponent e0.
+fn norm_at(v: &[i128], e0: i32) -> f64 {
+    let ss: f64 = v.iter().map(|&d| (d as f64) * (d as f64)).sum();
+    ldexp(ss.sqrt(), e0)
+}
+
+/// One bounded solve of `rows` (quantised with F = `frac_bits`) from x₀ (`None`: zero) with
+/// its exact residual rounded to a block and that rounding as the given drift. Returns the
+/// outcome, the recursive ‖r‖ − exact, the exact ‖b − A·x‖ and ‖b‖, all in real units.
+struct Bounded {
+    outcome: Outcome,
+    drift_seen: f64,
+    true_residual: f64,
+    b_norm: f64,
+    iterations: u32,
+}
+
+fn bounded_solve(m: &Encoded, b: &[f64], x0: &[f64], tol: f64, max_iterations: u32) -> Bounded {
+    let n = m.n;
+    let (bm, be) = to_block(b);
+    let (mut xm, xe) = to_block(x0);
+    let f = i32::from(m.frac_bits);
+    // The start's residual, exact at a fine exponent, then rounded to 30 bits.
+    let e_fine = be.min(xe - f) - 40;
+    let exact = exact_residual(m, (&bm, be), (&xm, xe), e_fine);
+    let max = exact.iter().map(|v| v.unsigned_abs()).max().unwrap_or(0);
+    let bits = 128 - max.leading_zeros() as i32;
+    let e_g = e_fine + (bits - 29).max(0);
+    let shift = (e_g - e_fine) as u32;
+    let round = |v: i128| ((v + if shift > 0 { 1 << (shift - 1) } else { 0 }) >> shift) as i32;
+    let mut rm: Vec<i32> = exact.iter().map(|&v| round(v)).collect();
+    let rr: u128 = rm
+        .iter()
+        .map(|&v| (i64::from(v) * i64::from(v)) as u128)
+        .sum();
+    let or = rm.iter().fold(0, |o, &v| o | crate::svu::magnitude_bits(v));
+    // ½ unit per element of rounding (0 where nothing was cut).
+    let drift0 = if shift > 0 {
+        crate::superpose::ceil_sqrt(n) * ldexp(0.5, e_g)
+    } else {
+        0.0
+    };
+    let mut kp = vec![[0i64; MAX_DIRECTIONS]; n];
+    let mut partial = vec![[0i64; MAX_DIRECTIONS]; 4 * n];
+    let plan = plan(&m.tiles, &m.words, n, &mut kp, partial.len()).unwrap();
+    let mut systems = [System {
+        b: &bm,
+        b_exponent: be,
+        x: &mut xm,
+        x_exponent: xe,
+        r: &mut rm,
+        r_start: Some(GivenResidual {
+            exponent: e_g,
+            rr,
+            bound: crate::svu::bound_of(or),
+            verify: true,
+            drift: Some(drift0),
+        }),
+        outcome: Default::default(),
+    }];
+    let matrix = Matrix {
+        n,
+        frac_bits: m.frac_bits,
+        tiles: &m.tiles,
+        words: &m.words,
+        plan: &plan,
+    };
+    let params = SolveParams {
+        max_iterations,
+        tolerance: tol,
+        start: Start::Previous,
+        directions: 1,
+        cycle_budget: 0,
+    };
+    let work = Work {
+        p: &mut vec![[0; 4]; n],
+        kp: &mut kp,
+        partial: &mut partial,
+    };
+    let report = solve(
+        &matrix,
+        &mut systems,
+        work,
+        &params,
+        &Sequential { harts: 2 },
+    )
+    .unwrap();
+    let s = &systems[0];
+    let (o, xe) = (s.outcome, s.x_exponent);
+    let e0 = o.r_exponent.min(be).min(xe - f);
+    let truth = exact_residual(m, (&bm, be), (s.x, xe), e0);
+    let gap: Vec<i128> = truth
+        .iter()
+        .zip(s.r.iter())
+        .map(|(&t, &r)| aligned(i128::from(r), o.r_exponent, e0) - t)
+        .collect();
+    Bounded {
+        outcome: o,
+        drift_seen: norm_at(&gap, e0),
+        true_residual: norm_at(&truth, e0),
+        b_norm: norm_at(&bm.iter().map(|&v| i128::from(v)).collect::<Vec<_>>(), be),
+        iterations: report.iterations,
+    }
+}
+
+/// The drift a bounded solve reports holds: over random SPD systems, starts, tolerances and
+/// iteration caps, the recursive r returned is within `Outcome::drift` of the exact b − A·x
+/// of the returned mantissas, and every step accepted without the exact pass is truly within
+/// the tolerance. The skip must fire in some cases and not in others (else the test proves
+/// nothing).
+#[test]
+fn the_reported_drift_bounds_the_true_residual_and_skips_only_within_tolerance() {
+    let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+    let (mut skipped, mut checked) = (0, 0);
+    for case in 0..160 {
+        let n = 20 + rng.below(120) as usize;
+        let m = encode(random_spd(n, &mut rng), 10 + rng.below(6) as u8, 64);
+        let b: Vec<f64> = (0..n).map(|_| rng.unit() - 0.5).collect();
+        let x_ref = reference(&m.rows, &b);
+        // A start near the answer (a predicted step) or far from it.
+        let noise = [1e-2, 1e-4, 1e-6, 1.0][case % 4];
+        let x0: Vec<f64> = x_ref
+            .iter()
+            .map(|v| v + noise * (rng.unit() - 0.5))
+            .collect();
+        let tol = [1e-3, 1e-5, 1e-7][rng.below(3) as usize];
+        let cap = 1 + rng.below(30) as u32;
+        let out = bounded_solve(&m, &b, &x0, tol, cap);
+        let o = out.outcome;
+        assert!(
+            out.drift_seen <= o.drift,
+            "case {case}: ‖r − (b − A·x)‖ = {:e} above the bound {:e} ({} iterations)",
+            out.drift_seen,
+            o.drift,
+            out.iterations
+        );
+        if o.check_skipped {
+            skipped += 1;
+            assert!(!o.r_exact);
+            assert!(
+                out.true_residual <= tol * out.b_norm,
+                "case {case}: skipped at a true ‖b − A·x‖/‖b‖ of {:e} > {tol:e}",
+                out.true_residual / out.b_norm
+            );
+        } else if o.r_exact {
+            checked += 1;
+        }
+    }
+    assert!(
+        skipped > 10 && checked > 10,
+        "{skipped} skipped, {checked} checked"
+    );
+}
+
+/// A random value below 2^`bits` in magnitude, of random sign, whose low bits (a random
+/// number of them) are all ones or all zeros: the floors' and roundings' extremes.
+fn extreme(rng: &mut Rng, bits: u32) -> i64 {
+    let v = (rng.next() >> (64 - bits)) as i64;
+    let k = rng.below(u64::from(bits)) as u32;
+    let low = (1i64 << k) - 1;
+    let v = if rng.below(2) == 0 { v | low } else { v & !low };
+    if rng.below(2) == 0 {
+        v
+    } else {
+        -v
+    }
+}
+
+/// The largest error, in units of 2^`e`, of `got` (mantissas at `e`) against `exact` (at
+/// `e0`).
+fn worst_units(got: &[i32], e: i32, exact: &[i128], e0: i32) -> f64 {
+    got.iter()
+        .zip(exact)
+        .map(|(&g, &x)| ldexp((aligned(i128::from(g), e, e0) - x).abs() as f64, e0 - e))
+        .fold(0.0, f64::max)
+}
+
+/// The per-element constants behind the drift ([`R_UPDATE_ERROR`], [`X_UPDATE_ERROR`]) hold
+/// at their worst: pass R's r + c·K·p and pass XP's x + α·p against the exact sums, over random
+/// plans (coefficients of every size and sign, own terms above and below the result's
+/// exponent, K·p narrowed left and right) and values whose cut bits are all ones or all zeros.
+#[test]
+fn pass_r_and_x_updates_stay_within_their_error_constants() {
+    let mut rng = Rng(0x2545_f491_4f6c_dd1d);
+    let (mut worst_r, mut worst_x) = (0f64, 0f64);
+    for _ in 0..3000 {
+        let n = 32;
+        let c = Scalar {
+            neg: rng.below(2) == 1,
+            m: (rng.next() as u32) | (1 << 31),
+            e: -(rng.below(40) as i32) - 31,
+        };
+        // Pass R: K·p (i64 row sums) at a raw exponent, r's own term near the product's size.
+        let bits = 20 + rng.below(42) as u32;
+        let kp: Vec<i64> = (0..n).map(|_| extreme(&mut rng, bits)).collect();
+        let e_kp = rng.below(40) as i32 - 20;
+        let e_own = c.e + 32 + bits as i32 + e_kp - 29 + rng.below(41) as i32 - 20;
+        let r0: Vec<i32> = (0..n).map(|_| extreme(&mut rng, 29) as i32).collect();
+        let mut sat = 0;
+        let or = kp.iter().fold(0u64, |o, &v| o | (v ^ (v >> 63)) as u64);
+        let (narrow, off, bound) = Narrow::new(bound_of_u64(or), &mut sat);
+        let r_or = r0.iter().fold(0, |o, &v| o | magnitude_bits(v));
+        let own = Block {
+            e: e_own,
+            bound: bound_of(r_or),
+        };
+        let lin = Lin::new(
+            c,
+            Block {
+                e: e_kp + off,
+                bound,
+            },
+            true,
+            Some(own),
+            &mut sat,
+        );
+        let sums: Vec<Sums> = kp.iter().map(|&k| [k, 0, 0]).collect();
+        let mut r = r0.clone();
+        svu::portable_pass_r(&mut r, &sums, 0, PassR { lin, narrow });
+        let sign = if c.neg { -1 } else { 1 };
+        let e0 = lin.e.min(e_own).min(c.e + e_kp);
+        let exact: Vec<i128> = (0..n)
+            .map(|i| {
+                aligned(i128::from(r0[i]), e_own, e0)
+                    + sign * aligned(i128::from(c.m) * i128::from(kp[i]), c.e + e_kp, e0)
+            })
+            .collect();
+        if sat == 0 {
+            worst_r = worst_r.max(worst_units(&r, lin.e, &exact, e0));
+        }
+        // Pass XP's x ← x + α·p: p a block below 2^30, x's own term near the product's size.
+        let p: Vec<i32> = (0..n).map(|_| extreme(&mut rng, 30) as i32).collect();
+        let e_p = rng.below(40) as i32 - 20;
+        let e_x = c.e + 32 + 30 + e_p - 29 + rng.below(41) as i32 - 20;
+        let x0: Vec<i32> = (0..n).map(|_| extreme(&mut rng, 29) as i32).collect();
+        let mut sat = 0;
+        let p_or = p.iter().fold(0, |o, &v| o | magnitude_bits(v));
+        let x_or = x0.iter().fold(0, |o, &v| o | magnitude_bits(v));
+        let p_block = Block {
+            e: e_p,
+            bound: bound_of(p_or),
+        };
+        let x_block = Block {
+            e: e_x,
+            bound: bound_of(x_or),
+        };
+        let xl = Lin::new(c, p_block, false, Some(x_block), &mut sat);
+        let mut lanes: Vec<Lanes> = p.iter().map(|&v| [v, 0, 0, 0]).collect();
+        let mut x = x0.clone();
+        let plan = PassXP {
+            x: Some(xl),
+            p: None,
+        };
+        svu::portable_pass_xp(&mut x, &mut lanes, &vec![0; n], 0, plan);
+        let e0 = xl.e.min(e_x).min(c.e + e_p);
+        let exact: Vec<i128> = (0..n)
+            .map(|i| {
+                aligned(i128::from(x0[i]), e_x, e0)
+                    + sign * aligned(i128::from(c.m) * i128::from(p[i]), c.e + e_p, e0)
+            })
+            .collect();
+        if sat == 0 {
+            worst_x = worst_x.max(worst_units(&x, xl.e, &exact, e0));
+        }
+    }
+    assert!(worst_r <= R_UPDATE_ERROR, "pass R: {worst_r} units");
+    assert!(worst_x <= X_UPDATE_ERROR, "pass XP: {worst_x} units");
+    // The extremes were reached: more than one unit each, beyond a single rounding.
+    assert!(worst_r > 1.0 && worst_x > 1.0, "{worst_r}, {worst_x}");
 }

@@ -902,6 +902,7 @@ impl<E: Executor> Session<'_, E> {
                 rr,
                 bound: bound_of(or),
                 verify: true,
+                drift: None,
             });
         }
         Ok(out)

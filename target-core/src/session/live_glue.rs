@@ -507,6 +507,7 @@ impl<E: Executor> Session<'_, E> {
                         rr: df.sums.rr,
                         bound: bound_from_or(df.sums.r_or),
                         verify: true,
+                        drift: None,
                     });
                 }
                 (true, Verdict::Exact) => {
