@@ -338,49 +338,60 @@ impl Default for Outcome {
     }
 }
 
-/// The largest error, in units of r's new exponent, of an element of pass R's r ← r + c·K·p
-/// against the exact r + c·K·p (c the `Scalar` planned, K·p the exact `i64` row sums): ½ from
-/// rounding the term, below 1 from flooring r's own shift, ½ from the multiplier's rounding
-/// (at most 1 unit, clamped at 2^31 − 1, times |narrowed K·p| < 2^31 over 2^32) and below ½
-/// from flooring K·p's narrowing (below 1 narrowed unit times |mult| ≤ 2^31 over 2^32).
-pub const R_UPDATE_ERROR: f64 = 2.5;
-
-/// The largest error, in units of x's new exponent, of an element of pass XP's x ← x + α·p
-/// against the exact x + α·p (p as stored): ½ from rounding the term, below 1 from flooring
-/// x's own shift, ½ from the multiplier (at most 1 unit times |p shifted| < 2^31 over 2^32).
-pub const X_UPDATE_ERROR: f64 = 2.0;
+/// The largest error, in units of the result's exponent, of an element of an SVU update
+/// z ← c·u + y as `lin` plans it (pass R's r + c·K·p with `narrowed_right` where K·p is
+/// narrowed by a right shift, pass XP's x + α·p, pass A's v₀ + Δv₀) against the exact sum for
+/// the `Scalar` c planned: ½ from rounding the term; ½ from the multiplier's rounding (at most
+/// 1 unit, clamped at 2^31 − 1, times |u| < 2^31 over 2^32); below 1 where y's own term is
+/// floored by a right shift (none where it is shifted left or not at all); below ½ where K·p
+/// is floored by its narrowing (below 1 narrowed unit times |mult| ≤ 2^31 over 2^32). The
+/// terms that do not apply are left out: in a steady solve the exponents rarely move, and the
+/// bound halves without the floor.
+pub fn update_error(lin: &Lin, narrowed_right: bool) -> f64 {
+    let own = if lin.own.is_some_and(|s| s.right > 0) {
+        1.0
+    } else {
+        0.0
+    };
+    1.0 + own + if narrowed_right { 0.5 } else { 0.0 }
+}
 
 /// How much one iteration's updates move the recursive residual away from b − A·x, in real
-/// units (2-norm): pass R's rounding, [`R_UPDATE_ERROR`] units of 2^`e_r` per element, and
-/// A times pass XP's rounding of x, [`X_UPDATE_ERROR`] units of 2^`e_x` per element, each
-/// row of A·δx at most ‖A‖∞ = `a_inf` times max |δx|; √n for the 2-norm of n elements.
-/// Both passes use the same α and the same p, so nothing else separates r from b − A·x.
-pub fn drift_of_update(n: usize, a_inf: f64, e_r: i32, e_x: i32) -> f64 {
-    let root_n = crate::superpose::ceil_sqrt(n);
-    let per_element = ldexp(R_UPDATE_ERROR, e_r) + a_inf * ldexp(X_UPDATE_ERROR, e_x);
+/// units (2-norm): pass R's rounding, `r_units` of 2^`e_r` per element, and A times pass XP's
+/// rounding of x, `x_units` of 2^`e_x` per element ([`update_error`]), each row of A·δx at
+/// most ‖A‖∞ = `a_inf` times max |δx|; `root_n` ≥ √n for the 2-norm of n elements. Both passes
+/// use the same α and the same p, so nothing else separates r from b − A·x.
+pub fn drift_of_update(
+    root_n: f64,
+    a_inf: f64,
+    (r_units, e_r): (f64, i32),
+    (x_units, e_x): (f64, i32),
+) -> f64 {
+    let per_element = ldexp(r_units, e_r) + a_inf * ldexp(x_units, e_x);
     // Each f64 operation rounds by at most 2^−53 relatively: 2^−40 covers them.
     root_n * per_element * (1.0 + ldexp(1.0, -40))
 }
 
 /// The drift of a residual formed by an exact MVU pass at exponent `e_r` ([`EXACT_PASS_ERROR`]
-/// units per element).
-pub fn drift_of_exact_pass(n: usize, e_r: i32) -> f64 {
-    crate::superpose::ceil_sqrt(n) * ldexp(EXACT_PASS_ERROR, e_r) * (1.0 + ldexp(1.0, -40))
+/// units per element), `root_n` ≥ √n.
+pub fn drift_of_exact_pass(root_n: f64, e_r: i32) -> f64 {
+    root_n * ldexp(EXACT_PASS_ERROR, e_r) * (1.0 + ldexp(1.0, -40))
 }
 
 /// Whether ‖r‖ + `drift` ≤ `tol`·‖b‖ is proven, hence ‖b − A·x‖ ≤ tol·‖b‖, from Σr² = `rr` at
-/// exponent `e_r` and Σb² = `bb` at `e_b` (mantissas, exact): ‖r‖ rounded up (`sqrt_up`, its
-/// input nudged up for the conversion's rounding) and the comparison made on squares with a
-/// margin of 2^−40 each way for the few f64 roundings.
+/// exponent `e_r` and Σb² = `bb` at `e_b` (mantissas, exact). Without a square root (four
+/// soft-f64 divisions on the target): (‖r‖ + E)² ≤ 2‖r‖² + 2E², so 2‖r‖² + 2E² ≤ tol²·‖b‖²
+/// suffices (it gives up the cases where ‖r‖ is above about 0.7·tol·‖b‖); a margin of 2^−40
+/// each way covers the few f64 roundings.
 pub fn proves_tolerance(rr: u128, e_r: i32, bb: u128, e_b: i32, drift: f64, tol: f64) -> bool {
     if !drift.is_finite() || bb == 0 {
         return false;
     }
     let up = 1.0 + ldexp(1.0, -40);
-    let r_norm = ldexp(crate::superpose::sqrt_up(rr as f64 * up), e_r);
-    let lhs = (r_norm + drift) * up;
+    let r_sq = ldexp(rr as f64, 2 * e_r);
+    let lhs = 2.0 * (r_sq + drift * drift) * up;
     let rhs = tol * tol * ldexp(bb as f64, 2 * e_b) * (1.0 - ldexp(1.0, -40));
-    lhs * lhs * up <= rhs
+    lhs <= rhs
 }
 
 /// The largest error, in units of r's exponent, of an element of b − A·x formed by an MVU pass
@@ -944,8 +955,9 @@ struct Solver<'s, 'e, 'a, E: Executor> {
     iterations: u32,
     sat: u32,
     clock: Clock,
-    /// ‖A‖∞ in real units, for the drift of x's rounding ([`drift_of_update`]).
+    /// ‖A‖∞ in real units, for the drift of x's rounding ([`drift_of_update`]), and ⌈√n⌉.
     a_inf: f64,
+    root_n: f64,
 }
 
 impl<E: Executor> Solver<'_, '_, '_, E> {
@@ -1050,7 +1062,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             if let Some(plan) = plan {
                 self.take_r(d, *plan);
                 self.state[d].r_exact = true;
-                self.state[d].drift = drift_of_exact_pass(self.engine.a.n, plan.lin.e);
+                self.state[d].drift = drift_of_exact_pass(self.root_n, plan.lin.e);
             }
         }
         charge(&mut self.clock.svu, t, self.engine.exec);
@@ -1148,7 +1160,9 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             let x = Lin::new(self.alphas[d], st.p, false, Some(st.x), &mut self.sat);
             self.xp_plans[d].x = Some(x);
             if st.skippable {
-                st.drift += drift_of_update(self.engine.a.n, self.a_inf, plan.lin.e, x.e);
+                let r_units = update_error(&plan.lin, matches!(plan.narrow, Narrow::Right(_)));
+                let (r, x) = ((r_units, plan.lin.e), (update_error(&x, false), x.e));
+                st.drift += drift_of_update(self.root_n, self.a_inf, r, x);
             }
             if st.converged || st.iterations >= self.params.max_iterations {
                 st.active = false;
@@ -1334,6 +1348,7 @@ pub fn solve(
         sat: 0,
         clock,
         a_inf: ldexp(plan.row_abs_max as f64, -(a.frac_bits as i32)),
+        root_n: crate::superpose::ceil_sqrt(n),
     };
     charge(&mut solver.clock.svu, t0, exec);
     solver.start();
@@ -1365,8 +1380,9 @@ pub fn solve(
             r_exact: st.r_exact,
             x_bound: st.x.bound,
             // Tracked through the updates only where asked for (a few soft-f64 operations per
-            // iteration on hart 0); an exact pass's is always known.
-            drift: if solver.sat == 0 && (st.r_exact || st.skippable) {
+            // iteration on hart 0); an exact pass's is always known, and so is a start no
+            // update touched (r = b copied for x₀ = 0: none; a given r: the caller's).
+            drift: if solver.sat == 0 && (st.r_exact || st.skippable || st.iterations == 0) {
                 st.drift
             } else {
                 f64::INFINITY
