@@ -22,6 +22,7 @@
 
 use deform_shared::dynamics::{DynamicError, DynamicParams, DynamicTool};
 use deform_shared::live::{LiveError, MAX_TOOL_NODES};
+use deform_shared::qformat::ldexp;
 use deform_shared::word::{VALUE_MAX, VALUE_MIN};
 use heapless::Vec;
 
@@ -54,6 +55,13 @@ pub struct Stepping {
     /// Per direction, r's block where r is b − S·v for the current b and v, checked at the end
     /// of the last solve; `None` where it is not (no solve yet, or one that ran out of budget).
     pub residual: [Option<Block>; 3],
+    /// Per direction, a rigorous bound on ‖r − (b − S·v)‖₂ (real units) of `residual`'s r
+    /// ([`crate::cg::Outcome::drift`]): a step starts from r in O(n) and may accept its
+    /// solve's recursive residual without the exact pass only where this is finite.
+    pub drift: [f64; 3],
+    /// Per direction, the steps since r was last formed by an exact pass: at
+    /// [`MAX_UNCHECKED`] the next step's solve checks its residual whatever the bound says.
+    pub unchecked: [u32; 3],
     /// The tool's displacements at the current state, in the order of the `DynamicTool`s.
     pub tool_u: [[f32; 3]; MAX_TOOL_NODES],
     /// Per direction, the OR of |K·u₀| of this step's MVU pass (0 where u is at rest).
@@ -77,6 +85,47 @@ pub struct History {
     pub dv: Block,
     pub d0: Block,
     pub r1: Block,
+    /// A bound on max |d₀ − (b₀ − b₋₁)| (real units): d₁'s own rounding and its narrowing.
+    pub d0_err: f64,
+    /// r₋₁f's drift ([`Stepping::drift`] when it was r₀f).
+    pub r1_drift: f64,
+}
+
+/// At most this many steps in a row accept their residual on the drift's bound alone; the
+/// next checks it by an exact pass (as live frames re-anchor theirs, [`crate::superpose`]).
+pub const MAX_UNCHECKED: u32 = 8;
+
+/// A rigorous bound on ‖r₀ − (b₁ − S·x₀)‖₂ (real units) for pass D's start residual
+/// ([`residual_share`]), `root_n` ≥ √n for n elements, ‖S‖∞ = `s_inf`:
+///
+/// - from v₀ (`extrapolated` `None`): r₀ = d₁ + r₀f, so r₀f's drift `e0`, d₁'s rounding
+///   (below one unit of its exponent `e_d` per element, [`RhsPlan::change`]) and pass D's two
+///   rounded shifts (½ unit of r₀'s exponent `e` each);
+/// - from v₀ + Δv₀ (`Some((history, e_x, a_units))`, x₀'s exponent after pass A `e_x` and the
+///   bound of its rounding in those units, [`crate::cg::update_error`]): r₀ = d₁ + 2·r₀f
+///   − d₀ − r₋₁f, which holds exactly for the exact quantities (S·v₀ = b₀ − ρ₀, S·Δv₀ = d₀ −
+///   ρ₀ + ρ₋₁); each stored one's error adds: r₀f's twice, r₋₁f's, d₁'s, d₀'s, pass D's four
+///   rounded shifts, and S times x₀'s errors — Δv's two rounded terms (one unit of its
+///   exponent) and pass A's update (`a_units` of x₀'s exponent),
+///   each row of S times max |δx| at most ‖S‖∞ max |δx|.
+pub fn start_drift(
+    root_n: f64,
+    s_inf: f64,
+    (e_d, e): (i32, i32),
+    e0: f64,
+    extrapolated: Option<(&History, i32, f64)>,
+) -> f64 {
+    let d1 = ldexp(1.0, e_d);
+    let bound = match extrapolated {
+        None => e0 + root_n * (d1 + ldexp(1.0, e)),
+        Some((h, e_x, a_units)) => {
+            let x_err = ldexp(1.0, h.dv.e) + ldexp(a_units, e_x);
+            let per_element = d1 + h.d0_err + ldexp(2.0, e) + s_inf * x_err;
+            2.0 * e0 + h.r1_drift + root_n * per_element
+        }
+    };
+    // Each f64 operation rounds by at most 2^−53 relatively: 2^−40 covers them.
+    bound * (1.0 + ldexp(1.0, -40))
 }
 
 impl Dynamic {
@@ -164,6 +213,8 @@ impl Dynamic {
             v: [Block::ZERO; 3],
             u_bound: [0; 3],
             residual: [None; 3],
+            drift: [f64::INFINITY; 3],
+            unchecked: [0; 3],
             tool_u: [[0.0; 3]; MAX_TOOL_NODES],
             ku_or: [0; 3],
             history: [None; 3],

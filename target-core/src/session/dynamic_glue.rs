@@ -17,8 +17,8 @@ use deform_shared::qformat::ldexp;
 use super::*;
 use crate::cg::{GivenResidual, Outcome};
 use crate::dynamics::{
-    advance_share, predict_share, residual_share, rhs_share, row_sum, Difference, History,
-    LiveDynamicError, ResidualPlan, RhsPlan, RhsSums,
+    advance_share, predict_share, residual_share, rhs_share, row_sum, start_drift, Difference,
+    History, LiveDynamicError, ResidualPlan, RhsPlan, RhsSums, MAX_UNCHECKED,
 };
 use crate::exec::{share, slowest, SharedSlice};
 use crate::svu::{bound_of, bound_of_u64, magnitude_bits, Block, Lin, Narrow, Scalar};
@@ -201,9 +201,29 @@ struct Step {
     terms: ToolTerms,
     /// v₀'s block before the start's extrapolation.
     v0: Block,
-    /// What this step keeps for the next one: d₁'s narrowed block and r₀f's (where the last
-    /// solve left a checked r).
-    kept: Option<(Block, Block)>,
+    /// What this step keeps for the next one (where the last solve left a bounded r).
+    kept: Option<Kept>,
+}
+
+/// The bound of pass A's rounding of v₀ + Δv₀ in units of its result's exponent
+/// ([`crate::cg::update_error`]), from v's block after (`v`) and before (`v0`) it: v₀'s own
+/// term is floored where the result's exponent rose above v₀'s.
+fn pass_a_units(v: Block, v0: Block) -> f64 {
+    if v.e > v0.e {
+        2.0
+    } else {
+        1.0
+    }
+}
+
+/// What a step keeps for the next one's extrapolated start ([`History`]): d₁'s narrowed block
+/// and its error bound (real units, per element), r₀f's block and its drift.
+#[derive(Debug, Clone, Copy)]
+struct Kept {
+    d: Block,
+    r: Block,
+    d_err: f64,
+    r_drift: f64,
 }
 
 /// A step's tool terms, which [`Session::plan_rhs`] forms before the step's plan (which needs
@@ -719,10 +739,19 @@ impl<E: Executor> Session<'_, E> {
                 e: system.x_exponent,
                 bound: system.outcome.x_bound,
             };
-            st.residual[d] = system.outcome.r_exact.then_some(Block {
-                e: system.outcome.r_exponent,
-                bound: system.outcome.r_bound,
+            let o = system.outcome;
+            // The next step starts from r wherever its drift is bounded: an exact pass's, or a
+            // recursive r the solve carried the bound of.
+            st.residual[d] = (o.r_exact || o.drift.is_finite()).then_some(Block {
+                e: o.r_exponent,
+                bound: o.r_bound,
             });
+            st.drift[d] = o.drift;
+            st.unchecked[d] = if o.r_exact {
+                0
+            } else {
+                st.unchecked[d].saturating_add(1)
+            };
         }
         Ok((report, outcomes))
     }
@@ -824,8 +853,10 @@ impl<E: Executor> Session<'_, E> {
     ) -> Result<[Option<GivenResidual>; MAX_DIRECTIONS], ErrorCode> {
         let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
         let room = self.history_room(n);
+        let (s_inf, root_n) = self.s_inf();
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
         let mut plans = [None; MAX_DIRECTIONS];
+        let mut drifts = [None; MAX_DIRECTIONS];
         let mut sat = 0;
         for (lane, step) in steps.iter_mut().enumerate() {
             let Some(r) = st.residual[step.d] else {
@@ -838,7 +869,26 @@ impl<E: Executor> Session<'_, E> {
                 e: plan.e_keep,
                 bound: d_bound,
             };
-            step.kept = room.then_some((d, r));
+            step.kept = room.then_some(Kept {
+                d,
+                r,
+                d_err: ldexp(1.0, plan.e_keep) + ldexp(1.0, step.plan.e_d),
+                r_drift: st.drift[step.d],
+            });
+            let history = st.history[step.d].filter(|_| room);
+            let drift = start_drift(
+                root_n,
+                s_inf,
+                (step.plan.e_d, plan.e),
+                st.drift[step.d],
+                history
+                    .as_ref()
+                    .map(|h| (h, st.v[step.d].e, pass_a_units(st.v[step.d], step.v0))),
+            );
+            // Past MAX_UNCHECKED steps on the bound alone, or without a finite one, the solve
+            // checks its residual by an exact pass.
+            drifts[lane] =
+                (st.unchecked[step.d] < MAX_UNCHECKED && drift.is_finite()).then_some(drift);
             plans[lane] = Some(plan);
         }
         let mut out = [None; MAX_DIRECTIONS];
@@ -902,7 +952,7 @@ impl<E: Executor> Session<'_, E> {
                 rr,
                 bound: bound_of(or),
                 verify: true,
-                drift: None,
+                drift: drifts[lane],
             });
         }
         Ok(out)
@@ -1028,18 +1078,32 @@ impl<E: Executor> Session<'_, E> {
             let dv_or = ors[..harts].iter().fold(0, |o, s| o | s[lane].1);
             // The next step extrapolates only from a checked residual and a kept history.
             st.history[step.d] = match (step.kept, st.residual[step.d]) {
-                (Some((d0, r1)), Some(_)) if room => Some(History {
+                (Some(kept), Some(_)) if room => Some(History {
                     dv: Block {
                         e: diffs[lane].e,
                         bound: if dv_or == 0 { 0 } else { bound_of(dv_or) },
                     },
-                    d0,
-                    r1,
+                    d0: kept.d,
+                    r1: kept.r,
+                    d0_err: kept.d_err,
+                    r1_drift: kept.r_drift,
                 }),
                 _ => None,
             };
         }
         Ok(())
+    }
+
+    /// ‖S‖∞ of the resident matrix in real units (the solve's) and ⌈√n⌉, for the start's
+    /// drift: infinite without a plan, which then bounds nothing.
+    fn s_inf(&self) -> (f64, f64) {
+        match (self.plan, self.loaded()) {
+            (Some(plan), Ok(shape)) => (
+                ldexp(plan.row_abs_max as f64, -i32::from(shape.frac_bits)),
+                crate::superpose::ceil_sqrt(to_usize(shape.n)),
+            ),
+            _ => (f64::INFINITY, f64::INFINITY),
+        }
     }
 
     fn dynamic_state(&self) -> Option<&crate::dynamics::Stepping> {

@@ -87,6 +87,11 @@ fn params() -> DynamicParams {
 
 /// S uploaded, K's values into the stiffness copy, the tool, started.
 fn started(s: &mut Session<'_, Sequential>) {
+    started_with(s, params());
+}
+
+/// [`started`] with `params`.
+fn started_with(s: &mut Session<'_, Sequential>, params: DynamicParams) {
     load(s, &eliminated(s_row, F_S));
     let k = eliminated(k_row, F_K);
     assert_eq!(
@@ -112,7 +117,7 @@ fn started(s: &mut Session<'_, Sequential>) {
         k: tool_row(k_row(TOOL), F_K),
     };
     assert_eq!(s.handle(Request::DynamicTool(tool)), Response::Ack);
-    assert_eq!(s.handle(Request::DynamicStart(params())), Response::Ack);
+    assert_eq!(s.handle(Request::DynamicStart(params)), Response::Ack);
 }
 
 /// Backward Euler in f64 over the quantised S and K: the stepper the target must follow.
@@ -318,4 +323,169 @@ fn dynamic_requests_are_refused_clearly_out_of_order() {
             got: 2
         }))
     );
+}
+
+/// S's row i as the target holds it: the eliminated rows' raw values at F = F_S.
+fn s_raw_row(i: usize) -> Vec<(usize, i128)> {
+    s_row(i)
+        .into_iter()
+        .filter(|&(c, _)| {
+            if constrained(i) {
+                c == i
+            } else {
+                !constrained(c)
+            }
+        })
+        .map(|(c, v)| (c, i128::from(quantize(v, F_S).unwrap())))
+        .collect()
+}
+
+/// v·2^(e − e0) exactly in an `i128` (asserted to fit).
+fn at(v: i128, e: i32, e0: i32) -> i128 {
+    let s = (e - e0) as u32;
+    let out = v.checked_shl(s).unwrap();
+    assert!(s < 127 && out >> s == v && out.unsigned_abs() < 1 << 120);
+    out
+}
+
+fn norm(v: &[i128], e0: i32) -> f64 {
+    ldexp(
+        v.iter()
+            .map(|&x| (x as f64) * (x as f64))
+            .sum::<f64>()
+            .sqrt(),
+        e0,
+    )
+}
+
+/// Direction d's state after a step, exactly: ‖b − S·v‖ of the session's own b, v and S, the
+/// distance of its r from that, and ‖b‖ (real units).
+fn exact_state(s: &Session<'_, Sequential>, d: usize) -> (f64, f64, f64) {
+    let st = s.dynamic.state().unwrap();
+    let VectorState::Complete { exponent: e_b } = s.rhs[d] else {
+        panic!("b of direction {d} is not complete");
+    };
+    let dir = &s.store.directions[d];
+    let (e_v, e_r) = (
+        st.v[d].e - i32::from(F_S),
+        st.residual[d].map_or(e_b, |r| r.e),
+    );
+    let e0 = e_b.min(e_v).min(e_r);
+    let truth: Vec<i128> = (0..N)
+        .map(|i| {
+            let sv: i128 = s_raw_row(i)
+                .iter()
+                .map(|&(c, q)| q * i128::from(dir.x0[c]))
+                .sum();
+            at(i128::from(dir.b[i]), e_b, e0) - at(sv, e_v, e0)
+        })
+        .collect();
+    let gap: Vec<i128> = truth
+        .iter()
+        .zip(&dir.r[..N])
+        .map(|(&t, &r)| at(i128::from(r), e_r, e0) - t)
+        .collect();
+    let b: Vec<i128> = dir.b[..N].iter().map(|&v| i128::from(v)).collect();
+    (norm(&truth, e0), norm(&gap, e0), norm(&b, e_b))
+}
+
+/// Steps that accept their solve's recursive residual without the exact pass (on the drift's
+/// bound, `cg::Outcome::drift`) are truly within the tolerance: after every step the exact
+/// b − S·v of the session's own b, v and S is computed here, r is within the carried drift of
+/// it wherever the drift is finite, and every unchecked step's true residual is within tol.
+/// The skip must happen (else this proves nothing), and an exact check at least every
+/// `MAX_UNCHECKED` steps.
+#[test]
+fn steps_accepted_on_the_drift_bound_are_truly_within_the_tolerance() {
+    let mut bufs = OwnedStorage::new(4 * N, 8, N);
+    let mut s = bufs.session(info(), HARTS.harts);
+    let tol = 1e-5;
+    started_with(
+        &mut s,
+        DynamicParams {
+            tolerance: tol as f32,
+            ..params()
+        },
+    );
+    let u0 = [0.3f32, -0.2, 0.05];
+    let (mut skipped, mut checked) = (0, 0);
+    for step in 1..=220 {
+        let tool: heapless::Vec<[f32; 3], 8> =
+            [u0.map(|u| u * path(step) as f32)].into_iter().collect();
+        match s.handle(Request::DynamicFrame { tool }) {
+            Response::LiveFrame(_) => {}
+            other => panic!("step {step}: {other:?}"),
+        }
+        for d in 0..3 {
+            let (truth, gap, b) = exact_state(&s, d);
+            let st = s.dynamic.state().unwrap();
+            let (drift, unchecked) = (st.drift[d], st.unchecked[d]);
+            assert!(
+                unchecked <= crate::dynamics::MAX_UNCHECKED,
+                "step {step} d {d}"
+            );
+            if drift.is_finite() {
+                assert!(
+                    gap <= drift,
+                    "step {step} d {d}: ‖r − (b − S·v)‖ {gap:e} > {drift:e}"
+                );
+            }
+            if unchecked > 0 {
+                skipped += 1;
+                let rel = f64::from(tol as f32) * b;
+                assert!(
+                    truth <= rel,
+                    "step {step} d {d}: true {:e} of ‖b‖",
+                    truth / b
+                );
+            } else {
+                checked += 1;
+            }
+        }
+    }
+    assert!(
+        skipped > 20 && checked > 20,
+        "{skipped} skipped, {checked} checked"
+    );
+}
+
+/// The start's own bound (`dynamics::start_drift`, pass D's residual formed in O(n) from the
+/// carried quantities) holds: at a tolerance every start meets, no step iterates, so each
+/// step's r is its start's r₀ and v its start x₀ (pass A's v₀ + Δv₀), the carried drift is the
+/// start's bound alone (chained over up to `MAX_UNCHECKED` steps), and r₀ is checked against
+/// the exact b − S·x₀ after every step.
+#[test]
+fn the_start_residuals_drift_bound_holds_on_its_own() {
+    let mut bufs = OwnedStorage::new(4 * N, 8, N);
+    let mut s = bufs.session(info(), HARTS.harts);
+    started_with(
+        &mut s,
+        DynamicParams {
+            tolerance: 1.0,
+            ..params()
+        },
+    );
+    let u0 = [0.3f32, -0.2, 0.05];
+    let mut bounded = 0;
+    for step in 1..=40 {
+        let tool: heapless::Vec<[f32; 3], 8> =
+            [u0.map(|u| u * path(step) as f32)].into_iter().collect();
+        let iterations = match s.handle(Request::DynamicFrame { tool }) {
+            Response::LiveFrame(r) => r.iterations,
+            other => panic!("step {step}: {other:?}"),
+        };
+        for d in 0..3 {
+            let (_, gap, _) = exact_state(&s, d);
+            let st = s.dynamic.state().unwrap();
+            let drift = st.drift[d];
+            if iterations == 0 && st.unchecked[d] > 0 && gap > 0.0 {
+                bounded += 1;
+                assert!(
+                    gap <= drift,
+                    "step {step} d {d}: ‖r₀ − (b − S·x₀)‖ {gap:e} > {drift:e}"
+                );
+            }
+        }
+    }
+    assert!(bounded > 30, "{bounded} starts bounded");
 }
