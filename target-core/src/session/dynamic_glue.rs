@@ -216,6 +216,12 @@ fn pass_a_units(v: Block, v0: Block) -> f64 {
     }
 }
 
+/// Per lane, pass D's plan and the bound the solve may rely on ([`Session::plan_starts`]).
+type Starts = (
+    [Option<ResidualPlan>; MAX_DIRECTIONS],
+    [Option<f64>; MAX_DIRECTIONS],
+);
+
 /// What a step keeps for the next one's extrapolated start ([`History`]): d₁'s narrowed block
 /// and its error bound (real units, per element), r₀f's block and its drift.
 #[derive(Debug, Clone, Copy)]
@@ -842,16 +848,10 @@ impl<E: Executor> Session<'_, E> {
         Ok(())
     }
 
-    /// Pass D on every hart for every active direction whose r the last solve checked: the
-    /// start's residual r₀ = d₁ + r₀f (from v₀) or d₁ + 2·r₀f − d₀ − r₋₁f (from v₀ + Δv₀) in
-    /// O(n) instead of an MVU pass ([`residual_share`]), the history kept for the next step.
-    fn start_residuals(
-        &mut self,
-        n: usize,
-        steps: &mut [Step],
-        phases: &mut Phases,
-    ) -> Result<[Option<GivenResidual>; MAX_DIRECTIONS], ErrorCode> {
-        let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+    /// Pass D's plan for every active direction whose last solve left a bounded r, what the
+    /// step keeps for the next one, and the bound of the start's residual
+    /// ([`start_drift`]) where the solve may rely on it.
+    fn plan_starts(&mut self, n: usize, steps: &mut [Step]) -> Result<Starts, ErrorCode> {
         let room = self.history_room(n);
         let (s_inf, root_n) = self.s_inf();
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
@@ -891,6 +891,21 @@ impl<E: Executor> Session<'_, E> {
                 (st.unchecked[step.d] < MAX_UNCHECKED && drift.is_finite()).then_some(drift);
             plans[lane] = Some(plan);
         }
+        Ok((plans, drifts))
+    }
+
+    /// Pass D on every hart for every active direction whose r the last solve bounded: the
+    /// start's residual r₀ = d₁ + r₀f (from v₀) or d₁ + 2·r₀f − d₀ − r₋₁f (from v₀ + Δv₀) in
+    /// O(n) instead of an MVU pass ([`residual_share`]), the history kept for the next step.
+    fn start_residuals(
+        &mut self,
+        n: usize,
+        steps: &mut [Step],
+        phases: &mut Phases,
+    ) -> Result<[Option<GivenResidual>; MAX_DIRECTIONS], ErrorCode> {
+        let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let room = self.history_room(n);
+        let (plans, drifts) = self.plan_starts(n, steps)?;
         let mut out = [None; MAX_DIRECTIONS];
         if plans.iter().all(Option::is_none) {
             return Ok(out);
