@@ -424,12 +424,13 @@ fn setup_litex_socs() -> Result<()> {
         litex_dir().display()
     );
     let started = Instant::now();
+    let terminal = std::io::stderr().is_terminal();
     let progress = indicatif::MultiProgress::new();
     let results: Vec<_> = std::thread::scope(|scope| {
         let builds: Vec<_> = missing
             .iter()
             .map(|&soc| {
-                let spinner = soc_spinner(&progress, &soc.key());
+                let spinner = soc_spinner(&progress, &soc.key(), terminal);
                 scope.spawn(move || {
                     Soc::ensure_reporting(soc, |stage| show_stage(&spinner, &soc.key(), stage))
                 })
@@ -448,19 +449,19 @@ fn setup_litex_socs() -> Result<()> {
         }
     }
     // Finished spinners leave the cursor at the end of their last line.
-    let end_of_spinners = if std::io::stderr().is_terminal() {
-        "\n"
-    } else {
-        ""
-    };
+    let end_of_spinners = if terminal { "\n" } else { "" };
     eprintln!("{end_of_spinners}    ok ({:.1?})", started.elapsed());
     Ok(())
 }
 
 /// A spinner with the elapsed time for one SoC's build on a terminal; hidden elsewhere (a CI
 /// log gets [`show_stage`]'s plain lines instead).
-fn soc_spinner(progress: &indicatif::MultiProgress, key: &str) -> indicatif::ProgressBar {
-    if !std::io::stderr().is_terminal() {
+fn soc_spinner(
+    progress: &indicatif::MultiProgress,
+    key: &str,
+    terminal: bool,
+) -> indicatif::ProgressBar {
+    if !terminal {
         return indicatif::ProgressBar::hidden();
     }
     let spinner = progress.add(indicatif::ProgressBar::new_spinner());
