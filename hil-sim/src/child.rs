@@ -203,43 +203,10 @@ mod tests {
     /// parent is a copy of this test binary running the ignored helper below.
     #[test]
     fn a_child_dies_when_its_parent_is_killed() {
-        let pid_file =
-            std::env::temp_dir().join(format!("deform-pdeathsig-{}", std::process::id()));
-        let _ = std::fs::remove_file(&pid_file);
-        let mut parent = Command::new(std::env::current_exe().unwrap())
-            .args([
-                "--exact",
-                "child::tests::helper_parent_that_spawns_sleep",
-                "--ignored",
-                "--nocapture",
-            ])
-            .env("DEFORM_PDEATHSIG_PID_FILE", &pid_file)
-            .spawn()
-            .unwrap();
-        let deadline = Instant::now() + Duration::from_secs(20);
-        let sleeper: u32 = loop {
-            if let Some(pid) = std::fs::read_to_string(&pid_file)
-                .ok()
-                .and_then(|t| t.trim().parse().ok())
-            {
-                break pid;
-            }
-            assert!(Instant::now() < deadline, "the helper never started sleep");
-            thread::sleep(Duration::from_millis(20));
-        };
-        assert!(is_running(sleeper), "sleep is not running");
+        let (mut parent, pid_file) = start_helper("helper_parent_that_spawns_sleep");
+        let sleeper = sleep_started_by(&pid_file);
         assert_eq!(process_info(sleeper).unwrap().parent, parent.id());
-        assert_eq!(process_info(sleeper).unwrap().name, "sleep");
-        parent.kill().unwrap();
-        parent.wait().unwrap();
-        let deadline = Instant::now() + Duration::from_secs(5);
-        while is_running(sleeper) {
-            assert!(
-                Instant::now() < deadline,
-                "sleep ({sleeper}) outlived its SIGKILLed parent"
-            );
-            thread::sleep(Duration::from_millis(20));
-        }
+        kill_and_see_it_die(&mut parent, sleeper);
         let _ = std::fs::remove_file(&pid_file);
     }
 
@@ -265,65 +232,68 @@ mod tests {
         assert_eq!(status.code(), Some(1));
     }
 
-    /// A tree's grandchild (a compiler under `make`) dies when the tree's parent is SIGKILLed;
-    /// the same helper with a plain [`spawn`] would leave it running (only `sh` would die).
+    /// A tree's grandchild (a compiler under `make`) dies when the tree's parent is SIGKILLed,
+    /// even in a process group of its own (as ninja puts its compilers).
     #[test]
     fn a_trees_grandchild_dies_when_its_parent_is_killed() {
-        let pid_file = std::env::temp_dir().join(format!("deform-tree-{}", std::process::id()));
-        let _ = std::fs::remove_file(&pid_file);
-        let mut parent = Command::new(std::env::current_exe().unwrap())
-            .args([
-                "--exact",
-                "child::tests::helper_parent_that_spawns_a_tree",
-                "--ignored",
-                "--nocapture",
-            ])
-            .env("DEFORM_TREE_PID_FILE", &pid_file)
-            .spawn()
-            .unwrap();
-        let sleeper = wait_for_pid(&pid_file);
-        // `$!` is written when the shell has forked, maybe before the fork has become `sleep`.
-        let deadline = Instant::now() + Duration::from_secs(5);
-        while process_info(sleeper).is_some_and(|p| p.name != "sleep") {
-            assert!(Instant::now() < deadline, "{sleeper} never became sleep");
-            thread::sleep(Duration::from_millis(20));
-        }
-        assert_eq!(process_info(sleeper).unwrap().name, "sleep");
+        let (mut parent, pid_file) = start_helper("helper_parent_that_spawns_a_tree");
+        let sleeper = sleep_started_by(&pid_file);
         assert_ne!(process_info(sleeper).unwrap().parent, parent.id());
         assert_eq!(
             process_group(sleeper),
             Some(sleeper),
             "sleep leads no group of its own"
         );
+        kill_and_see_it_die(&mut parent, sleeper);
+        let _ = std::fs::remove_file(&pid_file);
+    }
+
+    /// A copy of this test binary running the ignored test `helper`, which writes the pid of the
+    /// `sleep` it started (as a child or deeper) to the returned file.
+    fn start_helper(helper: &str) -> (Child, std::path::PathBuf) {
+        let pid_file = std::env::temp_dir().join(format!("deform-{helper}-{}", std::process::id()));
+        let _ = std::fs::remove_file(&pid_file);
+        let parent = Command::new(std::env::current_exe().unwrap())
+            .args(["--exact", &format!("child::tests::{helper}"), "--ignored"])
+            .arg("--nocapture")
+            .env(PID_FILE_ENV, &pid_file)
+            .spawn()
+            .unwrap();
+        (parent, pid_file)
+    }
+
+    /// Where a helper writes its sleep's pid.
+    const PID_FILE_ENV: &str = "DEFORM_CHILD_TEST_PID_FILE";
+
+    /// The pid a helper wrote to `pid_file`, once that process runs `sleep` (a shell's `$!` is
+    /// written when it has forked, maybe before the fork has become `sleep`).
+    fn sleep_started_by(pid_file: &std::path::Path) -> u32 {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        loop {
+            let pid = std::fs::read_to_string(pid_file)
+                .ok()
+                .and_then(|t| t.trim().parse().ok());
+            if let Some(pid) = pid.filter(|&p| process_info(p).is_some_and(|p| p.name == "sleep")) {
+                assert!(is_running(pid), "sleep is not running");
+                return pid;
+            }
+            assert!(Instant::now() < deadline, "the helper never started sleep");
+            thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// SIGKILLs `parent` and waits up to 5 s for `sleeper` to be gone.
+    fn kill_and_see_it_die(parent: &mut Child, sleeper: u32) {
         parent.kill().unwrap();
         parent.wait().unwrap();
         let deadline = Instant::now() + Duration::from_secs(5);
         while is_running(sleeper) {
             assert!(
                 Instant::now() < deadline,
-                "sleep ({sleeper}) outlived its tree's SIGKILLed parent"
+                "sleep ({sleeper}) outlived its SIGKILLed parent"
             );
             thread::sleep(Duration::from_millis(20));
         }
-        let _ = std::fs::remove_file(&pid_file);
-    }
-
-    /// Run by [`a_trees_grandchild_dies_when_its_parent_is_killed`] only: a tree whose command
-    /// starts `sleep 60` in its turn and writes its pid.
-    #[test]
-    #[ignore = "a helper process of a_trees_grandchild_dies_when_its_parent_is_killed"]
-    fn helper_parent_that_spawns_a_tree() {
-        let Some(pid_file) = std::env::var_os("DEFORM_TREE_PID_FILE") else {
-            return;
-        };
-        // bash's job control (`set -m`) puts sleep in a process group of its own, as ninja
-        // does each compiler.
-        let mut cmd = Command::new("bash");
-        cmd.args(["-c", "set -m; sleep 60 & echo $! > \"$1\"; wait", "sh"])
-            .arg(pid_file);
-        let mut child = spawn_tree(tree(&cmd)).unwrap();
-        // Killed while it waits.
-        let _ = child.wait();
     }
 
     /// `pid`'s process group, from `/proc/PID/stat`.
@@ -337,19 +307,22 @@ mod tests {
             .ok()
     }
 
-    /// The pid a helper wrote to `pid_file`, waited for up to 20 s.
-    fn wait_for_pid(pid_file: &std::path::Path) -> u32 {
-        let deadline = Instant::now() + Duration::from_secs(20);
-        loop {
-            if let Some(pid) = std::fs::read_to_string(pid_file)
-                .ok()
-                .and_then(|t| t.trim().parse().ok())
-            {
-                return pid;
-            }
-            assert!(Instant::now() < deadline, "the helper never started sleep");
-            thread::sleep(Duration::from_millis(20));
-        }
+    /// Run by [`a_trees_grandchild_dies_when_its_parent_is_killed`] only: a tree whose command
+    /// starts `sleep 60` in its turn and writes its pid.
+    #[test]
+    #[ignore = "a helper process of a_trees_grandchild_dies_when_its_parent_is_killed"]
+    fn helper_parent_that_spawns_a_tree() {
+        let Some(pid_file) = std::env::var_os(PID_FILE_ENV) else {
+            return;
+        };
+        // bash's job control (`set -m`) puts sleep in a process group of its own, as ninja
+        // does each compiler.
+        let mut cmd = Command::new("bash");
+        cmd.args(["-c", "set -m; sleep 60 & echo $! > \"$1\"; wait", "sh"])
+            .arg(pid_file);
+        let mut child = spawn_tree(tree(&cmd)).unwrap();
+        // Killed while it waits.
+        let _ = child.wait();
     }
 
     /// Run by [`a_child_dies_when_its_parent_is_killed`] only: starts `sleep 60`, writes its pid,
@@ -357,7 +330,7 @@ mod tests {
     #[test]
     #[ignore = "a helper process of a_child_dies_when_its_parent_is_killed"]
     fn helper_parent_that_spawns_sleep() {
-        let Some(pid_file) = std::env::var_os("DEFORM_PDEATHSIG_PID_FILE") else {
+        let Some(pid_file) = std::env::var_os(PID_FILE_ENV) else {
             return;
         };
         let mut cmd = Command::new("sleep");
