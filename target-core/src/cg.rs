@@ -508,6 +508,9 @@ impl<E: Executor> Engine<'_, '_, E> {
     /// Its span on hart 0 (`clock.mvu`) runs from its first step's start to its last step's
     /// end, counters that [`run`](Self::run) reads anyway: reading them again here cost hart
     /// 0's serial path two counter reads per iteration.
+    /// Inlined (like `run`): hart 0 calls it between the phases of every iteration, where its
+    /// register saves and restores fell on the serial path.
+    #[inline(always)]
     fn mvu(&self, clock: &mut Clock) {
         let start = if self.mvu_on_hardware(clock) {
             clock.flushed
@@ -694,6 +697,8 @@ impl<E: Executor> Engine<'_, '_, E> {
     }
 
     /// SVU pass R on every hart: r ← r − α·Kp for each planned direction.
+    /// Inlined: see [`mvu`](Self::mvu).
+    #[inline(always)]
     fn pass_r(&self, plans: &[Option<PassR>; MAX_DIRECTIONS], clock: &mut Clock) {
         let n = self.a.n;
         let task = |h: usize| {
@@ -724,6 +729,8 @@ impl<E: Executor> Engine<'_, '_, E> {
     }
 
     /// SVU pass XP on every hart: x ← x + α·p, p ← r + β·p for each planned direction.
+    /// Inlined: see [`mvu`](Self::mvu).
+    #[inline(always)]
     fn pass_xp(&self, plans: &[PassXP; MAX_DIRECTIONS], clock: &mut Clock) {
         let n = self.a.n;
         let task = |h: usize| {
@@ -906,6 +913,8 @@ struct Clock {
 
 impl Clock {
     /// Charges hart 0's serial work since the last parallel phase (or flush) to the costs.
+    /// Inlined: its call's register saves came before the counter read, on the serial path.
+    #[inline(always)]
     fn flush_serial(&mut self, clock: &impl PhaseClock) {
         let now = clock.now();
         self.costs.serial(now.since(self.last));
@@ -967,6 +976,8 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
     }
 
     /// Folds pass R's results for direction d into its state.
+    /// Inlined: as a call, `plan` went through memory on hart 0's serial path.
+    #[inline(always)]
     fn take_r(&mut self, d: usize, plan: PassR) {
         let total = self.engine.total();
         let (rr, or) = (total.rr[d], total.r_or[d]);
