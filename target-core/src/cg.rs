@@ -11,8 +11,9 @@
 //!   if they do (4.1.1) each MVU accumulates into its own slots of the partial-sum pool, and a
 //!   second parallel step adds the partial rows up. The same step finds max |Kp|.
 //! - **SVU** ([`crate::svu`]): hart 0 computes α for each direction; every hart updates r on its
-//!   slice of the vectors (pass R, with Σr² and a bound on max |r|), hart 0 combines them and
-//!   computes β; every hart updates x and p on its slice (pass XP); hart 0 combines the maxima.
+//!   slice of the vectors (pass R, with Σr² and a bound on max |r|), adding them into shared
+//!   totals (`totals`), and hart 0 computes β from those; every hart updates x and p on its
+//!   slice (pass XP) and adds in the OR-ed maxima.
 //!
 //! Every number a hart contributes is an integer (exact products and sums, OR-ed maxima), so the
 //! result does not depend on the number of MVUs or on the partition: 1, 2, 4 or 8 MVUs give
