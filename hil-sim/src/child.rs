@@ -23,7 +23,60 @@ type Request = (Command, mpsc::Sender<io::Result<Child>>);
 
 /// Starts `cmd` as a child that is SIGKILLed when this process dies (see the module's doc).
 pub fn spawn(mut cmd: Command) -> io::Result<Child> {
-    die_with_parent(&mut cmd);
+    die_with_parent(&mut cmd, libc::SIGKILL);
+    fork_on_spawner(cmd)
+}
+
+/// The shell script of [`tree`]: `cmd` in the background, and on SIGTERM every process of the
+/// session killed (`pkill -s 0`: procps, priority "important" in Debian; failing that, the shell's
+/// own process group).
+const TREE_SCRIPT: &str = r#"trap 'pkill -KILL -s 0 || kill -KILL 0' TERM; "$@" & wait $!"#;
+
+/// `cmd` (its program, arguments, environment and folder) as a process tree that dies with this
+/// process, for [`spawn_tree`]; set its stdio, then spawn it there.
+///
+/// Why: `PR_SET_PDEATHSIG` reaches only the direct child. A `make` killed by it leaves its
+/// compilers running (43 of them once, for a LiteX simulator). So the child is a shell that
+/// leads a session of its own, runs `cmd` in the background and waits; the kernel sends it
+/// SIGTERM when this process dies, and its trap SIGKILLs the whole session: `make`, its shells,
+/// the compilers and itself. A session, not a process group: ninja (the BIOS's build) puts each
+/// compiler in a process group of its own. Its exit status is `cmd`'s.
+pub fn tree(cmd: &Command) -> Command {
+    use std::os::unix::process::CommandExt;
+    let mut sh = Command::new("sh");
+    sh.args(["-c", TREE_SCRIPT, "sh"])
+        .arg(cmd.get_program())
+        .args(cmd.get_args());
+    // SAFETY: setsid is async-signal-safe and allocates nothing. The forked child is no group
+    // leader, so it cannot fail with EPERM.
+    unsafe {
+        sh.pre_exec(|| {
+            if libc::setsid() < 0 {
+                return Err(io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    for (key, value) in cmd.get_envs() {
+        match value {
+            Some(value) => sh.env(key, value),
+            None => sh.env_remove(key),
+        };
+    }
+    if let Some(dir) = cmd.get_current_dir() {
+        sh.current_dir(dir);
+    }
+    sh
+}
+
+/// Starts a [`tree`]: its shell gets SIGTERM when this process dies, and kills its group.
+pub fn spawn_tree(mut tree: Command) -> io::Result<Child> {
+    die_with_parent(&mut tree, libc::SIGTERM);
+    fork_on_spawner(tree)
+}
+
+/// Forks `cmd` on the one spawner thread (see the module's doc for why).
+fn fork_on_spawner(cmd: Command) -> io::Result<Child> {
     static SPAWNER: OnceLock<Mutex<mpsc::Sender<Request>>> = OnceLock::new();
     let spawner = SPAWNER.get_or_init(|| {
         let (tx, rx) = mpsc::channel::<Request>();
@@ -50,16 +103,16 @@ pub fn spawn(mut cmd: Command) -> io::Result<Child> {
         .map_err(|_| io::Error::other("the spawner thread has ended"))?
 }
 
-/// Sets `PR_SET_PDEATHSIG` to SIGKILL in the forked child before it runs the program.
+/// Sets `PR_SET_PDEATHSIG` to `signal` in the forked child before it runs the program.
 #[cfg(target_os = "linux")]
-fn die_with_parent(cmd: &mut Command) {
+fn die_with_parent(cmd: &mut Command, signal: i32) {
     use std::os::unix::process::CommandExt;
     let parent = std::process::id() as libc::pid_t;
     // SAFETY: the closure runs between fork and exec and calls only async-signal-safe functions
     // (prctl, getppid) and allocates nothing.
     unsafe {
         cmd.pre_exec(move || {
-            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, signal) != 0 {
                 return Err(io::Error::last_os_error());
             }
             // The parent may have died before the prctl: then no signal comes, so stop here.
@@ -73,7 +126,7 @@ fn die_with_parent(cmd: &mut Command) {
 
 /// Elsewhere there is no such kernel service: the owners' `Drop` is all there is.
 #[cfg(not(target_os = "linux"))]
-fn die_with_parent(_cmd: &mut Command) {}
+fn die_with_parent(_cmd: &mut Command, _signal: i32) {}
 
 /// A process as `/proc/PID/stat` shows it.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -150,33 +203,87 @@ mod tests {
     /// parent is a copy of this test binary running the ignored helper below.
     #[test]
     fn a_child_dies_when_its_parent_is_killed() {
-        let pid_file =
-            std::env::temp_dir().join(format!("deform-pdeathsig-{}", std::process::id()));
+        let (mut parent, pid_file) = start_helper("helper_parent_that_spawns_sleep");
+        let sleeper = sleep_started_by(&pid_file);
+        assert_eq!(process_info(sleeper).unwrap().parent, parent.id());
+        kill_and_see_it_die(&mut parent, sleeper);
         let _ = std::fs::remove_file(&pid_file);
-        let mut parent = Command::new(std::env::current_exe().unwrap())
-            .args([
-                "--exact",
-                "child::tests::helper_parent_that_spawns_sleep",
-                "--ignored",
-                "--nocapture",
-            ])
-            .env("DEFORM_PDEATHSIG_PID_FILE", &pid_file)
+    }
+
+    /// A tree's exit status, environment and folder are its command's.
+    #[test]
+    fn a_tree_runs_its_command_as_given() {
+        let dir = std::env::temp_dir();
+        let mut cmd = Command::new("sh");
+        cmd.args([
+            "-c",
+            "test \"$PWD\" = \"$1\" && test \"$TREE_VAR\" = set && exit 3",
+            "sh",
+        ])
+        .arg(&dir)
+        .env("TREE_VAR", "set")
+        .current_dir(&dir);
+        let status = spawn_tree(tree(&cmd)).unwrap().wait().unwrap();
+        assert_eq!(status.code(), Some(3));
+        let status = spawn_tree(tree(Command::new("false").env("TREE_VAR", "x")))
+            .unwrap()
+            .wait()
+            .unwrap();
+        assert_eq!(status.code(), Some(1));
+    }
+
+    /// A tree's grandchild (a compiler under `make`) dies when the tree's parent is SIGKILLed,
+    /// even in a process group of its own (as ninja puts its compilers).
+    #[test]
+    fn a_trees_grandchild_dies_when_its_parent_is_killed() {
+        let (mut parent, pid_file) = start_helper("helper_parent_that_spawns_a_tree");
+        let sleeper = sleep_started_by(&pid_file);
+        assert_ne!(process_info(sleeper).unwrap().parent, parent.id());
+        assert_eq!(
+            process_group(sleeper),
+            Some(sleeper),
+            "sleep leads no group of its own"
+        );
+        kill_and_see_it_die(&mut parent, sleeper);
+        let _ = std::fs::remove_file(&pid_file);
+    }
+
+    /// A copy of this test binary running the ignored test `helper`, which writes the pid of the
+    /// `sleep` it started (as a child or deeper) to the returned file.
+    fn start_helper(helper: &str) -> (Child, std::path::PathBuf) {
+        let pid_file = std::env::temp_dir().join(format!("deform-{helper}-{}", std::process::id()));
+        let _ = std::fs::remove_file(&pid_file);
+        let parent = Command::new(std::env::current_exe().unwrap())
+            .args(["--exact", &format!("child::tests::{helper}"), "--ignored"])
+            .arg("--nocapture")
+            .env(PID_FILE_ENV, &pid_file)
             .spawn()
             .unwrap();
+        (parent, pid_file)
+    }
+
+    /// Where a helper writes its sleep's pid.
+    const PID_FILE_ENV: &str = "DEFORM_CHILD_TEST_PID_FILE";
+
+    /// The pid a helper wrote to `pid_file`, once that process runs `sleep` (a shell's `$!` is
+    /// written when it has forked, maybe before the fork has become `sleep`).
+    fn sleep_started_by(pid_file: &std::path::Path) -> u32 {
         let deadline = Instant::now() + Duration::from_secs(20);
-        let sleeper: u32 = loop {
-            if let Some(pid) = std::fs::read_to_string(&pid_file)
+        loop {
+            let pid = std::fs::read_to_string(pid_file)
                 .ok()
-                .and_then(|t| t.trim().parse().ok())
-            {
-                break pid;
+                .and_then(|t| t.trim().parse().ok());
+            if let Some(pid) = pid.filter(|&p| process_info(p).is_some_and(|p| p.name == "sleep")) {
+                assert!(is_running(pid), "sleep is not running");
+                return pid;
             }
             assert!(Instant::now() < deadline, "the helper never started sleep");
             thread::sleep(Duration::from_millis(20));
-        };
-        assert!(is_running(sleeper), "sleep is not running");
-        assert_eq!(process_info(sleeper).unwrap().parent, parent.id());
-        assert_eq!(process_info(sleeper).unwrap().name, "sleep");
+        }
+    }
+
+    /// SIGKILLs `parent` and waits up to 5 s for `sleeper` to be gone.
+    fn kill_and_see_it_die(parent: &mut Child, sleeper: u32) {
         parent.kill().unwrap();
         parent.wait().unwrap();
         let deadline = Instant::now() + Duration::from_secs(5);
@@ -187,7 +294,35 @@ mod tests {
             );
             thread::sleep(Duration::from_millis(20));
         }
-        let _ = std::fs::remove_file(&pid_file);
+    }
+
+    /// `pid`'s process group, from `/proc/PID/stat`.
+    fn process_group(pid: u32) -> Option<u32> {
+        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+        stat.rsplit_once(')')?
+            .1
+            .split_whitespace()
+            .nth(2)?
+            .parse()
+            .ok()
+    }
+
+    /// Run by [`a_trees_grandchild_dies_when_its_parent_is_killed`] only: a tree whose command
+    /// starts `sleep 60` in its turn and writes its pid.
+    #[test]
+    #[ignore = "a helper process of a_trees_grandchild_dies_when_its_parent_is_killed"]
+    fn helper_parent_that_spawns_a_tree() {
+        let Some(pid_file) = std::env::var_os(PID_FILE_ENV) else {
+            return;
+        };
+        // bash's job control (`set -m`) puts sleep in a process group of its own, as ninja
+        // does each compiler.
+        let mut cmd = Command::new("bash");
+        cmd.args(["-c", "set -m; sleep 60 & echo $! > \"$1\"; wait", "sh"])
+            .arg(pid_file);
+        let mut child = spawn_tree(tree(&cmd)).unwrap();
+        // Killed while it waits.
+        let _ = child.wait();
     }
 
     /// Run by [`a_child_dies_when_its_parent_is_killed`] only: starts `sleep 60`, writes its pid,
@@ -195,7 +330,7 @@ mod tests {
     #[test]
     #[ignore = "a helper process of a_child_dies_when_its_parent_is_killed"]
     fn helper_parent_that_spawns_sleep() {
-        let Some(pid_file) = std::env::var_os("DEFORM_PDEATHSIG_PID_FILE") else {
+        let Some(pid_file) = std::env::var_os(PID_FILE_ENV) else {
             return;
         };
         let mut cmd = Command::new("sleep");

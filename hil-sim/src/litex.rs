@@ -442,6 +442,8 @@ fn read_json(path: &Path) -> Result<serde_json::Value, LitexError> {
     })
 }
 
+/// Runs `cmd` to its end with its output appended to `log`, as a [`child::tree`]: a LiteX
+/// generation or a Verilator `make` and every compiler under it die with this process.
 fn run_logged(step: &'static str, cmd: &mut Command, log: &Path) -> Result<(), LitexError> {
     let out = fs::OpenOptions::new()
         .create(true)
@@ -449,12 +451,11 @@ fn run_logged(step: &'static str, cmd: &mut Command, log: &Path) -> Result<(), L
         .open(log)
         .map_err(io(format!("opening {}", log.display())))?;
     let err = out.try_clone().map_err(io("duplicating the log"))?;
-    let status = cmd
-        .stdin(Stdio::null())
-        .stdout(out)
-        .stderr(err)
-        .status()
-        .map_err(io(format!("starting {step}")))?;
+    let mut tree = child::tree(cmd);
+    tree.stdin(Stdio::null()).stdout(out).stderr(err);
+    let status = child::spawn_tree(tree)
+        .and_then(|mut c| c.wait())
+        .map_err(io(format!("running {step}")))?;
     if status.success() {
         Ok(())
     } else {

@@ -11,8 +11,9 @@
 //!   if they do (4.1.1) each MVU accumulates into its own slots of the partial-sum pool, and a
 //!   second parallel step adds the partial rows up. The same step finds max |Kp|.
 //! - **SVU** ([`crate::svu`]): hart 0 computes α for each direction; every hart updates r on its
-//!   slice of the vectors (pass R, with Σr² and a bound on max |r|), hart 0 combines them and
-//!   computes β; every hart updates x and p on its slice (pass XP); hart 0 combines the maxima.
+//!   slice of the vectors (pass R, with Σr² and a bound on max |r|), adding them into shared
+//!   totals (`totals`), and hart 0 computes β from those; every hart updates x and p on its
+//!   slice (pass XP) and adds in the OR-ed maxima.
 //!
 //! Every number a hart contributes is an integer (exact products and sums, OR-ed maxima), so the
 //! result does not depend on the number of MVUs or on the partition: 1, 2, 4 or 8 MVUs give
@@ -61,6 +62,7 @@ use crate::svu::{
     self, bound_of, bound_of_squares, bound_of_u64, check_bound, magnitude_bits, sum_squares,
     Block, HartOut, Lin, Narrow, PassR, PassXP, Scalar, Threshold,
 };
+use totals::{OrField, Sink, Totals};
 
 /// How often a direction's residual is recomputed as b − A·x after it converged on the
 /// recursive one. Fixed point cannot go below its own floor, so after this the recursive
@@ -538,7 +540,10 @@ struct Engine<'e, 'a, E: Executor> {
     p: SharedSlice<'e, Lanes>,
     kp: SharedSlice<'e, Sums>,
     partial: SharedSlice<'e, Sums>,
+    /// The totals of the last phases' results, hart 0's (a single slot; see [`Engine::sink`]).
     out: SharedSlice<'e, HartOut>,
+    /// The harts' shared accumulators ([`totals`]), all zero between phases.
+    totals: &'e Totals,
     /// Per direction: x and r, shared by the SVU passes.
     xs: heapless::Vec<SharedSlice<'e, i32>, MAX_DIRECTIONS>,
     rs: heapless::Vec<SharedSlice<'e, i32>, MAX_DIRECTIONS>,
@@ -557,25 +562,62 @@ impl<E: Executor> Engine<'_, '_, E> {
         clock.last = self.exec.now();
     }
 
-    /// The results of every hart in use, read on hart 0 between phases.
-    fn outs(&self) -> &[HartOut] {
-        // SAFETY: called only between phases, when no task runs.
-        let all = unsafe { self.out.as_slice() };
-        &all[..self.harts.min(all.len())]
+    /// The totals of the harts' results, read on hart 0 between phases.
+    fn total(&self) -> &HartOut {
+        // SAFETY: called only between phases, when no task runs; the slot exists (`solve`).
+        unsafe { &self.out.as_slice()[0] }
+    }
+
+    /// Where hart h puts its results of a phase: a lone hart into the totals' slot, several
+    /// into the shared totals, which hart 0 then [`collect`](Self::collect)s. Adding them up in
+    /// the parallel phase keeps hart 0 from looping over every hart's 128-bit sums serially.
+    ///
+    /// # Safety
+    ///
+    /// Only in a task of a phase, and with one hart only from that hart's task.
+    #[inline(always)]
+    unsafe fn sink(&self) -> Sink<'_> {
+        if self.harts == 1 {
+            // SAFETY: the caller is the only hart, so it has the slot to itself.
+            Sink::Slot(unsafe { &mut self.out.slice_mut(0..1)[0] })
+        } else {
+            Sink::Shared(self.totals)
+        }
+    }
+
+    /// Hart 0, after a phase with several harts: moves the totals `take` reads into the slot
+    /// (and clears them). A lone hart wrote the slot itself.
+    #[inline(always)]
+    fn collect(&self, take: impl Fn(&Totals, &mut HartOut)) {
+        if self.harts > 1 {
+            // SAFETY: no task runs; hart 0 has the slot to itself.
+            take(self.totals, unsafe { &mut self.out.slice_mut(0..1)[0] });
+        }
     }
 
     /// Kp = K·p for every direction, pᵀKp, and the OR of |Kp|: the MVU phase, on the hardware
     /// MVUs where the board has them and they hold the matrix, else in software. Where the plan
     /// fuses the row ends, the tiles' step finishes every row and there is no second step.
+    ///
+    /// Its span on hart 0 (`clock.mvu`) runs from its first step's start to its last step's
+    /// end, counters that [`run`](Self::run) reads anyway: reading them again here cost hart
+    /// 0's serial path two counter reads per iteration.
+    /// Inlined (like `run`): hart 0 calls it between the phases of every iteration, where its
+    /// register saves and restores fell on the serial path.
+    #[inline(always)]
     fn mvu(&self, clock: &mut Clock) {
-        let t = self.exec.now();
-        if !self.mvu_on_hardware(clock) {
+        let start = if self.mvu_on_hardware(clock) {
+            clock.flushed
+        } else {
             self.run(&|h| self.mvu_tiles(h), clock, true);
+            let start = clock.flushed;
             if !self.a.plan.fused {
                 self.run(&|h| self.mvu_rows(h), clock, true);
             }
-        }
-        charge(&mut clock.mvu, t, self.exec);
+            self.collect(|t, out| (0..self.directions).for_each(|d| t.take_mvu(out, d)));
+            start
+        };
+        clock.mvu += clock.last.since(start);
     }
 
     /// The MVU phase on the executor's hardware MVUs ([`crate::mvu_backend`]): their results
@@ -591,21 +633,10 @@ impl<E: Executor> Engine<'_, '_, E> {
         let Some(results) = hardware.run(self.a.n, p, self.kp.as_mut_ptr(), self.directions) else {
             return false;
         };
-        // SAFETY: no task runs; hart 0 has the result slots to itself.
-        let outs = unsafe { self.out.slice_mut(0..self.harts) };
-        for (h, out) in outs.iter_mut().enumerate() {
-            let mine = h == 0;
-            out.p_kp = if mine {
-                results.p_kp
-            } else {
-                [0; MAX_DIRECTIONS]
-            };
-            out.kp_or = if mine {
-                results.kp_or
-            } else {
-                [0; MAX_DIRECTIONS]
-            };
-        }
+        // SAFETY: no task runs; hart 0 has the totals' slot to itself (and the shared totals
+        // stay zero).
+        let out = unsafe { &mut self.out.slice_mut(0..1)[0] };
+        (out.p_kp, out.kp_or) = (results.p_kp, results.kp_or);
         let mut counts = [PhaseCounters::default(); MAX_HARTS];
         counts[0] = self.exec.now().since(before);
         clock.costs.parallel(counts, self.harts, true);
@@ -682,13 +713,13 @@ impl<E: Executor> Engine<'_, '_, E> {
             }
         }
         if plan.fused {
-            self.finish_rows(h, plan.rows[h]);
+            self.finish_rows(plan.rows[h]);
         }
     }
 
     /// pᵀKp and max |Kp| over the rows of `hulls` (hart h's own and mirror rows, fused plans:
-    /// they are finished, and only hart h wrote them) into hart h's result slot.
-    fn finish_rows(&self, h: usize, hulls: [Rows; 2]) {
+    /// they are finished, and only hart h wrote them), put to the totals.
+    fn finish_rows(&self, hulls: [Rows; 2]) {
         let mut p_kp = [0i128; MAX_DIRECTIONS];
         let mut or = [0u64; MAX_DIRECTIONS];
         for rows in hulls {
@@ -705,10 +736,17 @@ impl<E: Executor> Engine<'_, '_, E> {
                 or[d] |= o[d];
             }
         }
-        // SAFETY: each hart writes only its own result slot.
-        if let Some(out) = unsafe { self.out.slice_mut(h..h + 1) }.first_mut() {
-            out.p_kp = p_kp;
-            out.kp_or = or;
+        self.put_mvu(p_kp, or);
+    }
+
+    /// A hart's pᵀKp and OR of |Kp| of every direction (the MVU phase's results).
+    #[inline(always)]
+    fn put_mvu(&self, p_kp: [i128; MAX_DIRECTIONS], or: [u64; MAX_DIRECTIONS]) {
+        // SAFETY: called from a task of the MVU phase.
+        let mut sink = unsafe { self.sink() };
+        for d in 0..self.directions {
+            sink.p_kp(d, p_kp[d]);
+            sink.kp_or(d, or[d]);
         }
     }
 
@@ -749,52 +787,64 @@ impl<E: Executor> Engine<'_, '_, E> {
         // SAFETY: p is only read during this phase.
         let p = unsafe { &self.p.as_slice()[range] };
         let (p_kp, or) = p_kp_and_max(p, kp, self.directions);
-        // SAFETY: each hart writes only its own result slot.
-        if let Some(out) = unsafe { self.out.slice_mut(h..h + 1) }.first_mut() {
-            out.p_kp = p_kp;
-            out.kp_or = or;
-        }
+        self.put_mvu(p_kp, or);
     }
 
     /// SVU pass R on every hart: r ← r − α·Kp for each planned direction.
+    /// Inlined: see [`mvu`](Self::mvu).
+    #[inline(always)]
     fn pass_r(&self, plans: &[Option<PassR>; MAX_DIRECTIONS], clock: &mut Clock) {
         let n = self.a.n;
         let task = |h: usize| {
             let range = share(n, self.harts, h);
-            // SAFETY: each hart writes only its own share of r and its own result slot; kp is
-            // only read during this pass.
+            // SAFETY: each hart writes only its own share of r; kp is only read during this
+            // pass.
             unsafe {
-                let out = &mut self.out.slice_mut(h..h + 1)[0];
+                let mut sink = self.sink();
                 let kp = &self.kp.as_slice()[range.clone()];
                 for (d, plan) in plans.iter().enumerate().take(self.directions) {
                     if let Some(plan) = plan {
                         let r = self.rs[d].slice_mut(range.clone());
-                        (out.rr[d], out.r_or[d]) = svu::pass_r(r, kp, d, *plan);
+                        let (rr, or) = svu::pass_r(r, kp, d, *plan);
+                        sink.rr(d, rr);
+                        sink.or(OrField::R, d, or);
                     }
                 }
             }
         };
         self.run(&task, clock, false);
+        self.collect(|t, out| {
+            for (d, plan) in plans.iter().enumerate().take(self.directions) {
+                if plan.is_some() {
+                    t.take_r(out, d);
+                }
+            }
+        });
     }
 
     /// SVU pass XP on every hart: x ← x + α·p, p ← r + β·p for each planned direction.
+    /// Inlined: see [`mvu`](Self::mvu).
+    #[inline(always)]
     fn pass_xp(&self, plans: &[PassXP; MAX_DIRECTIONS], clock: &mut Clock) {
         let n = self.a.n;
         let task = |h: usize| {
             let range = share(n, self.harts, h);
-            // SAFETY: each hart writes only its own share of x and p and its own result slot;
-            // r is only read during this pass.
+            // SAFETY: each hart writes only its own share of x and p; r is only read during
+            // this pass.
             unsafe {
-                let out = &mut self.out.slice_mut(h..h + 1)[0];
+                let mut sink = self.sink();
                 let p = self.p.slice_mut(range.clone());
                 for (d, plan) in plans.iter().enumerate().take(self.directions) {
                     let x = self.xs[d].slice_mut(range.clone());
                     let r = &self.rs[d].as_slice()[range.clone()];
-                    (out.x_or[d], out.p_or[d]) = svu::pass_xp(x, p, r, d, *plan);
+                    let (x_or, p_or) = svu::pass_xp(x, p, r, d, *plan);
+                    sink.or(OrField::X, d, x_or);
+                    sink.or(OrField::P, d, p_or);
                 }
             }
         };
         self.run(&task, clock, false);
+        self.collect(|t, out| (0..self.directions).for_each(|d| t.take_xp(out, d)));
     }
 
     /// K·x − b·2^s, exact, in place of K·x for each direction with a shift `s`, with the OR of
@@ -811,10 +861,9 @@ impl<E: Executor> Engine<'_, '_, E> {
         let n = self.a.n;
         let task = |h: usize| {
             let range = share(n, self.harts, h);
-            // SAFETY: each hart writes only its own share of Kp and its own result slot; b is
-            // only read.
+            // SAFETY: each hart writes only its own share of Kp; b is only read.
             unsafe {
-                let out = &mut self.out.slice_mut(h..h + 1)[0];
+                let mut sink = self.sink();
                 let kp = self.kp.slice_mut(range.clone());
                 for (d, shift) in shifts.iter().enumerate().take(self.directions) {
                     let Some(s) = *shift else { continue };
@@ -824,11 +873,18 @@ impl<E: Executor> Engine<'_, '_, E> {
                         ki[d] = v;
                         or |= (v ^ (v >> 63)) as u64;
                     }
-                    out.kp_or[d] = or;
+                    sink.kp_or(d, or);
                 }
             }
         };
         self.run(&task, clock, false);
+        self.collect(|t, out| {
+            for (d, shift) in shifts.iter().enumerate().take(self.directions) {
+                if shift.is_some() {
+                    out.kp_or[d] = t.kp_or[d].take();
+                }
+            }
+        });
     }
 
     /// What each direction's lane of p becomes, on every hart's share in parallel. A lane
@@ -838,17 +894,16 @@ impl<E: Executor> Engine<'_, '_, E> {
         let n = self.a.n;
         let task = |h: usize| {
             let range = share(n, self.harts, h);
-            // SAFETY: each hart writes only its own share of p and its own result slot; x and
-            // r are only read.
+            // SAFETY: each hart writes only its own share of p; x and r are only read.
             unsafe {
-                let out = &mut self.out.slice_mut(h..h + 1)[0];
+                let mut sink = self.sink();
                 let p = self.p.slice_mut(range.clone());
                 for (d, lane) in lanes.iter().enumerate().take(self.directions) {
                     match lane {
                         Lane::Keep => {}
                         Lane::Zero => {
                             p.iter_mut().for_each(|pi| pi[d] = 0);
-                            out.p_or[d] = 0;
+                            sink.or(OrField::P, d, 0);
                         }
                         // x's bound is known; only r's copy is measured.
                         Lane::X => {
@@ -862,13 +917,20 @@ impl<E: Executor> Engine<'_, '_, E> {
                                 pi[d] = v;
                                 or |= magnitude_bits(v);
                             }
-                            out.p_or[d] = or;
+                            sink.or(OrField::P, d, or);
                         }
                     }
                 }
             }
         };
         self.run(&task, clock, false);
+        self.collect(|t, out| {
+            for (d, lane) in lanes.iter().enumerate().take(self.directions) {
+                if matches!(lane, Lane::Zero | Lane::R) {
+                    out.p_or[d] = t.p_or[d].take();
+                }
+            }
+        });
     }
 
     /// The set-up on every hart's share: r = b (where r is not `given`), Σb², the ORs of b and
@@ -884,10 +946,9 @@ impl<E: Executor> Engine<'_, '_, E> {
         let n = self.a.n;
         let task = |h: usize| {
             let range = share(n, self.harts, h);
-            // SAFETY: each hart writes only its own share of r, x, p and Kp and its own result
-            // slot; b is only read.
+            // SAFETY: each hart writes only its own share of r, x, p and Kp; b is only read.
             unsafe {
-                let out = &mut self.out.slice_mut(h..h + 1)[0];
+                let mut sink = self.sink();
                 let p = self.p.slice_mut(range.clone());
                 if !self.a.plan.fused {
                     self.kp.slice_mut(range.clone()).fill([0; MAX_DIRECTIONS]);
@@ -897,19 +958,28 @@ impl<E: Executor> Engine<'_, '_, E> {
                     if !given[d] {
                         self.rs[d].slice_mut(range.clone()).copy_from_slice(b);
                     }
-                    out.rr[d] = sum_squares(b);
-                    out.b_or[d] = b.iter().fold(0, |o, &m| o | magnitude_bits(m));
+                    sink.rr(d, sum_squares(b));
+                    sink.or(
+                        OrField::B,
+                        d,
+                        b.iter().fold(0, |o, &m| o | magnitude_bits(m)),
+                    );
                     let x = self.xs[d].slice_mut(range.clone());
                     if zero_x {
                         x.fill(0);
                     }
-                    out.x_or[d] = x.iter().fold(0, |o, &m| o | magnitude_bits(m));
-                    out.x_any[d] = x.iter().fold(0, |o, &m| o | m as u32);
+                    sink.or(
+                        OrField::X,
+                        d,
+                        x.iter().fold(0, |o, &m| o | magnitude_bits(m)),
+                    );
+                    sink.or(OrField::XAny, d, x.iter().fold(0, |o, &m| o | m as u32));
                     p.iter_mut().zip(x.iter()).for_each(|(pi, &v)| pi[d] = v);
                 }
             }
         };
         self.run(&task, clock, false);
+        self.collect(|t, out| (0..self.directions).for_each(|d| t.take_setup(out, d)));
     }
 }
 
@@ -928,16 +998,22 @@ struct Clock {
     costs: Costs,
     /// Hart 0's counters when the last parallel phase ended (or the solve began).
     last: PhaseCounters,
+    /// Hart 0's counters at the last [`flush_serial`](Self::flush_serial): where a phase
+    /// began.
+    flushed: PhaseCounters,
     mvu: PhaseCounters,
     svu: PhaseCounters,
 }
 
 impl Clock {
     /// Charges hart 0's serial work since the last parallel phase (or flush) to the costs.
+    /// Inlined: its call's register saves came before the counter read, on the serial path.
+    #[inline(always)]
     fn flush_serial(&mut self, clock: &impl PhaseClock) {
         let now = clock.now();
         self.costs.serial(now.since(self.last));
         self.last = now;
+        self.flushed = now;
     }
 }
 
@@ -997,12 +1073,11 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
     }
 
     /// Folds pass R's results for direction d into its state.
+    /// Inlined: as a call, `plan` went through memory on hart 0's serial path.
+    #[inline(always)]
     fn take_r(&mut self, d: usize, plan: PassR) {
-        let outs = self.engine.outs();
-        // One sweep over the harts for both: each loop costs hart 0 its own bookkeeping.
-        let (rr, or) = outs
-            .iter()
-            .fold((0u128, 0u32), |(rr, or), o| (rr + o.rr[d], or | o.r_or[d]));
+        let total = self.engine.total();
+        let (rr, or) = (total.rr[d], total.r_or[d]);
         let bound = bound_of_squares(or);
         check_bound(bound, &mut self.sat);
         let r = Block {
@@ -1054,7 +1129,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         let mut plans = [None; MAX_DIRECTIONS];
         for d in (0..self.directions()).filter(|&d| which[d]) {
             let keep = shifts[d].is_none();
-            let kp_max = self.engine.outs().iter().fold(0, |o, out| o | out.kp_or[d]);
+            let kp_max = self.engine.total().kp_or[d];
             plans[d] = Some(self.r_plan(d, Scalar::ONE.negate(), self.state[d].x, keep, kp_max));
         }
         self.engine.pass_r(&plans, &mut self.clock);
@@ -1099,10 +1174,10 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
     /// [`Solver::residual_of`]) would be believed 2^16 when it is 2^4, and the next updates
     /// of r and p would choose exponents 12 bits too coarse and lose those bits.
     fn tighten_r_bounds(&mut self, lanes: [Lane; MAX_DIRECTIONS]) {
-        let outs = self.engine.outs();
+        let total = self.engine.total();
         for (d, lane) in lanes.iter().enumerate().take(self.directions()) {
             if *lane == Lane::R {
-                let or = outs.iter().fold(0u32, |o, out| o | out.p_or[d]);
+                let or = total.p_or[d];
                 let st = &mut self.state[d];
                 st.r.bound = st.r.bound.min(bound_of(or));
                 st.p = st.r;
@@ -1115,7 +1190,9 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
     fn iterate(&mut self) -> Result<[bool; MAX_DIRECTIONS], SolveFailure> {
         self.iterations += 1;
         self.engine.mvu(&mut self.clock);
-        let t = self.engine.exec.now();
+        // The SVU's span on hart 0 runs from the MVU phase's end to the flush below: counters
+        // already read, not read again on the serial path.
+        let t = self.clock.last;
         let mut r_plans = [None; MAX_DIRECTIONS];
         // By index: `d` indexes the state, the harts' results and α as well, and the iterator
         // form compiles to 9 more instructions of hart 0's serial work per iteration.
@@ -1125,12 +1202,8 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
                 continue;
             }
             self.state[d].iterations += 1;
-            // pᵀKp and the OR of |Kp| in one sweep over the harts.
-            let (p_kp, kp_max) = self
-                .engine
-                .outs()
-                .iter()
-                .fold((0i128, 0u64), |(s, or), o| (s + o.p_kp[d], or | o.kp_or[d]));
+            let total = self.engine.total();
+            let (p_kp, kp_max) = (total.p_kp[d], total.kp_or[d]);
             if p_kp <= 0 {
                 return Err(SolveFailure::NotPositiveDefinite {
                     iteration: self.iterations,
@@ -1176,15 +1249,13 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             self.xp_plans[d].p = Some(Lin::new(beta, st.p, false, Some(st.r), &mut self.sat));
         }
         self.engine.pass_xp(&self.xp_plans, &mut self.clock);
-        let outs = self.engine.outs();
+        let total = self.engine.total();
         for (d, plan) in self.xp_plans.iter().enumerate() {
             if plan.x.is_none() && plan.p.is_none() {
                 continue;
             }
             let st = &mut self.state[d];
-            let (x_or, p_or) = outs
-                .iter()
-                .fold((0u32, 0u32), |(x, p), o| (x | o.x_or[d], p | o.p_or[d]));
+            let (x_or, p_or) = (total.x_or[d], total.p_or[d]);
             if let Some(lin) = plan.x {
                 st.x = Block {
                     e: lin.e,
@@ -1204,7 +1275,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         // The first iteration's serial tail is charged to it before its breakdown closes.
         self.clock.flush_serial(self.engine.exec);
         self.clock.costs.first_iteration = false;
-        charge(&mut self.clock.svu, t, self.engine.exec);
+        self.clock.svu += self.clock.flushed.since(t);
         Ok(verify)
     }
 
@@ -1282,7 +1353,8 @@ pub fn solve(
     let t0 = exec.now();
     let Work { p, kp, partial } = work;
     let (p, kp) = (&mut p[..n], &mut kp[..n]);
-    let mut outs = [HartOut::default(); MAX_HARTS];
+    let mut out = [HartOut::default()];
+    let totals = Totals::default();
     let mut systems_b: [&[i32]; MAX_DIRECTIONS] = [&[]; MAX_DIRECTIONS];
     let mut b_exponents = [0i32; MAX_DIRECTIONS];
     let mut x_exponents = [0i32; MAX_DIRECTIONS];
@@ -1306,7 +1378,8 @@ pub fn solve(
         p: SharedSlice::new(p),
         kp: SharedSlice::new(kp),
         partial: SharedSlice::new(partial),
-        out: SharedSlice::new(&mut outs),
+        out: SharedSlice::new(&mut out),
+        totals: &totals,
         xs,
         rs,
     };
@@ -1435,7 +1508,8 @@ pub fn product(
     }
     let t0 = exec.now();
     let Work { p, kp, partial } = work;
-    let mut outs = [HartOut::default(); MAX_HARTS];
+    let mut out = [HartOut::default()];
+    let totals = Totals::default();
     let mut xs = heapless::Vec::new();
     for v in vectors.iter_mut() {
         let _ = xs.push(SharedSlice::new(&mut v[..n]));
@@ -1448,7 +1522,8 @@ pub fn product(
         p: SharedSlice::new(&mut p[..n]),
         kp: SharedSlice::new(&mut kp[..n]),
         partial: SharedSlice::new(partial),
-        out: SharedSlice::new(&mut outs),
+        out: SharedSlice::new(&mut out),
+        totals: &totals,
         xs,
         rs: heapless::Vec::new(),
     };
@@ -1471,7 +1546,7 @@ pub fn product(
     engine.set_lanes([Lane::X; MAX_DIRECTIONS], &mut clock);
     engine.mvu(&mut clock);
     clock.flush_serial(exec);
-    let or = core::array::from_fn(|d| engine.outs().iter().fold(0, |o, out| o | out.kp_or[d]));
+    let or = engine.total().kp_or;
     let now = exec.now();
     Ok(Product {
         or,
@@ -1489,11 +1564,9 @@ fn initial_state<E: Executor>(
     x_exponent: &mut i32,
     tol_sq: f64,
 ) -> Direction {
-    let outs = engine.outs();
-    let bb: u128 = outs.iter().map(|o| o.rr[d]).sum();
-    let b_or = outs.iter().fold(0, |o, out| o | out.b_or[d]);
-    let mut x_or = outs.iter().fold(0, |o, out| o | out.x_or[d]);
-    let mut x_any = outs.iter().fold(0, |o, out| o | out.x_any[d]);
+    let total = engine.total();
+    let (bb, b_or) = (total.rr[d], total.b_or[d]);
+    let (mut x_or, mut x_any) = (total.x_or[d], total.x_any[d]);
     if bb == 0 && x_any != 0 {
         // SAFETY: no task runs; hart 0 has the vectors to itself.
         unsafe { engine.xs[d].slice_mut(0..engine.a.n) }.fill(0);
@@ -1599,3 +1672,4 @@ fn charge(total: &mut PhaseCounters, since: PhaseCounters, clock: &impl PhaseClo
 
 #[cfg(test)]
 mod tests;
+mod totals;

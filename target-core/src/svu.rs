@@ -617,7 +617,8 @@ impl Scalar {
     }
 }
 
-/// What each hart reports from a phase; hart 0 combines them between phases.
+/// The results of a phase: one hart's, or their totals, which the harts add up in the phase
+/// (`cg::totals`) and hart 0 reads between phases.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct HartOut {
     /// pᵀKp over this hart's share of the rows (MVU phase, second step), exact.

@@ -14,7 +14,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{bail, Context, Result};
 
-use crate::{on_path, output_of, step};
+use crate::{on_path, output_of, step_attached};
 
 /// The flags of every `apt-get install` set-up runs.
 pub const INSTALL_FLAGS: &[&str] = &["--no-install-recommends", "--no-remove"];
@@ -162,7 +162,7 @@ pub fn install(packages: &[&str], what: &str) -> Result<()> {
     if !simulation.removals.is_empty() {
         bail!(removal_refusal(what, &missing, &simulation.removals));
     }
-    step(
+    step_attached(
         &format!("install {what} ({})", missing.join(" ")),
         &mut install_command(&missing)?,
     )
@@ -193,7 +193,7 @@ pub fn refresh() -> Result<()> {
     if REFRESHED.load(Ordering::Relaxed) {
         return Ok(());
     }
-    step(
+    step_attached(
         "refresh the Debian package lists",
         privileged("apt-get", &[])?.args(LOCK_TIMEOUT).arg("update"),
     )?;

@@ -35,8 +35,8 @@ use deform_hil_sim::litex::{
     LITEX_FIRMWARE_ENV, LITEX_PYTHON_PACKAGES,
 };
 use deform_hil_sim::{
-    is_executable, qemu_binary, FIRMWARE_BUILD_PATH, FIRMWARE_ENV, LOADER_BUILD_PATH, LOADER_ENV,
-    QEMU_BINARY, QEMU_UNPACK_DIR,
+    child, is_executable, qemu_binary, FIRMWARE_BUILD_PATH, FIRMWARE_ENV, LOADER_BUILD_PATH,
+    LOADER_ENV, QEMU_BINARY, QEMU_UNPACK_DIR,
 };
 
 mod apt;
@@ -165,8 +165,21 @@ fn firmware_cargo() -> Command {
     cmd
 }
 
-/// Prints the step, runs it, and fails unless it succeeds.
+/// Prints the step, runs it, and fails unless it succeeds. It runs as a process tree that dies
+/// with xtask ([`child::tree`]): a SIGTERM or Ctrl-C to `cargo xtask test` ends its `cargo test`,
+/// the test binaries and their QEMUs and simulators too, not only xtask.
 fn step(description: &str, cmd: &mut Command) -> Result<()> {
+    run_step(description, cmd, true)
+}
+
+/// [`step`], but the command stays in xtask's session and is not killed with it: for `apt-get`
+/// (a dpkg killed half-way leaves the package database to be repaired) through `sudo` (which may
+/// ask for a password on the terminal, which a new session does not have).
+fn step_attached(description: &str, cmd: &mut Command) -> Result<()> {
+    run_step(description, cmd, false)
+}
+
+fn run_step(description: &str, cmd: &mut Command, as_tree: bool) -> Result<()> {
     let program = cmd.get_program().to_string_lossy().into_owned();
     let args: Vec<_> = cmd
         .get_args()
@@ -175,9 +188,12 @@ fn step(description: &str, cmd: &mut Command) -> Result<()> {
     eprintln!("\n==> {description}");
     eprintln!("    $ {} {}", display_program(&program), args.join(" "));
     let started = Instant::now();
-    let status = cmd
-        .status()
-        .with_context(|| format!("cannot start `{program}`"))?;
+    let status = if as_tree {
+        child::spawn_tree(child::tree(cmd)).and_then(|mut c| c.wait())
+    } else {
+        cmd.status()
+    }
+    .with_context(|| format!("cannot start `{program}`"))?;
     if !status.success() {
         bail!("step failed: {description} ({status})");
     }
@@ -424,12 +440,13 @@ fn setup_litex_socs() -> Result<()> {
         litex_dir().display()
     );
     let started = Instant::now();
+    let terminal = std::io::stderr().is_terminal();
     let progress = indicatif::MultiProgress::new();
     let results: Vec<_> = std::thread::scope(|scope| {
         let builds: Vec<_> = missing
             .iter()
             .map(|&soc| {
-                let spinner = soc_spinner(&progress, &soc.key());
+                let spinner = soc_spinner(&progress, &soc.key(), terminal);
                 scope.spawn(move || {
                     Soc::ensure_reporting(soc, |stage| show_stage(&spinner, &soc.key(), stage))
                 })
@@ -448,19 +465,19 @@ fn setup_litex_socs() -> Result<()> {
         }
     }
     // Finished spinners leave the cursor at the end of their last line.
-    let end_of_spinners = if std::io::stderr().is_terminal() {
-        "\n"
-    } else {
-        ""
-    };
+    let end_of_spinners = if terminal { "\n" } else { "" };
     eprintln!("{end_of_spinners}    ok ({:.1?})", started.elapsed());
     Ok(())
 }
 
 /// A spinner with the elapsed time for one SoC's build on a terminal; hidden elsewhere (a CI
 /// log gets [`show_stage`]'s plain lines instead).
-fn soc_spinner(progress: &indicatif::MultiProgress, key: &str) -> indicatif::ProgressBar {
-    if !std::io::stderr().is_terminal() {
+fn soc_spinner(
+    progress: &indicatif::MultiProgress,
+    key: &str,
+    terminal: bool,
+) -> indicatif::ProgressBar {
+    if !terminal {
         return indicatif::ProgressBar::hidden();
     }
     let spinner = progress.add(indicatif::ProgressBar::new_spinner());
