@@ -62,6 +62,7 @@ use crate::svu::{
     self, bound_of, bound_of_squares, bound_of_u64, check_bound, magnitude_bits, sum_squares,
     Block, HartOut, Lin, Narrow, PassR, PassXP, Scalar, Threshold,
 };
+use crate::upper::{Lower, Upper};
 use totals::{OrField, Sink, Totals};
 
 /// How often a direction's residual is recomputed as b − A·x after it converged on the
@@ -301,7 +302,7 @@ pub struct GivenResidual {
     /// residual without the exact pass wherever ‖r‖ + drift ≤ tol·‖b‖ is proven: the pass
     /// costs a whole MVU pass, and the bound makes it redundant. `None`: verified as `verify`
     /// says, as before.
-    pub drift: Option<f64>,
+    pub drift: Option<Upper>,
 }
 
 /// What a solve leaves in a system's r and x besides the mantissas.
@@ -320,7 +321,7 @@ pub struct Outcome {
     /// the fixed-point matrix, exact): the start's error plus every update's rounding since
     /// ([`drift_of_update`]). Infinite where the solve does not bound it: a saturation, or a
     /// recursive r of a solve not given a bounded residual ([`GivenResidual::drift`]). A caller that carries r on to another solve needs it.
-    pub drift: f64,
+    pub drift: Upper,
     /// The solve accepted r without an exact pass because the drift proved it
     /// ([`GivenResidual::drift`]).
     pub check_skipped: bool,
@@ -334,7 +335,7 @@ impl Default for Outcome {
             r_bound: 0,
             r_exact: false,
             x_bound: 0,
-            drift: f64::INFINITY,
+            drift: Upper::INFINITE,
             check_skipped: false,
         }
     }
@@ -349,57 +350,56 @@ impl Default for Outcome {
 /// is floored by its narrowing (below 1 narrowed unit times |mult| ≤ 2^31 over 2^32). The
 /// terms that do not apply are left out: in a steady solve the exponents rarely move, and the
 /// bound halves without the floor.
-pub fn update_error(lin: &Lin, narrowed_right: bool) -> f64 {
-    let own = if lin.own.is_some_and(|s| s.right > 0) {
-        1.0
-    } else {
-        0.0
-    };
-    1.0 + own + if narrowed_right { 0.5 } else { 0.0 }
+///
+/// In halves of a unit (an integer: the bound is kept in integers, [`Upper`]).
+pub fn update_error(lin: &Lin, narrowed_right: bool) -> u64 {
+    let own = u64::from(lin.own.is_some_and(|s| s.right > 0));
+    2 + 2 * own + u64::from(narrowed_right)
 }
 
 /// How much one iteration's updates move the recursive residual away from b − A·x, in real
-/// units (2-norm): pass R's rounding, `r_units` of 2^`e_r` per element, and A times pass XP's
-/// rounding of x, `x_units` of 2^`e_x` per element ([`update_error`]), each row of A·δx at
-/// most ‖A‖∞ = `a_inf` times max |δx|; `root_n` ≥ √n for the 2-norm of n elements. Both passes
-/// use the same α and the same p, so nothing else separates r from b − A·x.
+/// units (2-norm): pass R's rounding, `r_halves` halves of 2^`e_r` per element, and A times
+/// pass XP's rounding of x, `x_halves` halves of 2^`e_x` per element ([`update_error`]), each
+/// row of A·δx at most ‖A‖∞ = `a_inf` times max |δx|; `root_n` ≥ √n for the 2-norm of n
+/// elements. Both passes use the same α and the same p, so nothing else separates r from
+/// b − A·x. Rounded up throughout ([`Upper`]).
 pub fn drift_of_update(
-    root_n: f64,
-    a_inf: f64,
-    (r_units, e_r): (f64, i32),
-    (x_units, e_x): (f64, i32),
-) -> f64 {
-    let per_element = ldexp(r_units, e_r) + a_inf * ldexp(x_units, e_x);
-    // Each f64 operation rounds by at most 2^−53 relatively: 2^−40 covers them.
-    root_n * per_element * (1.0 + ldexp(1.0, -40))
+    root_n: Upper,
+    a_inf: Upper,
+    (r_halves, e_r): (u64, i32),
+    (x_halves, e_x): (u64, i32),
+) -> Upper {
+    let x = a_inf.times(Upper::new(x_halves, e_x - 1));
+    root_n.times(Upper::new(r_halves, e_r - 1).plus(x))
 }
 
 /// The drift of a residual formed by an exact MVU pass at exponent `e_r` ([`EXACT_PASS_ERROR`]
 /// units per element), `root_n` ≥ √n.
-pub fn drift_of_exact_pass(root_n: f64, e_r: i32) -> f64 {
-    root_n * ldexp(EXACT_PASS_ERROR, e_r) * (1.0 + ldexp(1.0, -40))
+pub fn drift_of_exact_pass(root_n: Upper, e_r: i32) -> Upper {
+    root_n.times(Upper::new(EXACT_PASS_UNITS, e_r))
 }
 
 /// Whether ‖r‖ + `drift` ≤ `tol`·‖b‖ is proven, hence ‖b − A·x‖ ≤ tol·‖b‖, from Σr² = `rr` at
-/// exponent `e_r` and Σb² = `bb` at `e_b` (mantissas, exact). Without a square root (four
-/// soft-f64 divisions on the target): (‖r‖ + E)² ≤ 2‖r‖² + 2E², so 2‖r‖² + 2E² ≤ tol²·‖b‖²
-/// suffices (it gives up the cases where ‖r‖ is above about 0.7·tol·‖b‖); a margin of 2^−40
-/// each way covers the few f64 roundings.
-pub fn proves_tolerance(rr: u128, e_r: i32, bb: u128, e_b: i32, drift: f64, tol: f64) -> bool {
+/// exponent `e_r` and Σb² = `bb` at `e_b` (mantissas, exact). Without a square root:
+/// (‖r‖ + E)² ≤ 2‖r‖² + 2E², so 2‖r‖² + 2E² ≤ tol²·‖b‖² suffices (it gives up the cases where
+/// ‖r‖ is above about 0.7·tol·‖b‖). The left side is rounded up and the right side down, in
+/// integers ([`Upper`], [`Lower`]).
+pub fn proves_tolerance(rr: u128, e_r: i32, bb: u128, e_b: i32, drift: Upper, tol: f64) -> bool {
     if !drift.is_finite() || bb == 0 {
         return false;
     }
-    let up = 1.0 + ldexp(1.0, -40);
-    let r_sq = ldexp(rr as f64, 2 * e_r);
-    let lhs = 2.0 * (r_sq + drift * drift) * up;
-    let rhs = tol * tol * ldexp(bb as f64, 2 * e_b) * (1.0 - ldexp(1.0, -40));
-    lhs <= rhs
+    let lhs = Upper::wide(rr, 2 * e_r).plus(drift.times(drift)).scale2(1);
+    let tol = Lower::from_f64(tol);
+    lhs.at_most(tol.times(tol).times(Lower::wide(bb, 2 * e_b)))
 }
 
 /// The largest error, in units of r's exponent, of an element of b − A·x formed by an MVU pass
 /// ([`Solver::residual_of`]): below 1 unit from narrowing K·x (or K·x − b), ½ from rounding
 /// the term and ¼ from its multiplier, and on the inexact path below 1 from flooring b's shift.
-pub const EXACT_PASS_ERROR: f64 = 2.0;
+pub const EXACT_PASS_ERROR: f64 = EXACT_PASS_UNITS as f64;
+
+/// [`EXACT_PASS_ERROR`] as an integer, for the bounds kept in integers ([`Upper`]).
+pub const EXACT_PASS_UNITS: u64 = 2;
 
 /// The vectors all directions share: the interleaved search directions, K·p, and the pool of
 /// private partial sums for overlapping MVUs.
@@ -437,7 +437,7 @@ struct Direction {
     /// r was given ([`System::r_start`]): no b − A·x₀ at the start.
     given: bool,
     /// The bound on ‖r − (b − A·x)‖₂ ([`Outcome::drift`]).
-    drift: f64,
+    drift: Upper,
     /// A converged r may be accepted on the drift's proof ([`GivenResidual::drift`]).
     skippable: bool,
     /// It was ([`Outcome::check_skipped`]).
@@ -460,7 +460,7 @@ impl Direction {
         replacements: 0,
         r_exact: false,
         given: false,
-        drift: 0.0,
+        drift: Upper::ZERO,
         skippable: false,
         skipped: false,
     };
@@ -1032,8 +1032,8 @@ struct Solver<'s, 'e, 'a, E: Executor> {
     sat: u32,
     clock: Clock,
     /// ‖A‖∞ in real units, for the drift of x's rounding ([`drift_of_update`]), and ⌈√n⌉.
-    a_inf: f64,
-    root_n: f64,
+    a_inf: Upper,
+    root_n: Upper,
 }
 
 impl<E: Executor> Solver<'_, '_, '_, E> {
@@ -1235,7 +1235,9 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             if st.skippable {
                 let r_units = update_error(&plan.lin, matches!(plan.narrow, Narrow::Right(_)));
                 let (r, x) = ((r_units, plan.lin.e), (update_error(&x, false), x.e));
-                st.drift += drift_of_update(self.root_n, self.a_inf, r, x);
+                st.drift = st
+                    .drift
+                    .plus(drift_of_update(self.root_n, self.a_inf, r, x));
             }
             if st.converged || st.iterations >= self.params.max_iterations {
                 st.active = false;
@@ -1405,7 +1407,7 @@ pub fn solve(
             };
             state[d].set_residual(g.rr, r);
             state[d].given = true;
-            state[d].drift = g.drift.unwrap_or(f64::INFINITY);
+            state[d].drift = g.drift.unwrap_or(Upper::INFINITE);
             state[d].skippable = g.drift.is_some();
         }
     }
@@ -1420,8 +1422,8 @@ pub fn solve(
         iterations: 0,
         sat: 0,
         clock,
-        a_inf: ldexp(plan.row_abs_max as f64, -(a.frac_bits as i32)),
-        root_n: crate::superpose::ceil_sqrt(n),
+        a_inf: Upper::new(plan.row_abs_max, -(a.frac_bits as i32)),
+        root_n: Upper::new(crate::superpose::ceil_sqrt_int(n) as u64, 0),
     };
     charge(&mut solver.clock.svu, t0, exec);
     solver.start();
@@ -1458,7 +1460,7 @@ pub fn solve(
             drift: if solver.sat == 0 && (st.r_exact || st.skippable || st.iterations == 0) {
                 st.drift
             } else {
-                f64::INFINITY
+                Upper::INFINITE
             },
             check_skipped: st.skipped,
         }

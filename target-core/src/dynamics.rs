@@ -22,7 +22,6 @@
 
 use deform_shared::dynamics::{DynamicError, DynamicParams, DynamicTool};
 use deform_shared::live::{LiveError, MAX_TOOL_NODES};
-use deform_shared::qformat::ldexp;
 use deform_shared::word::{VALUE_MAX, VALUE_MIN};
 use heapless::Vec;
 
@@ -32,6 +31,7 @@ use crate::svu::{
     magnitude_bits, magnitude_bound, normalising_shift, sum_squares, term, Block, Lin, Narrow,
     Scalar, Term,
 };
+use crate::upper::Upper;
 
 /// A dynamic session's tool set as it arrives, then the stepping state.
 #[derive(Default)]
@@ -58,7 +58,7 @@ pub struct Stepping {
     /// Per direction, a rigorous bound on ‖r − (b − S·v)‖₂ (real units) of `residual`'s r
     /// ([`crate::cg::Outcome::drift`]): a step starts from r in O(n) and may accept its
     /// solve's recursive residual without the exact pass only where this is finite.
-    pub drift: [f64; 3],
+    pub drift: [Upper; 3],
     /// Per direction, the steps since r was last formed by an exact pass: at
     /// [`MAX_UNCHECKED`] the next step's solve checks its residual whatever the bound says.
     pub unchecked: [u32; 3],
@@ -86,9 +86,9 @@ pub struct History {
     pub d0: Block,
     pub r1: Block,
     /// A bound on max |d₀ − (b₀ − b₋₁)| (real units): d₁'s own rounding and its narrowing.
-    pub d0_err: f64,
+    pub d0_err: Upper,
     /// r₋₁f's drift ([`Stepping::drift`] when it was r₀f).
-    pub r1_drift: f64,
+    pub r1_drift: Upper,
 }
 
 /// At most this many steps in a row accept their residual on the drift's bound alone; the
@@ -101,31 +101,36 @@ pub const MAX_UNCHECKED: u32 = 8;
 /// - from v₀ (`extrapolated` `None`): r₀ = d₁ + r₀f, so r₀f's drift `e0`, d₁'s rounding
 ///   (below one unit of its exponent `e_d` per element, [`RhsPlan::change`]) and pass D's two
 ///   rounded shifts (½ unit of r₀'s exponent `e` each);
-/// - from v₀ + Δv₀ (`Some((history, e_x, a_units))`, x₀'s exponent after pass A `e_x` and the
-///   bound of its rounding in those units, [`crate::cg::update_error`]): r₀ = d₁ + 2·r₀f
+/// - from v₀ + Δv₀ (`Some((history, e_x, a_halves))`, x₀'s exponent after pass A `e_x` and
+///   the bound of its rounding in halves of those units, [`crate::cg::update_error`]): r₀ = d₁ + 2·r₀f
 ///   − d₀ − r₋₁f, which holds exactly for the exact quantities (S·v₀ = b₀ − ρ₀, S·Δv₀ = d₀ −
 ///   ρ₀ + ρ₋₁); each stored one's error adds: r₀f's twice, r₋₁f's, d₁'s, d₀'s, pass D's four
 ///   rounded shifts, and S times x₀'s errors — Δv's two rounded terms (one unit of its
 ///   exponent) and pass A's update (`a_units` of x₀'s exponent),
 ///   each row of S times max |δx| at most ‖S‖∞ max |δx|.
+///
+/// Kept in integers, rounded up ([`Upper`]): hart 0 forms it every step.
 pub fn start_drift(
-    root_n: f64,
-    s_inf: f64,
+    root_n: Upper,
+    s_inf: Upper,
     (e_d, e): (i32, i32),
-    e0: f64,
-    extrapolated: Option<(&History, i32, f64)>,
-) -> f64 {
-    let d1 = ldexp(1.0, e_d);
-    let bound = match extrapolated {
-        None => e0 + root_n * (d1 + ldexp(1.0, e)),
-        Some((h, e_x, a_units)) => {
-            let x_err = ldexp(1.0, h.dv.e) + ldexp(a_units, e_x);
-            let per_element = d1 + h.d0_err + ldexp(2.0, e) + s_inf * x_err;
-            2.0 * e0 + h.r1_drift + root_n * per_element
+    e0: Upper,
+    extrapolated: Option<(&History, i32, u64)>,
+) -> Upper {
+    let d1 = Upper::new(1, e_d);
+    match extrapolated {
+        None => e0.plus(root_n.times(d1.plus(Upper::new(1, e)))),
+        Some((h, e_x, a_halves)) => {
+            let x_err = Upper::new(1, h.dv.e).plus(Upper::new(a_halves, e_x - 1));
+            let per_element = d1
+                .plus(h.d0_err)
+                .plus(Upper::new(2, e))
+                .plus(s_inf.times(x_err));
+            e0.scale2(1)
+                .plus(h.r1_drift)
+                .plus(root_n.times(per_element))
         }
-    };
-    // Each f64 operation rounds by at most 2^−53 relatively: 2^−40 covers them.
-    bound * (1.0 + ldexp(1.0, -40))
+    }
 }
 
 impl Dynamic {
@@ -213,7 +218,7 @@ impl Dynamic {
             v: [Block::ZERO; 3],
             u_bound: [0; 3],
             residual: [None; 3],
-            drift: [f64::INFINITY; 3],
+            drift: [Upper::INFINITE; 3],
             unchecked: [0; 3],
             tool_u: [[0.0; 3]; MAX_TOOL_NODES],
             ku_or: [0; 3],

@@ -38,3 +38,4 @@ pub mod svu;
 #[cfg(any(test, feature = "testkit"))]
 pub mod testkit;
 pub mod transport;
+pub mod upper;

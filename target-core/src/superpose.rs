@@ -379,8 +379,13 @@ pub fn sqrt_up(v: f64) -> f64 {
 
 /// ⌈√k⌉ for an integer k, by integer Newton steps (the √n of the error bounds, once per frame).
 pub fn ceil_sqrt(k: usize) -> f64 {
+    ceil_sqrt_int(k) as f64
+}
+
+/// ⌈√k⌉ in integers ([`ceil_sqrt`]), for the bounds kept in integers ([`crate::upper`]).
+pub fn ceil_sqrt_int(k: usize) -> usize {
     if k < 2 {
-        return k as f64;
+        return k;
     }
     // Newton from above on integers converges to ⌊√k⌋.
     let mut g = k;
@@ -391,7 +396,11 @@ pub fn ceil_sqrt(k: usize) -> f64 {
         }
         g = next;
     }
-    (if g * g < k { g + 1 } else { g }) as f64
+    if g * g < k {
+        g + 1
+    } else {
+        g
+    }
 }
 
 /// The bound of a vector's maximum from the OR of its magnitudes (0 for a zero vector).

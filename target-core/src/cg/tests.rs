@@ -1040,9 +1040,10 @@ fn bounded_solve(m: &Encoded, b: &[f64], x0: &[f64], tol: f64, max_iterations: u
     let or = rm.iter().fold(0, |o, &v| o | crate::svu::magnitude_bits(v));
     // ½ unit per element of rounding (0 where nothing was cut).
     let drift0 = if shift > 0 {
-        crate::superpose::ceil_sqrt(n) * ldexp(0.5, e_g)
+        let root_n = crate::superpose::ceil_sqrt_int(n) as u64;
+        crate::upper::Upper::new(root_n, e_g - 1)
     } else {
-        0.0
+        crate::upper::Upper::ZERO
     };
     let mut kp = vec![[0i64; MAX_DIRECTIONS]; n];
     let mut partial = vec![[0i64; MAX_DIRECTIONS]; 4 * n];
@@ -1132,10 +1133,10 @@ fn the_reported_drift_bounds_the_true_residual_and_skips_only_within_tolerance()
         let out = bounded_solve(&m, &b, &x0, tol, cap);
         let o = out.outcome;
         assert!(
-            out.drift_seen <= o.drift,
+            out.drift_seen <= o.drift.to_f64(),
             "case {case}: ‖r − (b − A·x)‖ = {:e} above the bound {:e} ({} iterations)",
             out.drift_seen,
-            o.drift,
+            o.drift.to_f64(),
             out.iterations
         );
         if o.check_skipped {
@@ -1232,7 +1233,7 @@ fn pass_r_and_x_updates_stay_within_their_error_constants() {
             .collect();
         if sat == 0 {
             let units = worst_units(&r, lin.e, &exact, e0);
-            let bound = update_error(&lin, matches!(narrow, Narrow::Right(_)));
+            let bound = update_error(&lin, matches!(narrow, Narrow::Right(_))) as f64 / 2.0;
             worst_r = worst_r.max(units / bound);
             worst_units_seen = worst_units_seen.max(units);
         }
@@ -1269,7 +1270,7 @@ fn pass_r_and_x_updates_stay_within_their_error_constants() {
             .collect();
         if sat == 0 {
             let units = worst_units(&x, xl.e, &exact, e0);
-            worst_x = worst_x.max(units / update_error(&xl, false));
+            worst_x = worst_x.max(units / (update_error(&xl, false) as f64 / 2.0));
             worst_units_seen = worst_units_seen.max(units);
         }
     }

@@ -22,6 +22,7 @@ use crate::dynamics::{
 };
 use crate::exec::{share, slowest, SharedSlice};
 use crate::svu::{bound_of, bound_of_u64, magnitude_bits, Block, Lin, Narrow, Scalar};
+use crate::upper::Upper;
 
 fn dynamic(e: DynamicError) -> ErrorCode {
     ErrorCode::Dynamic(e)
@@ -205,21 +206,21 @@ struct Step {
     kept: Option<Kept>,
 }
 
-/// The bound of pass A's rounding of v₀ + Δv₀ in units of its result's exponent
+/// The bound of pass A's rounding of v₀ + Δv₀ in halves of a unit of its result's exponent
 /// ([`crate::cg::update_error`]), from v's block after (`v`) and before (`v0`) it: v₀'s own
 /// term is floored where the result's exponent rose above v₀'s.
-fn pass_a_units(v: Block, v0: Block) -> f64 {
+fn pass_a_halves(v: Block, v0: Block) -> u64 {
     if v.e > v0.e {
-        2.0
+        4
     } else {
-        1.0
+        2
     }
 }
 
 /// Per lane, pass D's plan and the bound the solve may rely on ([`Session::plan_starts`]).
 type Starts = (
     [Option<ResidualPlan>; MAX_DIRECTIONS],
-    [Option<f64>; MAX_DIRECTIONS],
+    [Option<Upper>; MAX_DIRECTIONS],
 );
 
 /// What a step keeps for the next one's extrapolated start ([`History`]): d₁'s narrowed block
@@ -228,8 +229,8 @@ type Starts = (
 struct Kept {
     d: Block,
     r: Block,
-    d_err: f64,
-    r_drift: f64,
+    d_err: Upper,
+    r_drift: Upper,
 }
 
 /// A step's tool terms, which [`Session::plan_rhs`] forms before the step's plan (which needs
@@ -872,7 +873,7 @@ impl<E: Executor> Session<'_, E> {
             step.kept = room.then_some(Kept {
                 d,
                 r,
-                d_err: ldexp(1.0, plan.e_keep) + ldexp(1.0, step.plan.e_d),
+                d_err: Upper::new(1, plan.e_keep).plus(Upper::new(1, step.plan.e_d)),
                 r_drift: st.drift[step.d],
             });
             let history = st.history[step.d].filter(|_| room);
@@ -883,7 +884,7 @@ impl<E: Executor> Session<'_, E> {
                 st.drift[step.d],
                 history
                     .as_ref()
-                    .map(|h| (h, st.v[step.d].e, pass_a_units(st.v[step.d], step.v0))),
+                    .map(|h| (h, st.v[step.d].e, pass_a_halves(st.v[step.d], step.v0))),
             );
             // Past MAX_UNCHECKED steps on the bound alone, or without a finite one, the solve
             // checks its residual by an exact pass.
@@ -1111,13 +1112,13 @@ impl<E: Executor> Session<'_, E> {
 
     /// ‖S‖∞ of the resident matrix in real units (the solve's) and ⌈√n⌉, for the start's
     /// drift: infinite without a plan, which then bounds nothing.
-    fn s_inf(&self) -> (f64, f64) {
+    fn s_inf(&self) -> (Upper, Upper) {
         match (self.plan, self.loaded()) {
             (Some(plan), Ok(shape)) => (
-                ldexp(plan.row_abs_max as f64, -i32::from(shape.frac_bits)),
-                crate::superpose::ceil_sqrt(to_usize(shape.n)),
+                Upper::new(plan.row_abs_max, -i32::from(shape.frac_bits)),
+                Upper::new(crate::superpose::ceil_sqrt_int(to_usize(shape.n)) as u64, 0),
             ),
-            _ => (f64::INFINITY, f64::INFINITY),
+            _ => (Upper::INFINITE, Upper::INFINITE),
         }
     }
 

@@ -419,7 +419,7 @@ fn steps_accepted_on_the_drift_bound_are_truly_within_the_tolerance() {
         for d in 0..3 {
             let (truth, gap, b) = exact_state(&s, d);
             let st = s.dynamic.state().unwrap();
-            let (drift, unchecked) = (st.drift[d], st.unchecked[d]);
+            let (drift, unchecked) = (st.drift[d].to_f64(), st.unchecked[d]);
             assert!(
                 unchecked <= crate::dynamics::MAX_UNCHECKED,
                 "step {step} d {d}"
@@ -477,7 +477,7 @@ fn the_start_residuals_drift_bound_holds_on_its_own() {
         for d in 0..3 {
             let (_, gap, _) = exact_state(&s, d);
             let st = s.dynamic.state().unwrap();
-            let drift = st.drift[d];
+            let drift = st.drift[d].to_f64();
             if iterations == 0 && st.unchecked[d] > 0 && gap > 0.0 {
                 bounded += 1;
                 assert!(
