@@ -369,14 +369,14 @@ pub fn drift_of_update(
     (r_halves, e_r): (u64, i32),
     (x_halves, e_x): (u64, i32),
 ) -> Upper {
-    let x = a_inf.times(Upper::new(x_halves, e_x - 1));
-    root_n.times(Upper::new(r_halves, e_r - 1).plus(x))
+    let x = a_inf.times(Upper::small(x_halves, e_x - 1));
+    root_n.times(Upper::small(r_halves, e_r - 1).plus(x))
 }
 
 /// The drift of a residual formed by an exact MVU pass at exponent `e_r` ([`EXACT_PASS_ERROR`]
 /// units per element), `root_n` ≥ √n.
 pub fn drift_of_exact_pass(root_n: Upper, e_r: i32) -> Upper {
-    root_n.times(Upper::new(EXACT_PASS_UNITS, e_r))
+    root_n.times(Upper::small(EXACT_PASS_UNITS, e_r))
 }
 
 /// Whether ‖r‖ + `drift` ≤ `tol`·‖b‖ is proven, hence ‖b − A·x‖ ≤ tol·‖b‖, from Σr² = `rr` at

@@ -117,14 +117,14 @@ pub fn start_drift(
     e0: Upper,
     extrapolated: Option<(&History, i32, u64)>,
 ) -> Upper {
-    let d1 = Upper::new(1, e_d);
+    let d1 = Upper::small(1, e_d);
     match extrapolated {
-        None => e0.plus(root_n.times(d1.plus(Upper::new(1, e)))),
+        None => e0.plus(root_n.times(d1.plus(Upper::small(1, e)))),
         Some((h, e_x, a_halves)) => {
-            let x_err = Upper::new(1, h.dv.e).plus(Upper::new(a_halves, e_x - 1));
+            let x_err = Upper::small(1, h.dv.e).plus(Upper::small(a_halves, e_x - 1));
             let per_element = d1
                 .plus(h.d0_err)
-                .plus(Upper::new(2, e))
+                .plus(Upper::small(2, e))
                 .plus(s_inf.times(x_err));
             e0.scale2(1)
                 .plus(h.r1_drift)

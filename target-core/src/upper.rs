@@ -39,6 +39,19 @@ impl Upper {
         normalize(m, i64::from(e))
     }
 
+    /// k·2^e for a small k (the bounds' unit counts, 1 to 7), exact, without
+    /// [`Upper::new`]'s leading-zero count (a loop on the RV32 target); larger k go there.
+    pub fn small(k: u64, e: i32) -> Upper {
+        let (m, shift) = match k {
+            0 => return Upper::ZERO,
+            1 => (1, 31),
+            2..=3 => (k, 30),
+            4..=7 => (k, 29),
+            _ => return Upper::new(k, e),
+        };
+        clamp(m << shift, i64::from(e) - shift)
+    }
+
     /// m·2^e for a 128-bit m (a sum of squares), rounded up.
     pub fn wide(m: u128, e: i32) -> Upper {
         let width = 128 - m.leading_zeros();
@@ -79,7 +92,13 @@ impl Upper {
         } else {
             (lo.m + (1u64 << d) - 1) >> d
         };
-        normalize(hi.m + aligned, i64::from(hi.e))
+        // Both mantissas below 2^32: the sum is below 2^33, so at most one place to cut
+        // (no general normalization: a leading-zero count is a loop on the RV32 target).
+        let sum = hi.m + aligned;
+        if sum >> BITS == 0 {
+            return Upper { m: sum, e: hi.e };
+        }
+        up_one(sum.div_ceil(2), i64::from(hi.e) + 1)
     }
 
     /// self · other, rounded up.
@@ -87,7 +106,15 @@ impl Upper {
         if !self.is_finite() || !other.is_finite() {
             return Upper::INFINITE;
         }
-        normalize(self.m * other.m, i64::from(self.e) + i64::from(other.e))
+        if self.m == 0 || other.m == 0 {
+            return Upper::ZERO;
+        }
+        // Both mantissas in [2^31, 2^32): the product lies in [2^62, 2^64), so it is cut by 31
+        // or 32 places (no general normalization, as in `plus`).
+        let p = self.m * other.m;
+        let e = i64::from(self.e) + i64::from(other.e);
+        let cut = if p >> 63 != 0 { BITS } else { BITS - 1 };
+        up_one(p.div_ceil(1u64 << cut), e + i64::from(cut))
     }
 
     /// self · 2^k, exact (or infinite).
@@ -95,7 +122,7 @@ impl Upper {
         if !self.is_finite() || self.m == 0 {
             return self;
         }
-        normalize(self.m, i64::from(self.e) + i64::from(k))
+        clamp(self.m, i64::from(self.e) + i64::from(k))
     }
 
     /// The smallest `Upper` at least `x` (x ≥ 0; NaN or negative gives infinite: nothing
@@ -177,29 +204,44 @@ fn f64_parts(x: f64) -> (u64, i32) {
     }
 }
 
+/// A mantissa q ∈ [2^31, 2^32] already rounded up, at exponent e: 2^32 carried into the
+/// exponent, which is kept within ±[`LIMIT`].
+fn up_one(q: u64, e: i64) -> Upper {
+    if q >> BITS != 0 {
+        return clamp(1u64 << (BITS - 1), e + 1);
+    }
+    clamp(q, e)
+}
+
+/// A normalized mantissa at exponent e: infinite above [`LIMIT`], rounded up to
+/// 2^31·2^−`LIMIT` below −`LIMIT`.
+fn clamp(q: u64, e: i64) -> Upper {
+    if e > LIMIT {
+        return Upper::INFINITE;
+    }
+    if e < -LIMIT {
+        return Upper {
+            m: 1u64 << (BITS - 1),
+            e: -LIMIT as i32,
+        };
+    }
+    Upper { m: q, e: e as i32 }
+}
+
 /// m·2^e rounded up to a mantissa in [2^31, 2^32), the exponent kept within ±[`LIMIT`].
 fn normalize(m: u64, e: i64) -> Upper {
     if m == 0 {
         return Upper::ZERO;
     }
     let width = 64 - m.leading_zeros();
-    let (mut q, mut e) = if width > BITS {
+    let (q, e) = if width > BITS {
         let shift = width - BITS;
         let inexact = m & ((1u64 << shift) - 1) != 0;
         ((m >> shift) + u64::from(inexact), e + i64::from(shift))
     } else {
         (m << (BITS - width), e - i64::from(BITS - width))
     };
-    if q == 1u64 << BITS {
-        (q, e) = (1u64 << (BITS - 1), e + 1);
-    }
-    if e > LIMIT {
-        return Upper::INFINITE;
-    }
-    if e < -LIMIT {
-        (q, e) = (1u64 << (BITS - 1), -LIMIT);
-    }
-    Upper { m: q, e: e as i32 }
+    up_one(q, e)
 }
 
 /// m·2^e rounded down to a mantissa in [2^31, 2^32); 0 below 2^−[`LIMIT`], and above

@@ -873,7 +873,7 @@ impl<E: Executor> Session<'_, E> {
             step.kept = room.then_some(Kept {
                 d,
                 r,
-                d_err: Upper::new(1, plan.e_keep).plus(Upper::new(1, step.plan.e_d)),
+                d_err: Upper::small(1, plan.e_keep).plus(Upper::small(1, step.plan.e_d)),
                 r_drift: st.drift[step.d],
             });
             let history = st.history[step.d].filter(|_| room);

@@ -106,6 +106,26 @@ fn every_operation_rounds_up_and_stays_close() {
     }
 }
 
+/// `small` is `new` for the unit counts it takes, at any exponent.
+#[test]
+fn small_counts_are_exact() {
+    for k in 0..20 {
+        for e in [
+            -LIMIT as i32 - 40,
+            -2000,
+            -64,
+            -1,
+            0,
+            1,
+            63,
+            2000,
+            LIMIT as i32 + 40,
+        ] {
+            assert_eq!(Upper::small(k, e), Upper::new(k, e), "{k} {e}");
+        }
+    }
+}
+
 /// f64 conversions bound from the right side, at the extremes of f64 as well.
 #[test]
 fn f64_conversions_bound_from_their_side() {
