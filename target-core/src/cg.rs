@@ -140,12 +140,24 @@ pub struct Plan {
     /// bounds ‖K·v‖₂ ≤ ‖K‖∞·‖v‖₂ (K is symmetric), which a live frame's residual estimate
     /// needs ([`crate::superpose`]).
     pub row_abs_max: u64,
+    /// `row_abs_max` and ⌈√n⌉ as [`Upper`]s, formed once here rather than in every solve and
+    /// dynamic step (each a leading-zero count or a Newton loop on hart 0's serial path): the
+    /// drift bounds' ‖A‖∞ (before its 2^−F) and √n.
+    pub row_abs: Upper,
+    pub root_n: Upper,
+    /// The n `root_n` is of: a solve of another n forms its own.
+    pub n: usize,
 }
 
 /// True if `t`'s first row is the last row of `previous`, the tile its MVU ran before it, and
 /// both are whole or both mirrored (so its first mirror row is `previous`'s last mirror row):
 /// the row is split between the two tiles at a column window's edge. A fused plan stores the
 /// first part at `previous`'s row end and adds it back after `t` has stored the second.
+/// ⌈√n⌉ as an [`Upper`], the drift bounds' factor from a per-element bound to a 2-norm.
+pub fn root_n(n: usize) -> Upper {
+    Upper::new(crate::superpose::ceil_sqrt_int(n) as u64, 0)
+}
+
 fn continues(previous: Option<&TileHeader>, t: &TileHeader) -> bool {
     previous.is_some_and(|p| {
         p.mirrored == t.mirrored && p.rows > 0 && p.row_base + p.rows - 1 == t.row_base
@@ -179,6 +191,9 @@ pub fn plan(
         partial_len: 0,
         fused: false,
         row_abs_max: 0,
+        row_abs: Upper::ZERO,
+        root_n: root_n(n),
+        n,
     };
     // Words per row, mirrors included: every row sum must stay far from i64 overflow. And
     // tile rows per row (own and mirror), for `fused`, and Σ|q| per row, for `row_abs_max`.
@@ -240,6 +255,7 @@ pub fn plan(
     });
     plan.fused = !plan.overlapping && counts.len() == n && counts.iter().all(|c| c[1] == 1);
     plan.row_abs_max = counts.iter().map(|c| c[2] as u64).max().unwrap_or(0);
+    plan.row_abs = Upper::new(plan.row_abs_max, 0);
     if plan.overlapping {
         let mut next = 0usize;
         for h in 0..plan.mvus {
@@ -1422,8 +1438,8 @@ pub fn solve(
         iterations: 0,
         sat: 0,
         clock,
-        a_inf: Upper::new(plan.row_abs_max, -(a.frac_bits as i32)),
-        root_n: Upper::new(crate::superpose::ceil_sqrt_int(n) as u64, 0),
+        a_inf: plan.row_abs.scale2(-(a.frac_bits as i32)),
+        root_n: if plan.n == n { plan.root_n } else { root_n(n) },
     };
     charge(&mut solver.clock.svu, t0, exec);
     solver.start();

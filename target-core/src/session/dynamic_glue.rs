@@ -1115,8 +1115,12 @@ impl<E: Executor> Session<'_, E> {
     fn s_inf(&self) -> (Upper, Upper) {
         match (self.plan, self.loaded()) {
             (Some(plan), Ok(shape)) => (
-                Upper::new(plan.row_abs_max, -i32::from(shape.frac_bits)),
-                Upper::new(crate::superpose::ceil_sqrt_int(to_usize(shape.n)) as u64, 0),
+                plan.row_abs.scale2(-i32::from(shape.frac_bits)),
+                if plan.n == to_usize(shape.n) {
+                    plan.root_n
+                } else {
+                    crate::cg::root_n(to_usize(shape.n))
+                },
             ),
             _ => (Upper::INFINITE, Upper::INFINITE),
         }
