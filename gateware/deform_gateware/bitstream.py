@@ -22,9 +22,9 @@ MULT18X18D, DP16KD, ...), nextpnr's use of the device and the system clock's Fma
 report.json and the bitstream are removed before a build and written only by a build that got
 that far, so neither is ever a stale or half-written file.
 
-nextpnr routes with ``router2`` by default, not its own default ``router1``: ``router1`` routed the
-4-MVU SoC's 204k arcs at about 40 arcs/s on a 2-core machine (over an hour after 55 min of
-placement; docs/PERFORMANCE.md). ``--router router1`` gives the other; the report names the one used.
+nextpnr routes with its own default, ``router1``, or with ``--router router2``; the report names
+the one used. On the SoC without MVUs router2 took 33 s against 319 and reached 42.9 MHz against
+46.5; on the 4-MVU SoC neither finished on a 2-core machine (docs/PERFORMANCE.md).
 
 With more than four MVUs the MVUs get half the memories (512 rows, 2048 words). Meant to let
 eight fit the LFE5U-85F's 208 block RAMs, it is not enough: Yosys counts 259 DP16KD for eight
@@ -49,8 +49,8 @@ from deform_gateware.synth import log, run_stage, summary, tool
 BOARDS = ("ulx3s",)
 SYS_CLK_FREQ = 50e6
 REPORT = "nextpnr-report.json"
-# nextpnr's routers; the first is this module's default (see the docstring for why).
-ROUTERS = ("router2", "router1")
+# nextpnr's routers; the first, nextpnr's own default, is this module's.
+ROUTERS = ("router1", "router2")
 # Yosys's cells the report keeps (synth_ecp5's final statistics).
 YOSYS_CELLS = ("LUT4", "CCU2C", "TRELLIS_FF", "MULT18X18D", "ALU54B", "DP16KD",
                "TRELLIS_DPR16X4", "PFUMX", "L6MUX21")
@@ -177,7 +177,7 @@ def main():
     parser.add_argument("--out", required=True)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--router", choices=ROUTERS, default=ROUTERS[0],
-                        help="nextpnr's router (default %(default)s: see above why)")
+                        help="nextpnr's router (default %(default)s, nextpnr's own)")
     parser.add_argument("--no-pnr", action="store_true",
                         help="stop after Yosys: cell counts only, no place and route, no Fmax, "
                              "no bitstream")

@@ -169,9 +169,11 @@ pub struct YosysCells {
     pub dp16kd: u64,
 }
 
-/// nextpnr-ecp5's router for a whole-SoC build. `router2` is the default: `router1` (nextpnr's
-/// own default) routed the 4-MVU SoC's 204k arcs at about 40 arcs/s on a 2-core machine, over an
-/// hour after 55 minutes of placement.
+/// nextpnr-ecp5's router for a whole-SoC build: `router1` (nextpnr's own default) unless asked.
+/// Measured on the 0-MVU SoC, seed 1: router1 46.5 MHz in 319 s, router2 42.9 MHz in 33 s. On the
+/// 4-MVU SoC neither finished here: router1 at ~40 arcs/s of 204k arcs, router2 with its overuse
+/// stuck near 31,000 wires after 9 passes (docs/PERFORMANCE.md). So the Fmax comparison is
+/// made on one router, and the report names it.
 #[derive(
     Debug,
     Clone,
@@ -187,8 +189,8 @@ pub struct YosysCells {
 )]
 #[serde(rename_all = "lowercase")]
 pub enum Router {
-    Router1,
     #[default]
+    Router1,
     Router2,
 }
 

@@ -26,7 +26,7 @@ const DEFAULT_MVUS: &[u32] = &[0, 1, 2, 4, 8];
 const LFE5U_85F_MULTIPLIERS: u64 = 156;
 
 pub const USAGE: &str = "\
-  bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--router router2|router1]
+  bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--router router1|router2]
             [--no-pnr | --report-only]
                      build deform's SoC with each number of hardware MVUs, one at a time,
                      into an ECP5 bitstream (YoWASP Yosys, nextpnr-ecp5, ecppack; each stage
@@ -34,9 +34,9 @@ pub const USAGE: &str = "\
                      resources, Fmax and Fig. 5-1 plot of every build so far in
                      target/bitstream/BOARD/ (report.md, report.json,
                      multipliers_per_mvu.svg). --seed: nextpnr's (default 1); --router:
-                     nextpnr's (default router2: router1 took over an hour to route
-                     the 4-MVU SoC here; the 0-MVU baseline is compared on the same
-                     router); --no-pnr:
+                     nextpnr's (default router1, nextpnr's own; router2 is faster,
+                     with a lower Fmax; each build is compared with the 0-MVU
+                     baseline of the same router); --no-pnr:
                      stop after Yosys (cell counts only: no Fmax, no bitstream);
                      --report-only: build nothing, rewrite report.md and the plot from
                      report.json";
@@ -346,20 +346,20 @@ mod tests {
                 board: "ulx3s".into(),
                 mvus: vec![0, 1, 2, 4, 8],
                 seed: 1,
-                router: Router::Router2,
+                router: Router::Router1,
                 no_pnr: false
             }
         );
         assert_eq!(
             parse(&args(
-                "--mvus 0,4 --no-pnr --board ulx3s --seed 2 --router router1"
+                "--mvus 0,4 --no-pnr --board ulx3s --seed 2 --router router2"
             ))
             .unwrap(),
             Request::Build {
                 board: "ulx3s".into(),
                 mvus: vec![0, 4],
                 seed: 2,
-                router: Router::Router1,
+                router: Router::Router2,
                 no_pnr: true
             }
         );
