@@ -35,6 +35,8 @@ pub mod predict;
 pub mod session;
 pub mod superpose;
 pub mod svu;
+#[cfg(test)]
+mod test_rng;
 #[cfg(any(test, feature = "testkit"))]
 pub mod testkit;
 pub mod transport;

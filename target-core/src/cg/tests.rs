@@ -928,24 +928,7 @@ fn sqrt_stopping_at_a_fixed_point_equals_eight_newton_steps() {
     assert_eq!(super::sqrt(0.0), 0.0);
 }
 
-/// A small xorshift generator: the drift tests' random systems, reproducible.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        self.0
-    }
-    /// Uniform in [0, 1).
-    fn unit(&mut self) -> f64 {
-        (self.next() >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn below(&mut self, k: u64) -> u64 {
-        self.next() % k
-    }
-}
+use crate::test_rng::Rng;
 
 /// A random symmetric, diagonally dominant (hence positive definite) sparse matrix of n rows:
 /// a few random couplings per row of random sign and size, the diagonal their magnitudes'

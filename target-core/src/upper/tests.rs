@@ -4,21 +4,15 @@ use crate::dynamics::{start_drift, History};
 use crate::svu::Block;
 use deform_shared::qformat::ldexp;
 
-/// A small xorshift generator, reproducible.
-struct Rng(u64);
+use crate::test_rng::Rng;
 
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        self.0
-    }
+/// The upper-bound tests' draws beyond [`Rng`]'s own.
+trait Draws {
+    fn mantissa(&mut self) -> u64;
+    fn exponent(&mut self, span: i32) -> i32;
+}
 
-    fn below(&mut self, k: u64) -> u64 {
-        self.next() % k
-    }
-
+impl Draws for Rng {
     /// A mantissa: random widths, and the extremes (0, 1, powers of two and their
     /// neighbours, all ones).
     fn mantissa(&mut self) -> u64 {
