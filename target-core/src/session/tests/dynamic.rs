@@ -41,19 +41,20 @@ fn s_row(i: usize) -> Vec<(usize, f64)> {
         .collect()
 }
 
+/// Whether entry (i, c) survives the elimination of the constrained rows and columns (their
+/// diagonals stay).
+fn kept(i: usize, c: usize) -> bool {
+    if constrained(i) {
+        c == i
+    } else {
+        !constrained(c)
+    }
+}
+
 /// A matrix with the constrained rows and columns eliminated (their diagonals kept).
 fn eliminated(row: fn(usize) -> Vec<(usize, f64)>, frac_bits: u8) -> Encoded {
     encode(N, 8, frac_bits, move |i| {
-        row(i)
-            .into_iter()
-            .filter(|&(c, _)| {
-                if constrained(i) {
-                    c == i
-                } else {
-                    !constrained(c)
-                }
-            })
-            .collect()
+        row(i).into_iter().filter(|&(c, _)| kept(i, c)).collect()
     })
 }
 
@@ -329,13 +330,7 @@ fn dynamic_requests_are_refused_clearly_out_of_order() {
 fn s_raw_row(i: usize) -> Vec<(usize, i128)> {
     s_row(i)
         .into_iter()
-        .filter(|&(c, _)| {
-            if constrained(i) {
-                c == i
-            } else {
-                !constrained(c)
-            }
-        })
+        .filter(|&(c, _)| kept(i, c))
         .map(|(c, v)| (c, i128::from(quantize(v, F_S).unwrap())))
         .collect()
 }
