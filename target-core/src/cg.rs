@@ -389,6 +389,18 @@ pub fn drift_of_update(
     root_n.times(Upper::small(r_halves, e_r - 1).plus(x))
 }
 
+/// `drift` plus one iteration's ([`drift_of_update`]) for pass R as `r_plan` and pass XP's x as
+/// `x` plan them. Out of line, and cold: most solves carry no bound, and inlined, the `Upper`
+/// arithmetic cost hart 0's serial path of every iteration about 24 instructions in register
+/// spills even where it did not run (`engine_figures`, 8³ B: 1,184 → 1,208 alone).
+#[cold]
+#[inline(never)]
+fn add_update_drift(drift: Upper, r_plan: &PassR, x: &Lin, root_n: Upper, a_inf: Upper) -> Upper {
+    let r_units = update_error(&r_plan.lin, matches!(r_plan.narrow, Narrow::Right(_)));
+    let (r, x) = ((r_units, r_plan.lin.e), (update_error(x, false), x.e));
+    drift.plus(drift_of_update(root_n, a_inf, r, x))
+}
+
 /// The drift of a residual formed by an exact MVU pass at exponent `e_r` ([`EXACT_PASS_ERROR`]
 /// units per element), `root_n` ≥ √n.
 pub fn drift_of_exact_pass(root_n: Upper, e_r: i32) -> Upper {
@@ -1249,11 +1261,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             let x = Lin::new(self.alphas[d], st.p, false, Some(st.x), &mut self.sat);
             self.xp_plans[d].x = Some(x);
             if st.skippable {
-                let r_units = update_error(&plan.lin, matches!(plan.narrow, Narrow::Right(_)));
-                let (r, x) = ((r_units, plan.lin.e), (update_error(&x, false), x.e));
-                st.drift = st
-                    .drift
-                    .plus(drift_of_update(self.root_n, self.a_inf, r, x));
+                st.drift = add_update_drift(st.drift, plan, &x, self.root_n, self.a_inf);
             }
             if st.converged || st.iterations >= self.params.max_iterations {
                 st.active = false;
