@@ -149,15 +149,24 @@ pub struct Plan {
     pub n: usize,
 }
 
-/// True if `t`'s first row is the last row of `previous`, the tile its MVU ran before it, and
-/// both are whole or both mirrored (so its first mirror row is `previous`'s last mirror row):
-/// the row is split between the two tiles at a column window's edge. A fused plan stores the
-/// first part at `previous`'s row end and adds it back after `t` has stored the second.
+impl Plan {
+    /// ‖A‖∞ in real units for a matrix of `frac_bits` fraction bits, and ⌈√n⌉ for `n` rows:
+    /// the drift bounds' two factors, kept since upload (another n forms its own).
+    pub fn drift_norms(&self, n: usize, frac_bits: u8) -> (Upper, Upper) {
+        let root = if self.n == n { self.root_n } else { root_n(n) };
+        (self.row_abs.scale2(-i32::from(frac_bits)), root)
+    }
+}
+
 /// ⌈√n⌉ as an [`Upper`], the drift bounds' factor from a per-element bound to a 2-norm.
 pub fn root_n(n: usize) -> Upper {
     Upper::new(crate::superpose::ceil_sqrt_int(n) as u64, 0)
 }
 
+/// True if `t`'s first row is the last row of `previous`, the tile its MVU ran before it, and
+/// both are whole or both mirrored (so its first mirror row is `previous`'s last mirror row):
+/// the row is split between the two tiles at a column window's edge. A fused plan stores the
+/// first part at `previous`'s row end and adds it back after `t` has stored the second.
 fn continues(previous: Option<&TileHeader>, t: &TileHeader) -> bool {
     previous.is_some_and(|p| {
         p.mirrored == t.mirrored && p.rows > 0 && p.row_base + p.rows - 1 == t.row_base
@@ -336,7 +345,8 @@ pub struct Outcome {
     /// A rigorous bound on ‖r − (b − A·x)‖₂ in real units for the mantissas returned (A·x of
     /// the fixed-point matrix, exact): the start's error plus every update's rounding since
     /// ([`drift_of_update`]). Infinite where the solve does not bound it: a saturation, or a
-    /// recursive r of a solve not given a bounded residual ([`GivenResidual::drift`]). A caller that carries r on to another solve needs it.
+    /// recursive r of a solve not given a bounded residual ([`GivenResidual::drift`]). A caller
+    /// that carries r on to another solve needs it.
     pub drift: Upper,
     /// The solve accepted r without an exact pass because the drift proved it
     /// ([`GivenResidual::drift`]).
@@ -1435,6 +1445,7 @@ pub fn solve(
             state[d].skippable = g.drift.is_some();
         }
     }
+    let (a_inf, root_n) = plan.drift_norms(n, a.frac_bits);
     let mut solver = Solver {
         engine: &engine,
         params,
@@ -1446,8 +1457,8 @@ pub fn solve(
         iterations: 0,
         sat: 0,
         clock,
-        a_inf: plan.row_abs.scale2(-(a.frac_bits as i32)),
-        root_n: if plan.n == n { plan.root_n } else { root_n(n) },
+        a_inf,
+        root_n,
     };
     charge(&mut solver.clock.svu, t0, exec);
     solver.start();
@@ -1478,9 +1489,9 @@ pub fn solve(
             r_bound: st.r.bound,
             r_exact: st.r_exact,
             x_bound: st.x.bound,
-            // Tracked through the updates only where asked for (a few soft-f64 operations per
-            // iteration on hart 0); an exact pass's is always known, and so is a start no
-            // update touched (r = b copied for x₀ = 0: none; a given r: the caller's).
+            // Tracked through the updates only where asked for (integer `Upper` arithmetic on
+            // hart 0's serial path, out of line); an exact pass's is always known, and so is a
+            // start no update touched (r = b copied for x₀ = 0: none; a given r: the caller's).
             drift: if solver.sat == 0 && (st.r_exact || st.skippable || st.iterations == 0) {
                 st.drift
             } else {

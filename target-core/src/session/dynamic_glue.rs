@@ -1114,14 +1114,7 @@ impl<E: Executor> Session<'_, E> {
     /// drift: infinite without a plan, which then bounds nothing.
     fn s_inf(&self) -> (Upper, Upper) {
         match (self.plan, self.loaded()) {
-            (Some(plan), Ok(shape)) => (
-                plan.row_abs.scale2(-i32::from(shape.frac_bits)),
-                if plan.n == to_usize(shape.n) {
-                    plan.root_n
-                } else {
-                    crate::cg::root_n(to_usize(shape.n))
-                },
-            ),
+            (Some(plan), Ok(shape)) => plan.drift_norms(to_usize(shape.n), shape.frac_bits),
             _ => (Upper::INFINITE, Upper::INFINITE),
         }
     }
