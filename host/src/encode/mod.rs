@@ -251,7 +251,13 @@ pub fn encode_with(k: &Csr, options: &EncodeOptions) -> Result<Encoding, EncodeE
     } else {
         0..q.n
     };
-    let shares = partition::partition(&q, stored_rows, options.partition, options.mvus);
+    let shares = partition::partition(
+        &q,
+        stored_rows,
+        mirrored_rows.clone(),
+        options.partition,
+        options.mvus,
+    );
     let mut sink = tiling::TileSink::new(n);
     for (mvu, pieces) in shares.iter().enumerate() {
         let mvu = mvu as u8;
