@@ -30,9 +30,10 @@
 //! a second address (`p[n−1−col_base] − 16·c`) and a second set of accumulators.
 //!
 //! Where the plan allows it ([`crate::cg::Plan::split`]: rows of at most 2048 words and
-//! Σ|q| below 2^22), the one- and three-direction mirrored loops keep split sums instead
-//! ([`rebuild_split`]): per product `mul`, `mulh` of the word shifted by 11 and two `add`s, the
-//! row's exact sum rebuilt at its end; 19 and 39 instructions a word instead of 23 and 51.
+//! Σ|q| below 2^22), the three-direction loops and the one-direction mirrored loop keep split
+//! sums instead ([`rebuild_split`]): per product `mul`, `mulh` of the word shifted by 11 and two
+//! `add`s, the row's exact sum rebuilt at its end; 23 instructions a word instead of 29 (three
+//! directions, whole), 19 and 39 instead of 23 and 51 (one and three, mirrored).
 #![allow(unsafe_code)]
 
 use deform_shared::protocol::MAX_DIRECTIONS;
@@ -155,7 +156,8 @@ pub fn p_kp_and_max(
 /// - `y` points at `rows` writable slots (and `y_mirror` at the top of `rows` slots going
 ///   down, for `MIRROR`) that no one else accesses during the call.
 ///
-/// `SPLIT` (the firmware's one- and three-direction mirrored loops; others ignore it) sums each
+/// `SPLIT` (the firmware's three-direction loops and one-direction mirrored loop; others
+/// ignore it) sums each
 /// row as split sums ([`rebuild_split`]), which the caller allows only for rows within
 /// [`SPLIT_MAX_WORDS`] and [`SPLIT_MAX_ROW_ABS`] ([`crate::cg::Plan::split`]); the sums are the
 /// same bits.
@@ -178,7 +180,7 @@ pub unsafe fn run_tile<const D: usize, const MIRROR: bool, const STORE: bool, co
                 if MIRROR {
                     riscv::mirrored_row::<D, SPLIT>(w, cols, mirror_cols, &mut acc, &mut mirror_acc)
                 } else {
-                    riscv::row(w, cols, &mut acc)
+                    riscv::row::<D, SPLIT>(w, cols, &mut acc)
                 }
             };
         }
@@ -258,7 +260,8 @@ unsafe fn portable_row<const D: usize, const MIRROR: bool>(
 }
 
 /// [`run_tile`] for a run-time direction count (1..=3), mirror flag, row end and split sums
-/// (used by the one- and three-direction mirrored loops only, the others being exact anyway).
+/// (used by the three-direction loops and the one-direction mirrored loop only: the one- and
+/// two-direction whole loops keep their exact sums, the two-direction mirrored one too).
 ///
 /// # Safety
 ///
@@ -278,6 +281,8 @@ pub unsafe fn run_tile_dyn(
             (1, true, true, true) => run_tile::<1, true, true, true>(t),
             (3, true, false, true) => run_tile::<3, true, false, true>(t),
             (3, true, true, true) => run_tile::<3, true, true, true>(t),
+            (3, false, false, true) => run_tile::<3, false, false, true>(t),
+            (3, false, true, true) => run_tile::<3, false, true, true>(t),
             (1, false, false, _) => run_tile::<1, false, false, false>(t),
             (2, false, false, _) => run_tile::<2, false, false, false>(t),
             (1, true, false, _) => run_tile::<1, true, false, false>(t),
@@ -347,12 +352,21 @@ mod riscv {
     /// `w` points at a row of a validated tile and `cols` at p[col_base] (see
     /// [`super::run_tile`]).
     #[inline(always)]
-    pub unsafe fn row<const D: usize>(
+    pub unsafe fn row<const D: usize, const SPLIT: bool>(
         w: *const u32,
         cols: *const u8,
         acc: &mut [i64; D],
     ) -> *const u32 {
         let _: *const Lanes = cols.cast();
+        if SPLIT && D == 3 {
+            let mut a = [0u32; 2 * MAX_DIRECTIONS];
+            // SAFETY: forwarded; the caller allows split sums for these rows.
+            let wp = unsafe { split_row3(w, cols, &mut a) };
+            for (d, acc) in acc.iter_mut().enumerate() {
+                *acc = rebuild_split(a[2 * d], a[2 * d + 1]);
+            }
+            return wp;
+        }
         let mut wp = w;
         let mut a = [0u32; 2 * MAX_DIRECTIONS];
         match D {
@@ -904,6 +918,74 @@ mod riscv {
                     options(nostack, readonly),
                 );
             }
+        }
+        wp
+    }
+
+    /// [`row`]'s three-direction loop as split sums ([`rebuild_split`]): `a[2d]` gets
+    /// Σ `mul(v, p)` and `a[2d + 1]` Σ `mulh(w << 11, p)`; 23 instructions a word against 29.
+    ///
+    /// # Safety
+    ///
+    /// As [`row`], and the row within [`super::SPLIT_MAX_WORDS`] and
+    /// [`super::SPLIT_MAX_ROW_ABS`].
+    #[inline(always)]
+    unsafe fn split_row3(
+        w: *const u32,
+        cols: *const u8,
+        a: &mut [u32; 2 * MAX_DIRECTIONS],
+    ) -> *const u32 {
+        let mut wp = w;
+        // SAFETY: reads only the row's words and p[col_base + c] (lanes at offsets 0, 4, 8).
+        unsafe {
+            asm!(
+                "2:",
+                "lw {w}, 0({wp})",
+                "addi {wp}, {wp}, 4",
+                "srli {t}, {w}, {cs}",
+                "slli {vv}, {w}, {vs}",
+                "and {t}, {t}, {mask}",
+                "srai {v}, {vv}, {vs}",
+                "add {t}, {t}, {base}",
+                "lw {p}, 0({t})",
+                "lw {q}, 4({t})",
+                "lw {r}, 8({t})",
+                "mul {m}, {v}, {p}",
+                "mulh {p}, {vv}, {p}",
+                "mul {n}, {v}, {q}",
+                "mulh {q}, {vv}, {q}",
+                "add {a0}, {a0}, {m}",
+                "add {a1}, {a1}, {p}",
+                "mul {m}, {v}, {r}",
+                "mulh {r}, {vv}, {r}",
+                "add {a2}, {a2}, {n}",
+                "add {a3}, {a3}, {q}",
+                "add {a4}, {a4}, {m}",
+                "add {a5}, {a5}, {r}",
+                "bltu {w}, {er}, 2b",
+                wp = inout(reg) wp,
+                a0 = inout(reg) a[0],
+                a1 = inout(reg) a[1],
+                a2 = inout(reg) a[2],
+                a3 = inout(reg) a[3],
+                a4 = inout(reg) a[4],
+                a5 = inout(reg) a[5],
+                base = in(reg) cols,
+                mask = in(reg) COLUMN_OFFSET_MASK,
+                er = in(reg) ER_BIT,
+                cs = const COLUMN_OFFSET_SHIFT,
+                vs = const VALUE_SIGN_SHIFT,
+                w = out(reg) _,
+                t = out(reg) _,
+                v = out(reg) _,
+                vv = out(reg) _,
+                p = out(reg) _,
+                q = out(reg) _,
+                r = out(reg) _,
+                m = out(reg) _,
+                n = out(reg) _,
+                options(nostack, readonly),
+            );
         }
         wp
     }
