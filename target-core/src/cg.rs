@@ -58,8 +58,8 @@ use deform_shared::word::ER_BIT;
 use crate::exec::{share, SharedSlice};
 pub use crate::exec::{Executor, NoClock, PhaseClock, Sequential};
 use crate::kernel::{
-    p_kp_and_max, run_tile_dyn, Lanes, Sums, TileRun, SPLIT_MAX_ROW_ABS, SPLIT_MAX_WORDS,
-    VALUE_SIGN_SHIFT,
+    p_kp_and_max, p_kp_bounded, run_tile_dyn, Lanes, Sums, TileRun, P_KP_BOUNDED_ROWS,
+    SPLIT_MAX_ROW_ABS, SPLIT_MAX_WORDS, VALUE_SIGN_SHIFT,
 };
 use crate::svu::{
     self, bound_of, bound_of_squares, bound_of_u64, check_bound, magnitude_bits, sum_squares,
@@ -778,7 +778,7 @@ impl<E: Executor> Engine<'_, '_, E> {
                     self.kp.slice_mut(rows.lo..rows.hi),
                 )
             };
-            let (s, o) = p_kp_and_max(p, kp, self.directions);
+            let (s, o) = self.p_kp(p, kp);
             for d in 0..MAX_DIRECTIONS {
                 p_kp[d] += s[d];
                 or[d] |= o[d];
@@ -834,8 +834,19 @@ impl<E: Executor> Engine<'_, '_, E> {
         }
         // SAFETY: p is only read during this phase.
         let p = unsafe { &self.p.as_slice()[range] };
-        let (p_kp, or) = p_kp_and_max(p, kp, self.directions);
+        let (p_kp, or) = self.p_kp(p, kp);
         self.put_mvu(p_kp, or);
+    }
+
+    /// pᵀKp and the OR of |Kp| over finished rows: [`p_kp_bounded`] where the plan bounds |Kp|
+    /// below 2^52 (split sums allowed) and the rows are few enough, else [`p_kp_and_max`].
+    #[inline(always)]
+    fn p_kp(&self, p: &[Lanes], kp: &[Sums]) -> ([i128; MAX_DIRECTIONS], [u64; MAX_DIRECTIONS]) {
+        if self.a.plan.split && kp.len() <= P_KP_BOUNDED_ROWS {
+            p_kp_bounded(p, kp, self.directions)
+        } else {
+            p_kp_and_max(p, kp, self.directions)
+        }
     }
 
     /// SVU pass R on every hart: r ← r − α·Kp for each planned direction.

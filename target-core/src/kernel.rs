@@ -139,6 +139,59 @@ pub fn p_kp_and_max(
     (p_kp, or)
 }
 
+/// Rows [`p_kp_bounded`] takes at once: below 2^13, so that pᵀKp over them stays below 2^95.
+pub const P_KP_BOUNDED_ROWS: usize = (1 << 13) - 1;
+
+/// [`p_kp_and_max`] for rows whose |Kp| is below 2^52 (every row of a matrix the plan allows
+/// split sums for, [`crate::cg::Plan::split`]: |Kp| ≤ Σ|q|·2^30 < 2^52) and |p| ≤ 2^30, at most
+/// [`P_KP_BOUNDED_ROWS`] rows: the same results, with about five instructions fewer per row and
+/// direction.
+///
+/// The four 32-bit words of p·lo (lo unsigned) and p·hi are summed in 32-bit words: the
+/// lowest with its carries counted apart, the signed high word of p·lo offset by 2^31 (an
+/// `xor`) so that it is summed unsigned, with its carries and those of p·hi's low word into
+/// the top word, which takes p·hi's high word and simply wraps: |pᵀKp| < 2^13·2^30·2^52 =
+/// 2^95, so the sum modulo 2^96, less the offsets, sign-extended from bit 95, is exact.
+pub fn p_kp_bounded(
+    p: &[Lanes],
+    kp: &[Sums],
+    directions: usize,
+) -> ([i128; MAX_DIRECTIONS], [u64; MAX_DIRECTIONS]) {
+    let mut p_kp = [0i128; MAX_DIRECTIONS];
+    let mut or = [0u64; MAX_DIRECTIONS];
+    let rows = p.len().min(kp.len());
+    for d in 0..directions.min(MAX_DIRECTIONS) {
+        let (mut x0, mut k1, mut y1, mut y2) = (0u32, 0u32, 0u32, 0u32);
+        let (mut o0, mut o1) = (0u32, 0u32);
+        for (pi, ki) in p.iter().zip(kp) {
+            let (pd, v) = (i64::from(pi[d]), ki[d]);
+            let (lo, hi) = (v as u32, (v >> 32) as i32);
+            let low = pd * i64::from(lo);
+            let high = pd * i64::from(hi);
+            let a = low as u32;
+            let b = ((low >> 32) as u32) ^ (1 << 31);
+            let (c, top) = (high as u32, (high >> 32) as u32);
+            x0 = x0.wrapping_add(a);
+            k1 = k1.wrapping_add(u32::from(x0 < a));
+            y1 = y1.wrapping_add(b);
+            let c1 = u32::from(y1 < b);
+            y1 = y1.wrapping_add(c);
+            let c2 = u32::from(y1 < c);
+            y2 = y2.wrapping_add(top).wrapping_add(c1).wrapping_add(c2);
+            let sign = (hi >> 31) as u32;
+            o0 |= lo ^ sign;
+            o1 |= (hi as u32) ^ sign;
+        }
+        let sum = u128::from(x0)
+            .wrapping_add((u128::from(y1) + u128::from(k1)) << 32)
+            .wrapping_add(u128::from(y2) << 64)
+            .wrapping_sub((rows as u128) << 63);
+        p_kp[d] = ((sum << 32) as i128) >> 32;
+        or[d] = (u64::from(o1) << 32) | u64::from(o0);
+    }
+    (p_kp, or)
+}
+
 /// Runs one tile for `D` fused directions (`MIRROR`: persymmetric half storage), each row sum
 /// *stored* into `y` (and each mirror row's into `y_mirror`) if `STORE`, else *added*.
 ///
@@ -1107,5 +1160,79 @@ mod tests {
         // A coarse sum past 2^31: Σ|q| = 2^22 + 2^12 at |p| just below 2^30.
         let big = vec![((1 << 20) - 1, (1 << 30) - 1); 5];
         assert_ne!(split_sum(&big), exact_sum(&big));
+    }
+
+    /// The bounded pᵀKp equals the general one at its limits: |Kp| up to 2^52 − 1 at either
+    /// sign, |p| up to 2^30, the most rows, and random rows within them.
+    #[test]
+    fn bounded_p_kp_equals_the_general_one() {
+        let mut rng = crate::test_rng::Rng(0xB0D1_0057_0001);
+        let k_max = (1i64 << 52) - 1;
+        let p_max = 1i32 << 30;
+        let mut cases: Vec<(Vec<Lanes>, Vec<Sums>)> = Vec::new();
+        let rows = P_KP_BOUNDED_ROWS;
+        for (ps, ks) in [
+            (p_max, k_max),
+            (-p_max, k_max),
+            (p_max, -k_max),
+            (-p_max, -k_max),
+        ] {
+            cases.push((vec![[ps, -ps, ps, 0]; rows], vec![[ks, ks, -ks]; rows]));
+        }
+        // Low words at their largest, high words at zero and −1, zeros.
+        let edges = [
+            0i64,
+            1,
+            -1,
+            u32::MAX as i64,
+            -(u32::MAX as i64),
+            1 << 32,
+            k_max,
+            -k_max,
+        ];
+        let (mut p, mut kp) = (Vec::new(), Vec::new());
+        for i in 0..rows {
+            let q = [p_max, -p_max, 0, 1, -1, p_max - 1][i % 6];
+            p.push([q, -q, q / 3, 0]);
+            let v = edges[i % edges.len()];
+            kp.push([v, edges[(i / 7) % edges.len()], -v]);
+        }
+        cases.push((p, kp));
+        for _ in 0..20 {
+            let len = rng.below(rows as u64 + 1) as usize;
+            let draw_p = |rng: &mut crate::test_rng::Rng| {
+                (rng.below(2 * p_max as u64 + 1) as i64 - p_max as i64) as i32
+            };
+            let draw_k = |rng: &mut crate::test_rng::Rng| {
+                let bits = rng.below(53);
+                let k = (rng.next() >> (64 - bits.max(1))) as i64;
+                if rng.next() & 1 == 0 {
+                    k
+                } else {
+                    -k
+                }
+            };
+            let p: Vec<Lanes> = (0..len)
+                .map(|_| [draw_p(&mut rng), draw_p(&mut rng), draw_p(&mut rng), 0])
+                .collect();
+            let kp: Vec<Sums> = (0..len)
+                .map(|_| [draw_k(&mut rng), draw_k(&mut rng), draw_k(&mut rng)])
+                .collect();
+            cases.push((p, kp));
+        }
+        // Twice the rows at the largest products: the sum passes 2^95 and the result is wrong.
+        let over = 2 * rows;
+        let (p, kp) = (vec![[p_max; 4]; over], vec![[k_max; 3]; over]);
+        assert_ne!(p_kp_bounded(&p, &kp, 1).0, p_kp_and_max(&p, &kp, 1).0);
+        for (i, (p, kp)) in cases.iter().enumerate() {
+            assert!(kp.iter().flatten().all(|v| v.unsigned_abs() < 1 << 52));
+            for directions in [1, 3] {
+                assert_eq!(
+                    p_kp_bounded(p, kp, directions),
+                    p_kp_and_max(p, kp, directions),
+                    "case {i}, {directions} direction(s)"
+                );
+            }
+        }
     }
 }
