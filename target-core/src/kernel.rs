@@ -210,14 +210,19 @@ pub fn p_kp_bounded(
 ///   down, for `MIRROR`) that no one else accesses during the call.
 ///
 /// `SPLIT` (the firmware's three-direction loops and one-direction mirrored loop; others
-/// ignore it) sums each
-/// row as split sums ([`rebuild_split`]), which the caller allows only for rows within
-/// [`SPLIT_MAX_WORDS`] and [`SPLIT_MAX_ROW_ABS`] ([`crate::cg::Plan::split`]); the sums are the
-/// same bits.
+/// ignore it) sums each row as split sums ([`rebuild_split`]), which the caller allows only
+/// for rows within [`SPLIT_MAX_WORDS`] and [`SPLIT_MAX_ROW_ABS`] ([`crate::cg::Plan::split`]);
+/// the sums are the same bits.
 #[inline(always)]
 pub unsafe fn run_tile<const D: usize, const MIRROR: bool, const STORE: bool, const SPLIT: bool>(
     t: &TileRun,
 ) {
+    #[cfg(target_arch = "riscv32")]
+    if D == 3 && MIRROR && STORE && SPLIT {
+        // SAFETY: forwarded; the whole tile, row ends included, in one loop.
+        unsafe { riscv::split_mirrored_tile3_store(t) };
+        return;
+    }
     let mut w = t.words;
     let mut y = t.y;
     let mut y_mirror = t.y_mirror;
@@ -1041,6 +1046,159 @@ mod riscv {
             );
         }
         wp
+    }
+
+    /// A whole three-direction mirrored tile as split sums, each row's sums rebuilt
+    /// ([`rebuild_split`]) and stored at its row end inside the loop: the word loop of
+    /// [`split_mirrored_row`] (39 instructions a word) and 56 a row (the 12 sums zeroed, six
+    /// rebuilt and stored, the two row pointers stepped), where the compiler's row end around
+    /// the 27-register loop spilled and reloaded every sum (about 74). The row pointers and
+    /// the end live in `st`, the one register left over.
+    ///
+    /// # Safety
+    ///
+    /// As [`super::run_tile`] with `STORE` and `SPLIT` (`rows` ≥ 1, as validated tiles have).
+    #[inline(never)]
+    pub unsafe fn split_mirrored_tile3_store(tile: &super::TileRun) {
+        let y_end = tile.y.wrapping_add(tile.rows as usize);
+        let mut st = [tile.y as usize, tile.y_mirror as usize, y_end as usize];
+        // SAFETY: reads the tile's words and p[col_base + c], p[n − 1 − col_base − c]; writes
+        // the tile's rows and mirror rows of y (the caller's promise) and `st`.
+        unsafe {
+            asm!(
+                "3:",
+                "li {a0}, 0",
+                "li {a1}, 0",
+                "li {a2}, 0",
+                "li {a3}, 0",
+                "li {a4}, 0",
+                "li {a5}, 0",
+                "li {a6}, 0",
+                "li {a7}, 0",
+                "li {a8}, 0",
+                "li {a9}, 0",
+                "li {a10}, 0",
+                "li {a11}, 0",
+                "2:",
+                "lw {w}, 0({wp})",
+                "addi {wp}, {wp}, 4",
+                "srli {t}, {w}, {cs}",
+                "slli {vv}, {w}, {vs}",
+                "and {t}, {t}, {mask}",
+                "srai {v}, {vv}, {vs}",
+                "sub {tm}, {mbase}, {t}",
+                "add {t}, {t}, {base}",
+                "lw {p}, 0({t})",
+                "lw {q}, 4({t})",
+                "lw {r}, 8({t})",
+                "mul {m}, {v}, {p}",
+                "mulh {p}, {vv}, {p}",
+                "mul {n}, {v}, {q}",
+                "mulh {q}, {vv}, {q}",
+                "add {a0}, {a0}, {m}",
+                "add {a1}, {a1}, {p}",
+                "mul {m}, {v}, {r}",
+                "mulh {r}, {vv}, {r}",
+                "add {a2}, {a2}, {n}",
+                "add {a3}, {a3}, {q}",
+                "lw {p}, 0({tm})",
+                "lw {q}, 4({tm})",
+                "add {a4}, {a4}, {m}",
+                "add {a5}, {a5}, {r}",
+                "lw {r}, 8({tm})",
+                "mul {m}, {v}, {p}",
+                "mulh {p}, {vv}, {p}",
+                "mul {n}, {v}, {q}",
+                "mulh {q}, {vv}, {q}",
+                "add {a6}, {a6}, {m}",
+                "add {a7}, {a7}, {p}",
+                "mul {m}, {v}, {r}",
+                "mulh {r}, {vv}, {r}",
+                "add {a8}, {a8}, {n}",
+                "add {a9}, {a9}, {q}",
+                "add {a10}, {a10}, {m}",
+                "add {a11}, {a11}, {r}",
+                "bltu {w}, {er}, 2b",
+                // Row end: S = 2^21·coarse + (low − 2^21·coarse mod 2^32), per sum.
+                "lw {t}, 0({st})",
+                "lw {tm}, 4({st})",
+                "slli {p}, {a1}, {ss}",
+                "srai {q}, {a1}, {hs}",
+                "sltu {p}, {a0}, {p}",
+                "add {q}, {q}, {p}",
+                "sw {a0}, 0({t})",
+                "sw {q}, 4({t})",
+                "slli {p}, {a3}, {ss}",
+                "srai {q}, {a3}, {hs}",
+                "sltu {p}, {a2}, {p}",
+                "add {q}, {q}, {p}",
+                "sw {a2}, 8({t})",
+                "sw {q}, 12({t})",
+                "slli {p}, {a5}, {ss}",
+                "srai {q}, {a5}, {hs}",
+                "sltu {p}, {a4}, {p}",
+                "add {q}, {q}, {p}",
+                "sw {a4}, 16({t})",
+                "sw {q}, 20({t})",
+                "slli {p}, {a7}, {ss}",
+                "srai {q}, {a7}, {hs}",
+                "sltu {p}, {a6}, {p}",
+                "add {q}, {q}, {p}",
+                "sw {a6}, 0({tm})",
+                "sw {q}, 4({tm})",
+                "slli {p}, {a9}, {ss}",
+                "srai {q}, {a9}, {hs}",
+                "sltu {p}, {a8}, {p}",
+                "add {q}, {q}, {p}",
+                "sw {a8}, 8({tm})",
+                "sw {q}, 12({tm})",
+                "slli {p}, {a11}, {ss}",
+                "srai {q}, {a11}, {hs}",
+                "sltu {p}, {a10}, {p}",
+                "add {q}, {q}, {p}",
+                "sw {a10}, 16({tm})",
+                "sw {q}, 20({tm})",
+                "addi {t}, {t}, 24",
+                "addi {tm}, {tm}, -24",
+                "sw {t}, 0({st})",
+                "sw {tm}, 4({st})",
+                "lw {p}, 8({st})",
+                "bne {t}, {p}, 3b",
+                wp = inout(reg) tile.words => _,
+                st = in(reg) st.as_mut_ptr(),
+                base = in(reg) tile.p_cols,
+                mbase = in(reg) tile.p_mirror_cols,
+                mask = in(reg) COLUMN_OFFSET_MASK,
+                er = in(reg) ER_BIT,
+                cs = const COLUMN_OFFSET_SHIFT,
+                vs = const VALUE_SIGN_SHIFT,
+                ss = const super::SPLIT_SHIFT,
+                hs = const 32 - super::SPLIT_SHIFT,
+                a0 = out(reg) _,
+                a1 = out(reg) _,
+                a2 = out(reg) _,
+                a3 = out(reg) _,
+                a4 = out(reg) _,
+                a5 = out(reg) _,
+                a6 = out(reg) _,
+                a7 = out(reg) _,
+                a8 = out(reg) _,
+                a9 = out(reg) _,
+                a10 = out(reg) _,
+                a11 = out(reg) _,
+                w = out(reg) _,
+                t = out(reg) _,
+                tm = out(reg) _,
+                v = out(reg) _,
+                vv = out(reg) _,
+                p = out(reg) _,
+                q = out(reg) _,
+                r = out(reg) _,
+                m = out(reg) _,
+                n = out(reg) _,
+                options(nostack),
+            );
+        }
     }
 }
 
