@@ -39,8 +39,8 @@ pub const ROW_WEIGHT: u64 = 3;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Partition {
-    /// Disjoint row blocks balanced by nonzero count (thesis 4.1.2): each MVU writes its rows
-    /// of Kp directly.
+    /// Disjoint row blocks balanced by nonzero count and rows (thesis 4.1.2, each row of Kp
+    /// weighing [`ROW_WEIGHT`] words): each MVU writes its rows of Kp directly.
     #[default]
     Rows,
     /// Equal runs of the nonzero stream whose boundary rows are shared (thesis 4.1.1): exact
