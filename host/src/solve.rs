@@ -29,8 +29,9 @@ use crate::refine::{default_max_iterations, solve_refined, RefineParams};
 #[derive(Debug, Clone, Default, PartialEq, Eq, Args)]
 pub struct LayoutFlags {
     /// How the matrix is split over the MVUs: `rows` gives each MVU a block of whole rows
-    /// balanced by nonzero count, which it writes directly (thesis 4.1.2); `overlap` cuts the
-    /// nonzeros into exactly equal runs, whose boundary rows two MVUs share and add (4.1.1).
+    /// balanced by nonzero count and rows, which it writes directly (thesis 4.1.2); `overlap`
+    /// cuts the nonzeros into exactly equal runs, whose boundary rows two MVUs share and add
+    /// (4.1.1).
     #[arg(long, value_enum, default_value_t = Partition::Rows)]
     pub partition: Partition,
 

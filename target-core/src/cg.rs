@@ -57,7 +57,10 @@ use deform_shared::word::ER_BIT;
 
 use crate::exec::{share, SharedSlice};
 pub use crate::exec::{Executor, NoClock, PhaseClock, Sequential};
-use crate::kernel::{p_kp_and_max, run_tile_dyn, Lanes, Sums, TileRun, VALUE_SIGN_SHIFT};
+use crate::kernel::{
+    p_kp_and_max, p_kp_bounded, run_tile_dyn, Lanes, Sums, TileRun, P_KP_BOUNDED_ROWS,
+    SPLIT_MAX_ROW_ABS, SPLIT_MAX_WORDS, VALUE_SIGN_SHIFT,
+};
 use crate::svu::{
     self, bound_of, bound_of_squares, bound_of_u64, check_bound, magnitude_bits, sum_squares,
     Block, HartOut, Lin, Narrow, PassR, PassXP, Scalar, Threshold,
@@ -136,6 +139,10 @@ pub struct Plan {
     /// ([`crate::kernel::run_tile`]). Otherwise rows are zeroed, added into and finished in
     /// the MVU phase's second step.
     pub fused: bool,
+    /// Every row of K has at most [`SPLIT_MAX_WORDS`] words and Σ|q| at most
+    /// [`SPLIT_MAX_ROW_ABS`]: then the MVU loops may sum its rows as split sums
+    /// ([`crate::kernel::rebuild_split`]), two instructions fewer per product, the same bits.
+    pub split: bool,
     /// ‖K‖∞ in raw value units: the largest Σ_j |q_ij| over the rows (mirrors included). It
     /// bounds ‖K·v‖₂ ≤ ‖K‖∞·‖v‖₂ (K is symmetric), which a live frame's residual estimate
     /// needs ([`crate::superpose`]).
@@ -199,6 +206,7 @@ pub fn plan(
         offsets: [[0; 2]; MAX_HARTS],
         partial_len: 0,
         fused: false,
+        split: false,
         row_abs_max: 0,
         row_abs: Upper::ZERO,
         root_n: root_n(n),
@@ -265,6 +273,8 @@ pub fn plan(
     plan.fused = !plan.overlapping && counts.len() == n && counts.iter().all(|c| c[1] == 1);
     plan.row_abs_max = counts.iter().map(|c| c[2] as u64).max().unwrap_or(0);
     plan.row_abs = Upper::new(plan.row_abs_max, 0);
+    let max_words = counts.iter().map(|c| c[0] as u64).max().unwrap_or(0);
+    plan.split = max_words <= SPLIT_MAX_WORDS && plan.row_abs_max <= SPLIT_MAX_ROW_ABS;
     if plan.overlapping {
         let mut next = 0usize;
         for h in 0..plan.mvus {
@@ -740,7 +750,7 @@ impl<E: Executor> Engine<'_, '_, E> {
             // structure) and sized p, kp and the pool for n and the plan; the tile's rows and
             // mirror rows lie in this MVU's hulls, which map to slots only it writes; p is only
             // read during this phase.
-            unsafe { run_tile_dyn(&run, self.directions, t.mirrored, plan.fused) };
+            unsafe { run_tile_dyn(&run, self.directions, t.mirrored, plan.fused, plan.split) };
             if let Some((own, mirror)) = saved {
                 // SAFETY: as above.
                 unsafe { carry(y, own, self.directions) };
@@ -768,7 +778,7 @@ impl<E: Executor> Engine<'_, '_, E> {
                     self.kp.slice_mut(rows.lo..rows.hi),
                 )
             };
-            let (s, o) = p_kp_and_max(p, kp, self.directions);
+            let (s, o) = self.p_kp(p, kp);
             for d in 0..MAX_DIRECTIONS {
                 p_kp[d] += s[d];
                 or[d] |= o[d];
@@ -824,8 +834,19 @@ impl<E: Executor> Engine<'_, '_, E> {
         }
         // SAFETY: p is only read during this phase.
         let p = unsafe { &self.p.as_slice()[range] };
-        let (p_kp, or) = p_kp_and_max(p, kp, self.directions);
+        let (p_kp, or) = self.p_kp(p, kp);
         self.put_mvu(p_kp, or);
+    }
+
+    /// pᵀKp and the OR of |Kp| over finished rows: [`p_kp_bounded`] where the plan bounds |Kp|
+    /// below 2^52 (split sums allowed) and the rows are few enough, else [`p_kp_and_max`].
+    #[inline(always)]
+    fn p_kp(&self, p: &[Lanes], kp: &[Sums]) -> ([i128; MAX_DIRECTIONS], [u64; MAX_DIRECTIONS]) {
+        if self.a.plan.split && kp.len() <= P_KP_BOUNDED_ROWS {
+            p_kp_bounded(p, kp, self.directions)
+        } else {
+            p_kp_and_max(p, kp, self.directions)
+        }
     }
 
     /// SVU pass R on every hart: r ← r − α·Kp for each planned direction.

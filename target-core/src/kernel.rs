@@ -28,6 +28,12 @@
 //! branch back unless the word has ER (an unsigned compare `w < 2^30` tests ER and EM at
 //! once, since a validated tile sets EM only on a word that also has ER). A mirrored tile adds
 //! a second address (`p[n−1−col_base] − 16·c`) and a second set of accumulators.
+//!
+//! Where the plan allows it ([`crate::cg::Plan::split`]: rows of at most 2048 words and
+//! Σ|q| below 2^22), the three-direction loops and the one-direction mirrored loop keep split
+//! sums instead ([`rebuild_split`]): per product `mul`, `mulh` of the word shifted by 11 and two
+//! `add`s, the row's exact sum rebuilt at its end; 23 instructions a word instead of 29 (three
+//! directions, whole), 19 and 39 instead of 23 and 51 (one and three, mirrored).
 #![allow(unsafe_code)]
 
 use deform_shared::protocol::MAX_DIRECTIONS;
@@ -46,6 +52,30 @@ pub const COLUMN_OFFSET_SHIFT: u32 = COLUMN_SHIFT - LANE_SHIFT;
 pub const COLUMN_OFFSET_MASK: u32 = (COLUMN_WINDOW - 1) << LANE_SHIFT;
 /// `((w << VALUE_SIGN_SHIFT) as i32) >> VALUE_SIGN_SHIFT` is word w's value, sign-extended.
 pub const VALUE_SIGN_SHIFT: u32 = 32 - VALUE_BITS;
+
+/// Split sums ([`rebuild_split`]): the weight of a row's coarse sum, 2^21. The loops form
+/// `mulh(w << VALUE_SIGN_SHIFT, p)` = ⌊v·p / 2^21⌋, the word shifted as it is for its value.
+pub const SPLIT_SHIFT: u32 = 32 - VALUE_SIGN_SHIFT;
+/// Split sums are exact for a tile row of at most this many words (its coarse sum is below the
+/// exact one by less than one unit, 2^21, per word: less than 2^32 in all).
+pub const SPLIT_MAX_WORDS: u64 = 1 << (32 - SPLIT_SHIFT);
+/// … and Σ|q| over the row (raw units) at most this: with |p| ≤ 2^30 the coarse sum then stays
+/// inside `i32` (|⌊S / 2^21⌋| ≤ Σ|q|·2^9 + words < 2^31).
+pub const SPLIT_MAX_ROW_ABS: u64 = (1 << (31 - 30 + SPLIT_SHIFT)) - SPLIT_MAX_WORDS;
+
+/// A row's exact sum S from its split sums: `low` = S mod 2^32 (the `mul` words summed, wrapping)
+/// and `coarse` = Σ ⌊v·p / 2^21⌋ (the `mulh` words of the shifted value, wrapping). The coarse
+/// sum times 2^21 is below S by e ∈ [0, 2^32) (less than 2^21 per word, [`SPLIT_MAX_WORDS`]
+/// words) and is exact as an `i32` ([`SPLIT_MAX_ROW_ABS`]), so S = 2^21·coarse + e, where e is
+/// `low` − 2^21·coarse mod 2^32: S's low word is `low`, its high word that of 2^21·coarse plus
+/// the carry of adding e. Each product then costs `mul`, `mulh` and two `add`s instead of the
+/// exact 64-bit sum's `mul`, `mulh` and four (`add`, `sltu`, `add`, `add`).
+#[inline(always)]
+pub fn rebuild_split(low: u32, coarse: u32) -> i64 {
+    let t = coarse << SPLIT_SHIFT;
+    let high = (((coarse as i32) >> (32 - SPLIT_SHIFT)) as u32).wrapping_add(u32::from(low < t));
+    ((u64::from(high) << 32) | u64::from(low)) as i64
+}
 
 // The loops below rely on this layout: 16-byte lanes, the column field right above the value
 // field, ER right above the column field and EM above ER (so `w < ER_BIT` means "neither").
@@ -109,6 +139,59 @@ pub fn p_kp_and_max(
     (p_kp, or)
 }
 
+/// Rows [`p_kp_bounded`] takes at once: below 2^13, so that pᵀKp over them stays below 2^95.
+pub const P_KP_BOUNDED_ROWS: usize = (1 << 13) - 1;
+
+/// [`p_kp_and_max`] for rows whose |Kp| is below 2^52 (every row of a matrix the plan allows
+/// split sums for, [`crate::cg::Plan::split`]: |Kp| ≤ Σ|q|·2^30 < 2^52) and |p| ≤ 2^30, at most
+/// [`P_KP_BOUNDED_ROWS`] rows: the same results, with about five instructions fewer per row and
+/// direction.
+///
+/// The four 32-bit words of p·lo (lo unsigned) and p·hi are summed in 32-bit words: the
+/// lowest with its carries counted apart, the signed high word of p·lo offset by 2^31 (an
+/// `xor`) so that it is summed unsigned, with its carries and those of p·hi's low word into
+/// the top word, which takes p·hi's high word and simply wraps: |pᵀKp| < 2^13·2^30·2^52 =
+/// 2^95, so the sum modulo 2^96, less the offsets, sign-extended from bit 95, is exact.
+pub fn p_kp_bounded(
+    p: &[Lanes],
+    kp: &[Sums],
+    directions: usize,
+) -> ([i128; MAX_DIRECTIONS], [u64; MAX_DIRECTIONS]) {
+    let mut p_kp = [0i128; MAX_DIRECTIONS];
+    let mut or = [0u64; MAX_DIRECTIONS];
+    let rows = p.len().min(kp.len());
+    for d in 0..directions.min(MAX_DIRECTIONS) {
+        let (mut x0, mut k1, mut y1, mut y2) = (0u32, 0u32, 0u32, 0u32);
+        let (mut o0, mut o1) = (0u32, 0u32);
+        for (pi, ki) in p.iter().zip(kp) {
+            let (pd, v) = (i64::from(pi[d]), ki[d]);
+            let (lo, hi) = (v as u32, (v >> 32) as i32);
+            let low = pd * i64::from(lo);
+            let high = pd * i64::from(hi);
+            let a = low as u32;
+            let b = ((low >> 32) as u32) ^ (1 << 31);
+            let (c, top) = (high as u32, (high >> 32) as u32);
+            x0 = x0.wrapping_add(a);
+            k1 = k1.wrapping_add(u32::from(x0 < a));
+            y1 = y1.wrapping_add(b);
+            let c1 = u32::from(y1 < b);
+            y1 = y1.wrapping_add(c);
+            let c2 = u32::from(y1 < c);
+            y2 = y2.wrapping_add(top).wrapping_add(c1).wrapping_add(c2);
+            let sign = (hi >> 31) as u32;
+            o0 |= lo ^ sign;
+            o1 |= (hi as u32) ^ sign;
+        }
+        let sum = u128::from(x0)
+            .wrapping_add((u128::from(y1) + u128::from(k1)) << 32)
+            .wrapping_add(u128::from(y2) << 64)
+            .wrapping_sub((rows as u128) << 63);
+        p_kp[d] = ((sum << 32) as i128) >> 32;
+        or[d] = (u64::from(o1) << 32) | u64::from(o0);
+    }
+    (p_kp, or)
+}
+
 /// Runs one tile for `D` fused directions (`MIRROR`: persymmetric half storage), each row sum
 /// *stored* into `y` (and each mirror row's into `y_mirror`) if `STORE`, else *added*.
 ///
@@ -125,8 +208,21 @@ pub fn p_kp_and_max(
 ///   `p_mirror_cols` is `&p[n − 1 − col_base]`.
 /// - `y` points at `rows` writable slots (and `y_mirror` at the top of `rows` slots going
 ///   down, for `MIRROR`) that no one else accesses during the call.
+///
+/// `SPLIT` (the firmware's three-direction loops and one-direction mirrored loop; others
+/// ignore it) sums each row as split sums ([`rebuild_split`]), which the caller allows only
+/// for rows within [`SPLIT_MAX_WORDS`] and [`SPLIT_MAX_ROW_ABS`] ([`crate::cg::Plan::split`]);
+/// the sums are the same bits.
 #[inline(always)]
-pub unsafe fn run_tile<const D: usize, const MIRROR: bool, const STORE: bool>(t: &TileRun) {
+pub unsafe fn run_tile<const D: usize, const MIRROR: bool, const STORE: bool, const SPLIT: bool>(
+    t: &TileRun,
+) {
+    #[cfg(target_arch = "riscv32")]
+    if D == 3 && MIRROR && STORE && SPLIT {
+        // SAFETY: forwarded; the whole tile, row ends included, in one loop.
+        unsafe { riscv::split_mirrored_tile3_store(t) };
+        return;
+    }
     let mut w = t.words;
     let mut y = t.y;
     let mut y_mirror = t.y_mirror;
@@ -140,9 +236,9 @@ pub unsafe fn run_tile<const D: usize, const MIRROR: bool, const STORE: bool>(t:
             // SAFETY: as for `portable_row`, whose sums these compute exactly.
             w = unsafe {
                 if MIRROR {
-                    riscv::mirrored_row(w, cols, mirror_cols, &mut acc, &mut mirror_acc)
+                    riscv::mirrored_row::<D, SPLIT>(w, cols, mirror_cols, &mut acc, &mut mirror_acc)
                 } else {
-                    riscv::row(w, cols, &mut acc)
+                    riscv::row::<D, SPLIT>(w, cols, &mut acc)
                 }
             };
         }
@@ -221,28 +317,42 @@ unsafe fn portable_row<const D: usize, const MIRROR: bool>(
     }
 }
 
-/// [`run_tile`] for a run-time direction count (1..=3), mirror flag and row end.
+/// [`run_tile`] for a run-time direction count (1..=3), mirror flag, row end and split sums
+/// (used by the three-direction loops and the one-direction mirrored loop only: the one- and
+/// two-direction whole loops keep their exact sums, the two-direction mirrored one too).
 ///
 /// # Safety
 ///
-/// As [`run_tile`].
+/// As [`run_tile`]; `split` only where [`run_tile`] allows `SPLIT`.
 #[inline(never)]
-pub unsafe fn run_tile_dyn(t: &TileRun, directions: usize, mirrored: bool, store: bool) {
+pub unsafe fn run_tile_dyn(
+    t: &TileRun,
+    directions: usize,
+    mirrored: bool,
+    store: bool,
+    split: bool,
+) {
     // SAFETY: forwarded contract.
     unsafe {
-        match (directions, mirrored, store) {
-            (1, false, false) => run_tile::<1, false, false>(t),
-            (2, false, false) => run_tile::<2, false, false>(t),
-            (1, true, false) => run_tile::<1, true, false>(t),
-            (2, true, false) => run_tile::<2, true, false>(t),
-            (_, false, false) => run_tile::<3, false, false>(t),
-            (_, true, false) => run_tile::<3, true, false>(t),
-            (1, false, true) => run_tile::<1, false, true>(t),
-            (2, false, true) => run_tile::<2, false, true>(t),
-            (1, true, true) => run_tile::<1, true, true>(t),
-            (2, true, true) => run_tile::<2, true, true>(t),
-            (_, false, true) => run_tile::<3, false, true>(t),
-            (_, true, true) => run_tile::<3, true, true>(t),
+        match (directions, mirrored, store, split) {
+            (1, true, false, true) => run_tile::<1, true, false, true>(t),
+            (1, true, true, true) => run_tile::<1, true, true, true>(t),
+            (3, true, false, true) => run_tile::<3, true, false, true>(t),
+            (3, true, true, true) => run_tile::<3, true, true, true>(t),
+            (3, false, false, true) => run_tile::<3, false, false, true>(t),
+            (3, false, true, true) => run_tile::<3, false, true, true>(t),
+            (1, false, false, _) => run_tile::<1, false, false, false>(t),
+            (2, false, false, _) => run_tile::<2, false, false, false>(t),
+            (1, true, false, _) => run_tile::<1, true, false, false>(t),
+            (2, true, false, _) => run_tile::<2, true, false, false>(t),
+            (_, false, false, _) => run_tile::<3, false, false, false>(t),
+            (_, true, false, _) => run_tile::<3, true, false, false>(t),
+            (1, false, true, _) => run_tile::<1, false, true, false>(t),
+            (2, false, true, _) => run_tile::<2, false, true, false>(t),
+            (1, true, true, _) => run_tile::<1, true, true, false>(t),
+            (2, true, true, _) => run_tile::<2, true, true, false>(t),
+            (_, false, true, _) => run_tile::<3, false, true, false>(t),
+            (_, true, true, _) => run_tile::<3, true, true, false>(t),
         }
     }
 }
@@ -281,429 +391,7 @@ pub unsafe fn run_tile_dyn(t: &TileRun, directions: usize, mirrored: bool, store
 /// and carries differently, so a template would either fix one schedule for all or need as
 /// many cases as there are loops.
 #[cfg(target_arch = "riscv32")]
-mod riscv {
-    use super::{
-        Lanes, COLUMN_OFFSET_MASK, COLUMN_OFFSET_SHIFT, ER_BIT, MAX_DIRECTIONS, VALUE_SIGN_SHIFT,
-    };
-    use core::arch::asm;
-
-    fn join(lo: u32, hi: u32) -> i64 {
-        ((u64::from(hi) << 32) | u64::from(lo)) as i64
-    }
-
-    /// Adds one row's products into `acc` (`D` = 1, 2 or 3 directions) and returns the pointer
-    /// to the word after the row's ER word.
-    ///
-    /// # Safety
-    ///
-    /// `w` points at a row of a validated tile and `cols` at p[col_base] (see
-    /// [`super::run_tile`]).
-    #[inline(always)]
-    pub unsafe fn row<const D: usize>(
-        w: *const u32,
-        cols: *const u8,
-        acc: &mut [i64; D],
-    ) -> *const u32 {
-        let _: *const Lanes = cols.cast();
-        let mut wp = w;
-        let mut a = [0u32; 2 * MAX_DIRECTIONS];
-        match D {
-            1 => {
-                // Software-pipelined: a trip adds the previous word's product (m, hh; zero
-                // before the first word) while its own word is decoded, so no result is used
-                // within three slots of its load or multiply; the last product is added after
-                // the loop.
-                // SAFETY: reads only the row's words and p[col_base + c] for its columns.
-                unsafe {
-                    asm!(
-                        "2:",
-                        "lw {w}, 0({wp})",
-                        "add {l0}, {l0}, {m}",
-                        "sltu {m}, {l0}, {m}",
-                        "srli {t}, {w}, {cs}",
-                        "slli {v}, {w}, {vs}",
-                        "add {h0}, {h0}, {hh}",
-                        "and {t}, {t}, {mask}",
-                        "srai {v}, {v}, {vs}",
-                        "add {t}, {t}, {base}",
-                        "lw {t}, 0({t})",
-                        "addi {wp}, {wp}, 4",
-                        "add {h0}, {h0}, {m}",
-                        "mul {m}, {v}, {t}",
-                        "mulh {hh}, {v}, {t}",
-                        "bltu {w}, {er}, 2b",
-                        "add {l0}, {l0}, {m}",
-                        "sltu {m}, {l0}, {m}",
-                        "add {h0}, {h0}, {hh}",
-                        "add {h0}, {h0}, {m}",
-                        wp = inout(reg) wp,
-                        l0 = inout(reg) a[0],
-                        h0 = inout(reg) a[1],
-                        m = inout(reg) 0u32 => _,
-                        hh = inout(reg) 0u32 => _,
-                        base = in(reg) cols,
-                        mask = in(reg) COLUMN_OFFSET_MASK,
-                        er = in(reg) ER_BIT,
-                        cs = const COLUMN_OFFSET_SHIFT,
-                        vs = const VALUE_SIGN_SHIFT,
-                        w = out(reg) _,
-                        t = out(reg) _,
-                        v = out(reg) _,
-                        options(nostack, readonly),
-                    );
-                }
-            }
-            2 => {
-                // SAFETY: as above; the two lanes of p[col_base + c] are at offsets 0 and 4.
-                unsafe {
-                    asm!(
-                        "2:",
-                        "lw {w}, 0({wp})",
-                        "addi {wp}, {wp}, 4",
-                        "srli {t}, {w}, {cs}",
-                        "slli {v}, {w}, {vs}",
-                        "and {t}, {t}, {mask}",
-                        "srai {v}, {v}, {vs}",
-                        "add {t}, {t}, {base}",
-                        "lw {p}, 0({t})",
-                        "lw {q}, 4({t})",
-                        "mul {m}, {v}, {p}",
-                        "mulh {p}, {v}, {p}",
-                        "mul {n}, {v}, {q}",
-                        "add {l0}, {l0}, {m}",
-                        "sltu {m}, {l0}, {m}",
-                        "mulh {q}, {v}, {q}",
-                        "add {h0}, {h0}, {p}",
-                        "add {h0}, {h0}, {m}",
-                        "add {l1}, {l1}, {n}",
-                        "sltu {n}, {l1}, {n}",
-                        "add {h1}, {h1}, {q}",
-                        "add {h1}, {h1}, {n}",
-                        "bltu {w}, {er}, 2b",
-                        wp = inout(reg) wp,
-                        l0 = inout(reg) a[0],
-                        h0 = inout(reg) a[1],
-                        l1 = inout(reg) a[2],
-                        h1 = inout(reg) a[3],
-                        base = in(reg) cols,
-                        mask = in(reg) COLUMN_OFFSET_MASK,
-                        er = in(reg) ER_BIT,
-                        cs = const COLUMN_OFFSET_SHIFT,
-                        vs = const VALUE_SIGN_SHIFT,
-                        w = out(reg) _,
-                        t = out(reg) _,
-                        v = out(reg) _,
-                        p = out(reg) _,
-                        q = out(reg) _,
-                        m = out(reg) _,
-                        n = out(reg) _,
-                        options(nostack, readonly),
-                    );
-                }
-            }
-            _ => {
-                // SAFETY: as above; the three lanes of p[col_base + c] are at offsets 0, 4, 8.
-                unsafe {
-                    asm!(
-                        "2:",
-                        "lw {w}, 0({wp})",
-                        "addi {wp}, {wp}, 4",
-                        "srli {t}, {w}, {cs}",
-                        "slli {v}, {w}, {vs}",
-                        "and {t}, {t}, {mask}",
-                        "srai {v}, {v}, {vs}",
-                        "add {t}, {t}, {base}",
-                        "lw {p}, 0({t})",
-                        "lw {q}, 4({t})",
-                        "lw {r}, 8({t})",
-                        "mul {m}, {v}, {p}",
-                        "mulh {p}, {v}, {p}",
-                        "mul {n}, {v}, {q}",
-                        "add {a0}, {a0}, {m}",
-                        "sltu {m}, {a0}, {m}",
-                        "mulh {q}, {v}, {q}",
-                        "add {a1}, {a1}, {p}",
-                        "add {a1}, {a1}, {m}",
-                        "add {a2}, {a2}, {n}",
-                        "sltu {n}, {a2}, {n}",
-                        "mul {m}, {v}, {r}",
-                        "add {a3}, {a3}, {q}",
-                        "add {a3}, {a3}, {n}",
-                        "mulh {r}, {v}, {r}",
-                        "add {a4}, {a4}, {m}",
-                        "sltu {m}, {a4}, {m}",
-                        "add {a5}, {a5}, {r}",
-                        "add {a5}, {a5}, {m}",
-                        "bltu {w}, {er}, 2b",
-                        wp = inout(reg) wp,
-                        a0 = inout(reg) a[0],
-                        a1 = inout(reg) a[1],
-                        a2 = inout(reg) a[2],
-                        a3 = inout(reg) a[3],
-                        a4 = inout(reg) a[4],
-                        a5 = inout(reg) a[5],
-                        base = in(reg) cols,
-                        mask = in(reg) COLUMN_OFFSET_MASK,
-                        er = in(reg) ER_BIT,
-                        cs = const COLUMN_OFFSET_SHIFT,
-                        vs = const VALUE_SIGN_SHIFT,
-                        w = out(reg) _,
-                        t = out(reg) _,
-                        v = out(reg) _,
-                        p = out(reg) _,
-                        q = out(reg) _,
-                        r = out(reg) _,
-                        m = out(reg) _,
-                        n = out(reg) _,
-                        options(nostack, readonly),
-                    );
-                }
-            }
-        }
-        for (d, acc) in acc.iter_mut().enumerate() {
-            *acc = join(a[2 * d], a[2 * d + 1]);
-        }
-        wp
-    }
-
-    /// [`row`] for a mirrored tile: each word also multiplies p[n − 1 − col_base − c] into the
-    /// mirror row's sums.
-    ///
-    /// # Safety
-    ///
-    /// As [`row`]; `mirror_cols` points at p[n − 1 − col_base].
-    #[inline(always)]
-    pub unsafe fn mirrored_row<const D: usize>(
-        w: *const u32,
-        cols: *const u8,
-        mirror_cols: *const u8,
-        acc: &mut [i64; D],
-        mirror_acc: &mut [i64; D],
-    ) -> *const u32 {
-        let mut wp = w;
-        // Own row's (lo, hi) per direction, then the mirror row's.
-        let mut a = [0u32; 4 * MAX_DIRECTIONS];
-        match D {
-            1 => {
-                // SAFETY: reads only the row's words, p[col_base + c] and p[n − 1 − col_base − c].
-                unsafe {
-                    asm!(
-                        "2:",
-                        "lw {w}, 0({wp})",
-                        "addi {wp}, {wp}, 4",
-                        "srli {t}, {w}, {cs}",
-                        "slli {v}, {w}, {vs}",
-                        "and {t}, {t}, {mask}",
-                        "srai {v}, {v}, {vs}",
-                        "sub {tm}, {mbase}, {t}",
-                        "add {t}, {t}, {base}",
-                        "lw {p}, 0({t})",
-                        "lw {q}, 0({tm})",
-                        "mul {m}, {v}, {p}",
-                        "mulh {p}, {v}, {p}",
-                        "mul {n}, {v}, {q}",
-                        "add {l0}, {l0}, {m}",
-                        "sltu {m}, {l0}, {m}",
-                        "mulh {q}, {v}, {q}",
-                        "add {h0}, {h0}, {p}",
-                        "add {h0}, {h0}, {m}",
-                        "add {l1}, {l1}, {n}",
-                        "sltu {n}, {l1}, {n}",
-                        "add {h1}, {h1}, {q}",
-                        "add {h1}, {h1}, {n}",
-                        "bltu {w}, {er}, 2b",
-                        wp = inout(reg) wp,
-                        l0 = inout(reg) a[0],
-                        h0 = inout(reg) a[1],
-                        l1 = inout(reg) a[6],
-                        h1 = inout(reg) a[7],
-                        base = in(reg) cols,
-                        mbase = in(reg) mirror_cols,
-                        mask = in(reg) COLUMN_OFFSET_MASK,
-                        er = in(reg) ER_BIT,
-                        cs = const COLUMN_OFFSET_SHIFT,
-                        vs = const VALUE_SIGN_SHIFT,
-                        w = out(reg) _,
-                        t = out(reg) _,
-                        tm = out(reg) _,
-                        v = out(reg) _,
-                        p = out(reg) _,
-                        q = out(reg) _,
-                        m = out(reg) _,
-                        n = out(reg) _,
-                        options(nostack, readonly),
-                    );
-                }
-            }
-            2 => {
-                // SAFETY: as above, two lanes at offsets 0 and 4 of both addresses.
-                unsafe {
-                    asm!(
-                        "2:",
-                        "lw {w}, 0({wp})",
-                        "addi {wp}, {wp}, 4",
-                        "srli {t}, {w}, {cs}",
-                        "slli {v}, {w}, {vs}",
-                        "and {t}, {t}, {mask}",
-                        "srai {v}, {v}, {vs}",
-                        "sub {tm}, {mbase}, {t}",
-                        "add {t}, {t}, {base}",
-                        "lw {p}, 0({t})",
-                        "lw {q}, 4({t})",
-                        "lw {r}, 0({tm})",
-                        "mul {m}, {v}, {p}",
-                        "mulh {p}, {v}, {p}",
-                        "mul {n}, {v}, {q}",
-                        "add {a0}, {a0}, {m}",
-                        "sltu {m}, {a0}, {m}",
-                        "mulh {q}, {v}, {q}",
-                        "add {a1}, {a1}, {p}",
-                        "add {a1}, {a1}, {m}",
-                        "lw {p}, 4({tm})",
-                        "add {a2}, {a2}, {n}",
-                        "sltu {n}, {a2}, {n}",
-                        "mul {m}, {v}, {r}",
-                        "add {a3}, {a3}, {q}",
-                        "add {a3}, {a3}, {n}",
-                        "mulh {r}, {v}, {r}",
-                        "mul {n}, {v}, {p}",
-                        "add {a6}, {a6}, {m}",
-                        "sltu {m}, {a6}, {m}",
-                        "mulh {p}, {v}, {p}",
-                        "add {a7}, {a7}, {r}",
-                        "add {a7}, {a7}, {m}",
-                        "add {a8}, {a8}, {n}",
-                        "sltu {n}, {a8}, {n}",
-                        "add {a9}, {a9}, {p}",
-                        "add {a9}, {a9}, {n}",
-                        "bltu {w}, {er}, 2b",
-                        wp = inout(reg) wp,
-                        a0 = inout(reg) a[0],
-                        a1 = inout(reg) a[1],
-                        a2 = inout(reg) a[2],
-                        a3 = inout(reg) a[3],
-                        a6 = inout(reg) a[6],
-                        a7 = inout(reg) a[7],
-                        a8 = inout(reg) a[8],
-                        a9 = inout(reg) a[9],
-                        base = in(reg) cols,
-                        mbase = in(reg) mirror_cols,
-                        mask = in(reg) COLUMN_OFFSET_MASK,
-                        er = in(reg) ER_BIT,
-                        cs = const COLUMN_OFFSET_SHIFT,
-                        vs = const VALUE_SIGN_SHIFT,
-                        w = out(reg) _,
-                        t = out(reg) _,
-                        tm = out(reg) _,
-                        v = out(reg) _,
-                        p = out(reg) _,
-                        q = out(reg) _,
-                        r = out(reg) _,
-                        m = out(reg) _,
-                        n = out(reg) _,
-                        options(nostack, readonly),
-                    );
-                }
-            }
-            _ => {
-                // Lanes rotate through three load registers (p, q, r) and two product
-                // registers (m, n), so every load has three slots before its multiply and every
-                // multiply three before its add; 26 registers, every one the asm may name.
-                // SAFETY: as above, three lanes at offsets 0, 4, 8 of both addresses.
-                unsafe {
-                    asm!(
-                        "2:",
-                        "lw {w}, 0({wp})",
-                        "addi {wp}, {wp}, 4",
-                        "srli {t}, {w}, {cs}",
-                        "slli {v}, {w}, {vs}",
-                        "and {t}, {t}, {mask}",
-                        "srai {v}, {v}, {vs}",
-                        "sub {tm}, {mbase}, {t}",
-                        "add {t}, {t}, {base}",
-                        "lw {p}, 0({t})",
-                        "lw {q}, 4({t})",
-                        "lw {r}, 8({t})",
-                        "mul {m}, {v}, {p}",
-                        "mulh {p}, {v}, {p}",
-                        "mul {n}, {v}, {q}",
-                        "add {a0}, {a0}, {m}",
-                        "sltu {m}, {a0}, {m}",
-                        "mulh {q}, {v}, {q}",
-                        "add {a1}, {a1}, {p}",
-                        "add {a1}, {a1}, {m}",
-                        "lw {p}, 0({tm})",
-                        "add {a2}, {a2}, {n}",
-                        "sltu {n}, {a2}, {n}",
-                        "mul {m}, {v}, {r}",
-                        "add {a3}, {a3}, {q}",
-                        "add {a3}, {a3}, {n}",
-                        "mulh {r}, {v}, {r}",
-                        "add {a4}, {a4}, {m}",
-                        "sltu {m}, {a4}, {m}",
-                        "lw {q}, 4({tm})",
-                        "mul {n}, {v}, {p}",
-                        "add {a5}, {a5}, {r}",
-                        "add {a5}, {a5}, {m}",
-                        "mulh {p}, {v}, {p}",
-                        "add {a6}, {a6}, {n}",
-                        "sltu {n}, {a6}, {n}",
-                        "lw {r}, 8({tm})",
-                        "mul {m}, {v}, {q}",
-                        "add {a7}, {a7}, {p}",
-                        "add {a7}, {a7}, {n}",
-                        "mulh {q}, {v}, {q}",
-                        "add {a8}, {a8}, {m}",
-                        "sltu {m}, {a8}, {m}",
-                        "mul {n}, {v}, {r}",
-                        "add {a9}, {a9}, {q}",
-                        "add {a9}, {a9}, {m}",
-                        "mulh {r}, {v}, {r}",
-                        "add {a10}, {a10}, {n}",
-                        "sltu {n}, {a10}, {n}",
-                        "add {a11}, {a11}, {r}",
-                        "add {a11}, {a11}, {n}",
-                        "bltu {w}, {er}, 2b",
-                        wp = inout(reg) wp,
-                        a0 = inout(reg) a[0],
-                        a1 = inout(reg) a[1],
-                        a2 = inout(reg) a[2],
-                        a3 = inout(reg) a[3],
-                        a4 = inout(reg) a[4],
-                        a5 = inout(reg) a[5],
-                        a6 = inout(reg) a[6],
-                        a7 = inout(reg) a[7],
-                        a8 = inout(reg) a[8],
-                        a9 = inout(reg) a[9],
-                        a10 = inout(reg) a[10],
-                        a11 = inout(reg) a[11],
-                        base = in(reg) cols,
-                        mbase = in(reg) mirror_cols,
-                        mask = in(reg) COLUMN_OFFSET_MASK,
-                        er = in(reg) ER_BIT,
-                        cs = const COLUMN_OFFSET_SHIFT,
-                        vs = const VALUE_SIGN_SHIFT,
-                        w = out(reg) _,
-                        t = out(reg) _,
-                        tm = out(reg) _,
-                        v = out(reg) _,
-                        p = out(reg) _,
-                        q = out(reg) _,
-                        r = out(reg) _,
-                        m = out(reg) _,
-                        n = out(reg) _,
-                        options(nostack, readonly),
-                    );
-                }
-            }
-        }
-        for d in 0..D {
-            acc[d] = join(a[2 * d], a[2 * d + 1]);
-            mirror_acc[d] = join(a[6 + 2 * d], a[7 + 2 * d]);
-        }
-        wp
-    }
-}
+mod riscv;
 
 #[cfg(test)]
 mod tests {
@@ -741,6 +429,159 @@ mod tests {
             assert_eq!(got[d], want, "direction {d}");
             let max = kp.iter().map(|r| r[d].unsigned_abs()).max().unwrap();
             assert_eq!(64 - or[d].leading_zeros(), 64 - max.leading_zeros());
+        }
+    }
+
+    /// Split sums of `terms` (value, p) as the firmware's loops form them: `mul(v, p)` and
+    /// `mulh(v << 11, p)` summed with wrapping, then [`rebuild_split`].
+    fn split_sum(terms: &[(i32, i32)]) -> i64 {
+        let (mut low, mut coarse) = (0u32, 0u32);
+        for &(v, p) in terms {
+            low = low.wrapping_add(v.wrapping_mul(p) as u32);
+            let shifted = (v << VALUE_SIGN_SHIFT) as i64;
+            coarse = coarse.wrapping_add(((shifted * p as i64) >> 32) as u32);
+        }
+        rebuild_split(low, coarse)
+    }
+
+    fn exact_sum(terms: &[(i32, i32)]) -> i64 {
+        terms.iter().map(|&(v, p)| v as i64 * p as i64).sum()
+    }
+
+    /// At the limits the plan allows: the longest rows, the largest Σ|q| at either sign, the
+    /// largest |p| and values, and random rows within them.
+    #[test]
+    fn split_sums_are_exact_within_the_plans_limits() {
+        let words = SPLIT_MAX_WORDS as usize;
+        let row_abs = SPLIT_MAX_ROW_ABS as i64;
+        let p_max = (1i32 << 30) - 1;
+        let v_max = (1i32 << 20) - 1;
+        let mut cases: Vec<Vec<(i32, i32)>> = Vec::new();
+        for sign in [1, -1] {
+            // Σ|q| at its limit in few large words, the rest of the row ±1 (every floor below).
+            let mut row = Vec::new();
+            let mut left = row_abs - (words as i64 - 4);
+            while left > 0 {
+                let v = left.min(v_max as i64) as i32;
+                row.push((sign * v, p_max));
+                left -= v as i64;
+            }
+            while row.len() < words {
+                row.push((1, -sign * 3));
+            }
+            cases.push(row);
+            // Every word's floor as far below as it goes: products ≡ −1 mod 2^21.
+            cases.push(vec![(sign, sign * ((1 << 21) - 1)); words]);
+            cases.push(vec![(sign, -sign); words]);
+            cases.push(vec![(-sign * ((1 << 20) - 1), -(1 << 21) - 1); 3]);
+        }
+        let mut rng = crate::test_rng::Rng(0x5EED_0005_9117);
+        for _ in 0..200 {
+            let len = 1 + rng.below(words as u64) as usize;
+            let mut budget = row_abs;
+            let row: Vec<(i32, i32)> = (0..len)
+                .map(|_| {
+                    let cap = budget.min(v_max as i64).max(0) as u64;
+                    let v = rng.below(cap + 1) as i64;
+                    budget -= v;
+                    let v = if rng.next() & 1 == 0 { v } else { -v } as i32;
+                    let p = (rng.below(2 * p_max as u64 + 1) as i64 - p_max as i64) as i32;
+                    (v, p)
+                })
+                .collect();
+            cases.push(row);
+        }
+        for (i, row) in cases.iter().enumerate() {
+            assert!(row.len() <= words);
+            assert!(row.iter().map(|&(v, _)| (v as i64).abs()).sum::<i64>() <= row_abs);
+            assert_eq!(split_sum(row), exact_sum(row), "case {i}");
+        }
+    }
+
+    /// The limits are tight where they must be: one word more, or a Σ|q| far enough over, and
+    /// the split sum is wrong.
+    #[test]
+    fn split_sums_fail_beyond_their_limits() {
+        let words = SPLIT_MAX_WORDS as usize;
+        // Each floor 2^21 − 1 below: 2^11 + 1 words put the error past 2^32.
+        let long = vec![(1, (1 << 21) - 1); words + 1];
+        assert_ne!(split_sum(&long), exact_sum(&long));
+        // A coarse sum past 2^31: Σ|q| = 2^22 + 2^12 at |p| just below 2^30.
+        let big = vec![((1 << 20) - 1, (1 << 30) - 1); 5];
+        assert_ne!(split_sum(&big), exact_sum(&big));
+    }
+
+    /// The bounded pᵀKp equals the general one at its limits: |Kp| up to 2^52 − 1 at either
+    /// sign, |p| up to 2^30, the most rows, and random rows within them.
+    #[test]
+    fn bounded_p_kp_equals_the_general_one() {
+        let mut rng = crate::test_rng::Rng(0xB0D1_0057_0001);
+        let k_max = (1i64 << 52) - 1;
+        let p_max = 1i32 << 30;
+        let mut cases: Vec<(Vec<Lanes>, Vec<Sums>)> = Vec::new();
+        let rows = P_KP_BOUNDED_ROWS;
+        for (ps, ks) in [
+            (p_max, k_max),
+            (-p_max, k_max),
+            (p_max, -k_max),
+            (-p_max, -k_max),
+        ] {
+            cases.push((vec![[ps, -ps, ps, 0]; rows], vec![[ks, ks, -ks]; rows]));
+        }
+        // Low words at their largest, high words at zero and −1, zeros.
+        let edges = [
+            0i64,
+            1,
+            -1,
+            u32::MAX as i64,
+            -(u32::MAX as i64),
+            1 << 32,
+            k_max,
+            -k_max,
+        ];
+        let (mut p, mut kp) = (Vec::new(), Vec::new());
+        for i in 0..rows {
+            let q = [p_max, -p_max, 0, 1, -1, p_max - 1][i % 6];
+            p.push([q, -q, q / 3, 0]);
+            let v = edges[i % edges.len()];
+            kp.push([v, edges[(i / 7) % edges.len()], -v]);
+        }
+        cases.push((p, kp));
+        for _ in 0..20 {
+            let len = rng.below(rows as u64 + 1) as usize;
+            let draw_p = |rng: &mut crate::test_rng::Rng| {
+                (rng.below(2 * p_max as u64 + 1) as i64 - p_max as i64) as i32
+            };
+            let draw_k = |rng: &mut crate::test_rng::Rng| {
+                let bits = rng.below(53);
+                let k = (rng.next() >> (64 - bits.max(1))) as i64;
+                if rng.next() & 1 == 0 {
+                    k
+                } else {
+                    -k
+                }
+            };
+            let p: Vec<Lanes> = (0..len)
+                .map(|_| [draw_p(&mut rng), draw_p(&mut rng), draw_p(&mut rng), 0])
+                .collect();
+            let kp: Vec<Sums> = (0..len)
+                .map(|_| [draw_k(&mut rng), draw_k(&mut rng), draw_k(&mut rng)])
+                .collect();
+            cases.push((p, kp));
+        }
+        // Twice the rows at the largest products: the sum passes 2^95 and the result is wrong.
+        let over = 2 * rows;
+        let (p, kp) = (vec![[p_max; 4]; over], vec![[k_max; 3]; over]);
+        assert_ne!(p_kp_bounded(&p, &kp, 1).0, p_kp_and_max(&p, &kp, 1).0);
+        for (i, (p, kp)) in cases.iter().enumerate() {
+            assert!(kp.iter().flatten().all(|v| v.unsigned_abs() < 1 << 52));
+            for directions in [1, 3] {
+                assert_eq!(
+                    p_kp_bounded(p, kp, directions),
+                    p_kp_and_max(p, kp, directions),
+                    "case {i}, {directions} direction(s)"
+                );
+            }
         }
     }
 }

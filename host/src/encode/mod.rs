@@ -13,8 +13,9 @@
 //!    mirrored tiles (each word also serves row n−1−i against p[n−1−j]), and for odd n the middle
 //!    row as a plain tile. That halves the matrix memory and the upload.
 //! 3. **Partitioning** ([`partition`], thesis 4.1.1/4.1.2): the stored rows are shared out
-//!    over the MVUs, either as disjoint row blocks balanced by nonzero count or as an exact
-//!    equal split of the nonzero stream whose boundary rows overlap (their partial sums add).
+//!    over the MVUs, either as disjoint row blocks balanced by nonzero count and rows or as an
+//!    exact equal split of the nonzero stream whose boundary rows overlap (their partial sums
+//!    add).
 //! 4. **Tiling** ([`tiling`]): each MVU's rows are cut into tiles whose column window is at
 //!    most 512 wide, splitting a row over several tiles where its columns span more than one
 //!    window (tiles accumulate `y[row] +=`), so any bandwidth encodes.
@@ -251,7 +252,13 @@ pub fn encode_with(k: &Csr, options: &EncodeOptions) -> Result<Encoding, EncodeE
     } else {
         0..q.n
     };
-    let shares = partition::partition(&q, stored_rows, options.partition, options.mvus);
+    let shares = partition::partition(
+        &q,
+        stored_rows,
+        mirrored_rows.clone(),
+        options.partition,
+        options.mvus,
+    );
     let mut sink = tiling::TileSink::new(n);
     for (mvu, pieces) in shares.iter().enumerate() {
         let mvu = mvu as u8;

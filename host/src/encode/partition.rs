@@ -1,12 +1,14 @@
 //! Sharing the stored rows out over the MVUs (thesis 4.1.1, 4.1.2).
 //!
-//! The time of one matrix–vector product is the time of the slowest MVU, which is proportional
-//! to the words it executes, so both schemes balance nonzeros:
+//! The time of one matrix–vector product is the time of the slowest MVU: the words it executes,
+//! plus, on the harts' software kernel, a fixed cost per row of Kp it finishes (the row's store,
+//! its pᵀKp and max |Kp| terms), so both schemes balance that work:
 //!
 //! - [`Partition::Rows`] (4.1.2, "non-overlapping sub-matrices"): contiguous blocks of whole
 //!   rows, the cut between MVU m and m+1 placed at the row end nearest to (m+1)/M of the
-//!   nonzeros. No two MVUs write the same row, so each writes its block of Kp directly. The
-//!   imbalance is at most about one row's nonzeros (≤ 27 words for model B) per MVU.
+//!   weight, a row weighing its nonzeros plus [`ROW_WEIGHT`] per row of Kp it yields (two for a
+//!   mirrored row). No two MVUs write the same row, so each writes its block of Kp directly.
+//!   The imbalance is at most about one row's weight (≤ 33 for model B) per MVU.
 //! - [`Partition::Overlap`] (4.1.1, "overlapping sub-matrices"): the row-major stream of
 //!   nonzeros is cut into M runs of exactly equal length (±1), so a row at a cut is split
 //!   between two MVUs. Their sub-matrices then overlap in that row and the partial row sums
@@ -24,12 +26,21 @@ use serde::Serialize;
 
 use super::QuantizedMatrix;
 
+/// What finishing one row of Kp costs an MVU on the software kernel, in words of its inner
+/// loop. A tile row's end and its rows' pᵀKp and max |Kp| cost 2.4 words of the fused
+/// three-direction mirrored loop per row of Kp (242 instructions a tile row against 51 a word,
+/// counted in the firmware's disassembly), more of the shorter one-direction loops. Measured
+/// on QEMU (issue 19, 8 MVUs): by words alone the MVU with the most (shortest) rows was the
+/// slowest; weights 2, 3 and 4 gave the fused 8³ model B phase 43,840, 43,404 and 43,768
+/// instructions (45,714 by words alone).
+pub const ROW_WEIGHT: u64 = 3;
+
 /// How the rows are shared out over the MVUs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Partition {
-    /// Disjoint row blocks balanced by nonzero count (thesis 4.1.2): each MVU writes its rows
-    /// of Kp directly.
+    /// Disjoint row blocks balanced by nonzero count and rows (thesis 4.1.2, each row of Kp
+    /// weighing [`ROW_WEIGHT`] words): each MVU writes its rows of Kp directly.
     #[default]
     Rows,
     /// Equal runs of the nonzero stream whose boundary rows are shared (thesis 4.1.1): exact
@@ -55,10 +66,12 @@ pub struct Piece {
 }
 
 /// The pieces of `rows` each MVU executes, in row order, one list per MVU actually used (at
-/// most `mvus`, fewer when there are fewer rows or nonzeros than MVUs).
+/// most `mvus`, fewer when there are fewer rows or nonzeros than MVUs). The rows in `mirrored`
+/// are stored for their mirror rows too (persymmetric half storage).
 pub fn partition(
     q: &QuantizedMatrix,
     rows: Range<usize>,
+    mirrored: Range<usize>,
     scheme: Partition,
     mvus: u8,
 ) -> Vec<Vec<Piece>> {
@@ -66,7 +79,7 @@ pub fn partition(
         return Vec::new();
     }
     match scheme {
-        Partition::Rows => by_rows(q, rows, mvus.max(1) as usize),
+        Partition::Rows => by_rows(q, rows, mirrored, mvus.max(1) as usize),
         Partition::Overlap => by_stream(q, rows, mvus.max(1) as usize),
     }
 }
@@ -79,11 +92,19 @@ fn whole(q: &QuantizedMatrix, row: usize) -> Piece {
 }
 
 /// Disjoint row blocks: cut m is at the row end whose prefix weight is nearest to m/M of the
-/// total, each block keeping at least one row. A row weighs its nonzeros, an empty row 1 (its
-/// ER word).
-fn by_rows(q: &QuantizedMatrix, rows: Range<usize>, mvus: usize) -> Vec<Vec<Piece>> {
+/// total, each block keeping at least one row. A row weighs its nonzeros (an empty row 1, its
+/// ER word) plus [`ROW_WEIGHT`] per row of Kp: two if it is in `mirrored`, else one.
+fn by_rows(
+    q: &QuantizedMatrix,
+    rows: Range<usize>,
+    mirrored: Range<usize>,
+    mvus: usize,
+) -> Vec<Vec<Piece>> {
     let mvus = mvus.min(rows.len());
-    let weight = |r: usize| q.row_range(r).len().max(1) as u64;
+    let weight = |r: usize| {
+        let kp_rows = if mirrored.contains(&r) { 2 } else { 1 };
+        q.row_range(r).len().max(1) as u64 + ROW_WEIGHT * kp_rows
+    };
     // prefix[i] = weight of rows.start .. rows.start + i.
     let mut prefix = Vec::with_capacity(rows.len() + 1);
     prefix.push(0u64);
@@ -175,10 +196,11 @@ mod tests {
     }
 
     #[test]
-    fn rows_are_disjoint_blocks_balanced_by_nonzeros() {
+    fn rows_are_disjoint_blocks_balanced_by_weight() {
         let m = tridiagonal(100); // 298 nonzeros
+        let total = 298 + ROW_WEIGHT as usize * 100;
         for mvus in 1..=8u8 {
-            let shares = partition(&m, 0..100, Partition::Rows, mvus);
+            let shares = partition(&m, 0..100, 0..0, Partition::Rows, mvus);
             assert_eq!(shares.len(), mvus as usize);
             let mut next = 0;
             for share in &shares {
@@ -189,18 +211,56 @@ mod tests {
                 }
             }
             assert_eq!(next, 100);
-            let ideal = 298.0 / mvus as f64;
+            let ideal = total as f64 / mvus as f64;
             for share in &shares {
-                assert!((entries(share) as f64 - ideal).abs() <= 3.0, "{mvus}");
+                let weight = entries(share) + ROW_WEIGHT as usize * share.len();
+                // At most one row's weight (3 + ROW_WEIGHT) from the ideal.
+                assert!(
+                    (weight as f64 - ideal).abs() <= (3 + ROW_WEIGHT) as f64,
+                    "{mvus}"
+                );
             }
         }
+    }
+
+    /// A row's cost beyond its words counts: a block of short rows gets fewer nonzeros than a
+    /// block of long ones, and a mirrored row (two rows of Kp) weighs its row cost twice.
+    #[test]
+    fn rows_weigh_their_row_cost() {
+        // Rows 0..6 have one nonzero each, rows 6..9 four each (columns 5..9): 18 nonzeros.
+        let dense: Vec<Vec<f64>> = (0..9)
+            .map(|r| {
+                (0..9)
+                    .map(|c| {
+                        if c == r || (r >= 6 && c >= 5) {
+                            1.0
+                        } else {
+                            0.0
+                        }
+                    })
+                    .collect()
+            })
+            .collect();
+        let m = q(&dense);
+        let rows_of = |mirrored| -> Vec<usize> {
+            partition(&m, 0..9, mirrored, Partition::Rows, 2)
+                .iter()
+                .map(Vec::len)
+                .collect()
+        };
+        assert_eq!(ROW_WEIGHT, 3, "the cuts below are worked out for 3");
+        // By nonzeros alone the cut would fall at 9 of 18, after row 6 (10). Weighed 4 per
+        // short row and 7 per long one (45), it falls at 22.5, after row 5 (24; 20 after row 4).
+        assert_eq!(rows_of(0..0), vec![6, 3]);
+        // Mirrored, 7 and 10 (72): at 36, after row 4 (35; 42 after row 5).
+        assert_eq!(rows_of(0..9), vec![5, 4]);
     }
 
     #[test]
     fn overlap_splits_the_stream_exactly() {
         let m = tridiagonal(100);
         for mvus in 1..=8u8 {
-            let shares = partition(&m, 0..100, Partition::Overlap, mvus);
+            let shares = partition(&m, 0..100, 0..0, Partition::Overlap, mvus);
             assert_eq!(shares.len(), mvus as usize);
             let sizes: Vec<usize> = shares.iter().map(|s| entries(s)).collect();
             assert!(sizes.iter().max().unwrap() - sizes.iter().min().unwrap() <= 1);
@@ -223,10 +283,10 @@ mod tests {
     #[test]
     fn more_mvus_than_rows_uses_fewer() {
         let m = tridiagonal(3);
-        assert_eq!(partition(&m, 0..3, Partition::Rows, 8).len(), 3);
-        assert_eq!(partition(&m, 0..3, Partition::Overlap, 8).len(), 7);
-        assert_eq!(partition(&m, 1..2, Partition::Rows, 8).len(), 1);
-        assert!(partition(&m, 0..0, Partition::Rows, 8).is_empty());
+        assert_eq!(partition(&m, 0..3, 0..0, Partition::Rows, 8).len(), 3);
+        assert_eq!(partition(&m, 0..3, 0..0, Partition::Overlap, 8).len(), 7);
+        assert_eq!(partition(&m, 1..2, 0..0, Partition::Rows, 8).len(), 1);
+        assert!(partition(&m, 0..0, 0..0, Partition::Rows, 8).is_empty());
     }
 
     #[test]
@@ -237,7 +297,7 @@ mod tests {
             vec![0.0, 0.0, 1.0],
         ]);
         for scheme in [Partition::Rows, Partition::Overlap] {
-            let rows: Vec<u32> = partition(&m, 0..3, scheme, 2)
+            let rows: Vec<u32> = partition(&m, 0..3, 0..0, scheme, 2)
                 .iter()
                 .flatten()
                 .map(|p| p.row)

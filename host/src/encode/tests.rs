@@ -124,12 +124,19 @@ fn the_rows_partition_gives_each_mvu_its_own_rows() {
             }
         }
         assert!(owner.iter().all(Option::is_some), "every row has an MVU");
-        // Balanced: the busiest MVU has at most one model-B row (27 words) over the ideal.
-        let words = &enc.summary.words_per_mvu;
-        let ideal = enc.summary.words as f64 / 8.0;
+        // Balanced by weight (words and rows of Kp): the busiest MVU has at most one model-B
+        // row (27 words and two rows of Kp) over the ideal.
+        let row_weight = crate::encode::partition::ROW_WEIGHT as usize;
+        let weights: Vec<usize> = (0..8u8)
+            .map(|m| {
+                let rows = owner.iter().filter(|o| **o == Some(m)).count();
+                enc.summary.words_per_mvu[m as usize] + row_weight * rows
+            })
+            .collect();
+        let ideal = weights.iter().sum::<usize>() as f64 / 8.0;
         assert!(
-            *words.iter().max().unwrap() as f64 - ideal <= 27.0 + 8.0,
-            "{words:?}"
+            *weights.iter().max().unwrap() as f64 - ideal <= (27 + 2 * row_weight + 8) as f64,
+            "{weights:?}"
         );
     }
 }

@@ -668,6 +668,34 @@ fn a_row_with_too_many_words_is_refused() {
     );
 }
 
+/// The plan allows split sums exactly within the kernel's limits: words per row and Σ|q| per
+/// row (a row of `len` words of value `v` at column 0, mirrored rows counting too).
+#[test]
+fn split_sums_only_within_their_limits() {
+    let split = |len: usize, v: i64| {
+        let mut words = vec![Word::new(0, v, false, false).unwrap().bits(); len - 1];
+        words.push(Word::new(0, v, true, true).unwrap().bits());
+        let tiles = [TileHeader {
+            row_base: 0,
+            col_base: 0,
+            rows: 1,
+            words: len as u32,
+            mvu: 0,
+            mirrored: false,
+        }];
+        let mut kp = vec![[0i64; MAX_DIRECTIONS]; 1];
+        plan(&tiles, &words, 1, &mut kp, 0).unwrap().split
+    };
+    let words = SPLIT_MAX_WORDS as usize;
+    assert!(split(words, 1));
+    assert!(!split(words + 1, 1));
+    // Σ|q| = 4·v: at the limit and one unit over (the limit is a multiple of 4).
+    let v = (SPLIT_MAX_ROW_ABS / 4) as i64;
+    assert_eq!(SPLIT_MAX_ROW_ABS % 4, 0);
+    assert!(split(4, v));
+    assert!(!split(4, -v - 1));
+}
+
 #[test]
 fn fused_directions_equal_separate_solves() {
     let m = assign(&encode(laplacian_3d(6, 1.0), 17, 50), 3, false);

@@ -331,7 +331,7 @@ pub fn reference_mvu_phase(m: &RandomMatrix, p: &[Lanes], directions: usize) -> 
         // SAFETY: the tile was validated against n just above; p and kp hold n elements, so
         // every column, mirrored column, row and mirror row the tile reaches is in bounds, and
         // nothing else touches kp during the call.
-        unsafe { run_tile_dyn(&run, directions, t.mirrored, false) };
+        unsafe { run_tile_dyn(&run, directions, t.mirrored, false, false) };
         start += t.words as usize;
     }
     let (p_kp, kp_or) = p_kp_and_max(&p[..n], &kp, directions);
