@@ -353,7 +353,7 @@ class MvuArray(Module, AutoCSR):
         self.comb += entry_new.eq(entry)
         self.comb += Array([entry_new[32 * i:32 * (i + 1)] for i in range(6)])[sub].eq(merged)
 
-        # A write lands a clock after DATA, from registers (`written`, `new_entry`, `merged`), in
+        # A write lands a clock after DATA, from registers (`written`, `new_entry`, `merged_r`), in
         # the next access's IDLE: its target, unit, sub-word and owner change only in that
         # access's DECODE and UNIT, and its first read address two clocks later still.
         write = Signal()
