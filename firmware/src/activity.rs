@@ -1,7 +1,7 @@
 //! What the firmware logs (defmt, see [`crate::logger`]) about the requests it serves.
 //!
 //! Milestones only: the per-chunk requests (`Words`, `VectorData`, `UpdateValues`,
-//! `ReadSolution`) log nothing, so a large upload puts no log bytes on the wire. Levels:
+//! `ReadSolution`, `ReadVector`) log nothing, so a large upload puts no log bytes on the wire. Levels:
 //!
 //! - `info`: boot, handshakes, a matrix accepted, each solve's outcome and counters;
 //! - `warn`: every request refused, with the error code;
@@ -97,6 +97,7 @@ fn log_request(request: &Request) {
         | Request::Words { .. }
         | Request::VectorData { .. }
         | Request::ReadSolution { .. }
+        | Request::ReadVector { .. }
         | Request::UpdateValues { .. } => {}
     }
 }

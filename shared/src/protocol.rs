@@ -72,7 +72,10 @@ use crate::matrix::{MatrixError, TileHeader};
 /// `FieldChunk`) gain `stall_cycles` (cycles minus instructions) beside `cycles`.
 /// Version 12 (engine): target-resident dynamic frames (`BeginStiffness`, `DynamicTool`,
 /// `DynamicStart`, `DynamicFrame`, `ErrorCode::Dynamic`; [`crate::dynamics`]).
-pub const PROTOCOL_VERSION: u16 = 12;
+/// Version 13 (check): `ReadVector` reads a session vector other than the solution (a dynamic
+/// step's right-hand side, velocity and residual), so that the host can check a step's true
+/// residual b − S·v₁ against what the target accepted.
+pub const PROTOCOL_VERSION: u16 = 13;
 
 /// Most CG systems one `Solve` runs together on the same K (x, y and z: thesis eq. 38).
 pub const MAX_DIRECTIONS: usize = 3;
@@ -128,6 +131,21 @@ impl VectorSlot {
             VectorSlot::Rhs { direction } | VectorSlot::InitialGuess { direction } => direction,
         }
     }
+}
+
+/// A session vector that [`Request::ReadVector`] reads (protocol version 13), besides the
+/// solution that `ReadSolution` reads. Its answer is a [`Response::Solution`] chunk with the
+/// vector's own exponent.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum StateVector {
+    /// The right-hand side b of the last solve or dynamic step (an uploaded one, or the one a
+    /// dynamic step formed on the target).
+    Rhs,
+    /// A dynamic session's velocities v after its last step.
+    Velocity,
+    /// A dynamic session's residual r of its last step, as the target carries it (the
+    /// recursive one where the step accepted its solve without the closing MVU pass).
+    Residual,
 }
 
 /// Where CG starts.
@@ -280,6 +298,15 @@ pub enum Request {
     DynamicFrame {
         tool: Vec<[f32; 3], { crate::live::MAX_TOOL_NODES }>,
     },
+    /// Version 13: a chunk of a session vector other than the solution, answered as
+    /// `ReadSolution` is (a [`Response::Solution`] of at most `len` elements from `offset`),
+    /// with the vector's exponent.
+    ReadVector {
+        vector: StateVector,
+        direction: u8,
+        offset: u32,
+        len: u16,
+    },
 }
 
 impl Request {
@@ -311,6 +338,7 @@ impl Request {
             Request::DynamicTool(_) => "DynamicTool",
             Request::DynamicStart(_) => "DynamicStart",
             Request::DynamicFrame { .. } => "DynamicFrame",
+            Request::ReadVector { .. } => "ReadVector",
         }
     }
 }

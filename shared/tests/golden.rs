@@ -38,8 +38,8 @@ use deform_shared::loader::{
 use deform_shared::matrix::{MatrixError, TileHeader};
 use deform_shared::protocol::{
     DirectionReport, Envelope, ErrorCode, IterationCost, PhaseCounters, Request, Response,
-    SessionStep, SolveFailure, SolveParams, SolveReport, Start, TargetInfo, VectorSlot,
-    PROTOCOL_VERSION,
+    SessionStep, SolveFailure, SolveParams, SolveReport, Start, StateVector, TargetInfo,
+    VectorSlot, PROTOCOL_VERSION,
 };
 use deform_shared::transport::Uplink;
 use serde::de::{self, Deserialize, Deserializer, Visitor};
@@ -260,6 +260,12 @@ impl Golden for Request {
             }),
             Request::DynamicFrame {
                 tool: [[0.0, -0.25, 1.5e-3]].into_iter().collect(),
+            },
+            Request::ReadVector {
+                vector: StateVector::Residual,
+                direction: 2,
+                offset: 384,
+                len: 100,
             },
         ]
     }
@@ -596,6 +602,24 @@ impl Golden for VectorSlot {
     }
 }
 
+impl Golden for StateVector {
+    const NAME: &'static str = "StateVector";
+    fn samples() -> Vec<Self> {
+        vec![
+            StateVector::Rhs,
+            StateVector::Velocity,
+            StateVector::Residual,
+        ]
+    }
+    fn variant(&self) -> &'static str {
+        match self {
+            StateVector::Rhs => "Rhs",
+            StateVector::Velocity => "Velocity",
+            StateVector::Residual => "Residual",
+        }
+    }
+}
+
 impl Golden for Start {
     const NAME: &'static str = "Start";
     fn samples() -> Vec<Self> {
@@ -925,6 +949,7 @@ fn current() -> BTreeMap<String, BTreeMap<String, String>> {
     entries::<MatrixError>("protocol", &mut out);
     entries::<VectorSlot>("protocol", &mut out);
     entries::<Start>("protocol", &mut out);
+    entries::<StateVector>("protocol", &mut out);
     entries::<LiveError>("protocol", &mut out);
     entries::<DynamicError>("protocol", &mut out);
     entries::<LoaderRequest>("loader", &mut out);

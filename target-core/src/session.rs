@@ -65,10 +65,11 @@
 //!   uploaded and the solution read; vectors and the solution survive a completed update, so
 //!   `Start::Previous` warm-starts after it.
 
+use deform_shared::dynamics::DynamicError;
 use deform_shared::matrix::{validate_mvu, validate_tile, words_crc, MatrixError, TileHeader};
 use deform_shared::protocol::{
     ErrorCode, Request, Response, SessionStep, SolveFailure, SolveParams, SolveReport, Start,
-    TargetInfo, VectorSlot, CHUNK_LEN, MAX_DIRECTIONS, MAX_HARTS, PROTOCOL_VERSION,
+    StateVector, TargetInfo, VectorSlot, CHUNK_LEN, MAX_DIRECTIONS, MAX_HARTS, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{MANTISSA_LIMIT, MAX_FRAC_BITS};
 use deform_shared::word::{VALUE_MASK, VALUE_MAX, VALUE_MIN};
@@ -423,6 +424,12 @@ impl<'a, E: Executor> Session<'a, E> {
             Request::DynamicTool(tool) => self.dynamic_tool(tool),
             Request::DynamicStart(params) => self.dynamic_start(params),
             Request::DynamicFrame { tool } => self.dynamic_frame(&tool),
+            Request::ReadVector {
+                vector,
+                direction,
+                offset,
+                len,
+            } => self.read_vector(vector, direction, offset, len),
         }
     }
 
@@ -970,6 +977,54 @@ impl<'a, E: Executor> Session<'a, E> {
             .copied()
             .flatten()
             .ok_or(out_of_order(SessionStep::NoSolution))?;
+        self.vector_chunk(direction, exponent, |v| &*v.x, offset, len)
+    }
+
+    /// `ReadVector` (protocol version 13): the right-hand side wherever one is complete; a
+    /// dynamic session's velocities (in x0) and residual once it has started, the residual
+    /// only after a step that left it (none before the first step, nor after a step that ran
+    /// out of its budget).
+    fn read_vector(
+        &mut self,
+        vector: StateVector,
+        direction: u8,
+        offset: u32,
+        len: u16,
+    ) -> Result<Response, ErrorCode> {
+        let d = direction_index(direction)?;
+        let dynamic = |s: &Self| {
+            s.dynamic
+                .state()
+                .copied()
+                .ok_or(ErrorCode::Dynamic(DynamicError::NotStarted))
+        };
+        match vector {
+            StateVector::Rhs => {
+                let exponent = self.rhs[d].exponent(SessionStep::NoRhs)?;
+                self.vector_chunk(direction, exponent, |v| &*v.b, offset, len)
+            }
+            StateVector::Velocity => {
+                let exponent = dynamic(self)?.v[d].e;
+                self.vector_chunk(direction, exponent, |v| &*v.x0, offset, len)
+            }
+            StateVector::Residual => {
+                let block =
+                    dynamic(self)?.residual[d].ok_or(out_of_order(SessionStep::NoSolution))?;
+                self.vector_chunk(direction, block.e, |v| &*v.r, offset, len)
+            }
+        }
+    }
+
+    /// The `Solution` answer of `ReadSolution` and `ReadVector`: at most `len` (and
+    /// [`CHUNK_LEN`]) mantissas of one direction's vector from `offset`, below n.
+    fn vector_chunk(
+        &self,
+        direction: u8,
+        exponent: i32,
+        vector: impl for<'s> Fn(&'s DirectionStorage<'a>) -> &'s [i32],
+        offset: u32,
+        len: u16,
+    ) -> Result<Response, ErrorCode> {
         let shape = self.resident()?;
         if offset >= shape.n {
             return Err(ErrorCode::ChunkTooLong);
@@ -979,8 +1034,8 @@ impl<'a, E: Executor> Session<'a, E> {
         let values = self
             .store
             .directions
-            .get(d)
-            .and_then(|v| v.x.get(to_usize(offset)..to_usize(end)))
+            .get(usize::from(direction))
+            .and_then(|v| vector(v).get(to_usize(offset)..to_usize(end)))
             .ok_or(ErrorCode::ChunkTooLong)?;
         let mantissas = heapless::Vec::from_slice(values).map_err(|_| ErrorCode::ChunkTooLong)?;
         Ok(Response::Solution {

@@ -3,8 +3,8 @@ use std::time::Duration;
 use deform_shared::frame;
 use deform_shared::matrix::{validate_tile, words_crc, MatrixError};
 use deform_shared::protocol::{
-    Envelope, ErrorCode, Request, Response, SolveParams, SolveReport, Start, TargetInfo,
-    VectorSlot, CHUNK_LEN, MAX_DIRECTIONS, MAX_FRAME_LEN, PROTOCOL_VERSION,
+    Envelope, ErrorCode, Request, Response, SolveParams, SolveReport, Start, StateVector,
+    TargetInfo, VectorSlot, CHUNK_LEN, MAX_DIRECTIONS, MAX_FRAME_LEN, PROTOCOL_VERSION,
 };
 use deform_shared::qformat::{block_exponent, from_mantissa, to_mantissa};
 use deform_shared::transport::WINDOW;
@@ -408,19 +408,49 @@ impl<P: Port> Target<P> {
         direction: u8,
         n: usize,
     ) -> Result<Vec<f64>, LinkError> {
+        self.read_chunks(direction, n, |offset, len| Request::ReadSolution {
+            direction,
+            offset,
+            len,
+        })
+    }
+
+    /// Reads the first `n` entries of a session vector of `direction` other than the solution
+    /// (protocol version 13): a dynamic step's right-hand side, velocities or residual, as
+    /// [`Target::read_direction_solution`] reads the solution.
+    pub fn read_vector(
+        &mut self,
+        vector: StateVector,
+        direction: u8,
+        n: usize,
+    ) -> Result<Vec<f64>, LinkError> {
+        self.read_chunks(direction, n, |offset, len| Request::ReadVector {
+            vector,
+            direction,
+            offset,
+            len,
+        })
+    }
+
+    /// The requests `ask(offset, len)` over `0..n` in the link's chunk size, whose answers are
+    /// `Solution` chunks of `direction`, joined.
+    fn read_chunks(
+        &mut self,
+        direction: u8,
+        n: usize,
+        ask: impl Fn(u32, u16) -> Request,
+    ) -> Result<Vec<f64>, LinkError> {
         let mut solution = Vec::with_capacity(n);
         let mut first_exponent = None;
         let requests = self
             .link
             .chunk_size()
             .ranges(n)
-            .map(|range| Request::ReadSolution {
-                direction,
-                offset: range.start as u32,
-                len: range.len() as u16,
-            });
+            .map(|range| ask(range.start as u32, range.len() as u16));
         self.link.run(requests, |request, reply| {
-            let Request::ReadSolution { offset, len, .. } = *request else {
+            let (Request::ReadSolution { offset, len, .. } | Request::ReadVector { offset, len, .. }) =
+                *request
+            else {
                 return Err(unexpected(request, "Solution", &reply));
             };
             let wanted = usize::from(len);
@@ -453,8 +483,8 @@ impl<P: Port> Target<P> {
         })?;
         if solution.len() != n {
             return Err(LinkError::Protocol {
-                request: "ReadSolution",
-                expected: "the whole solution",
+                request: ask(0, 0).name(),
+                expected: "the whole vector",
                 got: format!("{} of {n} entries", solution.len()),
             });
         }

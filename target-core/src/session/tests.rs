@@ -1274,6 +1274,22 @@ fn raw_request() -> impl Strategy<Value = Request> {
             offset,
             len: CHUNK_LEN as u16
         }),
+        (
+            prop_oneof![
+                Just(StateVector::Rhs),
+                Just(StateVector::Velocity),
+                Just(StateVector::Residual)
+            ],
+            0u8..4,
+            num(12),
+            1u16..
+        )
+            .prop_map(|(vector, direction, offset, len)| Request::ReadVector {
+                vector,
+                direction,
+                offset,
+                len
+            }),
         (num(40), 0u8..24).prop_map(|(words, frac_bits)| Request::BeginUpdate { words, frac_bits }),
         (
             num(40),
@@ -1484,7 +1500,7 @@ proptest! {
         let mut frame = [0u8; MAX_FRAME_LEN];
         let mut n = 0;
         for req in steps.into_iter().flat_map(|step| expand(step, &mut n)) {
-            let was_read = matches!(req, Request::ReadSolution { .. });
+            let was_read = matches!(req, Request::ReadSolution { .. } | Request::ReadVector { .. });
             let response = s.handle(req);
             // Every answer fits a frame.
             let envelope = Envelope { seq: 0, body: response.clone() };

@@ -16,7 +16,7 @@ use deform_shared::loader::{
     LOADER_FRAME_LEN, LOADER_PROTOCOL_VERSION,
 };
 use deform_shared::protocol::{
-    Envelope, Request, TargetInfo, CHUNK_LEN, MAX_FRAME_LEN, PROTOCOL_VERSION,
+    Envelope, Request, StateVector, TargetInfo, CHUNK_LEN, MAX_FRAME_LEN, PROTOCOL_VERSION,
 };
 use deform_shared::transport::Uplink;
 
@@ -297,6 +297,19 @@ fn dynamic_requests(system: &super::TestSystem) -> Vec<Request> {
             tool: [[0.0, -u, u]].into_iter().collect(),
         });
     }
+    // The step's vectors (protocol version 13), the fuzzer's way into `ReadVector`.
+    for vector in [
+        StateVector::Rhs,
+        StateVector::Velocity,
+        StateVector::Residual,
+    ] {
+        out.push(Request::ReadVector {
+            vector,
+            direction: 2,
+            offset: 0,
+            len: CHUNK_LEN as u16,
+        });
+    }
     out
 }
 
@@ -462,10 +475,16 @@ mod tests {
         assert!(matches!(live[2], Response::Field(_)), "{live:?}");
         // And the dynamic frames' answers, not refusals.
         assert!(tail[..5].iter().all(|a| *a == Response::Ack), "{tail:?}");
+        let (frames, vectors) = tail[5..].split_at(tail.len() - 8);
         assert!(
-            tail[5..]
+            frames.iter().all(|a| matches!(a, Response::LiveFrame(_))),
+            "{tail:?}"
+        );
+        // And the step's b, v and r (protocol version 13).
+        assert!(
+            vectors
                 .iter()
-                .all(|a| matches!(a, Response::LiveFrame(_))),
+                .all(|a| matches!(a, Response::Solution { direction: 2, .. })),
             "{tail:?}"
         );
     }

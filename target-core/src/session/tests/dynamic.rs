@@ -444,6 +444,84 @@ fn steps_accepted_on_the_drift_bound_are_truly_within_the_tolerance() {
     );
 }
 
+/// `ReadVector` (protocol version 13) answers a step's b, v and r exactly as the session holds
+/// them, with their exponents, so that a host sees the true residual the session's own
+/// arithmetic gives; and refuses clearly where there is no such vector.
+#[test]
+fn read_vector_gives_the_steps_own_vectors() {
+    let mut bufs = OwnedStorage::new(4 * N, 8, N);
+    let mut s = bufs.session(info(), HARTS.harts);
+    let read = |vector, direction, offset| Request::ReadVector {
+        vector,
+        direction,
+        offset,
+        len: CHUNK_LEN as u16,
+    };
+    assert_eq!(
+        s.handle(read(StateVector::Rhs, 0, 0)),
+        ooo(SessionStep::NoRhs)
+    );
+    load(&mut s, &eliminated(s_row, F_S));
+    assert_eq!(
+        s.handle(read(StateVector::Velocity, 0, 0)),
+        err(ErrorCode::Dynamic(DynamicError::NotStarted))
+    );
+    started_with(
+        &mut s,
+        DynamicParams {
+            tolerance: 1e-5,
+            ..params()
+        },
+    );
+    assert_eq!(
+        s.handle(read(StateVector::Residual, 2, 0)),
+        ooo(SessionStep::NoSolution)
+    );
+    for step in 1..=12 {
+        let tool = [[0.3f32, -0.2, 0.05].map(|u| u * path(step) as f32)];
+        let tool: heapless::Vec<[f32; 3], 8> = tool.into_iter().collect();
+        assert!(matches!(
+            s.handle(Request::DynamicFrame { tool }),
+            Response::LiveFrame(_)
+        ));
+    }
+    assert_eq!(
+        s.handle(read(StateVector::Rhs, 3, 0)),
+        err(ErrorCode::DirectionOutOfRange {
+            direction: 3,
+            max: MAX_DIRECTIONS as u8
+        })
+    );
+    assert_eq!(
+        s.handle(read(StateVector::Velocity, 1, N as u32)),
+        err(ErrorCode::ChunkTooLong)
+    );
+    for d in 0..3u8 {
+        let st = *s.dynamic.state().unwrap();
+        let dir = &s.store.directions[usize::from(d)];
+        let VectorState::Complete { exponent: e_b } = s.rhs[usize::from(d)] else {
+            panic!("no b in direction {d}");
+        };
+        let r = st.residual[usize::from(d)].unwrap();
+        let tail =
+            |v: &[i32]| -> heapless::Vec<i32, CHUNK_LEN> { v[5..N].iter().copied().collect() };
+        let want = [
+            (StateVector::Rhs, e_b, tail(dir.b)),
+            (StateVector::Velocity, st.v[usize::from(d)].e, tail(dir.x0)),
+            (StateVector::Residual, r.e, tail(dir.r)),
+        ];
+        for (vector, exponent, values) in want {
+            let answer = Response::Solution {
+                direction: d,
+                offset: 5,
+                exponent,
+                mantissas: values,
+            };
+            assert_eq!(s.handle(read(vector, d, 5)), answer, "{vector:?} {d}");
+        }
+    }
+}
+
 /// The start's own bound (`dynamics::start_drift`, pass D's residual formed in O(n) from the
 /// carried quantities) holds: at a tolerance every start meets, no step iterates, so each
 /// step's r is its start's r₀ and v its start x₀ (pass A's v₀ + Δv₀), the carried drift is the
