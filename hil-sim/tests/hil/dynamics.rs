@@ -372,7 +372,10 @@ fn deform_live_runs_dynamic_frames_over_a_port() {
 /// side itself. The displacements stay
 /// within 1e-4 of the session's peak |u| of the host's f64 stepper (fed the tool's positions
 /// as the frames carry them, f32), and the figures print. The median frame is at most 64 bytes
-/// each way on the line (the messages themselves always are: `shared`'s dynamics tests).
+/// each way on the line (the messages themselves always are: `shared`'s dynamics tests). Every
+/// step's true residual b − S·v₁, from the target's own b and v₁ (protocol version 13's
+/// `ReadVector`) and the resident S, is within the tolerance: also where the target accepted the
+/// step on its carried residual and drift bound without the closing MVU pass.
 /// A dynamic step's residuals, read back from the target (protocol version 13), relative to
 /// ‖b‖: the true ‖b − S·v₁‖ of its own b and v₁, and how far the r it carries lies from it.
 #[derive(Debug)]
