@@ -5,6 +5,7 @@
 //! cargo xtask setup && cargo xtask firmware && cargo xtask firmware --board litex
 //! cargo run --release -p deform-hil-sim --example litex_cycles [-- --edges 4,6,8 --model a]
 //! cargo run --release -p deform-hil-sim --example litex_cycles -- --mvus 4 [--whole]
+//! cargo run --release -p deform-hil-sim --example litex_cycles -- --edges 8 --trace t.vcd
 //! ```
 //!
 //! For each cubic grid (the `deform solve` layout: row blocks over `--mvus` MVUs, one without
@@ -24,11 +25,23 @@
 //! cycles are then the CPU's start, wait and read-out around the array's work, and the
 //! firmware's log line "MVU array: … cycles in the MVUs" (printed when the next grid's matrix
 //! replaces the last) gives the array's own clocks. QEMU runs the same layout on N harts.
+//!
+//! With `--trace FILE` the SoC is the traced one (`hil-sim/litex/deform_soc_trace.py`, its own
+//! Verilator build): a probe copies the VexRiscv's pipeline signals, and the simulator dumps
+//! them for `--trace-cycles` clocks from the (`--trace-skip` + 1)-th retirement of the
+//! instruction at `--trace-pc` (by default the head of the one-direction mirrored split loop,
+//! found in the firmware by `vex_stalls.py locate`, and skipping two MVU phases' words and 100
+//! more, so the window falls in the third iteration's MVU phase with warm caches). The VCD goes
+//! to FILE, and `hil-sim/litex/vex_stalls.py analyse` prints why each clock of the window did
+//! or did not retire, per cause and per iteration of the hottest loops.
 
 use std::time::{Duration, Instant};
 
 use clap::Parser;
-use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use deform_hil_sim::litex::{litex_dir, litex_firmware_elf, LitexConfig, LitexSim, TraceWindow};
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_host::board::{Board, BoardChoice, LogOptions};
 use deform_host::encode::{encode_with, EncodeOptions, Partition};
@@ -61,6 +74,23 @@ struct Args {
     /// An SoC whose bus bursts (a cache line in one Wishbone burst): its own Verilator build.
     #[arg(long)]
     bus_bursting: bool,
+    /// Trace the VexRiscv's pipeline into this VCD and attribute its stalls (one grid only).
+    #[arg(long)]
+    trace: Option<PathBuf>,
+    /// The traced window's start: this instruction's retirement (hex; default: the head of the
+    /// one-direction mirrored split loop in the firmware).
+    #[arg(long, value_parser = parse_hex)]
+    trace_pc: Option<u32>,
+    /// Retirements of `--trace-pc` before the window (default: two MVU phases' words + 100).
+    #[arg(long)]
+    trace_skip: Option<u32>,
+    /// Clocks in the traced window.
+    #[arg(long, default_value_t = 20_000)]
+    trace_cycles: u32,
+}
+
+fn parse_hex(text: &str) -> Result<u32, String> {
+    u32::from_str_radix(text.trim_start_matches("0x"), 16).map_err(|e| format!("{text}: {e}"))
 }
 
 /// The thesis's hardware, 500 nodes, one MVU: cycles per CG iteration (model A, model B).
@@ -105,16 +135,27 @@ fn main() -> anyhow::Result<()> {
     };
     let started = Instant::now();
     let layout_mvus = args.mvus.max(1);
+    if args.trace.is_some() && args.edges.len() != 1 {
+        anyhow::bail!("--trace takes one grid (--edges N)");
+    }
+    let first = encode_grid(args.edges[0], connection, args.whole, layout_mvus)?;
     // The firmware's logs are printed (the MVU array's own cycle count among them), except on
-    // the bursting SoC, which Board::open does not build.
-    let (sim, mut bursting, mut board);
-    let litex: &mut Target = if args.bus_bursting {
+    // the bursting and traced SoCs, which Board::open does not build.
+    let (mut own, mut board);
+    let litex: &mut Target = if args.bus_bursting || args.trace.is_some() {
         let mut config = LitexConfig::new(litex_firmware_elf()).with_mvus(args.mvus);
-        config.soc.bus_bursting = true;
-        sim = LitexSim::start(&config)?;
-        bursting = Target::connect(sim.serial_path().to_str().unwrap_or_default(), timeouts)?;
-        &mut bursting
+        config.soc.bus_bursting = args.bus_bursting;
+        if args.trace.is_some() {
+            config.soc.trace = true;
+            config.trace_window = Some(trace_window(&args, first.1.matrix.words.len())?);
+            eprintln!("traced window: {:x?}", config.trace_window);
+        }
+        let sim = LitexSim::start(&config)?;
+        let target = Target::connect(sim.serial_path().to_str().unwrap_or_default(), timeouts)?;
+        own = Some((sim, target));
+        &mut own.as_mut().expect("just set").1
     } else {
+        own = None;
         let choice = BoardChoice::Litex {
             firmware: None,
             mvus: args.mvus,
@@ -142,29 +183,13 @@ fn main() -> anyhow::Result<()> {
         "n", "words", "MVU cyc", "MVU ins", "CPI", "cyc/wd", "/MVU", "SVU cyc", "SVU ins", "CPI",
         "cycles", "instr", "CPI", "µs", "QEMU ins", "/thesis"
     );
+    let mut first = Some(first);
     for &edge in &args.edges {
-        let grid = Grid::new(edge, edge, edge)?;
-        let spec = ModelSpec {
-            grid,
-            connection,
-            elasticity: Elasticity::new(1.0, 2.0, 0.5)?,
-            field: None,
-            fixed_sets: vec![FixedNodeSet::Corners],
-            fixed_nodes: Vec::new(),
-            prescribed: Vec::new(),
-            loads: vec![ModelSpec::default_load(grid)],
-            pressures: Vec::new(),
+        let (model, encoding) = match first.take() {
+            Some(built) => built,
+            None => encode_grid(edge, connection, args.whole, layout_mvus)?,
         };
-        let model = Model::build(&spec)?;
         let a = model.unit_matrix();
-        let encoding = encode_with(
-            a,
-            &EncodeOptions {
-                mvus: layout_mvus,
-                partition: Partition::Rows,
-                use_symmetry: !args.whole,
-            },
-        )?;
         let rhs = model.scaled_rhs(Axis::X);
         let params = SolveParams {
             max_iterations: args.iterations,
@@ -211,6 +236,93 @@ fn main() -> anyhow::Result<()> {
     // A Hello drops the last matrix: with hardware MVUs the firmware logs their cycles.
     litex.reset()?;
     std::thread::sleep(Duration::from_secs(2));
+    if let (Some(path), Some((sim, target))) = (&args.trace, own) {
+        drop(target);
+        sim.keep_trace(path)?;
+        analyse(path)?;
+    }
     eprintln!("wall time {:.1} s", started.elapsed().as_secs_f64());
+    Ok(())
+}
+
+/// The model and its encoding for the cubic grid of `edge` nodes a side.
+fn encode_grid(
+    edge: usize,
+    connection: Connection,
+    whole: bool,
+    mvus: u8,
+) -> anyhow::Result<(Model, deform_host::encode::Encoding)> {
+    let grid = Grid::new(edge, edge, edge)?;
+    let spec = ModelSpec {
+        grid,
+        connection,
+        elasticity: Elasticity::new(1.0, 2.0, 0.5)?,
+        field: None,
+        fixed_sets: vec![FixedNodeSet::Corners],
+        fixed_nodes: Vec::new(),
+        prescribed: Vec::new(),
+        loads: vec![ModelSpec::default_load(grid)],
+        pressures: Vec::new(),
+    };
+    let model = Model::build(&spec)?;
+    let encoding = encode_with(
+        model.unit_matrix(),
+        &EncodeOptions {
+            mvus,
+            partition: Partition::Rows,
+            use_symmetry: !whole,
+        },
+    )?;
+    Ok((model, encoding))
+}
+
+/// The analyser beside the SoC generator, run by the LiteX venv's Python.
+fn vex_stalls() -> (PathBuf, PathBuf) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("litex/vex_stalls.py");
+    (litex_dir().join("venv/bin/python"), script)
+}
+
+/// The traced window from the arguments, the loop head found in the firmware by default.
+fn trace_window(args: &Args, words: usize) -> anyhow::Result<TraceWindow> {
+    let start_pc = match args.trace_pc {
+        Some(pc) => pc,
+        None => {
+            let (python, script) = vex_stalls();
+            let out = Command::new(python)
+                .arg(script)
+                .args(["locate", "--elf"])
+                .arg(litex_firmware_elf())
+                .output()?;
+            if !out.status.success() {
+                anyhow::bail!(
+                    "vex_stalls.py locate failed (give --trace-pc): {}",
+                    String::from_utf8_lossy(&out.stderr)
+                );
+            }
+            parse_hex(String::from_utf8_lossy(&out.stdout).trim()).map_err(anyhow::Error::msg)?
+        }
+    };
+    let skip = match args.trace_skip {
+        Some(skip) => skip,
+        None => u32::try_from(2 * words + 100)?,
+    };
+    Ok(TraceWindow {
+        start_pc,
+        skip,
+        cycles: args.trace_cycles,
+    })
+}
+
+/// Prints vex_stalls.py's attribution of the trace at `vcd`.
+fn analyse(vcd: &Path) -> anyhow::Result<()> {
+    let (python, script) = vex_stalls();
+    let status = Command::new(python)
+        .arg(script)
+        .args(["analyse", "--listing", "--elf"])
+        .arg(litex_firmware_elf())
+        .arg("--vcd")
+        .arg(vcd)
+        .status()?;
+    anyhow::ensure!(status.success(), "vex_stalls.py analyse failed ({status})");
     Ok(())
 }

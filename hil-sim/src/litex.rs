@@ -66,6 +66,18 @@ pub const LITEX_PYTHON_PACKAGES: &[&str] = &[
 const SOC_SCRIPT: &str = include_str!("../litex/deform_soc.py");
 const SOC_SCRIPT_PATH: &str = "hil-sim/litex/deform_soc.py";
 
+/// The traced SoC's generator ([`SocConfig::trace`]) and its pipeline probe: part of the key of
+/// traced SoCs only, so that the untraced ones keep their cached builds.
+const TRACE_SCRIPT: &str = include_str!("../litex/deform_soc_trace.py");
+const TRACE_SCRIPT_PATH: &str = "hil-sim/litex/deform_soc_trace.py";
+const TRACE_PROBE: &str = include_str!("../litex/deform_trace_probe.v");
+
+/// The window file a traced SoC's probe reads in the run folder (`$readmemh`).
+const TRACE_WINDOW_FILE: &str = "trace_window.init";
+
+/// The trace a traced SoC's simulator writes in the run folder.
+const TRACE_FILE: &str = "sim.vcd";
+
 /// The gateware the SoC builds in (the MVU array), part of the cache key too.
 const GATEWARE_SOURCES: &[&str] = &[
     include_str!("../../gateware/deform_gateware/word.py"),
@@ -198,6 +210,9 @@ pub struct SocConfig {
     pub mvus: u8,
     /// Wishbone burst cycles, so a cache line fills in one burst (`--bus-bursting`).
     pub bus_bursting: bool,
+    /// With the VexRiscv pipeline probe and a Verilator trace gated by the run's
+    /// [`TraceWindow`] (`deform_soc_trace.py`): a separate, slower simulator.
+    pub trace: bool,
 }
 
 impl Default for SocConfig {
@@ -210,6 +225,7 @@ impl Default for SocConfig {
             bios: false,
             mvus: 0,
             bus_bursting: false,
+            trace: false,
         }
     }
 }
@@ -260,9 +276,14 @@ impl SocConfig {
         for package in LITEX_PYTHON_PACKAGES {
             digest.update(package.as_bytes());
         }
+        if self.trace {
+            digest.update(TRACE_SCRIPT.as_bytes());
+            digest.update(TRACE_PROBE.as_bytes());
+        }
         format!(
-            "{}{}-{:016x}",
+            "{}{}{}-{:016x}",
             if self.bios { "bios" } else { "ram" },
+            if self.trace { "-trace" } else { "" },
             if self.mvus > 0 {
                 format!("-{}mvu", self.mvus)
             } else {
@@ -360,8 +381,13 @@ impl Soc {
                 })?;
         let mut generate = Command::new(&python);
         generate.env("PATH", &path);
+        let script = if config.trace {
+            TRACE_SCRIPT_PATH
+        } else {
+            SOC_SCRIPT_PATH
+        };
         generate
-            .arg(workspace_root().join(SOC_SCRIPT_PATH))
+            .arg(workspace_root().join(script))
             .arg("--out")
             .arg(&dir)
             .args(config.args())
@@ -488,6 +514,27 @@ pub struct LitexConfig {
     /// build's own pace (`deform_soc.py --uart-baud`: stock litex_term's safe rate for the
     /// BIOS shape, unpaced otherwise).
     pub uart_pace: Option<u32>,
+    /// The window a traced SoC ([`SocConfig::trace`]) dumps; `None` dumps nothing.
+    pub trace_window: Option<TraceWindow>,
+}
+
+/// Which clocks a traced SoC dumps: `cycles` clocks from the (`skip` + 1)-th retirement of the
+/// instruction at `start_pc` (its probe, `hil-sim/litex/deform_trace_probe.v`, counts them).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TraceWindow {
+    pub start_pc: u32,
+    pub skip: u32,
+    pub cycles: u32,
+}
+
+impl TraceWindow {
+    /// The probe's `$readmemh` file: start pc, skip, cycles, one hex word a line.
+    fn init_text(&self) -> String {
+        format!(
+            "{:08x}\n{:08x}\n{:08x}\n",
+            self.start_pc, self.skip, self.cycles
+        )
+    }
 }
 
 impl LitexConfig {
@@ -498,6 +545,7 @@ impl LitexConfig {
             elf: Some(elf.into()),
             start_timeout: Duration::from_secs(30),
             uart_pace: None,
+            trace_window: None,
         }
     }
 
@@ -514,6 +562,7 @@ impl LitexConfig {
             elf: None,
             start_timeout: Duration::from_secs(30),
             uart_pace: None,
+            trace_window: None,
         }
     }
 
@@ -579,6 +628,10 @@ impl LitexSim {
         fs::create_dir_all(&run_dir).map_err(io(format!("creating {}", run_dir.display())))?;
         let port = free_port()?;
         prepare_run(soc, &run_dir, image, port, config.uart_pace)?;
+        if let Some(window) = config.trace_window {
+            fs::write(run_dir.join(TRACE_WINDOW_FILE), window.init_text())
+                .map_err(io("writing trace_window.init"))?;
+        }
         let log = File::create(run_dir.join("sim.log")).map_err(io("creating sim.log"))?;
         let mut sim = Command::new(soc.gateware().join("obj_dir/Vsim"));
         sim.current_dir(&run_dir)
@@ -649,6 +702,23 @@ impl LitexSim {
     /// What the simulator printed so far.
     pub fn output(&self) -> String {
         fs::read_to_string(self.run_dir.join("sim.log")).unwrap_or_default()
+    }
+
+    /// Stops the simulator and moves the trace of a traced SoC ([`SocConfig::trace`]) to
+    /// `dest`, out of the run folder that dropping `self` removes.
+    pub fn keep_trace(mut self, dest: &Path) -> Result<(), LitexError> {
+        let _ = self.sim.kill();
+        let _ = self.sim.wait();
+        let trace = self.run_dir.join(TRACE_FILE);
+        if fs::rename(&trace, dest).is_err() {
+            // Another file system: copy, and let the drop remove the run folder.
+            fs::copy(&trace, dest).map_err(io(format!(
+                "moving {} to {}",
+                trace.display(),
+                dest.display()
+            )))?;
+        }
+        Ok(())
     }
 }
 
@@ -891,6 +961,20 @@ mod tests {
         assert_ne!(a.key(), a.clone().with_mvus(4).key());
         assert!(a.clone().with_mvus(4).key().starts_with("ram-4mvu-"));
         assert!(a.key().starts_with("ram-") && a.clone().with_bios().key().starts_with("bios-"));
+        let mut traced = a.clone();
+        traced.trace = true;
+        assert_ne!(a.key(), traced.key());
+        assert!(traced.key().starts_with("ram-trace-"), "{}", traced.key());
+    }
+
+    #[test]
+    fn the_trace_window_file_is_three_hex_words() {
+        let window = TraceWindow {
+            start_pc: 0x4003_1a1c,
+            skip: 3_250,
+            cycles: 20_000,
+        };
+        assert_eq!(window.init_text(), "40031a1c\n00000cb2\n00004e20\n");
     }
 
     /// Every gateware module the SoC imports (from mvu_array.py, transitively) is part of the

@@ -42,22 +42,26 @@ pub unsafe fn row<const D: usize, const SPLIT: bool>(
             // Software-pipelined: a trip adds the previous word's product (m, hh; zero
             // before the first word) while its own word is decoded, so no result is used
             // within three slots of its load or multiply; the last product is added after
-            // the loop.
+            // the loop. The loop's head is the pointer's step, which always assembles to a
+            // 16-bit `c.addi`: the VexRiscv fetches aligned 32-bit words, and a taken
+            // branch to a 32-bit instruction at an address 2 mod 4 cost a second fetch, a
+            // bubble a word (a Verilator trace of the whole-K MVU phase, docs/PERFORMANCE.md,
+            // "The VexRiscv's stalls, traced").
             // SAFETY: reads only the row's words and p[col_base + c] for its columns.
             unsafe {
                 asm!(
                     "2:",
-                    "lw {w}, 0({wp})",
+                    "addi {wp}, {wp}, 4",
+                    "lw {w}, -4({wp})",
                     "add {l0}, {l0}, {m}",
                     "sltu {m}, {l0}, {m}",
                     "srli {t}, {w}, {cs}",
                     "slli {v}, {w}, {vs}",
-                    "add {h0}, {h0}, {hh}",
                     "and {t}, {t}, {mask}",
                     "srai {v}, {v}, {vs}",
                     "add {t}, {t}, {base}",
                     "lw {t}, 0({t})",
-                    "addi {wp}, {wp}, 4",
+                    "add {h0}, {h0}, {hh}",
                     "add {h0}, {h0}, {m}",
                     "mul {m}, {v}, {t}",
                     "mulh {hh}, {v}, {t}",
