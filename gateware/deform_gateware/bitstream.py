@@ -56,21 +56,18 @@ YOSYS_CELLS = ("LUT4", "CCU2C", "TRELLIS_FF", "MULT18X18D", "ALU54B", "DP16KD",
                "TRELLIS_DPR16X4", "PFUMX", "L6MUX21")
 
 
-def capacity(mvus, nodes=None):
-    """(words, tiles, nodes) per MVU. ``nodes`` (p's and Kp's depth, the largest n the SoC
-    solves) may be chosen: 512 halves the p and Kp block RAMs of every MVU, which eases the
-    routing of the SoCs with more MVUs."""
-    words, tiles, default = (4096, 256, 1024) if mvus <= 4 else (2048, 256, 512)
-    return words, tiles, nodes or default
+def capacity(mvus):
+    """(words, tiles, nodes) per MVU."""
+    return (4096, 256, 1024) if mvus <= 4 else (2048, 256, 512)
 
 
-def ulx3s_soc(mvus, nodes=None):
+def ulx3s_soc(mvus):
     from litex_boards.targets.radiona_ulx3s import BaseSoC
     soc = BaseSoC(device="LFE5U-85F", revision="2.0", toolchain="trellis",
                   sys_clk_freq=SYS_CLK_FREQ, cpu_type="vexriscv", cpu_variant="imac",
                   integrated_rom_size=0x20000, integrated_sram_size=0x2000,
                   with_led_chaser=False)
-    words, tiles, nodes = capacity(mvus, nodes)
+    words, tiles, nodes = capacity(mvus)
     add_to_soc(soc, mvus, words=words, tiles=tiles, nodes=nodes, primitive=True)
     return soc
 
@@ -133,7 +130,7 @@ def build(args, out):
     stages = {}
     log("--> LiteX: the SoC, its BIOS, the Verilog and the tools' scripts")
     started = time.monotonic()
-    soc = ulx3s_soc(args.mvus, args.nodes)
+    soc = ulx3s_soc(args.mvus)
     gateware = os.path.join(out, "gateware")
     name = soc.platform.name
     bitstream = os.path.join(gateware, name + ".bit")
@@ -152,7 +149,7 @@ def build(args, out):
                   commit=commit,
                   yosys=yosys_cells(os.path.join(gateware, name + ".rpt")), pnr=None,
                   bitstream=None, stages=stages)
-    report.update(zip(("words", "tiles", "nodes"), capacity(args.mvus, args.nodes)))
+    report.update(zip(("words", "tiles", "nodes"), capacity(args.mvus)))
     if args.no_pnr:
         log("    --no-pnr: nextpnr-ecp5 and ecppack not run (no Fmax, no bitstream)")
         return report
@@ -181,9 +178,6 @@ def main():
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--router", choices=ROUTERS, default=ROUTERS[0],
                         help="nextpnr's router (default %(default)s, nextpnr's own)")
-    parser.add_argument("--nodes", type=int, choices=(512, 1024), default=None,
-                        help="p's and Kp's depth per MVU, the largest n the SoC solves "
-                             "(default 1024 up to 4 MVUs, 512 above)")
     parser.add_argument("--no-pnr", action="store_true",
                         help="stop after Yosys: cell counts only, no place and route, no Fmax, "
                              "no bitstream")

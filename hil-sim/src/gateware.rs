@@ -358,9 +358,6 @@ pub struct SocBuild {
     pub mvus: u32,
     pub seed: u32,
     pub router: Router,
-    /// p's and Kp's depth per MVU (the largest n the SoC solves); `None`: bitstream.py's
-    /// default for the MVU count.
-    pub nodes: Option<u32>,
     /// Stop after Yosys: cell counts only, no Fmax, no bitstream.
     pub no_pnr: bool,
 }
@@ -380,9 +377,6 @@ pub fn build_bitstream(build: &SocBuild, out: &Path) -> Result<SocReport, Gatewa
         "--router".into(),
         build.router.to_string(),
     ];
-    if let Some(nodes) = build.nodes {
-        args.extend(["--nodes".to_string(), nodes.to_string()]);
-    }
     if build.no_pnr {
         args.push("--no-pnr".into());
     }

@@ -27,7 +27,7 @@ const LFE5U_85F_MULTIPLIERS: u64 = 156;
 
 pub const USAGE: &str = "\
   bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--router router1|router2]
-            [--nodes 512|1024] [--no-pnr | --report-only]
+            [--no-pnr | --report-only]
                      build deform's SoC with each number of hardware MVUs, one at a time,
                      into an ECP5 bitstream (YoWASP Yosys, nextpnr-ecp5, ecppack; each stage
                      printed with its time) in target/bitstream/BOARD-<N>mvu/, and gather the
@@ -36,9 +36,7 @@ pub const USAGE: &str = "\
                      multipliers_per_mvu.svg). --seed: nextpnr's (default 1); --router:
                      nextpnr's (default router1, nextpnr's own; router2 is faster,
                      with a lower Fmax; each build is compared with the 0-MVU
-                     baseline of the same router); --nodes: p's and Kp's depth per
-                     MVU, the largest n the SoC solves (default 1024 up to 4 MVUs,
-                     512 above; 512 halves their block RAMs); --no-pnr:
+                     baseline of the same router); --no-pnr:
                      stop after Yosys (cell counts only: no Fmax, no bitstream);
                      --report-only: build nothing, rewrite report.md and the plot from
                      report.json";
@@ -52,7 +50,6 @@ pub enum Request {
         mvus: Vec<u32>,
         seed: u32,
         router: Router,
-        nodes: Option<u32>,
         no_pnr: bool,
     },
     /// Rewrite report.md and the plot from the gathered report.json.
@@ -68,7 +65,6 @@ pub fn parse(args: &[String]) -> Result<Request> {
     let mut seed = 1;
     let mut router = Router::default();
     let mut no_pnr = false;
-    let mut nodes = None;
     let mut report_only = false;
     let mut it = args.iter();
     while let Some(flag) = it.next() {
@@ -89,14 +85,6 @@ pub fn parse(args: &[String]) -> Result<Request> {
                     .with_context(|| format!("--seed takes a number, not `{value}`"))?;
             }
             "--router" => router = value()?.parse().map_err(anyhow::Error::msg)?,
-            "--nodes" => {
-                let value = value()?;
-                nodes = match value.as_str() {
-                    "512" => Some(512),
-                    "1024" => Some(1024),
-                    _ => bail!("--nodes takes 512 or 1024 (p's and Kp's depth), not `{value}`"),
-                };
-            }
             other => bail!("bitstream does not take `{other}`\n\n{USAGE}"),
         }
     }
@@ -118,7 +106,6 @@ pub fn parse(args: &[String]) -> Result<Request> {
         mvus,
         seed,
         router,
-        nodes,
         no_pnr,
     })
 }
@@ -143,7 +130,7 @@ fn parse_mvus(value: &str) -> Result<Vec<u32>> {
 
 /// Runs `cargo xtask bitstream ARGS`.
 pub fn run(args: &[String], workspace: &Path) -> Result<()> {
-    let (board, mvus, seed, router, nodes, no_pnr) = match parse(args)? {
+    let (board, mvus, seed, router, no_pnr) = match parse(args)? {
         Request::Help => {
             println!("usage: cargo xtask\n{USAGE}");
             return Ok(());
@@ -163,9 +150,8 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
             mvus,
             seed,
             router,
-            nodes,
             no_pnr,
-        } => (board, mvus, seed, router, nodes, no_pnr),
+        } => (board, mvus, seed, router, no_pnr),
     };
     check_synthesis_venv(&litex_dir())?;
     let dir = workspace.join("target/bitstream").join(&board);
@@ -187,7 +173,6 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
             mvus: n,
             seed,
             router,
-            nodes,
             no_pnr,
         };
         let report =
@@ -362,13 +347,12 @@ mod tests {
                 mvus: vec![0, 1, 2, 4, 8],
                 seed: 1,
                 router: Router::Router1,
-                nodes: None,
                 no_pnr: false
             }
         );
         assert_eq!(
             parse(&args(
-                "--mvus 0,4 --no-pnr --board ulx3s --seed 2 --router router2 --nodes 512"
+                "--mvus 0,4 --no-pnr --board ulx3s --seed 2 --router router2"
             ))
             .unwrap(),
             Request::Build {
@@ -376,7 +360,6 @@ mod tests {
                 mvus: vec![0, 4],
                 seed: 2,
                 router: Router::Router2,
-                nodes: Some(512),
                 no_pnr: true
             }
         );
@@ -401,7 +384,6 @@ mod tests {
         assert!(error("--board ulx3s --mvus 4,4").contains("4 is there twice"));
         assert!(error("--board ulx3s --mvus -1").contains("not `-1`"));
         assert!(error("--board ulx3s --seed x").contains("--seed takes a number"));
-        assert!(error("--board ulx3s --nodes 700").contains("512 or 1024"));
         assert!(error("--board ulx3s --router fast").contains("router1 and router2, not `fast`"));
         assert!(error("--board ulx3s --router").contains("--router needs a value"));
         assert!(error("--board ulx3s --fast").contains("does not take `--fast`"));
