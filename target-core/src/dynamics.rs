@@ -159,7 +159,7 @@ impl Stepping {
     /// The history direction `d`'s next start extrapolates from (v₀ + Δv₀), if it does, for a
     /// right-hand side of Σb² = `bb` at exponent `e_b`: only from a bounded residual; after a
     /// step that skipped its closing pass always; right after an exact pass only where the
-    /// drift the extrapolated start carries, e₀ + min(`delta`, e₀ + r₋₁f's), is at most
+    /// drift the extrapolated start carries, e₀ + `delta` (or e₀ + r₋₁f's), is at most
     /// 2^−`EXTRAPOLATE_MARGIN`/2 of tol·‖b‖. Otherwise the start is v₀, whose residual
     /// d₁ + r₀f carries e₀ alone: right after an exact pass that is the pass's rounding,
     /// while r₋₁f's may be a whole run of skipped steps' drift, which would keep the next
@@ -175,7 +175,12 @@ impl Stepping {
         }
         // Right after an exact pass only (soft-f64 and `Lower` work on hart 0's serial path).
         let e0 = self.drift[d];
-        let carried = e0.plus(self.delta[d].min(e0.plus(h.r1_drift)));
+        let delta = if self.delta[d].is_finite() {
+            self.delta[d]
+        } else {
+            e0.plus(h.r1_drift)
+        };
+        let carried = e0.plus(delta);
         let tol = Lower::from_f64(f64::from(self.params.tolerance));
         let t2 = tol.times(tol).times(Lower::wide(bb, 2 * e_b));
         carried

@@ -800,8 +800,12 @@ impl<E: Executor> Session<'_, E> {
                 bound: o.r_bound,
             });
             // r₁ − r₀f's error: the start's less r₀f's, plus the updates' (the updates' sum is
-            // infinite where an exact pass replaced r), or at most both drifts.
-            st.delta[d] = o.drift.plus(st.drift[d]).min(step.delta.plus(o.updates));
+            // infinite where an exact pass replaced r), or else at most both drifts.
+            st.delta[d] = if o.updates.is_finite() {
+                step.delta.plus(o.updates)
+            } else {
+                o.drift.plus(st.drift[d])
+            };
             st.drift[d] = o.drift;
             st.unchecked[d] = if o.r_exact {
                 0
@@ -947,8 +951,11 @@ impl<E: Executor> Session<'_, E> {
             );
             // ε_start − ε₀ is (ε₀ − ε₋₁) plus the start's roundings (extrapolated) or those
             // alone (from v₀): the next step's `delta` before this solve's updates.
+            // Either bound of ‖ε₀ − ε₋₁‖ holds; the carried one where there is one (a branch
+            // instead of a sum and a comparison on hart 0's serial path).
             let step_delta = match history {
-                Some(h) => st.delta[step.d].min(e0.plus(h.r1_drift)),
+                Some(_) if st.delta[step.d].is_finite() => st.delta[step.d],
+                Some(h) => e0.plus(h.r1_drift),
                 None => Upper::ZERO,
             };
             step.delta = step_delta.plus(local);
