@@ -361,6 +361,12 @@ pub struct Outcome {
     /// The solve accepted r without an exact pass because the drift proved it
     /// ([`GivenResidual::drift`]).
     pub check_skipped: bool,
+    /// The part of `drift` the updates added to the given start's: the returned r is the given
+    /// one plus the updates, whose rounding moved it by at most this much from b − A·x's
+    /// change. Infinite where an exact pass replaced r (or nothing was given), so that a
+    /// caller relating consecutive residuals ([`crate::dynamics::Stepping::delta`]) knows r
+    /// is no longer the given one plus updates.
+    pub updates: Upper,
 }
 
 impl Default for Outcome {
@@ -373,6 +379,7 @@ impl Default for Outcome {
             x_bound: 0,
             drift: Upper::INFINITE,
             check_skipped: false,
+            updates: Upper::INFINITE,
         }
     }
 }
@@ -409,16 +416,26 @@ pub fn drift_of_update(
     root_n.times(Upper::small(r_halves, e_r - 1).plus(x))
 }
 
-/// `drift` plus one iteration's ([`drift_of_update`]) for pass R as `r_plan` and pass XP's x as
-/// `x` plan them. Out of line, and cold: most solves carry no bound, and inlined, the `Upper`
+/// One iteration's drift ([`drift_of_update`]) for pass R as `r_plan` and pass XP's x as `x`
+/// plan them. Out of line, and cold: most solves carry no bound, and inlined, the `Upper`
 /// arithmetic cost hart 0's serial path of every iteration about 24 instructions in register
 /// spills even where it did not run (`engine_figures`, 8³ B: 1,184 → 1,208 alone).
 #[cold]
 #[inline(never)]
-fn add_update_drift(drift: Upper, r_plan: &PassR, x: &Lin, root_n: Upper, a_inf: Upper) -> Upper {
+fn update_drift(r_plan: &PassR, x: &Lin, root_n: Upper, a_inf: Upper) -> Upper {
     let r_units = update_error(&r_plan.lin, matches!(r_plan.narrow, Narrow::Right(_)));
     let (r, x) = ((r_units, r_plan.lin.e), (update_error(x, false), x.e));
-    drift.plus(drift_of_update(root_n, a_inf, r, x))
+    #[cfg(feature = "testkit")]
+    crate::trace::record(
+        "update",
+        &[
+            root_n.times(Upper::small(r.0, r.1 - 1)).to_f64(),
+            root_n
+                .times(a_inf.times(Upper::small(x.0, x.1 - 1)))
+                .to_f64(),
+        ],
+    );
+    drift_of_update(root_n, a_inf, r, x)
 }
 
 /// The drift of a residual formed by an exact MVU pass at exponent `e_r` ([`EXACT_PASS_ERROR`]
@@ -486,6 +503,9 @@ struct Direction {
     given: bool,
     /// The bound on ‖r − (b − A·x)‖₂ ([`Outcome::drift`]).
     drift: Upper,
+    /// The part of `drift` the updates added since the given start ([`Outcome::updates`]):
+    /// infinite once an exact pass replaced r.
+    updates: Upper,
     /// A converged r may be accepted on the drift's proof ([`GivenResidual::drift`]).
     skippable: bool,
     /// It was ([`Outcome::check_skipped`]).
@@ -509,6 +529,7 @@ impl Direction {
         r_exact: false,
         given: false,
         drift: Upper::ZERO,
+        updates: Upper::ZERO,
         skippable: false,
         skipped: false,
     };
@@ -1155,6 +1176,21 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
         st.skipped = st.skippable
             && self.sat == 0
             && proves_tolerance(st.rr, st.r.e, st.bb, st.b.e, st.drift, tol);
+        // "proven" = [‖r‖, drift, tol·‖b‖, skipped, iterations] (real units).
+        #[cfg(feature = "testkit")]
+        if st.skippable {
+            let norm = |s: u128, e: i32| deform_shared::qformat::ldexp((s as f64).sqrt(), e);
+            crate::trace::record(
+                "proven",
+                &[
+                    norm(st.rr, st.r.e),
+                    st.drift.to_f64(),
+                    tol * norm(st.bb, st.b.e),
+                    f64::from(u8::from(st.skipped)),
+                    f64::from(st.iterations),
+                ],
+            );
+        }
         st.skipped
     }
 
@@ -1197,6 +1233,7 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
                 self.take_r(d, *plan);
                 self.state[d].r_exact = true;
                 self.state[d].drift = drift_of_exact_pass(self.root_n, plan.lin.e);
+                self.state[d].updates = Upper::INFINITE;
             }
         }
         charge(&mut self.clock.svu, t, self.engine.exec);
@@ -1292,7 +1329,8 @@ impl<E: Executor> Solver<'_, '_, '_, E> {
             let x = Lin::new(self.alphas[d], st.p, false, Some(st.x), &mut self.sat);
             self.xp_plans[d].x = Some(x);
             if st.skippable {
-                st.drift = add_update_drift(st.drift, plan, &x, self.root_n, self.a_inf);
+                let w = update_drift(plan, &x, self.root_n, self.a_inf);
+                (st.drift, st.updates) = (st.drift.plus(w), st.updates.plus(w));
             }
             if st.converged || st.iterations >= self.params.max_iterations {
                 st.active = false;
@@ -1519,6 +1557,11 @@ pub fn solve(
                 Upper::INFINITE
             },
             check_skipped: st.skipped,
+            updates: if solver.sat == 0 && st.given && st.skippable {
+                st.updates
+            } else {
+                Upper::INFINITE
+            },
         }
     });
     let (report, x_exponents) = finish(solver);

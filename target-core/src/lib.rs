@@ -39,5 +39,7 @@ pub mod svu;
 mod test_rng;
 #[cfg(any(test, feature = "testkit"))]
 pub mod testkit;
+#[cfg(feature = "testkit")]
+pub mod trace;
 pub mod transport;
 pub mod upper;

@@ -69,6 +69,17 @@ impl Upper {
         self.e != i32::MAX
     }
 
+    /// The smaller of two bounds (each is one, so the smaller is): mantissas are normalized
+    /// (m ∈ [2^31, 2^32) or 0), so a larger exponent is a larger value.
+    pub fn min(self, other: Upper) -> Upper {
+        let key = |u: Upper| (u.m != 0, u.e, u.m);
+        if !other.is_finite() || (self.is_finite() && key(self) <= key(other)) {
+            self
+        } else {
+            other
+        }
+    }
+
     /// self + other, rounded up.
     pub fn plus(self, other: Upper) -> Upper {
         if !self.is_finite() || !other.is_finite() {

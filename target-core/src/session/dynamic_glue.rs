@@ -17,7 +17,7 @@ use deform_shared::qformat::ldexp;
 use super::*;
 use crate::cg::{GivenResidual, Outcome};
 use crate::dynamics::{
-    advance_share, predict_share, residual_share, rhs_share, row_sum, start_drift, Difference,
+    advance_share, predict_share, residual_share, rhs_share, row_sum, start_local, Difference,
     History, LiveDynamicError, ResidualPlan, RhsPlan, RhsSums, MAX_UNCHECKED,
 };
 use crate::exec::{share, slowest, SharedSlice};
@@ -204,6 +204,12 @@ struct Step {
     v0: Block,
     /// What this step keeps for the next one (where the last solve left a bounded r).
     kept: Option<Kept>,
+    /// A bound on ‖ε_start − ε₀‖ (the start's error less r₀f's, [`Stepping::delta`]);
+    /// infinite without a bounded start.
+    delta: Upper,
+    /// The start is v₀ + Δv₀ ([`crate::dynamics::Stepping::start_history`]), decided once by
+    /// pass A for pass D too.
+    extrapolate: bool,
 }
 
 /// The bound of pass A's rounding of v₀ + Δv₀ in halves of a unit of its result's exponent
@@ -215,6 +221,44 @@ fn pass_a_halves(v: Block, v0: Block) -> u64 {
     } else {
         2
     }
+}
+
+/// Records [`start_drift`]'s terms (real units) for a host measurement ([`crate::trace`]):
+/// "start" = [2·e0, r₋₁f's drift, √n·d₁'s rounding, √n·d₀'s, √n·pass D's shifts,
+/// √n·‖S‖∞·Δv's rounding, √n·‖S‖∞·pass A's, the whole bound, steps unchecked,
+/// ‖ε₀ − ε₋₁‖'s bound], the history's terms 0 without one.
+#[cfg(feature = "testkit")]
+fn trace_start(
+    (root_n, s_inf): (Upper, Upper),
+    (e_d, e): (i32, i32),
+    e0: Upper,
+    extrapolated: Option<(&crate::dynamics::History, i32, u64)>,
+    (drift, unchecked): (Upper, u32),
+    delta: Upper,
+) {
+    let f = |u: Upper| u.to_f64();
+    let rn = f(root_n);
+    let d1 = rn * f(Upper::small(1, e_d));
+    let mut v = [0f64; 10];
+    v[9] = f(delta);
+    v[2] = d1;
+    v[7] = f(drift);
+    v[8] = f64::from(unchecked);
+    match extrapolated {
+        None => {
+            v[0] = f(e0);
+            v[4] = rn * f(Upper::small(1, e));
+        }
+        Some((h, e_x, a_halves)) => {
+            v[0] = 2.0 * f(e0);
+            v[1] = f(h.r1_drift);
+            v[3] = rn * f(h.d0_err);
+            v[4] = rn * f(Upper::small(2, e));
+            v[5] = rn * f(s_inf) * f(Upper::small(1, h.dv.e));
+            v[6] = rn * f(s_inf) * f(Upper::small(a_halves, e_x - 1));
+        }
+    }
+    crate::trace::record("start", &v);
 }
 
 /// Per lane, pass D's plan and the bound the solve may rely on ([`Session::plan_starts`]).
@@ -384,7 +428,7 @@ impl<E: Executor> Session<'_, E> {
             probe.mark("rhs_pass", || cost(&self.exec, &phases));
             self.tool_rows(&mut steps, &stash)?;
             probe.mark("tool_rows", || cost(&self.exec, &phases));
-            self.predict(n, &steps, &mut phases)?;
+            self.predict(n, &mut steps, &mut phases)?;
             probe.mark("predict", || cost(&self.exec, &phases));
             let r_start = self.start_residuals(n, &mut steps, &mut phases)?;
             probe.mark("residual", || cost(&self.exec, &phases));
@@ -535,6 +579,8 @@ impl<E: Executor> Session<'_, E> {
                 terms,
                 v0: st.v[d],
                 kept: None,
+                delta: Upper::INFINITE,
+                extrapolate: false,
             });
         }
         if sat != 0 {
@@ -753,6 +799,13 @@ impl<E: Executor> Session<'_, E> {
                 e: o.r_exponent,
                 bound: o.r_bound,
             });
+            // r₁ − r₀f's error: the start's less r₀f's, plus the updates' (the updates' sum is
+            // infinite where an exact pass replaced r), or else at most both drifts.
+            st.delta[d] = if o.updates.is_finite() {
+                step.delta.plus(o.updates)
+            } else {
+                o.drift.plus(st.drift[d])
+            };
             st.drift[d] = o.drift;
             st.unchecked[d] = if o.r_exact {
                 0
@@ -778,17 +831,27 @@ impl<E: Executor> Session<'_, E> {
 
     /// Pass A on every hart: v₀ kept (history slot 1), and where the history holds Δv₀ the
     /// start v₀ + Δv₀ in x0 (u₁ ≈ u₀ + h·(2v₀ − v₋₁)), v's block updated.
-    fn predict(&mut self, n: usize, steps: &[Step], phases: &mut Phases) -> Result<(), ErrorCode> {
+    fn predict(
+        &mut self,
+        n: usize,
+        steps: &mut [Step],
+        phases: &mut Phases,
+    ) -> Result<(), ErrorCode> {
         if !self.history_room(n) {
             return Ok(());
         }
         let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
         let mut sat = 0;
+        for step in steps.iter_mut() {
+            step.extrapolate = st
+                .start_history(step.d, (step.sums.bb, step.plan.e))
+                .is_some();
+        }
+        let steps = &*steps;
         let lins: [Option<Lin>; MAX_DIRECTIONS] = core::array::from_fn(|lane| {
-            let step = steps.get(lane)?;
+            let step = steps.get(lane).filter(|s| s.extrapolate)?;
             let h = st.history[step.d]?;
-            st.residual[step.d]?;
             Some(Lin::new(
                 Scalar::ONE,
                 h.dv,
@@ -863,7 +926,8 @@ impl<E: Executor> Session<'_, E> {
             let Some(r) = st.residual[step.d] else {
                 continue;
             };
-            let extrapolated = st.history[step.d].filter(|_| room).map(|h| (h.d0, h.r1));
+            let history = st.history[step.d].filter(|_| room && step.extrapolate);
+            let extrapolated = history.map(|h| (h.d0, h.r1));
             let plan = ResidualPlan::new(step.sums.d_or, step.plan.e_d, r, extrapolated, &mut sat);
             let (_, _, d_bound) = Narrow::new(bound_of_u64(step.sums.d_or), &mut sat);
             let d = Block {
@@ -876,15 +940,36 @@ impl<E: Executor> Session<'_, E> {
                 d_err: Upper::small(1, plan.e_keep).plus(Upper::small(1, step.plan.e_d)),
                 r_drift: st.drift[step.d],
             });
-            let history = st.history[step.d].filter(|_| room);
-            let drift = start_drift(
+            let e0 = st.drift[step.d];
+            let local = start_local(
                 root_n,
                 s_inf,
+                (step.plan.e_d, plan.e),
+                history
+                    .as_ref()
+                    .map(|h| (h, st.v[step.d].e, pass_a_halves(st.v[step.d], step.v0))),
+            );
+            // ε_start − ε₀ is (ε₀ − ε₋₁) plus the start's roundings (extrapolated) or those
+            // alone (from v₀): the next step's `delta` before this solve's updates.
+            // Either bound of ‖ε₀ − ε₋₁‖ holds; the carried one where there is one (a branch
+            // instead of a sum and a comparison on hart 0's serial path).
+            let step_delta = match history {
+                Some(_) if st.delta[step.d].is_finite() => st.delta[step.d],
+                Some(h) => e0.plus(h.r1_drift),
+                None => Upper::ZERO,
+            };
+            step.delta = step_delta.plus(local);
+            let drift = e0.plus(step.delta);
+            #[cfg(feature = "testkit")]
+            trace_start(
+                (root_n, s_inf),
                 (step.plan.e_d, plan.e),
                 st.drift[step.d],
                 history
                     .as_ref()
                     .map(|h| (h, st.v[step.d].e, pass_a_halves(st.v[step.d], step.v0))),
+                (drift, st.unchecked[step.d]),
+                st.delta[step.d],
             );
             // Past MAX_UNCHECKED steps on the bound alone, or without a finite one, the solve
             // checks its residual by an exact pass.
