@@ -13,6 +13,10 @@ use std::collections::VecDeque;
 use std::io::{self, Read, Write};
 use std::time::Duration;
 
+#[path = "../tests/hil/needle.rs"]
+#[allow(dead_code)] // the tests use all of the fixture, this example part of it
+mod needle;
+
 use clap::Parser;
 use deform_host::dynamics::resident::ResidentSetup;
 use deform_host::dynamics::{DynamicSystem, StepMatrices};
@@ -93,23 +97,11 @@ fn main() {
         partition: Partition::Rows,
         use_symmetry: true,
     };
-    let path = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../examples/needle-dynamic-8b.toml"
-    );
-    let scenario = deform_host::scenario::Scenario::load(std::path::Path::new(path), None)
-        .expect("the example loads");
-    let simulation = scenario.simulation.clone().expect("a keyframed tool");
-    let spec = deform_host::dynamics::flags::DynamicFlags::default()
-        .resolve(simulation.dynamic, scenario.dynamics.as_ref())
-        .unwrap()
-        .expect("the example is dynamic");
-    let setup =
-        deform_host::live::LiveSetup::new(&simulation.spec_at(&scenario.model, 0.0), &layout)
-            .unwrap();
+    let needle = needle::DynamicNeedle::load(&layout);
+    let (simulation, spec, setup) = (&needle.simulation, &needle.spec, &needle.setup);
     let h = 1e-3;
     let model = &setup.model;
-    let system = DynamicSystem::new(model, &spec).unwrap();
+    let system = DynamicSystem::new(model, spec).unwrap();
     let matrices = StepMatrices::new(&system, h, spec.scheme).unwrap();
     let resident =
         ResidentSetup::new(&system, &matrices, &setup.tools, &layout, args.tol, 500, 0).unwrap();
@@ -132,7 +124,7 @@ fn main() {
     trace::take();
     println!("step it skip | start: 2e0 r1 d1 d0 shifts S.dv S.A = bound (unchecked) | updates r x | last test: |r| drift tol|b| allowed-drift");
     for i in 1..=args.steps {
-        let spec_t = simulation.spec_at(&scenario.model, f64::from(i) * h);
+        let spec_t = simulation.spec_at(&needle.model, f64::from(i) * h);
         let tool = vec![spec_t.prescribed[0].u.map(|v| f64::from(v as f32))];
         let report = ResidentSetup::frame(&mut target, &tool).unwrap();
         print_step(i, report.iterations, &trace::take());

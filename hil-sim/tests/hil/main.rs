@@ -3,6 +3,7 @@
 //! outgrown a CI machine's disk). Run one area with `cargo test -p deform-hil-sim --test hil --
 //! live::`.
 
+mod needle;
 mod support;
 
 mod bench_quick;
