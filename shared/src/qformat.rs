@@ -182,7 +182,26 @@ pub fn pow2(k: i32) -> f64 {
 
 /// x · 2^k, exact unless the result leaves the `f64` range (two steps, so that `k` may exceed
 /// the exponent range of a single power of two).
+///
+/// Where x and the result are both normal the product only moves x's exponent field, so that
+/// is all this does there, bit for bit the product's result: on a target without an FPU a
+/// multiplication is a soft-float call of a hundred or more instructions, and the firmware's
+/// serial planning scales by powers of two dozens of times a step.
 pub fn ldexp(x: f64, k: i32) -> f64 {
+    let bits = x.to_bits();
+    let biased = ((bits >> 52) & 0x7FF) as i32;
+    if biased != 0 && biased != 0x7FF && (-2046..=2046).contains(&k) {
+        let scaled = biased + k;
+        if (1..=2046).contains(&scaled) {
+            return f64::from_bits((bits & !(0x7FF << 52)) | ((scaled as u64) << 52));
+        }
+    }
+    ldexp_by_product(x, k)
+}
+
+/// [`ldexp`] by multiplication: zeros, subnormals, infinities and NaNs, and results that leave
+/// the normal range.
+fn ldexp_by_product(x: f64, k: i32) -> f64 {
     if k > 1023 {
         x * pow2(1023) * pow2(k - 1023)
     } else if k < -1022 {
@@ -265,6 +284,55 @@ mod tests {
         assert!(quantize(1.0, 21).is_err());
         assert!(quantize(f64::INFINITY, 3).is_err());
         assert_eq!(dequantize(VALUE_MIN, 20).unwrap(), -1.0);
+    }
+
+    /// The exponent-field fast path is bit for bit the product by 2^k, wherever it applies
+    /// and around its edges (subnormal and overflowing results, zeros, infinities, NaN).
+    #[test]
+    fn ldexp_equals_the_product_by_a_power_of_two() {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let specials = [
+            0.0,
+            -0.0,
+            f64::MIN_POSITIVE,
+            -f64::MIN_POSITIVE,
+            5e-324,
+            f64::MAX,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+            1.0,
+            -3.5,
+        ];
+        let ks = [
+            0, 1, -1, 52, -52, 1022, -1022, 1023, -1074, 1100, -1100, 2046, -2046, 3000,
+        ];
+        let check = |x: f64, k: i32| {
+            let want = ldexp_by_product(x, k);
+            let got = ldexp(x, k);
+            assert!(
+                got.to_bits() == want.to_bits() || (got.is_nan() && want.is_nan()),
+                "{x:e} · 2^{k}: {got:e} vs {want:e}"
+            );
+        };
+        for &x in &specials {
+            for &k in &ks {
+                check(x, k);
+                check(x, -k);
+            }
+        }
+        for _ in 0..200_000 {
+            let x = f64::from_bits(next());
+            let k = (next() % 4400) as i32 - 2200;
+            check(x, k);
+            check(x, k % 64);
+        }
     }
 
     #[test]
