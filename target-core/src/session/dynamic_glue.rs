@@ -421,7 +421,8 @@ impl<E: Executor> Session<'_, E> {
             // b₁ and d = b₁ − b₀ of every active direction (d in Kp's lane): planned, pass B on
             // every hart, the tool rows on hart 0.
             let mut stash = Stash::new();
-            let mut steps = self.plan_rhs(shape, tool, &active, &mut stash)?;
+            let mut steps = heapless::Vec::new();
+            self.plan_rhs(shape, tool, &active, &mut stash, &mut steps)?;
             probe.mark("rhs_plan", || cost(&self.exec, &phases));
             let n = to_usize(shape.n);
             self.rhs_pass(n, &mut steps, &mut phases)?;
@@ -490,14 +491,17 @@ impl<E: Executor> Session<'_, E> {
             return Err(dynamic(DynamicError::NoStiffness));
         };
         let n = to_usize(shape.n);
-        let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
+        let plan = self
+            .plan
+            .as_ref()
+            .ok_or(out_of_order(SessionStep::NoMatrix))?;
         let Parts {
             matrix,
             work,
             directions,
         } = self
             .store
-            .parts(shape, Words::Stiffness { frac_bits }, &plan)?;
+            .parts(shape, Words::Stiffness { frac_bits }, plan)?;
         let mut us: heapless::Vec<&mut [i32], MAX_DIRECTIONS> = heapless::Vec::new();
         for (d, v) in directions.iter_mut().enumerate() {
             if active.contains(&d) {
@@ -514,17 +518,18 @@ impl<E: Executor> Session<'_, E> {
         Ok(())
     }
 
-    /// The tool's velocities and force terms and pass B's plans of every active direction, and
-    /// b₀ at the tool's rows into `stash`, which pass B ([`Self::rhs_pass`]) then overwrites
-    /// and the tool rows ([`Self::tool_rows`]) read. (The stash is the caller's: at 4 kB,
-    /// returning it by value cost more copying than the rows' work.)
+    /// The tool's velocities and force terms and pass B's plans of every active direction into
+    /// `steps`, and b₀ at the tool's rows into `stash`, which pass B ([`Self::rhs_pass`]) then
+    /// overwrites and the tool rows ([`Self::tool_rows`]) read. (Both are the caller's: at
+    /// 4 kB and 1.3 kB, returning them by value cost more copying than the rows' work.)
     fn plan_rhs(
         &mut self,
         shape: Shape,
         tool: &[[f32; 3]],
         active: &[usize],
         stash: &mut Stash,
-    ) -> Result<heapless::Vec<Step, MAX_DIRECTIONS>, ErrorCode> {
+        steps: &mut heapless::Vec<Step, MAX_DIRECTIONS>,
+    ) -> Result<(), ErrorCode> {
         let (n, f_s) = (to_usize(shape.n), i32::from(shape.frac_bits));
         let StiffnessState::Complete { frac_bits } = self.stiffness else {
             return Err(dynamic(DynamicError::NoStiffness));
@@ -536,7 +541,7 @@ impl<E: Executor> Session<'_, E> {
         let f_k = i32::from(frac_bits) - i32::from(st.params.k_scale);
         let s_scale = i32::from(st.params.s_scale);
         let (h, m) = (f64::from(st.params.h), f64::from(st.params.mass));
-        let mut steps: heapless::Vec<Step, MAX_DIRECTIONS> = heapless::Vec::new();
+        steps.clear();
         let mut sat = 0;
         for &d in active {
             let dir = &self.store.directions[d];
@@ -614,7 +619,7 @@ impl<E: Executor> Session<'_, E> {
                 let _ = stash.push(StashRow { row, old, writer });
             }
         }
-        Ok(steps)
+        Ok(())
     }
 
     /// Pass B of every active direction on every hart's share.
@@ -624,7 +629,7 @@ impl<E: Executor> Session<'_, E> {
         steps: &mut [Step],
         phases: &mut Phases,
     ) -> Result<(), ErrorCode> {
-        let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let harts = self.plan.as_ref().map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
         let mut sums = [[RhsSums::default(); MAX_DIRECTIONS]; MAX_HARTS];
         {
             let Storage { directions, kp, .. } = &mut self.store;
@@ -754,12 +759,15 @@ impl<E: Executor> Session<'_, E> {
             cycle_budget: st.params.cycle_budget,
         };
         let v_exponents = st.v.map(|b| b.e);
-        let plan = self.plan.ok_or(out_of_order(SessionStep::NoMatrix))?;
+        let plan = self
+            .plan
+            .as_ref()
+            .ok_or(out_of_order(SessionStep::NoMatrix))?;
         let Parts {
             matrix,
             work,
             directions,
-        } = self.store.parts(shape, Words::Resident, &plan)?;
+        } = self.store.parts(shape, Words::Resident, plan)?;
         let mut systems: heapless::Vec<System<'_>, MAX_DIRECTIONS> = heapless::Vec::new();
         for (d, v) in directions.iter_mut().enumerate() {
             let Some(lane) = steps.iter().position(|s| s.d == d) else {
@@ -840,7 +848,7 @@ impl<E: Executor> Session<'_, E> {
         if !self.history_room(n) {
             return Ok(());
         }
-        let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let harts = self.plan.as_ref().map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
         let mut sat = 0;
         for step in steps.iter_mut() {
@@ -989,7 +997,7 @@ impl<E: Executor> Session<'_, E> {
         steps: &mut [Step],
         phases: &mut Phases,
     ) -> Result<[Option<GivenResidual>; MAX_DIRECTIONS], ErrorCode> {
-        let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let harts = self.plan.as_ref().map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
         let room = self.history_room(n);
         let (plans, drifts) = self.plan_starts(n, steps)?;
         let mut out = [None; MAX_DIRECTIONS];
@@ -1091,7 +1099,7 @@ impl<E: Executor> Session<'_, E> {
         phases: &mut Phases,
     ) -> Result<(), ErrorCode> {
         let n = to_usize(shape.n);
-        let harts = self.plan.map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let harts = self.plan.as_ref().map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
         let room = self.history_room(n);
         let (tools, st) = self.dynamic.parts().map_err(dynamic)?;
         let nodes: heapless::Vec<usize, MAX_TOOL_NODES> =
@@ -1198,7 +1206,7 @@ impl<E: Executor> Session<'_, E> {
     /// ‖S‖∞ of the resident matrix in real units (the solve's) and ⌈√n⌉, for the start's
     /// drift: infinite without a plan, which then bounds nothing.
     fn s_inf(&self) -> (Upper, Upper) {
-        match (self.plan, self.loaded()) {
+        match (self.plan.as_ref(), self.loaded()) {
             (Some(plan), Ok(shape)) => plan.drift_norms(to_usize(shape.n), shape.frac_bits),
             _ => (Upper::INFINITE, Upper::INFINITE),
         }
