@@ -1740,11 +1740,12 @@ fn finish<E: Executor>(solver: &Solver<'_, '_, '_, E>) -> (SolveReport, [i32; MA
     (report, solver.x_exponents)
 }
 
-/// √x for x ≥ 0 without std, correctly rounded (as IEEE 754's square root): the root of x's
-/// 53-bit mantissa (its exponent made even) widened by 2^52, digit by digit in integers, rounded
-/// to nearest from the remainder. It replaced Newton's method in soft f64 (a division per
-/// step, five to seven steps): with [`finish`] taking the solver by reference, the report's
-/// tail on hart 0 went from 5,230 to 2,920 cycles (dynamic needle, docs/PERFORMANCE.md).
+/// √x for x ≥ 0 without std, correctly rounded (as IEEE 754's square root), in integers:
+/// the root of x's 53-bit mantissa (its exponent made even) digit by digit in 32-bit words,
+/// then its low 26 bits from one division and the exact remainder, rounded to nearest. It
+/// replaced Newton's method in soft f64 (a division per step, five to seven steps) on hart 0's
+/// serial path at the end of every solve (docs/PERFORMANCE.md, "The dynamic step's
+/// bookkeeping, session 10").
 fn sqrt(x: f64) -> f64 {
     if x <= 0.0 || !x.is_finite() {
         return if x == 0.0 { 0.0 } else { x.max(0.0) };
@@ -1761,10 +1762,10 @@ fn sqrt(x: f64) -> f64 {
         m <<= 1;
         k -= 1;
     }
-    // √(m·2^52) ∈ [2^52, 2^53), two bits of the radicand at a time, the remainder below
-    // 2·root + 1 throughout: m's 27 pairs first, where root < 2^27 and the remainder < 2^28
-    // fit 32-bit words (m's high and low words in turn), then 26 pairs of zeros in 64 bits.
-    let (mut root, mut rem) = (0u32, 0u32);
+    // √m ∈ [2^26, 2^27) first, two bits of the radicand at a time in 32-bit words (m's high
+    // and low words in turn; the root stays below 2^27 and the remainder, at most 2·root,
+    // below 2^28): r1 = ⌊√m⌋, rem1 = m − r1².
+    let (mut r1, mut rem1) = (0u32, 0u32);
     let (high, low) = ((m >> 32) as u32, m as u32);
     for i in 0..27 {
         let shift = 52 - 2 * i;
@@ -1773,26 +1774,32 @@ fn sqrt(x: f64) -> f64 {
         } else {
             (low >> shift) & 3
         };
-        rem = (rem << 2) | pair;
-        let trial = (root << 2) | 1;
-        root <<= 1;
-        if rem >= trial {
-            rem -= trial;
-            root |= 1;
+        rem1 = (rem1 << 2) | pair;
+        let trial = (r1 << 2) | 1;
+        r1 <<= 1;
+        if rem1 >= trial {
+            rem1 -= trial;
+            r1 |= 1;
         }
     }
-    let (mut root, mut rem) = (u64::from(root), u64::from(rem));
-    for _ in 0..26 {
-        rem <<= 2;
-        let trial = (root << 2) | 1;
-        root <<= 1;
-        if rem >= trial {
-            rem -= trial;
-            root |= 1;
-        }
+    // Then ⌊√(m·2^52)⌋ = r1·2^26 + t for the largest t ≥ 0 with f(t) = rem1·2^52 − t·(a + t)
+    // ≥ 0, a = r1·2^27 (f falls with t). With rem1·2^25 = q·r1 + s, f(q) = s·2^27 − q²
+    // exactly, and q ≥ t (it leaves out t²): f(t − 1) = f(t) + a + 2t − 1 steps down, at
+    // most once (f(q) ≥ −q² ≥ −2^52 while a ≥ 2^53). Every quantity fits an i64.
+    let (r1, rem1) = (u64::from(r1), u64::from(rem1));
+    let numerator = rem1 << 25;
+    let (q, s) = (numerator / r1, numerator % r1);
+    let a = (r1 << 27) as i64;
+    let mut t = q as i64;
+    let mut rem = ((s << 27) as i64) - t * t;
+    while rem < 0 {
+        rem += a + 2 * t - 1;
+        t -= 1;
     }
-    // (root + ½)² = root² + root + ¼, so the root rounds up where the remainder exceeds it
-    // (never a tie: the radicand is an integer).
+    let mut root = (r1 << 26) + t as u64;
+    let rem = rem as u64;
+    // (root + ½)² = root² + root + ¼, so the root rounds up where the remainder (m·2^52 −
+    // root², at most 2·root) exceeds it (never a tie: the radicand is an integer).
     let mut e = (k - 52) / 2;
     if rem > root {
         root += 1;

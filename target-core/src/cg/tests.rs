@@ -944,9 +944,23 @@ fn sqrt_is_correctly_rounded() {
     }
     assert!(checked > 400);
     let mut rng = Rng(0x5eed_5a7e);
-    for _ in 0..100_000 {
+    for _ in 0..1_000_000 {
         let v = f64::from_bits(rng.next() >> 1);
         if v.is_finite() {
+            assert_eq!(super::sqrt(v).to_bits(), v.sqrt().to_bits(), "{v:e}");
+        }
+    }
+    // Around exact squares, where the remainder is zero or tiny.
+    for _ in 0..100_000 {
+        let j = (rng.next() >> 38) | 1 << 25;
+        let square = (j * j) as f64;
+        let scale = ldexp(1.0, (rng.next() % 400) as i32 - 200);
+        for v in [
+            square,
+            f64::from_bits(square.to_bits() + 1),
+            f64::from_bits(square.to_bits() - 1),
+        ] {
+            let v = v * scale;
             assert_eq!(super::sqrt(v).to_bits(), v.sqrt().to_bits(), "{v:e}");
         }
     }
