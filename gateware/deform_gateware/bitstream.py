@@ -28,7 +28,11 @@ the one used. On the SoC without MVUs router2 took 33 s against 319 and reached 
 
 With more than four MVUs the MVUs get half the memories (512 rows, 2048 words). Meant to let
 eight fit the LFE5U-85F's 208 block RAMs, it is not enough: Yosys counts 259 DP16KD for eight
-(40 of them the SoC's own; docs/PERFORMANCE.md).
+(40 of them the SoC's own; docs/PERFORMANCE.md), counted before Kp and p's row copy took the
+36-bit mode at 512 rows (``bram``). ``--nodes 512|1024`` asks for each MVU's rows of p and Kp
+whatever the count: at 512, an MVU takes 24 DP16KD instead of 32 (4 MVUs: 139 of 208 instead of
+173). The SoC's ``nodes`` register tells the firmware its rows; a model of more nodes is refused
+by the program builder (its MVU phase runs in software), never run on too small a memory.
 """
 
 import argparse
