@@ -1,7 +1,7 @@
 """deform's SoC on an ECP5 board, built into a bitstream with open tools.
 
     python -m deform_gateware.bitstream --board ulx3s --mvus N --out DIR [--seed S]
-        [--router router1|router2] [--no-pnr]
+        [--router router1|router2] [--no-pnr] [--nodes 512|1024]
 
 The SoC is litex-boards' ULX3S target on an LFE5U-85F: a VexRiscv ``imac`` at 50 MHz, the
 board's SDRAM as main RAM at 0x4000_0000, the stock LiteX BIOS in ROM (which loads the firmware
@@ -28,7 +28,11 @@ the one used. On the SoC without MVUs router2 took 33 s against 319 and reached 
 
 With more than four MVUs the MVUs get half the memories (512 rows, 2048 words). Meant to let
 eight fit the LFE5U-85F's 208 block RAMs, it is not enough: Yosys counts 259 DP16KD for eight
-(40 of them the SoC's own; docs/PERFORMANCE.md).
+(40 of them the SoC's own; docs/PERFORMANCE.md), counted before Kp and p's row copy took the
+36-bit mode at 512 rows (``bram``). ``--nodes 512|1024`` asks for each MVU's rows of p and Kp
+whatever the count: at 512, an MVU takes 24 DP16KD instead of 32 (4 MVUs: 139 of 208 instead of
+173). The SoC's ``nodes`` register tells the firmware its rows; a model of more nodes is refused
+by the program builder (its MVU phase runs in software), never run on too small a memory.
 """
 
 import argparse
@@ -56,18 +60,33 @@ YOSYS_CELLS = ("LUT4", "CCU2C", "TRELLIS_FF", "MULT18X18D", "ALU54B", "DP16KD",
                "TRELLIS_DPR16X4", "PFUMX", "L6MUX21")
 
 
-def capacity(mvus):
-    """(words, tiles, nodes) per MVU."""
-    return (4096, 256, 1024) if mvus <= 4 else (2048, 256, 512)
+# The rows of p and Kp per MVU a build may ask for (``--nodes``): 1024 (the default up to four
+# MVUs) or 512, where Kp and p's row copy take the block RAM's 36-bit pseudo-dual-port mode
+# (``bram``): 24 DP16KD per MVU instead of 32.
+NODES = (512, 1024)
 
 
-def ulx3s_soc(mvus):
+def capacity(mvus, nodes=None):
+    """(words, tiles, nodes) per MVU; ``nodes`` (one of ``NODES``) replaces the default rows.
+    The SoC tells the firmware its rows (the array's ``nodes`` register), and the firmware's
+    program builder refuses a model of more nodes (``ProgramError::DimensionTooLarge``: the MVU
+    phase then runs in software), so a smaller build is never silently overrun."""
+    words, tiles, rows = (4096, 256, 1024) if mvus <= 4 else (2048, 256, 512)
+    if nodes is not None:
+        if nodes not in NODES:
+            raise SystemExit("--nodes %d: the MVUs are built with %s rows of p and Kp"
+                             % (nodes, " or ".join(map(str, NODES))))
+        rows = nodes
+    return words, tiles, rows
+
+
+def ulx3s_soc(mvus, nodes=None):
     from litex_boards.targets.radiona_ulx3s import BaseSoC
     soc = BaseSoC(device="LFE5U-85F", revision="2.0", toolchain="trellis",
                   sys_clk_freq=SYS_CLK_FREQ, cpu_type="vexriscv", cpu_variant="imac",
                   integrated_rom_size=0x20000, integrated_sram_size=0x2000,
                   with_led_chaser=False)
-    words, tiles, nodes = capacity(mvus)
+    words, tiles, nodes = capacity(mvus, nodes)
     add_to_soc(soc, mvus, words=words, tiles=tiles, nodes=nodes, primitive=True)
     return soc
 
@@ -130,7 +149,7 @@ def build(args, out):
     stages = {}
     log("--> LiteX: the SoC, its BIOS, the Verilog and the tools' scripts")
     started = time.monotonic()
-    soc = ulx3s_soc(args.mvus)
+    soc = ulx3s_soc(args.mvus, args.nodes)
     gateware = os.path.join(out, "gateware")
     name = soc.platform.name
     bitstream = os.path.join(gateware, name + ".bit")
@@ -149,7 +168,7 @@ def build(args, out):
                   commit=commit,
                   yosys=yosys_cells(os.path.join(gateware, name + ".rpt")), pnr=None,
                   bitstream=None, stages=stages)
-    report.update(zip(("words", "tiles", "nodes"), capacity(args.mvus)))
+    report.update(zip(("words", "tiles", "nodes"), capacity(args.mvus, args.nodes)))
     if args.no_pnr:
         log("    --no-pnr: nextpnr-ecp5 and ecppack not run (no Fmax, no bitstream)")
         return report
@@ -175,6 +194,9 @@ def main():
     parser.add_argument("--board", choices=BOARDS, default="ulx3s")
     parser.add_argument("--mvus", type=int, required=True)
     parser.add_argument("--out", required=True)
+    parser.add_argument("--nodes", type=int, default=None,
+                        help="rows of p and Kp per MVU: %s (default: 1024 up to four MVUs, "
+                             "else 512)" % " or ".join(map(str, NODES)))
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--router", choices=ROUTERS, default=ROUTERS[0],
                         help="nextpnr's router (default %(default)s, nextpnr's own)")

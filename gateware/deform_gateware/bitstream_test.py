@@ -66,6 +66,20 @@ class YosysCellsTest(unittest.TestCase):
             self.cells("ERROR: out of memory\n")
 
 
+class CapacityTest(unittest.TestCase):
+    def test_the_default_rows_and_the_asked_ones(self):
+        self.assertEqual(bitstream.capacity(4), (4096, 256, 1024))
+        self.assertEqual(bitstream.capacity(8), (2048, 256, 512))
+        self.assertEqual(bitstream.capacity(4, 512), (4096, 256, 512))
+        self.assertEqual(bitstream.capacity(8, 1024), (2048, 256, 1024))
+
+    def test_rows_the_memories_are_not_built_for_are_an_error(self):
+        for nodes in (0, 500, 2048):
+            with self.assertRaises(SystemExit) as failed:
+                bitstream.capacity(4, nodes)
+            self.assertIn("--nodes %d" % nodes, str(failed.exception))
+
+
 class StageTest(unittest.TestCase):
     def test_the_tool_comes_from_yowasp(self):
         argv = bitstream.tool_argv("yosys  -l top.rpt top.ys")

@@ -18,11 +18,22 @@ measured 93 MHz; with the output register on, 263 MHz). So:
 With two read ports, read port 0 and the write port share the block's port A: the caller never
 reads through port 0 in a clock in which it writes (the MVU reads p only while running and the
 bus writes it only while the MVU is idle).
+
+A memory of at most ``PDP_ROWS`` (512) rows with one read port uses the block's 36-bit
+pseudo-dual-port mode instead (Lattice's PDPW16KD: 512 x 36, port A writes, port B reads), wired
+as Yosys's own map of that mode wires a DP16KD (``brams_map_16kd.v``, ``$__PDPW16KD_``): both
+data widths 36, the row in the top 9 address bits, the write's four byte enables in ADA[3:0],
+the word's low 18 bits on the A pins and its high 18 on the B pins, in and out. Its read answers
+as the true-dual-port columns' do (the write on port A, the read on port B), in half the blocks:
+a 192-bit memory in 6 blocks, not 11. At more than 512 rows that mode saves nothing (a block
+holds 18 kbit either way), and a second read port needs the true-dual-port columns.
 """
 
 from migen import Module, Signal, Memory, Instance, ClockSignal, If, Replicate
 
 LATENCY = 2
+# The 36-bit pseudo-dual-port mode: its width and rows.
+PDP_WIDTH, PDP_ROWS = 36, 512
 
 
 class ReadPort:
@@ -56,7 +67,9 @@ class Bram(Module):
         self.we = Signal()
         self.read = [ReadPort(bits, width) for _ in range(read_ports)]
         self.memory = None
-        if primitive:
+        if primitive and read_ports == 1 and depth <= PDP_ROWS:
+            self._pdp_blocks(width)
+        elif primitive:
             self._blocks(width, depth)
         else:
             self._generic(width, depth)
@@ -115,4 +128,38 @@ class Bram(Module):
                 ports["i_DIB%d" % k] = 0
                 ports["o_DOA%d" % k] = do_a[k]
                 ports["o_DOB%d" % k] = do_b[k]
+            self.specials += Instance("DP16KD", **ports)
+
+    def _pdp_blocks(self, width):
+        shift = 14 - depth_bits(PDP_ROWS)      # the row in ADx[13:5]
+        half = PDP_WIDTH // 2
+        a_adr = Signal(14)
+        b_adr = Signal(14)
+        # ADA[3:0]: the four 9-bit byte enables of the 36-bit write; ADA4 and ADB[4:0] unused.
+        self.comb += [a_adr.eq((self.adr << shift) | Replicate(self.we, 4)),
+                      b_adr.eq(self.read[0].adr << shift)]
+        for b in range((width + PDP_WIDTH - 1) // PDP_WIDTH):
+            lo, hi = b * PDP_WIDTH, min(width, (b + 1) * PDP_WIDTH)
+            di = Signal(PDP_WIDTH)
+            do = Signal(PDP_WIDTH)
+            self.comb += [di.eq(self.dat_w[lo:hi]), self.read[0].dat[lo:hi].eq(do)]
+            ports = dict(
+                p_DATA_WIDTH_A=PDP_WIDTH, p_DATA_WIDTH_B=PDP_WIDTH,
+                p_REGMODE_A="OUTREG", p_REGMODE_B="OUTREG",
+                p_RESETMODE="SYNC", p_CSDECODE_A="0b000", p_CSDECODE_B="0b000",
+                i_CLKA=ClockSignal(), i_CLKB=ClockSignal(),
+                i_CEA=1, i_CEB=1, i_OCEA=1, i_OCEB=1, i_RSTA=0, i_RSTB=0,
+                i_WEA=self.we, i_WEB=0,
+            )
+            for k in range(3):
+                ports["i_CSA%d" % k] = 0
+                ports["i_CSB%d" % k] = 0
+            for k in range(14):
+                ports["i_ADA%d" % k] = a_adr[k]
+                ports["i_ADB%d" % k] = b_adr[k]
+            for k in range(half):
+                ports["i_DIA%d" % k] = di[k]
+                ports["i_DIB%d" % k] = di[half + k]
+                ports["o_DOA%d" % k] = do[k]
+                ports["o_DOB%d" % k] = do[half + k]
             self.specials += Instance("DP16KD", **ports)

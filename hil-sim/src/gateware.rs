@@ -358,6 +358,8 @@ pub struct SocBuild {
     pub mvus: u32,
     pub seed: u32,
     pub router: Router,
+    /// Each MVU's rows of p and Kp (bitstream.py's `--nodes`); `None`: its default.
+    pub nodes: Option<u32>,
     /// Stop after Yosys: cell counts only, no Fmax, no bitstream.
     pub no_pnr: bool,
 }
@@ -377,6 +379,9 @@ pub fn build_bitstream(build: &SocBuild, out: &Path) -> Result<SocReport, Gatewa
         "--router".into(),
         build.router.to_string(),
     ];
+    if let Some(nodes) = build.nodes {
+        args.extend(["--nodes".into(), nodes.to_string()]);
+    }
     if build.no_pnr {
         args.push("--no-pnr".into());
     }

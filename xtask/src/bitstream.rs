@@ -22,12 +22,14 @@ use deform_host::output::file::write_atomic;
 pub const BOARDS: &[&str] = &["ulx3s"];
 /// The MVU counts a sweep builds by default: 0 is the Fmax comparison's baseline.
 const DEFAULT_MVUS: &[u32] = &[0, 1, 2, 4, 8];
+/// The rows of p and Kp per MVU a build may ask for (bitstream.py's `NODES`).
+const NODES: [u32; 2] = [512, 1024];
 /// An LFE5U-85F's MULT18X18D, for the plot when no build was placed.
 const LFE5U_85F_MULTIPLIERS: u64 = 156;
 
 pub const USAGE: &str = "\
   bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--router router1|router2]
-            [--no-pnr | --report-only]
+            [--nodes 512|1024] [--no-pnr | --report-only]
                      build deform's SoC with each number of hardware MVUs, one at a time,
                      into an ECP5 bitstream (YoWASP Yosys, nextpnr-ecp5, ecppack; each stage
                      printed with its time) in target/bitstream/BOARD-<N>mvu/, and gather the
@@ -36,7 +38,11 @@ pub const USAGE: &str = "\
                      multipliers_per_mvu.svg). --seed: nextpnr's (default 1); --router:
                      nextpnr's (default router1, nextpnr's own; router2 is faster,
                      with a lower Fmax; each build is compared with the 0-MVU
-                     baseline of the same router); --no-pnr:
+                     baseline of the same router); --nodes: each MVU's rows of p
+                     and Kp (default 1024 up to 4 MVUs, else 512; at 512 Kp and
+                     p's row copy take the block RAM's 36-bit mode: 24 DP16KD per
+                     MVU, not 32; the firmware runs a larger model's MVU phase in
+                     software, as the SoC's rows say); --no-pnr:
                      stop after Yosys (cell counts only: no Fmax, no bitstream);
                      --report-only: build nothing, rewrite report.md and the plot from
                      report.json";
@@ -50,6 +56,8 @@ pub enum Request {
         mvus: Vec<u32>,
         seed: u32,
         router: Router,
+        /// Each MVU's rows of p and Kp, if not bitstream.py's default.
+        nodes: Option<u32>,
         no_pnr: bool,
     },
     /// Rewrite report.md and the plot from the gathered report.json.
@@ -65,6 +73,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
     let mut seed = 1;
     let mut router = Router::default();
     let mut no_pnr = false;
+    let mut nodes = None;
     let mut report_only = false;
     let mut it = args.iter();
     while let Some(flag) = it.next() {
@@ -85,6 +94,16 @@ pub fn parse(args: &[String]) -> Result<Request> {
                     .with_context(|| format!("--seed takes a number, not `{value}`"))?;
             }
             "--router" => router = value()?.parse().map_err(anyhow::Error::msg)?,
+            "--nodes" => {
+                let value = value()?;
+                match value.parse() {
+                    Ok(n) if NODES.contains(&n) => nodes = Some(n),
+                    _ => bail!(
+                        "--nodes {value}: the MVUs are built with {} rows of p and Kp",
+                        NODES.map(|n| n.to_string()).join(" or ")
+                    ),
+                }
+            }
             other => bail!("bitstream does not take `{other}`\n\n{USAGE}"),
         }
     }
@@ -96,8 +115,8 @@ pub fn parse(args: &[String]) -> Result<Request> {
         );
     }
     if report_only {
-        if no_pnr {
-            bail!("--report-only builds nothing: --no-pnr does not go with it");
+        if no_pnr || nodes.is_some() {
+            bail!("--report-only builds nothing: --no-pnr and --nodes do not go with it");
         }
         return Ok(Request::Report { board });
     }
@@ -106,6 +125,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
         mvus,
         seed,
         router,
+        nodes,
         no_pnr,
     })
 }
@@ -130,7 +150,7 @@ fn parse_mvus(value: &str) -> Result<Vec<u32>> {
 
 /// Runs `cargo xtask bitstream ARGS`.
 pub fn run(args: &[String], workspace: &Path) -> Result<()> {
-    let (board, mvus, seed, router, no_pnr) = match parse(args)? {
+    let (board, mvus, seed, router, nodes, no_pnr) = match parse(args)? {
         Request::Help => {
             println!("usage: cargo xtask\n{USAGE}");
             return Ok(());
@@ -150,8 +170,9 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
             mvus,
             seed,
             router,
+            nodes,
             no_pnr,
-        } => (board, mvus, seed, router, no_pnr),
+        } => (board, mvus, seed, router, nodes, no_pnr),
     };
     check_synthesis_venv(&litex_dir())?;
     let dir = workspace.join("target/bitstream").join(&board);
@@ -159,11 +180,12 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
     // Fail before the first build, not an hour in, if the gathered report cannot be read.
     let mut builds = read_builds(&dir.join("report.json"))?;
     for (i, &n) in mvus.iter().enumerate() {
-        let out = build_dir(workspace, &board, n);
+        let out = build_dir(workspace, &board, n, nodes);
         eprintln!(
-            "\n==> [{}/{}] {board}: the SoC with {n} MVU(s), seed {seed}, {router}{} ({})",
+            "\n==> [{}/{}] {board}: the SoC with {n} MVU(s){}, seed {seed}, {router}{} ({})",
             i + 1,
             mvus.len(),
+            nodes.map(|r| format!(" of {r} rows")).unwrap_or_default(),
             if no_pnr { ", Yosys only" } else { "" },
             out.display()
         );
@@ -173,6 +195,7 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
             mvus: n,
             seed,
             router,
+            nodes,
             no_pnr,
         };
         let report =
@@ -202,10 +225,10 @@ fn read_builds(path: &Path) -> Result<Vec<SocReport>> {
     }
 }
 
-/// Adds `report` to `builds`, in place of an earlier build of the same count, seed and depth
-/// (and router, for a placed build: a Yosys-only build does not route).
+/// Adds `report` to `builds`, in place of an earlier build of the same count, seed, rows per MVU
+/// and depth (and router, for a placed build: a Yosys-only build does not route).
 fn record(builds: &mut Vec<SocReport>, report: SocReport) {
-    let key = |r: &SocReport| (r.mvus, r.seed, r.pnr.as_ref().map(|_| r.router));
+    let key = |r: &SocReport| (r.mvus, r.seed, r.nodes, r.pnr.as_ref().map(|_| r.router));
     builds.retain(|b| key(b) != key(&report));
     builds.push(report);
     builds.sort_by_key(key);
@@ -318,11 +341,13 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
     md
 }
 
-/// Where a build of `mvus` MVUs lands: `target/bitstream/BOARD-<N>mvu`.
-pub fn build_dir(workspace: &Path, board: &str, mvus: u32) -> PathBuf {
+/// Where a build of `mvus` MVUs lands: `target/bitstream/BOARD-<N>mvu`, `-<R>rows` after it
+/// when the rows per MVU were asked for.
+pub fn build_dir(workspace: &Path, board: &str, mvus: u32, nodes: Option<u32>) -> PathBuf {
+    let rows = nodes.map(|r| format!("-{r}rows")).unwrap_or_default();
     workspace
         .join("target/bitstream")
-        .join(format!("{board}-{mvus}mvu"))
+        .join(format!("{board}-{mvus}mvu{rows}"))
 }
 
 #[cfg(test)]
@@ -347,12 +372,13 @@ mod tests {
                 mvus: vec![0, 1, 2, 4, 8],
                 seed: 1,
                 router: Router::Router1,
+                nodes: None,
                 no_pnr: false
             }
         );
         assert_eq!(
             parse(&args(
-                "--mvus 0,4 --no-pnr --board ulx3s --seed 2 --router router2"
+                "--mvus 0,4 --no-pnr --board ulx3s --seed 2 --router router2 --nodes 512"
             ))
             .unwrap(),
             Request::Build {
@@ -360,6 +386,7 @@ mod tests {
                 mvus: vec![0, 4],
                 seed: 2,
                 router: Router::Router2,
+                nodes: Some(512),
                 no_pnr: true
             }
         );
@@ -387,7 +414,11 @@ mod tests {
         assert!(error("--board ulx3s --router fast").contains("router1 and router2, not `fast`"));
         assert!(error("--board ulx3s --router").contains("--router needs a value"));
         assert!(error("--board ulx3s --fast").contains("does not take `--fast`"));
-        assert!(error("--board ulx3s --report-only --no-pnr").contains("does not go with it"));
+        assert!(error("--board ulx3s --report-only --no-pnr").contains("do not go with it"));
+        assert!(error("--board ulx3s --report-only --nodes 512").contains("do not go with it"));
+        assert!(error("--board ulx3s --nodes 500").contains("built with 512 or 1024 rows"));
+        assert!(error("--board ulx3s --nodes x").contains("--nodes x:"));
+        assert!(error("--board ulx3s --nodes").contains("--nodes needs a value"));
     }
 
     fn usage(used: u64) -> Usage {
@@ -461,6 +492,25 @@ mod tests {
         record(&mut builds, build(4, 1, Some(47.0)));
         assert_eq!(builds.len(), 2);
         assert_eq!(builds[1].pnr.as_ref().unwrap().fmax_mhz, 47.0);
+        // The same count and seed with fewer rows per MVU is a build of its own.
+        let mut fewer_rows = build(4, 1, Some(46.0));
+        fewer_rows.nodes = 512;
+        record(&mut builds, fewer_rows);
+        assert_eq!(builds.len(), 3);
+        assert_eq!(builds[2].pnr.as_ref().unwrap().fmax_mhz, 47.0);
+    }
+
+    #[test]
+    fn a_build_with_rows_asked_for_lands_beside_the_default() {
+        let ws = Path::new("/w");
+        assert_eq!(
+            build_dir(ws, "ulx3s", 4, None),
+            Path::new("/w/target/bitstream/ulx3s-4mvu")
+        );
+        assert_eq!(
+            build_dir(ws, "ulx3s", 4, Some(512)),
+            Path::new("/w/target/bitstream/ulx3s-4mvu-512rows")
+        );
     }
 
     #[test]
