@@ -108,27 +108,34 @@ class Bram(Module):
             if two:
                 self.comb += self.read[0].dat[lo:hi].eq(do_a)
             self.comb += self.read[-1].dat[lo:hi].eq(do_b)
-            ports = dict(
-                p_DATA_WIDTH_A=w, p_DATA_WIDTH_B=w,
-                p_REGMODE_A="OUTREG" if two else "NOREG", p_REGMODE_B="OUTREG",
-                p_WRITEMODE_A="NORMAL", p_WRITEMODE_B="NORMAL",
-                p_RESETMODE="SYNC", p_CSDECODE_A="0b000", p_CSDECODE_B="0b000",
-                i_CLKA=ClockSignal(), i_CLKB=ClockSignal(),
-                i_CEA=1, i_CEB=1, i_OCEA=1, i_OCEB=1, i_RSTA=0, i_RSTB=0,
-                i_WEA=self.we, i_WEB=0,
-            )
-            for k in range(3):
-                ports["i_CSA%d" % k] = 0
-                ports["i_CSB%d" % k] = 0
-            for k in range(14):
-                ports["i_ADA%d" % k] = a_adr[k]
-                ports["i_ADB%d" % k] = b_adr[k]
+            ports = self._block_ports(w, "OUTREG" if two else "NOREG", a_adr, b_adr)
+            ports.update(p_WRITEMODE_A="NORMAL", p_WRITEMODE_B="NORMAL")
             for k in range(18):
                 ports["i_DIA%d" % k] = di[k]
                 ports["i_DIB%d" % k] = 0
                 ports["o_DOA%d" % k] = do_a[k]
                 ports["o_DOB%d" % k] = do_b[k]
             self.specials += Instance("DP16KD", **ports)
+
+    def _block_ports(self, width, regmode_a, a_adr, b_adr):
+        """A DP16KD's ports common to both modes: ``width`` bits a port, port B's output
+        registered (and port A's as ``regmode_a``), both clocked every cycle, never reset or
+        chip-selected, port A writing when ``we``, and the two 14-bit addresses."""
+        ports = dict(
+            p_DATA_WIDTH_A=width, p_DATA_WIDTH_B=width,
+            p_REGMODE_A=regmode_a, p_REGMODE_B="OUTREG",
+            p_RESETMODE="SYNC", p_CSDECODE_A="0b000", p_CSDECODE_B="0b000",
+            i_CLKA=ClockSignal(), i_CLKB=ClockSignal(),
+            i_CEA=1, i_CEB=1, i_OCEA=1, i_OCEB=1, i_RSTA=0, i_RSTB=0,
+            i_WEA=self.we, i_WEB=0,
+        )
+        for k in range(3):
+            ports["i_CSA%d" % k] = 0
+            ports["i_CSB%d" % k] = 0
+        for k in range(14):
+            ports["i_ADA%d" % k] = a_adr[k]
+            ports["i_ADB%d" % k] = b_adr[k]
+        return ports
 
     def _pdp_blocks(self, width):
         shift = 14 - depth_bits(PDP_ROWS)      # the row in ADx[13:5]
@@ -143,20 +150,7 @@ class Bram(Module):
             di = Signal(PDP_WIDTH)
             do = Signal(PDP_WIDTH)
             self.comb += [di.eq(self.dat_w[lo:hi]), self.read[0].dat[lo:hi].eq(do)]
-            ports = dict(
-                p_DATA_WIDTH_A=PDP_WIDTH, p_DATA_WIDTH_B=PDP_WIDTH,
-                p_REGMODE_A="OUTREG", p_REGMODE_B="OUTREG",
-                p_RESETMODE="SYNC", p_CSDECODE_A="0b000", p_CSDECODE_B="0b000",
-                i_CLKA=ClockSignal(), i_CLKB=ClockSignal(),
-                i_CEA=1, i_CEB=1, i_OCEA=1, i_OCEB=1, i_RSTA=0, i_RSTB=0,
-                i_WEA=self.we, i_WEB=0,
-            )
-            for k in range(3):
-                ports["i_CSA%d" % k] = 0
-                ports["i_CSB%d" % k] = 0
-            for k in range(14):
-                ports["i_ADA%d" % k] = a_adr[k]
-                ports["i_ADB%d" % k] = b_adr[k]
+            ports = self._block_ports(PDP_WIDTH, "OUTREG", a_adr, b_adr)
             for k in range(half):
                 ports["i_DIA%d" % k] = di[k]
                 ports["i_DIB%d" % k] = di[half + k]
