@@ -629,7 +629,7 @@ impl<E: Executor> Session<'_, E> {
         steps: &mut [Step],
         phases: &mut Phases,
     ) -> Result<(), ErrorCode> {
-        let harts = self.plan.as_ref().map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let harts = self.pass_harts();
         let mut sums = [[RhsSums::default(); MAX_DIRECTIONS]; MAX_HARTS];
         {
             let Storage { directions, kp, .. } = &mut self.store;
@@ -824,6 +824,12 @@ impl<E: Executor> Session<'_, E> {
         Ok((report, outcomes))
     }
 
+    /// The harts a dynamic step's O(n) passes split their rows over: the plan's MVUs, or one
+    /// without a plan (the passes then run on hart 0 alone).
+    fn pass_harts(&self) -> usize {
+        self.plan.as_ref().map_or(1, |p| p.mvus).clamp(1, MAX_HARTS)
+    }
+
     /// Whether the spare storage (the live loop's response columns, unused by a dynamic
     /// session) holds every direction's history: four vectors each.
     fn history_room(&self, n: usize) -> bool {
@@ -848,7 +854,7 @@ impl<E: Executor> Session<'_, E> {
         if !self.history_room(n) {
             return Ok(());
         }
-        let harts = self.plan.as_ref().map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let harts = self.pass_harts();
         let (_, st) = self.dynamic.parts().map_err(dynamic)?;
         let mut sat = 0;
         for step in steps.iter_mut() {
@@ -997,7 +1003,7 @@ impl<E: Executor> Session<'_, E> {
         steps: &mut [Step],
         phases: &mut Phases,
     ) -> Result<[Option<GivenResidual>; MAX_DIRECTIONS], ErrorCode> {
-        let harts = self.plan.as_ref().map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let harts = self.pass_harts();
         let room = self.history_room(n);
         let (plans, drifts) = self.plan_starts(n, steps)?;
         let mut out = [None; MAX_DIRECTIONS];
@@ -1099,7 +1105,7 @@ impl<E: Executor> Session<'_, E> {
         phases: &mut Phases,
     ) -> Result<(), ErrorCode> {
         let n = to_usize(shape.n);
-        let harts = self.plan.as_ref().map_or(1, |p| p.mvus).clamp(1, MAX_HARTS);
+        let harts = self.pass_harts();
         let room = self.history_room(n);
         let (tools, st) = self.dynamic.parts().map_err(dynamic)?;
         let nodes: heapless::Vec<usize, MAX_TOOL_NODES> =
