@@ -41,7 +41,7 @@ class Dp16kdModel(Module):
                 ins[item.name] = item.expr
             else:
                 outs[item.name] = item.expr
-        width = params["DATA_WIDTH_A"]
+        self.width = width = params["DATA_WIDTH_A"]
         assert params["DATA_WIDTH_B"] == width, "both ports of one width"
         rows = ROWS[width]
         shift = 14 - (rows - 1).bit_length()
@@ -105,9 +105,8 @@ def modelled(bram):
         specials.remove(instance)
         model = Dp16kdModel(instance)
         bram.submodules += model
-        widths.append(dict((i.name, i.value) for i in instance.items
-                           if isinstance(i, Instance.Parameter))["DATA_WIDTH_A"])
-    return len(blocks), sorted(set(getattr(w, "value", w) for w in widths))
+        widths.append(model.width)
+    return len(blocks), sorted(set(widths))
 
 
 class Pair(Module):
