@@ -149,6 +149,88 @@ struct InFlight {
     damage_at_send: u64,
 }
 
+impl InFlight {
+    /// A request just sent for the first time.
+    fn new(seq: u16, request: Request, frame: Vec<u8>, damage_at_send: u64) -> Self {
+        let now = Instant::now();
+        InFlight {
+            seq,
+            request,
+            frame,
+            last_sent: now,
+            timer: now,
+            retries: 0,
+            accepted: None,
+            reply: None,
+            damage_counted: false,
+            handled: false,
+            quiet: 0,
+            damage_at_send,
+        }
+    }
+}
+
+/// How one [`Link::run`] stands: the requests in flight, in the order sent, and why it ends.
+struct Run {
+    window: VecDeque<InFlight>,
+    /// The first error of the run; no new request is sent after it.
+    failure: Option<LinkError>,
+    /// The requests' iterator has ended.
+    exhausted: bool,
+    /// When the target last acknowledged anything new: the deadlines count from here.
+    progress: Instant,
+}
+
+impl Run {
+    fn new() -> Self {
+        Run {
+            window: VecDeque::new(),
+            failure: None,
+            exhausted: false,
+            progress: Instant::now(),
+        }
+    }
+
+    fn oldest_unanswered(&self) -> Option<&InFlight> {
+        self.window.iter().find(|e| e.reply.is_none())
+    }
+
+    /// Hands the replies that are in order to `on_reply` (a target's error reply fails the
+    /// run); after a failure the rest are only taken off the window.
+    fn deliver(&mut self, on_reply: &mut impl FnMut(&Request, Response) -> Result<(), LinkError>) {
+        while self.window.front().is_some_and(|f| f.reply.is_some()) {
+            let Some(done) = self.window.pop_front() else {
+                break;
+            };
+            let Some(reply) = done.reply else { break };
+            if self.failure.is_some() {
+                continue;
+            }
+            let result = match reply {
+                Response::Error(code) => Err(LinkError::Target {
+                    request: done.request.name(),
+                    code,
+                }),
+                reply => on_reply(&done.request, reply),
+            };
+            if let Err(e) = result {
+                self.failure = Some(e);
+            }
+        }
+    }
+
+    /// Moves the deadlines on by the time the host was held up and could not watch the line.
+    fn postpone(&mut self, held: Duration) {
+        if held.is_zero() {
+            return;
+        }
+        self.progress += held;
+        for at in self.window.iter_mut().filter_map(|e| e.accepted.as_mut()) {
+            *at += held;
+        }
+    }
+}
+
 /// Something the target says besides replies, handed to the notice handler.
 pub type NoticeHandler = Box<dyn FnMut(u16, Response) + Send>;
 
@@ -300,152 +382,136 @@ impl<P: Port> Link<P> {
         long_timeout: Duration,
         mut on_reply: impl FnMut(&Request, Response) -> Result<(), LinkError>,
     ) -> Result<(), LinkError> {
-        let mut window: VecDeque<InFlight> = VecDeque::new();
-        let mut failure: Option<LinkError> = None;
+        let mut run = Run::new();
         self.held = Duration::ZERO;
-        let mut exhausted = false;
-        // When the target last acknowledged anything new: the deadline counts from here.
-        let mut progress = Instant::now();
         loop {
-            // Fill the window, unless a failure stops new requests.
-            while !exhausted && failure.is_none() && window.len() < usize::from(self.adapt.window())
-            {
-                let Some(request) = requests.next() else {
-                    exhausted = true;
-                    break;
-                };
-                let seq = self.take_seq();
-                let frame = self.encode(seq, &request)?;
-                self.write(&frame)?;
-                self.stats.requests += 1;
-                let now = Instant::now();
-                window.push_back(InFlight {
-                    seq,
-                    request,
-                    frame,
-                    last_sent: now,
-                    timer: now,
-                    retries: 0,
-                    accepted: None,
-                    reply: None,
-                    damage_counted: false,
-                    handled: false,
-                    quiet: 0,
-                    damage_at_send: self.damage_seen(),
-                });
-            }
-            // Deliver the replies that are in order.
-            while window.front().is_some_and(|f| f.reply.is_some()) {
-                let Some(done) = window.pop_front() else {
-                    break;
-                };
-                let Some(reply) = done.reply else { break };
-                if failure.is_some() {
-                    continue;
-                }
-                let name = done.request.name();
-                let result = match reply {
-                    Response::Error(code) => Err(LinkError::Target {
-                        request: name,
-                        code,
-                    }),
-                    reply => on_reply(&done.request, reply),
-                };
-                if let Err(e) = result {
-                    failure = Some(e);
-                }
-            }
-            if window.is_empty() {
-                match failure {
+            self.fill_window(&mut run, &mut requests)?;
+            run.deliver(&mut on_reply);
+            if run.window.is_empty() {
+                match run.failure.take() {
                     Some(e) => return Err(e),
-                    None if exhausted => return Ok(()),
+                    None if run.exhausted => return Ok(()),
                     None => continue,
                 }
             }
-            // Wait for the next frame until the retransmission or a deadline is due.
-            let now = Instant::now();
-            let mut wake = now + self.timeout;
-            // A deadline that passed fails the run only if the line has nothing waiting either:
-            // the time may have gone on this side (a write held up by a slow target, a loaded
-            // machine) while the replies sat unread.
-            let mut expired = None;
-            for entry in &window {
-                if entry.reply.is_some() {
-                    continue;
-                }
-                let deadline = self.deadline(entry, progress, long_timeout);
-                if now >= deadline && expired.is_none() {
-                    expired = Some(LinkError::Timeout {
-                        request: entry.request.name(),
-                        after: now - entry.accepted.unwrap_or(progress),
-                        retries: entry.retries,
-                    });
-                }
-                wake = wake.min(deadline);
-            }
-            // Only the oldest request without a reply runs a retransmit timer: the target
-            // handles requests in order, so the later ones are held behind it (or were lost,
-            // which the target NAKs once it gets past the gap).
-            let oldest = window.iter().position(|e| e.reply.is_none());
-            if let Some(i) = oldest {
-                wake = wake.min(window[i].timer + self.backoff(&window[i]));
-            }
-            if expired.is_some() {
-                // Long enough to read what the port already holds.
-                wake = wake.max(now + Duration::from_millis(5));
-            }
-            let (corrupt, received) = (self.stats.corrupt_frames, self.stats.bytes_received);
-            let frame = self.receive(wake)?;
-            self.held += held_past(wake);
-            let progressed = match frame {
-                None => false,
-                Some(up) => self.on_frame(up, &mut window)?,
-            };
-            let held = std::mem::take(&mut self.held);
-            if !held.is_zero() {
-                progress += held;
-                for entry in window.iter_mut() {
-                    if let Some(at) = entry.accepted.as_mut() {
-                        *at += held;
-                    }
-                }
-            }
-            if progressed {
-                progress = Instant::now();
-            } else if let Some(timeout) = expired.filter(|_| held.is_zero()) {
-                return Err(timeout);
-            }
-            // What the line did, for the chunk and window (see `adapt`).
-            self.adapt
-                .traffic((self.stats.bytes_received - received) as usize);
-            for _ in corrupt..self.stats.corrupt_frames {
-                self.adapt.damage();
-            }
-            // Retransmit the oldest if its timer ran out.
-            let now = Instant::now();
-            if let Some(i) = window.iter().position(|e| e.reply.is_none()) {
-                if now >= window[i].timer + self.backoff(&window[i]) {
-                    let damage = self.damage_seen();
-                    let entry = &mut window[i];
-                    // No damage since the last send: back off (a slow or absent target); damage:
-                    // the line is noisy, the target there, and waiting longer only loses time.
-                    if damage == entry.damage_at_send {
-                        entry.quiet += 1;
-                    } else {
-                        entry.quiet = 0;
-                    }
-                    if entry.accepted.is_none() && entry.quiet > self.config.retries {
-                        return Err(LinkError::Timeout {
-                            request: entry.request.name(),
-                            after: now - progress,
-                            retries: entry.retries,
-                        });
-                    }
-                    self.stats.timeouts += 1;
-                    self.retransmit(&mut window[i])?;
-                }
-            }
+            self.await_frame(&mut run, long_timeout)?;
+            self.retransmit_if_due(&mut run)?;
         }
+    }
+
+    /// Sends new requests until the window is full, unless a failure stops new requests.
+    fn fill_window(
+        &mut self,
+        run: &mut Run,
+        requests: &mut impl Iterator<Item = Request>,
+    ) -> Result<(), LinkError> {
+        while !run.exhausted
+            && run.failure.is_none()
+            && run.window.len() < usize::from(self.adapt.window())
+        {
+            let Some(request) = requests.next() else {
+                run.exhausted = true;
+                break;
+            };
+            let seq = self.take_seq();
+            let frame = self.encode(seq, &request)?;
+            self.write(&frame)?;
+            self.stats.requests += 1;
+            let damage_at_send = self.damage_seen();
+            run.window
+                .push_back(InFlight::new(seq, request, frame, damage_at_send));
+        }
+        Ok(())
+    }
+
+    /// Waits for the next frame until the retransmission or a deadline is due, and takes it
+    /// in. Fails with the timeout of a request whose deadline passed only if nothing came in
+    /// and no write held the host up meanwhile.
+    fn await_frame(&mut self, run: &mut Run, long_timeout: Duration) -> Result<(), LinkError> {
+        let (wake, expired) = self.next_wake(run, long_timeout);
+        let (corrupt, received) = (self.stats.corrupt_frames, self.stats.bytes_received);
+        let frame = self.receive(wake)?;
+        self.held += held_past(wake);
+        let progressed = match frame {
+            None => false,
+            Some(up) => self.on_frame(up, &mut run.window)?,
+        };
+        let held = std::mem::take(&mut self.held);
+        run.postpone(held);
+        if progressed {
+            run.progress = Instant::now();
+        } else if let Some(timeout) = expired.filter(|_| held.is_zero()) {
+            return Err(timeout);
+        }
+        // What the line did, for the chunk and window (see `adapt`).
+        self.adapt
+            .traffic((self.stats.bytes_received - received) as usize);
+        for _ in corrupt..self.stats.corrupt_frames {
+            self.adapt.damage();
+        }
+        Ok(())
+    }
+
+    /// When to stop waiting for a frame, and the timeout of the first request whose deadline
+    /// has passed, if one has.
+    ///
+    /// A deadline that passed fails the run only if the line has nothing waiting either: the
+    /// time may have gone on this side (a write held up by a slow target, a loaded machine)
+    /// while the replies sat unread, so an expired run still reads for a few milliseconds.
+    fn next_wake(&self, run: &Run, long_timeout: Duration) -> (Instant, Option<LinkError>) {
+        let now = Instant::now();
+        let mut wake = now + self.timeout;
+        let mut expired = None;
+        for entry in run.window.iter().filter(|e| e.reply.is_none()) {
+            let deadline = self.deadline(entry, run.progress, long_timeout);
+            if now >= deadline && expired.is_none() {
+                expired = Some(LinkError::Timeout {
+                    request: entry.request.name(),
+                    after: now - entry.accepted.unwrap_or(run.progress),
+                    retries: entry.retries,
+                });
+            }
+            wake = wake.min(deadline);
+        }
+        // Only the oldest request without a reply runs a retransmit timer: the target handles
+        // requests in order, so the later ones are held behind it (or were lost, which the
+        // target NAKs once it gets past the gap).
+        if let Some(oldest) = run.oldest_unanswered() {
+            wake = wake.min(oldest.timer + self.backoff(oldest));
+        }
+        if expired.is_some() {
+            wake = wake.max(now + Duration::from_millis(5));
+        }
+        (wake, expired)
+    }
+
+    /// Sends the oldest request without a reply again if its retransmit timer ran out, or
+    /// gives up on it after `retries` quiet retransmissions of a request never accepted.
+    fn retransmit_if_due(&mut self, run: &mut Run) -> Result<(), LinkError> {
+        let now = Instant::now();
+        let damage = self.damage_seen();
+        let Some(entry) = run.window.iter_mut().find(|e| e.reply.is_none()) else {
+            return Ok(());
+        };
+        if now < entry.timer + self.backoff(entry) {
+            return Ok(());
+        }
+        // No damage since the last send: back off (a slow or absent target); damage: the line
+        // is noisy, the target there, and waiting longer only loses time.
+        if damage == entry.damage_at_send {
+            entry.quiet += 1;
+        } else {
+            entry.quiet = 0;
+        }
+        if entry.accepted.is_none() && entry.quiet > self.config.retries {
+            return Err(LinkError::Timeout {
+                request: entry.request.name(),
+                after: now - run.progress,
+                retries: entry.retries,
+            });
+        }
+        self.stats.timeouts += 1;
+        self.retransmit(entry)
     }
 
     /// When a request without reply fails: [`Link::timeout`] after the last progress, or for a
