@@ -206,7 +206,6 @@ where
     XS::CoordDescType: Ranged<ValueType = f64> + ValueFormatter<f64>,
     YS::CoordDescType: Ranged<ValueType = f64> + ValueFormatter<f64>,
 {
-    let (x_range, y_range) = panel.ranges();
     let mut chart = ChartBuilder::on(area)
         .caption(&panel.title, (FONT, 22))
         .margin(12)
@@ -214,29 +213,42 @@ where
         .y_label_area_size(75)
         .build_cartesian_2d(x_spec, y_spec)
         .map_err(plot_error)?;
+    let axis_number = |log: bool, v: f64| if log { log_axis_number(v) } else { number(v) };
     chart
         .configure_mesh()
         .x_desc(panel.x_desc)
         .y_desc(panel.y_desc)
-        .x_label_formatter(&|v| {
-            if panel.log_x {
-                log_axis_number(*v)
-            } else {
-                number(*v)
-            }
-        })
-        .y_label_formatter(&|v| {
-            if panel.log_y {
-                log_axis_number(*v)
-            } else {
-                number(*v)
-            }
-        })
+        .x_label_formatter(&|v| axis_number(panel.log_x, *v))
+        .y_label_formatter(&|v| axis_number(panel.log_y, *v))
         .label_style((FONT, 14))
         .axis_desc_style((FONT, 16))
         .light_line_style(TRANSPARENT)
         .draw()
         .map_err(plot_error)?;
+    draw_lines(&mut chart, panel)?;
+    draw_rules(&mut chart, panel)?;
+    draw_marks(&mut chart, panel)?;
+    chart
+        .configure_series_labels()
+        .label_font((FONT, 14))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .position(panel.legend.clone())
+        .draw()
+        .map_err(plot_error)?;
+    Ok(())
+}
+
+/// A panel's chart, whatever its axes' scales.
+type Chart<'a, DB, X, Y> = ChartContext<'a, DB, Cartesian2d<X, Y>>;
+
+/// The panel's data lines, solid or dashed, each point marked.
+fn draw_lines<'a, DB, X, Y>(chart: &mut Chart<'a, DB, X, Y>, panel: &Panel) -> anyhow::Result<()>
+where
+    DB: DrawingBackend + 'a,
+    X: Ranged<ValueType = f64>,
+    Y: Ranged<ValueType = f64>,
+{
     for line in &panel.lines {
         let color = line.color;
         let style = color.stroke_width(2);
@@ -267,6 +279,17 @@ where
             )
             .map_err(plot_error)?;
     }
+    Ok(())
+}
+
+/// The panel's horizontal rules (labelled targets) and vertical ones (one label for all).
+fn draw_rules<'a, DB, X, Y>(chart: &mut Chart<'a, DB, X, Y>, panel: &Panel) -> anyhow::Result<()>
+where
+    DB: DrawingBackend + 'a,
+    X: Ranged<ValueType = f64>,
+    Y: Ranged<ValueType = f64>,
+{
+    let (x_range, y_range) = panel.ranges();
     for (y, label, color) in &panel.hlines {
         let color = *color;
         chart
@@ -302,6 +325,16 @@ where
             }
         }
     }
+    Ok(())
+}
+
+/// The panel's single marked points (triangles), each with its legend entry.
+fn draw_marks<'a, DB, X, Y>(chart: &mut Chart<'a, DB, X, Y>, panel: &Panel) -> anyhow::Result<()>
+where
+    DB: DrawingBackend + 'a,
+    X: Ranged<ValueType = f64>,
+    Y: Ranged<ValueType = f64>,
+{
     for mark in &panel.marks {
         let color = mark.color;
         chart
@@ -314,14 +347,6 @@ where
             .label(&mark.label)
             .legend(move |(x, y)| TriangleMarker::new((x + 10, y), 6, color.filled()));
     }
-    chart
-        .configure_series_labels()
-        .label_font((FONT, 14))
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .position(panel.legend.clone())
-        .draw()
-        .map_err(plot_error)?;
     Ok(())
 }
 
