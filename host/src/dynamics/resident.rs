@@ -84,84 +84,28 @@ impl ResidentSetup {
         max_iterations: u32,
         cycle_budget: u64,
     ) -> Result<Self, ResidentError> {
-        if matrices.scheme != Scheme::BackwardEuler {
-            return Err(ResidentError::Scheme(matrices.scheme));
-        }
-        if matrices.groups.len() != 1 {
-            return Err(ResidentError::Anisotropic);
-        }
-        let mass = system.mass().first().copied().unwrap_or(0.0);
-        if system.mass().iter().any(|&m| m != mass) {
-            return Err(ResidentError::NonUniformMass);
-        }
-        if tools.is_empty() || tools.len() > MAX_TOOL_NODES {
-            return Err(ResidentError::ToolCount(tools.len()));
-        }
+        let mass = supported_mass(system, matrices, tools)?;
         let axis = Axis::X;
         let s = matrices.matrix(axis);
         let a = scale_up(s.max_abs());
-        let s_up = s.scaled(2f64.powi(a));
-        let mut matrix = encode_with(&s_up, layout)?.matrix;
         let k_full = system.stiffness(axis);
         let c = scale_up(k_full.max_abs());
         let k_frac = MAX_FRAC_BITS;
         let k_at = |i: usize, j: usize| entry(k_full, i, j) * 2f64.powi(c);
-        let constrained = system.constrained();
-        // K on S's words; a mirrored word stands for its mirror too, which K must then equal.
-        let mut stiffness = stiffness_values(&matrix, &k_at, k_frac)?;
-        if matrix.tiles.iter().any(|t| t.mirrored) && !mirrors_agree(&matrix, &k_at) {
-            let whole = EncodeOptions {
-                use_symmetry: false,
-                ..*layout
-            };
-            matrix = encode_with(&s_up, &whole)?.matrix;
-            stiffness = stiffness_values(&matrix, &k_at, k_frac)?;
-        }
-        let s_free = matrices.free(axis);
-        let row = |m: &Csr, scale: i32, frac: u8, t: usize| -> Result<ToolRow, ResidentError> {
-            let (cols, vals) = m.row(t);
-            let mut out = ToolRow {
-                node: t as u32,
-                diagonal: 0,
-                row: heapless::Vec::new(),
-            };
-            for (&j, &v) in cols.iter().zip(vals) {
-                let raw = quantize(v * 2f64.powi(scale), frac)?;
-                if j == t {
-                    out.diagonal = raw;
-                } else if !constrained[j] || tools.contains(&j) {
-                    out.row
-                        .push(Coupling {
-                            column: j as u32,
-                            value: raw,
-                        })
-                        .map_err(|_| ResidentError::RowTooLong {
-                            node: t,
-                            count: cols.len(),
-                        })?;
-                }
-            }
-            Ok(out)
+        let (matrix, stiffness) = encode_s_and_k(&s.scaled(2f64.powi(a)), &k_at, k_frac, layout)?;
+        let rows = ToolRows {
+            constrained: system.constrained(),
+            tools,
         };
         let tools = tools
             .iter()
             .map(|&t| {
-                let s = row(s_free, a, matrix.frac_bits, t)?;
-                // K's row over the same columns as S's (K is zero where S is, off the diagonal).
-                let mut k = row(k_full, c, k_frac, t)?;
-                k.row = s
-                    .row
-                    .iter()
-                    .map(|cp| Coupling {
-                        column: cp.column,
-                        value: k
-                            .row
-                            .iter()
-                            .find(|kc| kc.column == cp.column)
-                            .map_or(0, |kc| kc.value),
-                    })
-                    .collect();
-                Ok(DynamicTool { s, k })
+                let s = rows.row(matrices.free(axis), a, matrix.frac_bits, t)?;
+                let k = rows.row(k_full, c, k_frac, t)?;
+                Ok(DynamicTool {
+                    k: on_columns_of(k, &s),
+                    s,
+                })
             })
             .collect::<Result<Vec<_>, ResidentError>>()?;
         Ok(ResidentSetup {
@@ -242,6 +186,107 @@ impl ResidentSetup {
             }),
         }
     }
+}
+
+/// The uniform nodal mass, where the target's step is the host's: backward Euler, one S for
+/// the three directions, one mass for every node and 1 to [`MAX_TOOL_NODES`] tool nodes.
+fn supported_mass(
+    system: &DynamicSystem,
+    matrices: &StepMatrices,
+    tools: &[usize],
+) -> Result<f64, ResidentError> {
+    if matrices.scheme != Scheme::BackwardEuler {
+        return Err(ResidentError::Scheme(matrices.scheme));
+    }
+    if matrices.groups.len() != 1 {
+        return Err(ResidentError::Anisotropic);
+    }
+    let mass = system.mass().first().copied().unwrap_or(0.0);
+    if system.mass().iter().any(|&m| m != mass) {
+        return Err(ResidentError::NonUniformMass);
+    }
+    if tools.is_empty() || tools.len() > MAX_TOOL_NODES {
+        return Err(ResidentError::ToolCount(tools.len()));
+    }
+    Ok(mass)
+}
+
+/// S (already scaled) encoded with `layout`, and K's raw values on S's words. A mirrored word
+/// stands for its mirror too, which K must then equal; where it does not, S is encoded whole.
+fn encode_s_and_k(
+    s_up: &Csr,
+    k_at: &dyn Fn(usize, usize) -> f64,
+    k_frac: u8,
+    layout: &EncodeOptions,
+) -> Result<(EncodedMatrix, Vec<i32>), ResidentError> {
+    let matrix = encode_with(s_up, layout)?.matrix;
+    if !matrix.tiles.iter().any(|t| t.mirrored) || mirrors_agree(&matrix, k_at) {
+        let stiffness = stiffness_values(&matrix, k_at, k_frac)?;
+        return Ok((matrix, stiffness));
+    }
+    let whole = EncodeOptions {
+        use_symmetry: false,
+        ..*layout
+    };
+    let matrix = encode_with(s_up, &whole)?.matrix;
+    let stiffness = stiffness_values(&matrix, k_at, k_frac)?;
+    Ok((matrix, stiffness))
+}
+
+/// What a tool node's rows keep: the couplings to free nodes and to the other tool nodes.
+struct ToolRows<'a> {
+    constrained: &'a [bool],
+    tools: &'a [usize],
+}
+
+impl ToolRows<'_> {
+    /// Row `t` of `m`·2^scale in Q-format `frac`: its diagonal and the couplings kept.
+    fn row(&self, m: &Csr, scale: i32, frac: u8, t: usize) -> Result<ToolRow, ResidentError> {
+        let (cols, vals) = m.row(t);
+        let mut out = ToolRow {
+            node: t as u32,
+            diagonal: 0,
+            row: heapless::Vec::new(),
+        };
+        for (&j, &v) in cols.iter().zip(vals) {
+            let raw = quantize(v * 2f64.powi(scale), frac)?;
+            if j == t {
+                out.diagonal = raw;
+            } else if !self.constrained[j] || self.tools.contains(&j) {
+                let coupling = Coupling {
+                    column: j as u32,
+                    value: raw,
+                };
+                out.row
+                    .push(coupling)
+                    .map_err(|_| ResidentError::RowTooLong {
+                        node: t,
+                        count: cols.len(),
+                    })?;
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// K's row `k` over the same columns as S's row `s` (K is zero where S is, off the diagonal).
+fn on_columns_of(mut k: ToolRow, s: &ToolRow) -> ToolRow {
+    let value_at = |column: u32| {
+        k.row
+            .iter()
+            .find(|kc| kc.column == column)
+            .map_or(0, |kc| kc.value)
+    };
+    let row = s
+        .row
+        .iter()
+        .map(|cp| Coupling {
+            column: cp.column,
+            value: value_at(cp.column),
+        })
+        .collect();
+    k.row = row;
+    k
 }
 
 /// K's raw value at every word of `matrix` (0 on empty-row words).
