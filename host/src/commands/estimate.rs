@@ -105,17 +105,20 @@ pub struct EstimateArgs {
     pub json: bool,
 }
 
+/// The homogeneous estimates, and the parametric and spring-field ones where asked for.
+pub type Estimates = (
+    Homogeneous,
+    Option<ParametricEstimate>,
+    Option<SpringFieldEstimate>,
+);
+
 /// Runs the estimators on `obs` as `args` ask, solving on `solver`.
 pub fn estimate_all<P: crate::link::Port>(
     args: &EstimateArgs,
     model: &Model,
     obs: &Observations,
     solver: &mut SpdSolver<'_, P>,
-) -> anyhow::Result<(
-    Homogeneous,
-    Option<ParametricEstimate>,
-    Option<SpringFieldEstimate>,
-)> {
+) -> anyhow::Result<Estimates> {
     let net = Network::of(model);
     let equation_error = homogeneous::equation_error(&net, obs)?;
     let output_error = homogeneous::output_error(&net, model, obs, solver)
@@ -149,54 +152,12 @@ pub fn estimate_all<P: crate::link::Port>(
 }
 
 pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
-    if let Some(map) = &args.map {
-        if !matches!(
-            OutputFormat::of(map)?,
-            OutputFormat::Vtu | OutputFormat::Vts
-        ) {
-            bail!(
-                "--map {}: the map is written as VTK, use a .vtu or .vts file name",
-                map.display()
-            );
-        }
-    }
-    if !(args.tol.is_finite() && args.tol > 0.0 && args.tol < 1.0) {
-        bail!("--tol {} must be a number in (0, 1)", args.tol);
-    }
-    Outputs::new()
-        .input("scenario", args.scenario.as_deref())
-        .input("observations", Some(&args.observations))
-        .file("--map", args.map.as_deref())
-        .check()?;
+    check_args(args)?;
     let (_, spec) = resolve_model(args.scenario.as_deref(), &args.model)?;
     let model = Model::build(&spec).context("building the model")?;
     let obs = Observations::read(&args.observations, model.grid())?;
-
-    let choice = args.board.choice(None)?;
-    let (target_name, (homogeneous, parametric, spring_field)) = match choice {
-        None => {
-            let mut host: SpdSolver<'_, Box<dyn serialport::SerialPort>> =
-                SpdSolver::Host { tol: args.tol };
-            (
-                "host (f64 reference CG)".to_string(),
-                estimate_all(args, &model, &obs, &mut host)?,
-            )
-        }
-        Some(choice) => {
-            let timeouts = args.link.apply(Timeouts {
-                solve: Duration::from_secs(args.timeout),
-                ..Timeouts::default()
-            });
-            let mut board = Board::open(&choice, timeouts, &args.board.target.logs.options())?;
-            let name = board.describe();
-            let mut solver = SpdSolver::Target {
-                target: &mut board.target,
-                tol: args.tol,
-                max_solves: args.max_solves,
-            };
-            (name, estimate_all(args, &model, &obs, &mut solver)?)
-        }
-    };
+    let (target_name, (homogeneous, parametric, spring_field)) =
+        estimate_on_target(args, &model, &obs)?;
     let chosen = match args.estimator {
         Estimator::OutputError => &homogeneous.output_error,
         Estimator::EquationError => &homogeneous.equation_error,
@@ -223,12 +184,7 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
         homogeneous,
     };
     if let (Some(map), Some(field)) = (&args.map, &report.spring_field) {
-        let kind = match OutputFormat::of(map)? {
-            OutputFormat::Vts => VtkKind::Structured,
-            _ => VtkKind::Unstructured,
-        };
-        let rows = node_rows_with_stiffness(&model, &obs.sets[0].u, &field.node_stiffness);
-        write_vtk(map, &rows, kind)?;
+        write_map(map, &model, &obs, &field.node_stiffness)?;
     }
     if args.json {
         // Written rather than println!'d: a closed pipe is an error, not a panic.
@@ -241,5 +197,73 @@ pub fn run(args: &EstimateArgs) -> anyhow::Result<()> {
     if let Some(map) = &args.map {
         println!("wrote           {}", map.display());
     }
+    Ok(())
+}
+
+/// The flags checked before anything is read or solved: the map's format, the tolerance, and
+/// that no output would overwrite an input.
+fn check_args(args: &EstimateArgs) -> anyhow::Result<()> {
+    if let Some(map) = &args.map {
+        if !matches!(
+            OutputFormat::of(map)?,
+            OutputFormat::Vtu | OutputFormat::Vts
+        ) {
+            bail!(
+                "--map {}: the map is written as VTK, use a .vtu or .vts file name",
+                map.display()
+            );
+        }
+    }
+    if !(args.tol.is_finite() && args.tol > 0.0 && args.tol < 1.0) {
+        bail!("--tol {} must be a number in (0, 1)", args.tol);
+    }
+    Outputs::new()
+        .input("scenario", args.scenario.as_deref())
+        .input("observations", Some(&args.observations))
+        .file("--map", args.map.as_deref())
+        .check()
+}
+
+/// Every estimate, its solves on the board the flags choose (the host's f64 CG without one),
+/// and that target's name.
+fn estimate_on_target(
+    args: &EstimateArgs,
+    model: &Model,
+    obs: &Observations,
+) -> anyhow::Result<(String, Estimates)> {
+    let Some(choice) = args.board.choice(None)? else {
+        let mut host: SpdSolver<'_, Box<dyn serialport::SerialPort>> =
+            SpdSolver::Host { tol: args.tol };
+        let estimates = estimate_all(args, model, obs, &mut host)?;
+        return Ok(("host (f64 reference CG)".to_string(), estimates));
+    };
+    let timeouts = args.link.apply(Timeouts {
+        solve: Duration::from_secs(args.timeout),
+        ..Timeouts::default()
+    });
+    let mut board = Board::open(&choice, timeouts, &args.board.target.logs.options())?;
+    let name = board.describe();
+    let mut solver = SpdSolver::Target {
+        target: &mut board.target,
+        tol: args.tol,
+        max_solves: args.max_solves,
+    };
+    Ok((name, estimate_all(args, model, obs, &mut solver)?))
+}
+
+/// The spring-field map: the first observation set's displacements with each node's
+/// estimated stiffness, as VTK.
+fn write_map(
+    map: &std::path::Path,
+    model: &Model,
+    obs: &Observations,
+    node_stiffness: &[f64],
+) -> anyhow::Result<()> {
+    let kind = match OutputFormat::of(map)? {
+        OutputFormat::Vts => VtkKind::Structured,
+        _ => VtkKind::Unstructured,
+    };
+    let rows = node_rows_with_stiffness(model, &obs.sets[0].u, node_stiffness);
+    write_vtk(map, &rows, kind)?;
     Ok(())
 }
