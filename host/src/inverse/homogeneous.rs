@@ -163,22 +163,7 @@ pub fn output_error<P: Port>(
     }
     let n = net.n();
     let free: Vec<bool> = (0..n).map(|p| !net.is_constrained(p)).collect();
-    // Distinct load vectors (free nodes only), each solved once.
-    let mut keys: HashMap<Vec<u64>, usize> = HashMap::new();
-    let mut rhs: Vec<Vec<f64>> = Vec::new();
-    let mut key_of = vec![[0usize; 3]; obs.sets.len()];
-    for (s, set) in obs.sets.iter().enumerate() {
-        for d in 0..3 {
-            let b: Vec<f64> = (0..n)
-                .map(|p| if free[p] { set.f[d][p] } else { 0.0 })
-                .collect();
-            let key: Vec<u64> = b.iter().map(|v| v.to_bits()).collect();
-            key_of[s][d] = *keys.entry(key).or_insert_with(|| {
-                rhs.push(b);
-                rhs.len() - 1
-            });
-        }
-    }
+    let (mut rhs, key_of) = distinct_loads(obs, &free);
     let distinct = rhs.len();
     for d in 0..3 {
         rhs.push(prescribed_rhs(net, model, d).unwrap_or_else(|| vec![0.0; n]));
@@ -203,22 +188,8 @@ pub fn output_error<P: Port>(
             yy += dot(&y, &y);
         }
     }
-    let (wy_all, ww_all): (f64, f64) = (wy.iter().sum(), ww.iter().sum());
-    if ww_all == 0.0 {
-        return Err(EstimateError::Singular {
-            estimator: "homogeneous output-error",
-            why: "every load vector is zero at the free nodes, so the predicted displacements do not depend on k̃".into(),
-        });
-    }
-    let c = wy_all / ww_all;
-    if c <= 0.0 {
-        return Err(EstimateError::Singular {
-            estimator: "homogeneous output-error",
-            why: format!(
-                "the observed displacements point against the loads (fitted 1/k̃ = {c:.3e} ≤ 0); check the signs of the loads and displacements"
-            ),
-        });
-    }
+    let ww_all: f64 = ww.iter().sum();
+    let c = fitted_compliance(wy.iter().sum(), ww_all)?;
     let mut rss = 0.0;
     for (s, set) in obs.sets.iter().enumerate() {
         for d in 0..3 {
@@ -251,4 +222,47 @@ pub fn output_error<P: Port>(
         equations,
         solves: Some(count),
     })
+}
+
+/// The distinct load vectors of `obs` (free nodes only, each to be solved once) and, for each
+/// set and direction, the index of its own.
+fn distinct_loads(obs: &Observations, free: &[bool]) -> (Vec<Vec<f64>>, Vec<[usize; 3]>) {
+    let mut keys: HashMap<Vec<u64>, usize> = HashMap::new();
+    let mut rhs: Vec<Vec<f64>> = Vec::new();
+    let mut key_of = vec![[0usize; 3]; obs.sets.len()];
+    for (s, set) in obs.sets.iter().enumerate() {
+        for d in 0..3 {
+            let b: Vec<f64> = free
+                .iter()
+                .zip(&set.f[d])
+                .map(|(&free, &f)| if free { f } else { 0.0 })
+                .collect();
+            let key: Vec<u64> = b.iter().map(|v| v.to_bits()).collect();
+            key_of[s][d] = *keys.entry(key).or_insert_with(|| {
+                rhs.push(b);
+                rhs.len() - 1
+            });
+        }
+    }
+    (rhs, key_of)
+}
+
+/// The least-squares c = 1/k̃ of y ≈ c·w from its sums Σw·y and Σw·w, which must be positive.
+fn fitted_compliance(wy_all: f64, ww_all: f64) -> Result<f64, EstimateError> {
+    if ww_all == 0.0 {
+        return Err(EstimateError::Singular {
+            estimator: "homogeneous output-error",
+            why: "every load vector is zero at the free nodes, so the predicted displacements do not depend on k̃".into(),
+        });
+    }
+    let c = wy_all / ww_all;
+    if c <= 0.0 {
+        return Err(EstimateError::Singular {
+            estimator: "homogeneous output-error",
+            why: format!(
+                "the observed displacements point against the loads (fitted 1/k̃ = {c:.3e} ≤ 0); check the signs of the loads and displacements"
+            ),
+        });
+    }
+    Ok(c)
 }
