@@ -13,7 +13,7 @@ use deform_shared::protocol::SolveReport;
 use super::fixed_point::check_representable;
 use super::host::host_step;
 use super::params::{DynamicsError, DynamicsSpec};
-use super::step::{advance, rhs, Loads, State, StepMatrices};
+use super::step::{advance, rhs, Forcing, Loads, State, StepMatrices};
 use super::system::DynamicSystem;
 use crate::board::WireBytes;
 use crate::encode::{encode_with, EncodeError, EncodeOptions, EncodedMatrix};
@@ -284,12 +284,7 @@ impl DynamicRunner {
                 .zip(&b)
                 .map(|(&d, b)| reference::residual(s_matrix, b, &state.v[d.position()]))
                 .collect();
-            let tol = b
-                .iter()
-                .zip(&r)
-                .filter(|(_, r)| norm(r) > 0.0)
-                .map(|(b, r)| self.params.tol * norm(b) / norm(r))
-                .fold(f64::INFINITY, f64::min);
+            let tol = correction_tolerance(self.params.tol, &b, &r);
             let refs: Vec<&[f64]> = r.iter().map(Vec::as_slice).collect();
             let refined = solve_refined(
                 target,
@@ -314,26 +309,10 @@ impl DynamicRunner {
             }
             reports.extend(refined.reports);
         }
-        let (m, system) = (&self.matrices, &self.system);
-        self.state = advance(system, m, &self.state, v1, &forcing);
-        let deviation = if self.params.check_reference {
-            self.reference = host_step(system, m, &self.reference, &forcing)?;
-            let scale = self
-                .reference
-                .u
-                .iter()
-                .map(|u| max_abs(u))
-                .fold(0.0, f64::max);
-            let diff = Axis::ALL
-                .iter()
-                .map(|d| max_abs_diff(&self.state.u[d.position()], &self.reference.u[d.position()]))
-                .fold(0.0, f64::max);
-            Some(if scale > 0.0 { diff / scale } else { diff })
-        } else {
-            None
-        };
+        self.state = advance(&self.system, &self.matrices, &self.state, v1, &forcing);
+        let deviation = self.check_reference(&forcing)?;
         Ok(DynamicStep {
-            energy: system.energy(&self.state.u, &self.state.v),
+            energy: self.system.energy(&self.state.u, &self.state.v),
             result: StepResult {
                 step,
                 t: self.state.t,
@@ -349,6 +328,26 @@ impl DynamicRunner {
                 u: Default::default(),
             },
         })
+    }
+
+    /// With the check on, the host's f64 stepper's same step, and how far the target's u is
+    /// from its u, relative to its max |u|.
+    fn check_reference(&mut self, forcing: &Forcing<'_>) -> Result<Option<f64>, DynamicRunError> {
+        if !self.params.check_reference {
+            return Ok(None);
+        }
+        self.reference = host_step(&self.system, &self.matrices, &self.reference, forcing)?;
+        let scale = self
+            .reference
+            .u
+            .iter()
+            .map(|u| max_abs(u))
+            .fold(0.0, f64::max);
+        let diff = Axis::ALL
+            .iter()
+            .map(|d| max_abs_diff(&self.state.u[d.position()], &self.reference.u[d.position()]))
+            .fold(0.0, f64::max);
+        Ok(Some(if scale > 0.0 { diff / scale } else { diff }))
     }
 }
 
@@ -379,4 +378,14 @@ pub fn simulate_dynamic<P: Port>(
         loads0 = loads1;
     }
     Ok(out)
+}
+
+/// The tolerance of the correction's solve that gives each direction's v₁ its step tolerance
+/// `tol`·‖b‖: the tightest over the directions, relative to the start's residual r.
+fn correction_tolerance(tol: f64, b: &[Vec<f64>], r: &[Vec<f64>]) -> f64 {
+    b.iter()
+        .zip(r)
+        .filter(|(_, r)| norm(r) > 0.0)
+        .map(|(b, r)| tol * norm(b) / norm(r))
+        .fold(f64::INFINITY, f64::min)
 }
