@@ -138,14 +138,6 @@ pub fn report(session: Session, records: &[Frame], summary: &Summary) -> Report 
     let cycles = sorted(records.iter().map(|r| r.cycles.unwrap_or(0) as f64));
     let instructions = sorted(records.iter().map(|r| r.instructions.unwrap_or(0) as f64));
     let iterations = sorted(records.iter().map(|r| f64::from(r.iterations)));
-    let force_scale = records
-        .iter()
-        .flat_map(|r| r.reference)
-        .fold(0.0f64, |m, v| m.max(v.abs()));
-    let force_error = records
-        .iter()
-        .map(|r| force_error(&r.answer, &r.reference, force_scale))
-        .fold(0.0, f64::max);
     let up = percentile(&sorted(records.iter().map(|r| r.bytes.sent as f64)), 0.5);
     let down = percentile(
         &sorted(records.iter().map(|r| r.bytes.received as f64)),
@@ -156,24 +148,12 @@ pub fn report(session: Session, records: &[Frame], summary: &Summary) -> Report 
         .map_or((0.0, 0), |(b, c)| (b.received as f64, c));
     let field_up = summary.field.map_or(0.0, |(b, _)| b.sent as f64);
     let force_bytes = summary.force_bytes.unwrap_or_default();
-    let link_rates = BAUDS
-        .into_iter()
-        .map(|baud| LinkRate {
-            baud,
-            frames_per_s: per_second(baud, up + down),
-            force_queries_per_s: per_second(baud, force_bytes.total() as f64),
-            field_frames_per_s: per_second(baud, field_bytes + field_up),
-        })
-        .collect();
-    let budget = session.header.cycle_budget;
-    let over = records
-        .iter()
-        .filter_map(|r| r.cycles)
-        .filter(|&c| budget > 0 && c > budget);
-    let over_budget = (budget > 0).then(|| OverBudget {
-        frames: over.clone().count() as u32,
-        worst_cycles: over.max().unwrap_or(0),
-    });
+    let over_budget = over_budget(records, session.header.cycle_budget);
+    let link_rates = link_rates(
+        up + down,
+        force_bytes.total() as f64,
+        field_bytes + field_up,
+    );
     Report {
         frames: records.len() as u32,
         header: session.header,
@@ -199,7 +179,7 @@ pub fn report(session: Session, records: &[Frame], summary: &Summary) -> Report 
             .iter()
             .filter_map(|r| r.error_vs_converged)
             .fold(0.0, f64::max),
-        force_error_max: force_error,
+        force_error_max: force_error_max(records),
         model_force_error_max: summary.model_force_error,
         field_quantisation_error_max: summary.field_error,
         model_cycles: session.model_cycles,
@@ -232,6 +212,44 @@ pub fn report(session: Session, records: &[Frame], summary: &Summary) -> Report 
             ToolKind::Force => "mean displacement of the tool nodes (m)",
         },
     }
+}
+
+/// The frames, force queries and field frames per second that each line rate allows, from
+/// their bytes each way.
+fn link_rates(frame_bytes: f64, force_bytes: f64, field_bytes: f64) -> Vec<LinkRate> {
+    BAUDS
+        .into_iter()
+        .map(|baud| LinkRate {
+            baud,
+            frames_per_s: per_second(baud, frame_bytes),
+            force_queries_per_s: per_second(baud, force_bytes),
+            field_frames_per_s: per_second(baud, field_bytes),
+        })
+        .collect()
+}
+
+/// With a cycle budget, how many frames went over it and the worst of them.
+fn over_budget(records: &[Frame], budget: u64) -> Option<OverBudget> {
+    let over = records
+        .iter()
+        .filter_map(|r| r.cycles)
+        .filter(|&c| budget > 0 && c > budget);
+    (budget > 0).then(|| OverBudget {
+        frames: over.clone().count() as u32,
+        worst_cycles: over.max().unwrap_or(0),
+    })
+}
+
+/// The worst frame's answer against its reference, relative to the largest reference value.
+fn force_error_max(records: &[Frame]) -> f64 {
+    let scale = records
+        .iter()
+        .flat_map(|r| r.reference)
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    records
+        .iter()
+        .map(|r| force_error(&r.answer, &r.reference, scale))
+        .fold(0.0, f64::max)
 }
 
 /// The local model's name in the summary (ten columns, as the other labels).
