@@ -5,7 +5,7 @@
 use serde::Serialize;
 
 use super::engine::Frame;
-use super::session::force_error;
+use super::session::force_error_max;
 use super::stats::{per_second, percentile, sorted, IterationSpread, Rate, Spread, BAUDS};
 use crate::dynamics::{Damping, DynamicsSpec};
 
@@ -126,18 +126,6 @@ pub struct Header {
     pub cycles_from_mcycle: bool,
 }
 
-/// The largest force error of the frames, on the scale of the largest reference force.
-fn force_errors(records: &[Frame]) -> f64 {
-    let scale = records
-        .iter()
-        .flat_map(|r| r.reference)
-        .fold(0.0f64, |m, v| m.max(v.abs()));
-    records
-        .iter()
-        .map(|r| force_error(&r.answer, &r.reference, scale))
-        .fold(0.0, f64::max)
-}
-
 /// The report over `records` (every frame of the session, in order).
 pub fn report(header: Header, records: &[Frame]) -> DynamicReport {
     let on_target = records.iter().any(|r| r.cycles.is_some());
@@ -185,7 +173,7 @@ pub fn report(header: Header, records: &[Frame]) -> DynamicReport {
                 .fold(0.0, f64::max)
                 / peak.max(f64::MIN_POSITIVE)
         }),
-        force_error_max: on_target.then(|| force_errors(records)),
+        force_error_max: on_target.then(|| force_error_max(records)),
         bytes_up_per_frame: up,
         bytes_down_per_frame: down,
         bytes_up_per_frame_max: later.iter().map(|r| r.bytes.sent).max().unwrap_or(0),

@@ -10,7 +10,7 @@ use serde::Serialize;
 
 use super::engine::Frame;
 use super::field::FieldChoice;
-use super::session::{force_error, Lag, Summary};
+use super::session::{force_error_max, Lag, Summary};
 use super::setup::ToolKind;
 use super::stats::{per_second, percentile, sorted, BAUDS};
 pub use super::stats::{IterationSpread, Rate, Spread};
@@ -238,18 +238,6 @@ fn over_budget(records: &[Frame], budget: u64) -> Option<OverBudget> {
         frames: over.clone().count() as u32,
         worst_cycles: over.max().unwrap_or(0),
     })
-}
-
-/// The worst frame's answer against its reference, relative to the largest reference value.
-fn force_error_max(records: &[Frame]) -> f64 {
-    let scale = records
-        .iter()
-        .flat_map(|r| r.reference)
-        .fold(0.0f64, |m, v| m.max(v.abs()));
-    records
-        .iter()
-        .map(|r| force_error(&r.answer, &r.reference, scale))
-        .fold(0.0, f64::max)
 }
 
 /// The local model's name in the summary (ten columns, as the other labels).

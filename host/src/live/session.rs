@@ -112,6 +112,18 @@ pub fn force_error(got: &[f64; 3], want: &[f64; 3], scale: f64) -> f64 {
     diff / scale.max(f64::MIN_POSITIVE)
 }
 
+/// The worst frame's answer against its reference, relative to the largest reference value.
+pub fn force_error_max(records: &[Frame]) -> f64 {
+    let scale = records
+        .iter()
+        .flat_map(|r| r.reference)
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    records
+        .iter()
+        .map(|r| force_error(&r.answer, &r.reference, scale))
+        .fold(0.0, f64::max)
+}
+
 /// Hands out the frame times, waiting for a paced slot where the wall clock has not come to it.
 struct Clock {
     timing: Timing,
