@@ -377,15 +377,14 @@ pub fn prescribed_error(model: &Model, u: &[Vec<f64>; 3]) -> f64 {
 /// The summary a person reads after a solve.
 impl std::fmt::Display for SolveStats {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let stats = self;
-        writeln!(f, "target      {}", stats.target)?;
-        writeln!(f, "model       {}", stats.model)?;
+        writeln!(f, "target      {}", self.target)?;
+        writeln!(f, "model       {}", self.model)?;
         writeln!(
             f,
             "size        n = {}, nnz = {}, fixed nodes = {}",
-            stats.n, stats.nnz, stats.fixed_nodes
+            self.n, self.nnz, self.fixed_nodes
         )?;
-        if let (Some(w), Some(t), Some(fb)) = (stats.words, stats.tiles, stats.frac_bits) {
+        if let (Some(w), Some(t), Some(fb)) = (self.words, self.tiles, self.frac_bits) {
             // A value field of VALUE_BITS two's-complement bits with fb fractional bits is
             // Q(VALUE_BITS − 1 − fb).fb: one bit is the sign.
             writeln!(
@@ -394,10 +393,56 @@ impl std::fmt::Display for SolveStats {
                 VALUE_BITS as i32 - 1 - fb as i32
             )?;
         }
-        if let Some(e) = &stats.engine {
-            let l = &e.layout;
+        if let Some(e) = &self.engine {
+            e.fmt_layout(f)?;
+        }
+        for d in &self.directions {
+            self.fmt_direction(f, d)?;
+        }
+        if let Some(e) = &self.engine {
+            e.fmt_runs(f)?;
+        }
+        writeln!(f, "max |u|     {:.6e}", self.max_displacement)?;
+        if let Some(dev) = self.max_deviation_from_reference {
             writeln!(
                 f,
+                "max deviation from the f64 reference: {dev:.3e} of max |u|"
+            )?;
+        }
+        Ok(())
+    }
+}
+
+impl SolveStats {
+    /// One direction's line: its iterations, target solves, residual and deviation.
+    fn fmt_direction(
+        &self,
+        f: &mut std::fmt::Formatter<'_>,
+        d: &DirectionStats,
+    ) -> std::fmt::Result {
+        write!(
+            f,
+            "u{}  (k = {}) iterations {:>5}, ",
+            d.axis, d.k, d.iterations
+        )?;
+        // The host's f64 solve makes no target solves: its count says nothing.
+        if self.engine.is_some() {
+            write!(f, "solves {}, ", d.solves)?;
+        }
+        write!(f, "residual {:.2e}", d.relative_residual)?;
+        if let Some(dev) = d.deviation_from_reference {
+            write!(f, ", deviation from f64 {dev:.2e}")?;
+        }
+        writeln!(f,)
+    }
+}
+
+impl EngineStats {
+    /// The layout line: MVUs, partition, conjugate symmetry, padding, preconditioner.
+    fn fmt_layout(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let l = &self.layout;
+        writeln!(
+            f,
             "layout      {} MVU(s), partition {}, conjugate symmetry {}, {} empty-row words ({:.3} %), precondition {}",
             l.mvus,
             l.partition,
@@ -408,66 +453,44 @@ impl std::fmt::Display for SolveStats {
             },
             l.empty_row_words,
             100.0 * l.overhead(),
-            e.precondition
-        )?;
-        }
-        for d in &stats.directions {
-            write!(
-                f,
-                "u{}  (k = {}) iterations {:>5}, ",
-                d.axis, d.k, d.iterations
-            )?;
-            // The host's f64 solve makes no target solves: its count says nothing.
-            if stats.engine.is_some() {
-                write!(f, "solves {}, ", d.solves)?;
-            }
-            write!(f, "residual {:.2e}", d.relative_residual)?;
-            if let Some(dev) = d.deviation_from_reference {
-                write!(f, ", deviation from f64 {dev:.2e}")?;
-            }
-            writeln!(f,)?;
-        }
-        if let Some(e) = &stats.engine {
-            writeln!(
-                f,
+            self.precondition
+        )
+    }
+
+    /// The target's runs, its phases' counters and the first iteration's figures.
+    fn fmt_runs(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
             "runs        {} target solve(s), {}; {} matrix words fetched ({} if solved one direction at a time); critical path in all {} (measured)",
-            e.target_solves,
-            if e.fused { "directions fused" } else { "one direction at a time" },
-            e.words_fetched,
-            e.words_fetched_unfused,
-            e.critical_path
+            self.target_solves,
+            if self.fused { "directions fused" } else { "one direction at a time" },
+            self.words_fetched,
+            self.words_fetched_unfused,
+            self.critical_path
         )?;
-            writeln!(
-                f,
-                "phases      MVU {} cycles / {} instructions retired, SVU {} cycles / {} instructions (hart 0's counters, all solves)",
-                e.mvu_phases.cycles,
-                e.mvu_phases.instructions,
-                e.svu_phases.cycles,
-                e.svu_phases.instructions
-            )?;
-            if let Some(p) = &e.performance {
-                writeln!(
-                f,
-                "1st iter.   {} MVU(s) × {} direction(s): {:.2} MVU instructions per word, {:.2} per multiply-accumulate; \
-                 {}; {:.1} MFLOPS at 100 MHz by eq. 56 (m = {:.2}, n = {})",
-                p.mvus,
-                p.directions,
-                p.mvu_instructions_per_word,
-                p.mvu_instructions_per_product,
-                p.critical_path_text(),
-                p.mflops,
-                p.m,
-                p.n
-            )?;
-            }
-        }
-        writeln!(f, "max |u|     {:.6e}", stats.max_displacement)?;
-        if let Some(dev) = stats.max_deviation_from_reference {
-            writeln!(
-                f,
-                "max deviation from the f64 reference: {dev:.3e} of max |u|"
-            )?;
-        }
-        Ok(())
+        writeln!(
+            f,
+            "phases      MVU {} cycles / {} instructions retired, SVU {} cycles / {} instructions (hart 0's counters, all solves)",
+            self.mvu_phases.cycles,
+            self.mvu_phases.instructions,
+            self.svu_phases.cycles,
+            self.svu_phases.instructions
+        )?;
+        let Some(p) = &self.performance else {
+            return Ok(());
+        };
+        writeln!(
+            f,
+            "1st iter.   {} MVU(s) × {} direction(s): {:.2} MVU instructions per word, {:.2} per multiply-accumulate; \
+             {}; {:.1} MFLOPS at 100 MHz by eq. 56 (m = {:.2}, n = {})",
+            p.mvus,
+            p.directions,
+            p.mvu_instructions_per_word,
+            p.mvu_instructions_per_product,
+            p.critical_path_text(),
+            p.mflops,
+            p.m,
+            p.n
+        )
     }
 }
