@@ -22,7 +22,8 @@ use deform_host::output::file::write_atomic;
 pub const BOARDS: &[&str] = &["ulx3s"];
 /// The MVU counts a sweep builds by default: 0 is the Fmax comparison's baseline.
 const DEFAULT_MVUS: &[u32] = &[0, 1, 2, 4, 8];
-/// The rows of p and Kp per MVU a build may ask for (bitstream.py's `NODES`).
+/// The rows of p and Kp per MVU a build may ask for: bitstream.py's `NODES`, which a test
+/// holds this copy to.
 const NODES: [u32; 2] = [512, 1024];
 /// An LFE5U-85F's MULT18X18D, for the plot when no build was placed.
 const LFE5U_85F_MULTIPLIERS: u64 = 156;
@@ -361,6 +362,21 @@ mod tests {
 
     fn error(line: &str) -> String {
         format!("{:#}", parse(&args(line)).unwrap_err())
+    }
+
+    /// `NODES` is checked here so that a bad value fails before an hour-long build; it must be
+    /// bitstream.py's own list, which sizes the memories.
+    #[test]
+    fn the_row_counts_are_bitstream_pys() {
+        let script =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../gateware/deform_gateware/bitstream.py");
+        let text = std::fs::read_to_string(&script).unwrap();
+        let line = text
+            .lines()
+            .find(|l| l.starts_with("NODES = ("))
+            .expect("bitstream.py defines NODES");
+        let listed = NODES.map(|n| n.to_string()).join(", ");
+        assert_eq!(line, format!("NODES = ({listed})"));
     }
 
     #[test]
