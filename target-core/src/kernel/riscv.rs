@@ -467,14 +467,19 @@ unsafe fn split_mirrored_row<const D: usize, const L: u32>(
 ) -> *const u32 {
     let mut wp = w;
     if D == 1 {
+        // The word and its pointer are in a4 and a5, so that the loop's head, `lw`, assembles
+        // to a 16-bit `c.lw` (its registers must be among x8–x15, and x8 and x9 are not the
+        // asm's to name): the VexRiscv fetches aligned 32-bit words, and a taken branch to a
+        // 32-bit instruction at an address 2 mod 4 costs a second fetch, a bubble a word
+        // (docs/PERFORMANCE.md, "The VexRiscv's stalls, traced"), where the layout put it.
         // SAFETY: reads only the row's words, p[col_base + c] and p[n − 1 − col_base − c].
         unsafe {
             asm!(
                 "2:",
-                "lw {w}, 0({wp})",
-                "addi {wp}, {wp}, 4",
-                "srli {t}, {w}, {cs}",
-                "slli {vv}, {w}, {vs}",
+                "lw a4, 0(a5)",
+                "addi a5, a5, 4",
+                "srli {t}, a4, {cs}",
+                "slli {vv}, a4, {vs}",
                 "and {t}, {t}, {mask}",
                 "srai {v}, {vv}, {vs}",
                 "sub {tm}, {mbase}, {t}",
@@ -489,8 +494,8 @@ unsafe fn split_mirrored_row<const D: usize, const L: u32>(
                 "add {c0}, {c0}, {p}",
                 "add {l1}, {l1}, {n}",
                 "add {c1}, {c1}, {q}",
-                "bltu {w}, {er}, 2b",
-                wp = inout(reg) wp,
+                "bltu a4, {er}, 2b",
+                inout("a5") wp,
                 l0 = inout(reg) a[0],
                 c0 = inout(reg) a[1],
                 l1 = inout(reg) a[6],
@@ -501,7 +506,7 @@ unsafe fn split_mirrored_row<const D: usize, const L: u32>(
                 er = in(reg) ER_BIT,
                 cs = const column_offset_shift(L),
                 vs = const VALUE_SIGN_SHIFT,
-                w = out(reg) _,
+                out("a4") _,
                 t = out(reg) _,
                 tm = out(reg) _,
                 v = out(reg) _,
