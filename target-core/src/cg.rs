@@ -646,21 +646,19 @@ fn lane_words_for(exec: &impl Executor, directions: usize) -> usize {
 }
 
 impl<E: Executor> Engine<'_, '_, E> {
-    /// p's nodes `range` (clamped to n), `S` i32 words a node.
+    /// p's nodes `range`, `S` i32 words a node.
     ///
     /// # Safety
     ///
-    /// `S` is [`Engine::lane_words`]; as [`SharedSlice::slice_mut`]: no one else accesses
-    /// these nodes of p while the slice lives.
+    /// `S` is [`Engine::lane_words`] and `range` lies in `0..n`; as
+    /// [`SharedSlice::slice_mut`]: no one else accesses these nodes of p while the slice lives.
     #[allow(clippy::mut_from_ref)]
     #[inline(always)]
     unsafe fn p_lanes<const S: usize>(&self, range: core::ops::Range<usize>) -> &mut [[i32; S]] {
-        debug_assert!(S == self.lane_words);
-        let end = range.end.min(self.a.n);
-        let start = range.start.min(end);
+        debug_assert!(S == self.lane_words && range.start <= range.end && range.end <= self.a.n);
         let base = self.p.as_mut_ptr().cast::<[i32; S]>();
-        // SAFETY: n nodes of S ≤ 4 words lie within p's n `Lanes`; the caller has them.
-        unsafe { core::slice::from_raw_parts_mut(base.wrapping_add(start), end - start) }
+        // SAFETY: n nodes of S ≤ 4 words lie within p's n `Lanes`; the caller has these.
+        unsafe { core::slice::from_raw_parts_mut(base.wrapping_add(range.start), range.len()) }
     }
 
     /// Runs one parallel phase, every hart's share measured (one hart at a time: see
