@@ -28,6 +28,10 @@ pub const RESPONSE_VALUES: usize = Board::RESPONSE_VALUES;
 pub const STIFFNESS_WORDS: usize = Board::STIFFNESS_WORDS;
 
 /// Everything the session works in. All zero at boot, so it lands in `.bss`.
+///
+/// In declaration order (`repr(C)`), so that p follows the directions' vectors at the
+/// offset modulo 4 KiB that [`DirectionBuffers`] leaves for it.
+#[repr(C)]
 pub struct Buffers {
     words: [u32; WORD_CAPACITY],
     tiles: [TileHeader; TILE_CAPACITY],
@@ -41,12 +45,26 @@ pub struct Buffers {
 }
 
 /// The vectors of one direction of a fused solve.
+///
+/// Each vector is a multiple of 4 KiB, so without the skews x, r and p would start at the same
+/// offset modulo 4 KiB, and element i of each would fall in the same line of the VexRiscv's
+/// 4 KiB direct-mapped data cache: pass XP, which reads x, r and p element by element, would
+/// evict each with the next. The skews put b (and p, which follows the directions in
+/// [`Buffers`]), x, x0 and r a quarter of the cache apart.
+#[repr(C)]
 pub struct DirectionBuffers {
     b: [i32; MAX_N],
+    skew_x: [u8; CACHE_SKEW],
     x: [i32; MAX_N],
+    skew_x0: [u8; CACHE_SKEW],
     x0: [i32; MAX_N],
+    skew_r: [u8; CACHE_SKEW],
     r: [i32; MAX_N],
+    skew_end: [u8; CACHE_SKEW],
 }
+
+/// A quarter of the VexRiscv's 4 KiB data cache ([`DirectionBuffers`]).
+const CACHE_SKEW: usize = 1024;
 
 const NO_TILE: TileHeader = TileHeader {
     row_base: 0,
@@ -60,9 +78,13 @@ const NO_TILE: TileHeader = TileHeader {
 impl DirectionBuffers {
     const ZERO: DirectionBuffers = DirectionBuffers {
         b: [0; MAX_N],
+        skew_x: [0; CACHE_SKEW],
         x: [0; MAX_N],
+        skew_x0: [0; CACHE_SKEW],
         x0: [0; MAX_N],
+        skew_r: [0; CACHE_SKEW],
         r: [0; MAX_N],
+        skew_end: [0; CACHE_SKEW],
     };
 
     fn storage(&mut self) -> DirectionStorage<'_> {

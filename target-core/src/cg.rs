@@ -58,7 +58,7 @@ use deform_shared::word::ER_BIT;
 use crate::exec::{share, SharedSlice};
 pub use crate::exec::{Executor, NoClock, PhaseClock, Sequential};
 use crate::kernel::{
-    p_kp_and_max, p_kp_bounded, run_tile_dyn, Lanes, Sums, TileRun, P_KP_BOUNDED_ROWS,
+    lane_words, p_kp_and_max, p_kp_bounded, run_tile_dyn, Lanes, Sums, TileRun, P_KP_BOUNDED_ROWS,
     SPLIT_MAX_ROW_ABS, SPLIT_MAX_WORDS, VALUE_SIGN_SHIFT,
 };
 use crate::svu::{
@@ -606,6 +606,8 @@ struct Engine<'e, 'a, E: Executor> {
     exec: &'e E,
     harts: usize,
     directions: usize,
+    /// p's layout: i32 words a node (1 or 4; [`lane_words_for`]).
+    lane_words: usize,
     p: SharedSlice<'e, Lanes>,
     kp: SharedSlice<'e, Sums>,
     partial: SharedSlice<'e, Sums>,
@@ -618,7 +620,47 @@ struct Engine<'e, 'a, E: Executor> {
     rs: heapless::Vec<SharedSlice<'e, i32>, MAX_DIRECTIONS>,
 }
 
+/// Runs `$body` with `$s` bound to the engine's p layout (i32 words a node, 1 or 4) as a
+/// constant, so that each layout's loops are compiled for their stride.
+macro_rules! with_lanes {
+    ($engine:expr, |$s:ident| $body:expr) => {
+        if $engine.lane_words == 1 {
+            const $s: usize = 1;
+            $body
+        } else {
+            const $s: usize = 4;
+            $body
+        }
+    };
+}
+
+/// p's layout for a solve of `directions` on `exec`: by the direction count
+/// ([`lane_words`]), except where hardware MVUs may run the MVU phase: their p window is
+/// 16 bytes a node (gateware), and it is the solver's p on such a board.
+fn lane_words_for(exec: &impl Executor, directions: usize) -> usize {
+    if exec.mvu_backend().is_some() {
+        4
+    } else {
+        lane_words(directions)
+    }
+}
+
 impl<E: Executor> Engine<'_, '_, E> {
+    /// p's nodes `range`, `S` i32 words a node.
+    ///
+    /// # Safety
+    ///
+    /// `S` is [`Engine::lane_words`] and `range` lies in `0..n`; as
+    /// [`SharedSlice::slice_mut`]: no one else accesses these nodes of p while the slice lives.
+    #[allow(clippy::mut_from_ref)]
+    #[inline(always)]
+    unsafe fn p_lanes<const S: usize>(&self, range: core::ops::Range<usize>) -> &mut [[i32; S]] {
+        debug_assert!(S == self.lane_words && range.start <= range.end && range.end <= self.a.n);
+        let base = self.p.as_mut_ptr().cast::<[i32; S]>();
+        // SAFETY: n nodes of S ≤ 4 words lie within p's n `Lanes`; the caller has these.
+        unsafe { core::slice::from_raw_parts_mut(base.wrapping_add(range.start), range.len()) }
+    }
+
     /// Runs one parallel phase, every hart's share measured (one hart at a time: see
     /// [`Executor::run_measured`]), and charges hart 0's serial work since the previous phase.
     /// Inlined: as a call of its own, its register saves and restores fell on hart 0's serial
@@ -678,7 +720,7 @@ impl<E: Executor> Engine<'_, '_, E> {
         let start = if self.mvu_on_hardware(clock) {
             clock.flushed
         } else {
-            self.run(&|h| self.mvu_tiles(h), clock, true);
+            with_lanes!(self, |S| self.run(&|h| self.mvu_tiles::<S>(h), clock, true));
             let start = clock.flushed;
             if !self.a.plan.fused {
                 self.run(&|h| self.mvu_rows(h), clock, true);
@@ -696,6 +738,9 @@ impl<E: Executor> Engine<'_, '_, E> {
         let Some(hardware) = self.exec.mvu_backend() else {
             return false;
         };
+        if self.lane_words != size_of::<Lanes>() / 4 {
+            return false;
+        }
         clock.flush_serial(self.exec);
         let before = self.exec.now();
         let p = self.p.as_mut_ptr() as *const Lanes;
@@ -715,9 +760,11 @@ impl<E: Executor> Engine<'_, '_, E> {
 
     /// Hart h's tiles: every tile with `mvu = h`. Fused, each row end stores and finishes its
     /// row; otherwise hart h first zeroes its rows (or private slots) and each row end adds.
-    fn mvu_tiles(&self, h: usize) {
+    /// p is `S` words a node ([`Engine::lane_words`]), a constant so that a tile's column
+    /// addresses cost what they did with one layout.
+    fn mvu_tiles<const S: usize>(&self, h: usize) {
         let (a, plan, n) = (self.a, self.a.plan, self.a.n);
-        let p = self.p.as_mut_ptr() as *const Lanes;
+        let p = self.p.as_mut_ptr() as *const i32;
         let zeroed = if plan.fused { 0 } else { 2 };
         for (k, rows) in plan.rows[h].iter().enumerate().take(zeroed) {
             let (target, range) = if plan.overlapping {
@@ -758,8 +805,8 @@ impl<E: Executor> Engine<'_, '_, E> {
             let run = TileRun {
                 words: a.words.as_ptr().wrapping_add(first),
                 rows: t.rows,
-                p_cols: p.wrapping_add(col_base),
-                p_mirror_cols: p.wrapping_add(n - 1 - col_base),
+                p_cols: p.wrapping_add(col_base * S).cast(),
+                p_mirror_cols: p.wrapping_add((n - 1 - col_base) * S).cast(),
                 y,
                 y_mirror,
             };
@@ -771,7 +818,7 @@ impl<E: Executor> Engine<'_, '_, E> {
             // structure) and sized p, kp and the pool for n and the plan; the tile's rows and
             // mirror rows lie in this MVU's hulls, which map to slots only it writes; p is only
             // read during this phase.
-            unsafe { run_tile_dyn(&run, self.directions, t.mirrored, plan.fused, plan.split) };
+            unsafe { run_tile_dyn::<S>(&run, self.directions, t.mirrored, plan.fused, plan.split) };
             if let Some((own, mirror)) = saved {
                 // SAFETY: as above.
                 unsafe { carry(y, own, self.directions) };
@@ -782,20 +829,20 @@ impl<E: Executor> Engine<'_, '_, E> {
             }
         }
         if plan.fused {
-            self.finish_rows(plan.rows[h]);
+            self.finish_rows::<S>(plan.rows[h]);
         }
     }
 
     /// pᵀKp and max |Kp| over the rows of `hulls` (hart h's own and mirror rows, fused plans:
     /// they are finished, and only hart h wrote them), put to the totals.
-    fn finish_rows(&self, hulls: [Rows; 2]) {
+    fn finish_rows<const S: usize>(&self, hulls: [Rows; 2]) {
         let mut p_kp = [0i128; MAX_DIRECTIONS];
         let mut or = [0u64; MAX_DIRECTIONS];
         for rows in hulls {
             // SAFETY: p is only read during this phase; these rows of Kp are this hart's alone.
             let (p, kp) = unsafe {
                 (
-                    self.p.as_slice().get(rows.lo..rows.hi).unwrap_or(&[]),
+                    self.p_lanes::<S>(rows.lo..rows.hi),
                     self.kp.slice_mut(rows.lo..rows.hi),
                 )
             };
@@ -854,15 +901,18 @@ impl<E: Executor> Engine<'_, '_, E> {
             }
         }
         // SAFETY: p is only read during this phase.
-        let p = unsafe { &self.p.as_slice()[range] };
-        let (p_kp, or) = self.p_kp(p, kp);
+        let (p_kp, or) = with_lanes!(self, |S| self.p_kp(unsafe { self.p_lanes::<S>(range) }, kp));
         self.put_mvu(p_kp, or);
     }
 
     /// pᵀKp and the OR of |Kp| over finished rows: [`p_kp_bounded`] where the plan bounds |Kp|
     /// below 2^52 (split sums allowed) and the rows are few enough, else [`p_kp_and_max`].
     #[inline(always)]
-    fn p_kp(&self, p: &[Lanes], kp: &[Sums]) -> ([i128; MAX_DIRECTIONS], [u64; MAX_DIRECTIONS]) {
+    fn p_kp<const S: usize>(
+        &self,
+        p: &[[i32; S]],
+        kp: &[Sums],
+    ) -> ([i128; MAX_DIRECTIONS], [u64; MAX_DIRECTIONS]) {
         if self.a.plan.split && kp.len() <= P_KP_BOUNDED_ROWS {
             p_kp_bounded(p, kp, self.directions)
         } else {
@@ -913,14 +963,16 @@ impl<E: Executor> Engine<'_, '_, E> {
             // this pass.
             unsafe {
                 let mut sink = self.sink();
-                let p = self.p.slice_mut(range.clone());
-                for (d, plan) in plans.iter().enumerate().take(self.directions) {
-                    let x = self.xs[d].slice_mut(range.clone());
-                    let r = &self.rs[d].as_slice()[range.clone()];
-                    let (x_or, p_or) = svu::pass_xp(x, p, r, d, *plan);
-                    sink.or(OrField::X, d, x_or);
-                    sink.or(OrField::P, d, p_or);
-                }
+                with_lanes!(self, |S| {
+                    let p = self.p_lanes::<S>(range.clone());
+                    for (d, plan) in plans.iter().enumerate().take(self.directions) {
+                        let x = self.xs[d].slice_mut(range.clone());
+                        let r = &self.rs[d].as_slice()[range.clone()];
+                        let (x_or, p_or) = svu::pass_xp(x, p, r, d, *plan);
+                        sink.or(OrField::X, d, x_or);
+                        sink.or(OrField::P, d, p_or);
+                    }
+                });
             }
         };
         self.run(&task, clock, false);
@@ -977,30 +1029,33 @@ impl<E: Executor> Engine<'_, '_, E> {
             // SAFETY: each hart writes only its own share of p; x and r are only read.
             unsafe {
                 let mut sink = self.sink();
-                let p = self.p.slice_mut(range.clone());
-                for (d, lane) in lanes.iter().enumerate().take(self.directions) {
-                    match lane {
-                        Lane::Keep => {}
-                        Lane::Zero => {
-                            p.iter_mut().for_each(|pi| pi[d] = 0);
-                            sink.or(OrField::P, d, 0);
-                        }
-                        // x's bound is known; only r's copy is measured.
-                        Lane::X => {
-                            let x = &self.xs[d].as_slice()[range.clone()];
-                            p.iter_mut().zip(x).for_each(|(pi, &v)| pi[d] = v);
-                        }
-                        Lane::R => {
-                            let mut or = 0u32;
-                            for (pi, &v) in p.iter_mut().zip(&self.rs[d].as_slice()[range.clone()])
-                            {
-                                pi[d] = v;
-                                or |= magnitude_bits(v);
+                with_lanes!(self, |S| {
+                    let p = self.p_lanes::<S>(range.clone());
+                    for (d, lane) in lanes.iter().enumerate().take(self.directions) {
+                        match lane {
+                            Lane::Keep => {}
+                            Lane::Zero => {
+                                p.iter_mut().for_each(|pi| pi[d] = 0);
+                                sink.or(OrField::P, d, 0);
                             }
-                            sink.or(OrField::P, d, or);
+                            // x's bound is known; only r's copy is measured.
+                            Lane::X => {
+                                let x = &self.xs[d].as_slice()[range.clone()];
+                                p.iter_mut().zip(x).for_each(|(pi, &v)| pi[d] = v);
+                            }
+                            Lane::R => {
+                                let mut or = 0u32;
+                                for (pi, &v) in
+                                    p.iter_mut().zip(&self.rs[d].as_slice()[range.clone()])
+                                {
+                                    pi[d] = v;
+                                    or |= magnitude_bits(v);
+                                }
+                                sink.or(OrField::P, d, or);
+                            }
                         }
                     }
-                }
+                });
             }
         };
         self.run(&task, clock, false);
@@ -1029,7 +1084,6 @@ impl<E: Executor> Engine<'_, '_, E> {
             // SAFETY: each hart writes only its own share of r, x, p and Kp; b is only read.
             unsafe {
                 let mut sink = self.sink();
-                let p = self.p.slice_mut(range.clone());
                 if !self.a.plan.fused {
                     self.kp.slice_mut(range.clone()).fill([0; MAX_DIRECTIONS]);
                 }
@@ -1054,7 +1108,11 @@ impl<E: Executor> Engine<'_, '_, E> {
                         x.iter().fold(0, |o, &m| o | magnitude_bits(m)),
                     );
                     sink.or(OrField::XAny, d, x.iter().fold(0, |o, &m| o | m as u32));
-                    p.iter_mut().zip(x.iter()).for_each(|(pi, &v)| pi[d] = v);
+                    with_lanes!(self, |S| self
+                        .p_lanes::<S>(range.clone())
+                        .iter_mut()
+                        .zip(x.iter())
+                        .for_each(|(pi, &v)| pi[d] = v));
                 }
             }
         };
@@ -1470,6 +1528,7 @@ pub fn solve(
         exec,
         harts,
         directions,
+        lane_words: lane_words_for(exec, directions),
         p: SharedSlice::new(p),
         kp: SharedSlice::new(kp),
         partial: SharedSlice::new(partial),
@@ -1627,6 +1686,7 @@ pub fn product(
         exec,
         harts,
         directions: lanes,
+        lane_words: lane_words_for(exec, lanes),
         p: SharedSlice::new(&mut p[..n]),
         kp: SharedSlice::new(&mut kp[..n]),
         partial: SharedSlice::new(partial),
@@ -1679,9 +1739,9 @@ fn initial_state<E: Executor>(
         // SAFETY: no task runs; hart 0 has the vectors to itself.
         unsafe { engine.xs[d].slice_mut(0..engine.a.n) }.fill(0);
         // SAFETY: as above.
-        unsafe { engine.p.slice_mut(0..engine.a.n) }
+        with_lanes!(engine, |S| unsafe { engine.p_lanes::<S>(0..engine.a.n) }
             .iter_mut()
-            .for_each(|pi| pi[d] = 0);
+            .for_each(|pi| pi[d] = 0));
         (x_or, x_any) = (0, 0);
     }
     if x_any == 0 {

@@ -8,6 +8,12 @@
 //!   loads with immediate offsets 0, 4, 8. The byte offset of column c is `16·c`, which is
 //!   `(w >> COLUMN_OFFSET_SHIFT) & COLUMN_OFFSET_MASK` of the word `w` (17 and 0x1FF0, derived
 //!   from [`deform_shared::word`]'s layout and pinned below): two instructions.
+//! - One direction alone has p 4 bytes a node ([`lane_words`]): the offset is `4·c`, the same
+//!   two instructions with the shift and mask of lane shift 2 ([`column_offset_shift`],
+//!   [`column_offset_mask`]: 19 and 0x7FC), and 512 nodes' p is 2 KiB instead of 8 KiB, half
+//!   the VexRiscv's data cache instead of twice it. The loops take the lane shift as a const
+//!   generic `L`; where hardware MVUs may run the phase, p stays 16 bytes a node (their
+//!   window's layout).
 //! - Row sums go to `y[row] : [i64; 3]` ([`Sums`]), one per direction.
 //!
 //! # Numerics
@@ -47,9 +53,40 @@ pub type Sums = [i64; MAX_DIRECTIONS];
 /// log2 of the bytes of one [`Lanes`]: a column's byte offset in p is c << LANE_SHIFT.
 const LANE_SHIFT: u32 = 4;
 /// `(w >> COLUMN_OFFSET_SHIFT) & COLUMN_OFFSET_MASK` is the byte offset 16·c of word w's column.
-pub const COLUMN_OFFSET_SHIFT: u32 = COLUMN_SHIFT - LANE_SHIFT;
+pub const COLUMN_OFFSET_SHIFT: u32 = column_offset_shift(LANE_SHIFT);
 /// See [`COLUMN_OFFSET_SHIFT`]: the column field, moved down to bit `LANE_SHIFT` (4: 16-byte lanes).
-pub const COLUMN_OFFSET_MASK: u32 = (COLUMN_WINDOW - 1) << LANE_SHIFT;
+pub const COLUMN_OFFSET_MASK: u32 = column_offset_mask(LANE_SHIFT);
+
+/// [`COLUMN_OFFSET_SHIFT`] for p laid out `1 << lane_shift` bytes a node.
+pub const fn column_offset_shift(lane_shift: u32) -> u32 {
+    COLUMN_SHIFT - lane_shift
+}
+
+/// [`COLUMN_OFFSET_MASK`] for p laid out `1 << lane_shift` bytes a node.
+pub const fn column_offset_mask(lane_shift: u32) -> u32 {
+    (COLUMN_WINDOW - 1) << lane_shift
+}
+
+/// i32 words a node of p takes in the MVU phase's software layout for `directions` fused
+/// directions: 1 for one direction, else 4 (a whole [`Lanes`]).
+///
+/// One direction uses one lane of the four, so the 16-byte layout made p four times the bytes
+/// it needs: 8 KiB for 512 nodes, twice the VexRiscv's 4 KiB data cache, whose misses on p
+/// were a third of the MVU phase's stalls (docs/PERFORMANCE.md, "The VexRiscv's stalls,
+/// traced"). The hardware MVUs' p window stays 16 bytes a node: the solver uses this layout
+/// only where no [`crate::mvu_backend::MvuBackend`] lends it the window.
+pub const fn lane_words(directions: usize) -> usize {
+    if directions == 1 {
+        1
+    } else {
+        4
+    }
+}
+
+/// log2 of the bytes a node of p takes with `lane_words` i32 words a node (1 or 4).
+pub const fn lane_shift(lane_words: usize) -> u32 {
+    2 + lane_words.trailing_zeros()
+}
 /// `((w << VALUE_SIGN_SHIFT) as i32) >> VALUE_SIGN_SHIFT` is word w's value, sign-extended.
 pub const VALUE_SIGN_SHIFT: u32 = 32 - VALUE_BITS;
 
@@ -85,6 +122,9 @@ const _: () = assert!(1 << LANE_SHIFT == core::mem::size_of::<Lanes>());
 const _: () = assert!(COLUMN_SHIFT == VALUE_BITS);
 const _: () = assert!(ER_BIT == 1 << (COLUMN_SHIFT + COLUMN_BITS) && EM_BIT == ER_BIT << 1);
 const _: () = assert!(COLUMN_OFFSET_SHIFT == 17 && COLUMN_OFFSET_MASK == 0x1FF0);
+const _: () = assert!(column_offset_shift(lane_shift(1)) == 19);
+const _: () = assert!(column_offset_mask(lane_shift(1)) == 0x7FC);
+const _: () = assert!(lane_shift(lane_words(3)) == LANE_SHIFT);
 const _: () = assert!(VALUE_SIGN_SHIFT == 11);
 
 /// Where one tile's words read and write. All pointers are into the solver's buffers.
@@ -94,7 +134,9 @@ pub struct TileRun {
     pub words: *const u32,
     /// Rows in the tile (ER words to go).
     pub rows: u32,
-    /// `&p[col_base]`: column c of the tile reads `p[col_base + c]`.
+    /// `&p[col_base]`: column c of the tile reads `p[col_base + c]` (p laid out as the
+    /// kernel's `L` or [`run_tile_dyn`]'s `lane_words` says: only an address, of a node's
+    /// first lane, so not a [`Lanes`] where p is 4 bytes a node).
     pub p_cols: *const Lanes,
     /// `&p[n − 1 − col_base]`: a mirrored word reads `p[n − 1 − col_base − c]`.
     pub p_mirror_cols: *const Lanes,
@@ -106,7 +148,7 @@ pub struct TileRun {
 }
 
 /// pᵀKp over rows `p`/`kp` (finished rows) for `directions`, exactly, and the OR of |Kp| per
-/// direction (whose highest bit is that of max |Kp|).
+/// direction (whose highest bit is that of max |Kp|). p is `S` lanes a node ([`lane_words`]).
 ///
 /// Each product p·Kp (|p| < 2^30, |Kp| < 2^62) is split by Kp's 32-bit halves h (signed) and l
 /// (unsigned) into p·l and p·h, two 64-bit products; their words are summed in three `i64`s by
@@ -114,14 +156,14 @@ pub struct TileRun {
 /// 2^46), and are joined into the `i128` once. That is about half the instructions of an
 /// `i128` accumulation per row on rv32; one direction at a time keeps the six words of the
 /// sums in registers.
-pub fn p_kp_and_max(
-    p: &[Lanes],
+pub fn p_kp_and_max<const S: usize>(
+    p: &[[i32; S]],
     kp: &[Sums],
     directions: usize,
 ) -> ([i128; MAX_DIRECTIONS], [u64; MAX_DIRECTIONS]) {
     let mut p_kp = [0i128; MAX_DIRECTIONS];
     let mut or = [0u64; MAX_DIRECTIONS];
-    for d in 0..directions.min(MAX_DIRECTIONS) {
+    for d in 0..directions.min(MAX_DIRECTIONS).min(S) {
         let (mut w0, mut w1, mut w2) = (0i64, 0i64, 0i64);
         let mut o = 0u64;
         for (pi, ki) in p.iter().zip(kp) {
@@ -152,15 +194,15 @@ pub const P_KP_BOUNDED_ROWS: usize = (1 << 13) - 1;
 /// `xor`) so that it is summed unsigned, with its carries and those of p·hi's low word into
 /// the top word, which takes p·hi's high word and simply wraps: |pᵀKp| < 2^13·2^30·2^52 =
 /// 2^95, so the sum modulo 2^96, less the offsets, sign-extended from bit 95, is exact.
-pub fn p_kp_bounded(
-    p: &[Lanes],
+pub fn p_kp_bounded<const S: usize>(
+    p: &[[i32; S]],
     kp: &[Sums],
     directions: usize,
 ) -> ([i128; MAX_DIRECTIONS], [u64; MAX_DIRECTIONS]) {
     let mut p_kp = [0i128; MAX_DIRECTIONS];
     let mut or = [0u64; MAX_DIRECTIONS];
     let rows = p.len().min(kp.len());
-    for d in 0..directions.min(MAX_DIRECTIONS) {
+    for d in 0..directions.min(MAX_DIRECTIONS).min(S) {
         let (mut x0, mut k1, mut y1, mut y2) = (0u32, 0u32, 0u32, 0u32);
         let (mut o0, mut o1) = (0u32, 0u32);
         for (pi, ki) in p.iter().zip(kp) {
@@ -204,8 +246,8 @@ pub fn p_kp_bounded(
 ///
 /// - The tile passed [`deform_shared::matrix::validate_tile`] for dimension n: `rows` ER words,
 ///   the last one ends the tile, every column c has `col_base + c < n`.
-/// - `p_cols` is `&p[col_base]` of a `p` with at least n elements; for `MIRROR`,
-///   `p_mirror_cols` is `&p[n − 1 − col_base]`.
+/// - `p_cols` is `&p[col_base]` of a `p` with at least n elements of `1 << L` bytes (`4·D`
+///   of them lanes); for `MIRROR`, `p_mirror_cols` is `&p[n − 1 − col_base]`.
 /// - `y` points at `rows` writable slots (and `y_mirror` at the top of `rows` slots going
 ///   down, for `MIRROR`) that no one else accesses during the call.
 ///
@@ -214,9 +256,16 @@ pub fn p_kp_bounded(
 /// for rows within [`SPLIT_MAX_WORDS`] and [`SPLIT_MAX_ROW_ABS`] ([`crate::cg::Plan::split`]);
 /// the sums are the same bits.
 #[inline(always)]
-pub unsafe fn run_tile<const D: usize, const MIRROR: bool, const STORE: bool, const SPLIT: bool>(
+pub unsafe fn run_tile<
+    const D: usize,
+    const MIRROR: bool,
+    const STORE: bool,
+    const SPLIT: bool,
+    const L: u32,
+>(
     t: &TileRun,
 ) {
+    const { assert!(4 * D <= 1 << L && L <= LANE_SHIFT) };
     #[cfg(target_arch = "riscv32")]
     if D == 3 && MIRROR && STORE && SPLIT {
         // SAFETY: forwarded; the whole tile, row ends included, in one loop.
@@ -236,9 +285,15 @@ pub unsafe fn run_tile<const D: usize, const MIRROR: bool, const STORE: bool, co
             // SAFETY: as for `portable_row`, whose sums these compute exactly.
             w = unsafe {
                 if MIRROR {
-                    riscv::mirrored_row::<D, SPLIT>(w, cols, mirror_cols, &mut acc, &mut mirror_acc)
+                    riscv::mirrored_row::<D, SPLIT, L>(
+                        w,
+                        cols,
+                        mirror_cols,
+                        &mut acc,
+                        &mut mirror_acc,
+                    )
                 } else {
-                    riscv::row::<D, SPLIT>(w, cols, &mut acc)
+                    riscv::row::<D, SPLIT, L>(w, cols, &mut acc)
                 }
             };
         }
@@ -246,7 +301,7 @@ pub unsafe fn run_tile<const D: usize, const MIRROR: bool, const STORE: bool, co
         {
             // SAFETY: forwarded from the caller.
             w = unsafe {
-                portable_row::<D, MIRROR>(w, cols, mirror_cols, &mut acc, &mut mirror_acc)
+                portable_row::<D, MIRROR, L>(w, cols, mirror_cols, &mut acc, &mut mirror_acc)
             };
         }
         // SAFETY: one slot per tile row, as the caller promised.
@@ -286,7 +341,7 @@ unsafe fn end_row<const D: usize, const STORE: bool>(y: *mut Sums, acc: &[i64; D
 /// `w` points at a row of a validated tile; `cols` and `mirror_cols` are as in [`TileRun`].
 #[inline(always)]
 #[cfg_attr(target_arch = "riscv32", allow(dead_code))] // the specification; the firmware runs `riscv`
-unsafe fn portable_row<const D: usize, const MIRROR: bool>(
+unsafe fn portable_row<const D: usize, const MIRROR: bool, const L: u32>(
     mut w: *const u32,
     cols: *const u8,
     mirror_cols: *const u8,
@@ -297,16 +352,17 @@ unsafe fn portable_row<const D: usize, const MIRROR: bool>(
         // SAFETY: the row has an ER word at or after `w`, inside the tile.
         let word = unsafe { *w };
         w = w.wrapping_add(1);
-        let offset = ((word >> COLUMN_OFFSET_SHIFT) & COLUMN_OFFSET_MASK) as usize;
+        let offset = ((word >> column_offset_shift(L)) & column_offset_mask(L)) as usize;
         let value = (((word << VALUE_SIGN_SHIFT) as i32) >> VALUE_SIGN_SHIFT) as i64;
-        // SAFETY: offset = 16·c with col_base + c < n, so this is p[col_base + c].
-        let lanes = unsafe { &*(cols.wrapping_add(offset) as *const Lanes) };
+        // SAFETY: offset = c << L with col_base + c < n, so these are p[col_base + c]'s D
+        // lanes.
+        let lanes = unsafe { &*(cols.wrapping_add(offset) as *const [i32; D]) };
         for d in 0..D {
             acc[d] += value * lanes[d] as i64;
         }
         if MIRROR {
-            // SAFETY: n − 1 − col_base − c ≥ 0, so this is p[n − 1 − col_base − c].
-            let mirrored = unsafe { &*(mirror_cols.wrapping_sub(offset) as *const Lanes) };
+            // SAFETY: n − 1 − col_base − c ≥ 0, so these are p[n − 1 − col_base − c]'s.
+            let mirrored = unsafe { &*(mirror_cols.wrapping_sub(offset) as *const [i32; D]) };
             for d in 0..D {
                 mirror_acc[d] += value * mirrored[d] as i64;
             }
@@ -319,40 +375,84 @@ unsafe fn portable_row<const D: usize, const MIRROR: bool>(
 
 /// [`run_tile`] for a run-time direction count (1..=3), mirror flag, row end and split sums
 /// (used by the three-direction loops and the one-direction mirrored loop only: the one- and
-/// two-direction whole loops keep their exact sums, the two-direction mirrored one too).
+/// two-direction whole loops keep their exact sums, the two-direction mirrored one too), p
+/// laid out `S` i32 words a node: 1 (one direction, [`lane_words`]) or 4. `S` is a constant so
+/// that each layout's dispatch costs what the one layout's did.
 ///
 /// # Safety
 ///
-/// As [`run_tile`]; `split` only where [`run_tile`] allows `SPLIT`.
+/// As [`run_tile`]; `split` only where [`run_tile`] allows `SPLIT`; `S` is 1 only for one
+/// direction.
 #[inline(never)]
-pub unsafe fn run_tile_dyn(
+pub unsafe fn run_tile_dyn<const S: usize>(
     t: &TileRun,
     directions: usize,
     mirrored: bool,
     store: bool,
     split: bool,
 ) {
+    const { assert!(S == 1 || S == size_of::<Lanes>() / 4) };
+    // SAFETY: forwarded contract.
+    unsafe {
+        if S == 1 {
+            debug_assert!(directions == 1);
+            run_tile_compact(t, mirrored, store, split);
+        } else {
+            run_tile_lanes(t, directions, mirrored, store, split);
+        }
+    }
+}
+
+/// [`run_tile_dyn`] for one direction with p 4 bytes a node.
+///
+/// # Safety
+///
+/// As [`run_tile_dyn`].
+#[inline(always)]
+unsafe fn run_tile_compact(t: &TileRun, mirrored: bool, store: bool, split: bool) {
+    const L: u32 = lane_shift(1);
+    // SAFETY: forwarded contract.
+    unsafe {
+        match (mirrored, store, split) {
+            (true, false, true) => run_tile::<1, true, false, true, L>(t),
+            (true, true, true) => run_tile::<1, true, true, true, L>(t),
+            (false, false, _) => run_tile::<1, false, false, false, L>(t),
+            (true, false, _) => run_tile::<1, true, false, false, L>(t),
+            (false, true, _) => run_tile::<1, false, true, false, L>(t),
+            (true, true, _) => run_tile::<1, true, true, false, L>(t),
+        }
+    }
+}
+
+/// [`run_tile_dyn`] with p 16 bytes a node (a whole [`Lanes`]).
+///
+/// # Safety
+///
+/// As [`run_tile_dyn`].
+#[inline(always)]
+unsafe fn run_tile_lanes(t: &TileRun, directions: usize, mirrored: bool, store: bool, split: bool) {
+    const L: u32 = LANE_SHIFT;
     // SAFETY: forwarded contract.
     unsafe {
         match (directions, mirrored, store, split) {
-            (1, true, false, true) => run_tile::<1, true, false, true>(t),
-            (1, true, true, true) => run_tile::<1, true, true, true>(t),
-            (3, true, false, true) => run_tile::<3, true, false, true>(t),
-            (3, true, true, true) => run_tile::<3, true, true, true>(t),
-            (3, false, false, true) => run_tile::<3, false, false, true>(t),
-            (3, false, true, true) => run_tile::<3, false, true, true>(t),
-            (1, false, false, _) => run_tile::<1, false, false, false>(t),
-            (2, false, false, _) => run_tile::<2, false, false, false>(t),
-            (1, true, false, _) => run_tile::<1, true, false, false>(t),
-            (2, true, false, _) => run_tile::<2, true, false, false>(t),
-            (_, false, false, _) => run_tile::<3, false, false, false>(t),
-            (_, true, false, _) => run_tile::<3, true, false, false>(t),
-            (1, false, true, _) => run_tile::<1, false, true, false>(t),
-            (2, false, true, _) => run_tile::<2, false, true, false>(t),
-            (1, true, true, _) => run_tile::<1, true, true, false>(t),
-            (2, true, true, _) => run_tile::<2, true, true, false>(t),
-            (_, false, true, _) => run_tile::<3, false, true, false>(t),
-            (_, true, true, _) => run_tile::<3, true, true, false>(t),
+            (1, true, false, true) => run_tile::<1, true, false, true, L>(t),
+            (1, true, true, true) => run_tile::<1, true, true, true, L>(t),
+            (3, true, false, true) => run_tile::<3, true, false, true, L>(t),
+            (3, true, true, true) => run_tile::<3, true, true, true, L>(t),
+            (3, false, false, true) => run_tile::<3, false, false, true, L>(t),
+            (3, false, true, true) => run_tile::<3, false, true, true, L>(t),
+            (1, false, false, _) => run_tile::<1, false, false, false, L>(t),
+            (2, false, false, _) => run_tile::<2, false, false, false, L>(t),
+            (1, true, false, _) => run_tile::<1, true, false, false, L>(t),
+            (2, true, false, _) => run_tile::<2, true, false, false, L>(t),
+            (_, false, false, _) => run_tile::<3, false, false, false, L>(t),
+            (_, true, false, _) => run_tile::<3, true, false, false, L>(t),
+            (1, false, true, _) => run_tile::<1, false, true, false, L>(t),
+            (2, false, true, _) => run_tile::<2, false, true, false, L>(t),
+            (1, true, true, _) => run_tile::<1, true, true, false, L>(t),
+            (2, true, true, _) => run_tile::<2, true, true, false, L>(t),
+            (_, false, true, _) => run_tile::<3, false, true, false, L>(t),
+            (_, true, true, _) => run_tile::<3, true, true, false, L>(t),
         }
     }
 }
@@ -582,6 +682,11 @@ mod tests {
                     "case {i}, {directions} direction(s)"
                 );
             }
+            // One direction's p 4 bytes a node (`lane_words(1)`): the same first sums.
+            let compact: Vec<[i32; 1]> = p.iter().map(|l| [l[0]]).collect();
+            let want = p_kp_and_max(p, kp, 1);
+            assert_eq!(p_kp_bounded(&compact, kp, 1), want, "case {i}, compact");
+            assert_eq!(p_kp_and_max(&compact, kp, 1), want, "case {i}, compact");
         }
     }
 }

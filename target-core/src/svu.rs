@@ -81,7 +81,7 @@
 use deform_shared::protocol::MAX_DIRECTIONS;
 use deform_shared::qformat::ldexp;
 
-use crate::kernel::{Lanes, Sums};
+use crate::kernel::Sums;
 
 /// Mantissas produced by the SVU stay below 2^OUTPUT_BITS (the MVU's exactness needs < 2^30).
 pub const OUTPUT_BITS: i32 = 30;
@@ -691,8 +691,15 @@ fn r_loop(
 /// Squares (each below 2^60) summed in a `u64` before they go into the `u128` total.
 const SQUARE_BLOCK: usize = 16;
 
-/// Pass XP on one slice of direction `d`; returns the ORs of |x| and |p| (0 where not updated).
-pub fn pass_xp(x: &mut [i32], p: &mut [Lanes], r: &[i32], d: usize, plan: PassXP) -> (u32, u32) {
+/// Pass XP on one slice of direction `d`, p `S` lanes a node ([`crate::kernel::lane_words`]);
+/// returns the ORs of |x| and |p| (0 where not updated).
+pub fn pass_xp<const S: usize>(
+    x: &mut [i32],
+    p: &mut [[i32; S]],
+    r: &[i32],
+    d: usize,
+    plan: PassXP,
+) -> (u32, u32) {
     #[cfg(target_arch = "riscv32")]
     if let Some(out) = riscv::pass_xp(x, p, r, d, plan) {
         return out;
@@ -701,9 +708,9 @@ pub fn pass_xp(x: &mut [i32], p: &mut [Lanes], r: &[i32], d: usize, plan: PassXP
 }
 
 /// The specification of pass XP. Every own term is present (x's own x, p's own r).
-pub fn portable_pass_xp(
+pub fn portable_pass_xp<const S: usize>(
     x: &mut [i32],
-    p: &mut [Lanes],
+    p: &mut [[i32; S]],
     r: &[i32],
     d: usize,
     plan: PassXP,
@@ -1209,6 +1216,49 @@ mod riscv {
         };
     }
 
+    /// [`pass_xp_blocks`] with p 4 bytes a node (one direction, [`crate::kernel::lane_words`]):
+    /// the same instructions, p's offsets those of x.
+    macro_rules! pass_xp_blocks_compact {
+        ($xown:literal, $rown:literal, $($args:ident),*) => {
+            pass_xp_asm!(
+                [
+                    "6:\n",
+                    xp_pair!($xown, $rown, "0", "4", "0", "4"),
+                    xp_pair!($xown, $rown, "8", "12", "8", "12"),
+                    xp_pair!($xown, $rown, "16", "20", "16", "20"),
+                    xp_pair!($xown, $rown, "24", "28", "24", "28"),
+                    xp_pair!($xown, $rown, "32", "36", "32", "36"),
+                    xp_pair!($xown, $rown, "40", "44", "40", "44"),
+                    xp_pair!($xown, $rown, "48", "52", "48", "52"),
+                    xp_pair!($xown, $rown, "56", "60", "56", "60"),
+                    "addi {p}, {p}, 64\n",
+                    "addi {x}, {x}, 64\n",
+                    "addi {r}, {r}, 64\n",
+                    "bltu {x}, {end}, 6b\n",
+                ],
+                $($args),*
+            )
+        };
+    }
+
+    /// [`pass_xp_quads`] with p 4 bytes a node.
+    macro_rules! pass_xp_quads_compact {
+        ($xown:literal, $rown:literal, $($args:ident),*) => {
+            pass_xp_asm!(
+                [
+                    "2:\n",
+                    xp_pair!($xown, $rown, "0", "4", "0", "4"),
+                    xp_pair!($xown, $rown, "8", "12", "8", "12"),
+                    "addi {p}, {p}, 16\n",
+                    "addi {x}, {x}, 16\n",
+                    "addi {r}, {r}, 16\n",
+                    "bltu {x}, {end}, 2b\n",
+                ],
+                $($args),*
+            )
+        };
+    }
+
     /// Elements per iteration of pass XP's unrolled loop.
     const XP_BLOCK: usize = 16;
 
@@ -1223,9 +1273,9 @@ mod riscv {
 
     /// The assembly pass XP updating both x and p; `None` leaves every other case to the
     /// portable loop.
-    pub fn pass_xp(
+    pub fn pass_xp<const S: usize>(
         x: &mut [i32],
-        p: &mut [Lanes],
+        p: &mut [[i32; S]],
         r: &[i32],
         d: usize,
         plan: PassXP,
@@ -1242,7 +1292,11 @@ mod riscv {
         };
         let n = x.len().min(p.len()).min(r.len());
         let quads = n & !3;
-        if quads == 0 || d >= MAX_DIRECTIONS || xl.term.shift != pl.term.shift {
+        if quads == 0 || d >= MAX_DIRECTIONS.min(S) || xl.term.shift != pl.term.shift {
+            return None;
+        }
+        // The loops below are written for the two layouts the solver uses.
+        if S != 1 && S != 4 {
             return None;
         }
         let blocks = n & !(XP_BLOCK - 1);
@@ -1252,7 +1306,7 @@ mod riscv {
         let r_ptr = r.as_ptr();
         // Whole blocks first, then the quads that are left.
         let (p_rest, x_rest, r_rest) = (
-            p_ptr.wrapping_add(blocks * size_of::<Lanes>()),
+            p_ptr.wrapping_add(blocks * size_of::<[i32; S]>()),
             x_ptr.wrapping_add(blocks),
             r_ptr.wrapping_add(blocks),
         );
@@ -1267,15 +1321,30 @@ mod riscv {
         let ((sx, x_left), (sr, r_left)) = (amount(x_own), amount(r_own));
         macro_rules! both {
             ($xown:literal, $rown:literal) => {{
-                if blocks > 0 {
-                    pass_xp_blocks!(
-                        $xown, $rown, p_ptr, x_ptr, r_ptr, block_end, k, sx, sr, ax2, bp, ox, op
-                    );
-                }
-                if quads > blocks {
-                    pass_xp_quads!(
-                        $xown, $rown, p_rest, x_rest, r_rest, end, k, sx, sr, ax2, bp, ox, op
-                    );
+                if S == 1 {
+                    if blocks > 0 {
+                        pass_xp_blocks_compact!(
+                            $xown, $rown, p_ptr, x_ptr, r_ptr, block_end, k, sx, sr, ax2, bp, ox,
+                            op
+                        );
+                    }
+                    if quads > blocks {
+                        pass_xp_quads_compact!(
+                            $xown, $rown, p_rest, x_rest, r_rest, end, k, sx, sr, ax2, bp, ox, op
+                        );
+                    }
+                } else {
+                    if blocks > 0 {
+                        pass_xp_blocks!(
+                            $xown, $rown, p_ptr, x_ptr, r_ptr, block_end, k, sx, sr, ax2, bp, ox,
+                            op
+                        );
+                    }
+                    if quads > blocks {
+                        pass_xp_quads!(
+                            $xown, $rown, p_rest, x_rest, r_rest, end, k, sx, sr, ax2, bp, ox, op
+                        );
+                    }
                 }
             }};
         }

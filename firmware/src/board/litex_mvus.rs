@@ -5,7 +5,9 @@
 //!   (MVUs, rows, words and tiles per MVU), so one firmware build runs on an SoC with any number
 //!   of MVUs, none included (then it runs the software kernel, as on an SoC without the array).
 //! - **Vectors**: p and Kp are windows of the array's memory region, laid out exactly as the
-//!   solver's `[Lanes]` and `[Sums]` (gateware/deform_gateware/mvu_array.py). They are lent to
+//!   solver's `[Lanes]` and `[Sums]` (gateware/deform_gateware/mvu_array.py): 16 bytes a node
+//!   of p, which the solver keeps for every direction count on a board with an MVU backend
+//!   (elsewhere one direction's p is 4 bytes a node). They are lent to
 //!   the solver as its p and Kp ([`probe`]), so an MVU phase copies no vector. The region is
 //!   uncached I/O on this VexRiscv (bit 31 set), so the CPU never reads a stale Kp.
 //! - **Loading** ([`MvuBackend::load`]): each resident matrix is laid out by

@@ -192,6 +192,16 @@ fn one_to_eight_mvus_agree_bit_for_bit_and_with_f64() {
             // The firmware (assembly MVU loop, parallel harts) equals the host (portable loop,
             // one thread) bit for bit.
             assert_eq!(x, host_solve(&split, &refs, mvus), "{harts} harts vs host");
+            // One direction alone: p 4 bytes a node (`kernel::lane_words`), the assembly
+            // loops of that layout against the host's portable loop, bit for bit.
+            let (one, x1) = target.solve_fused(&refs[..1], params(1)).unwrap();
+            assert!(one.converged, "{harts} harts, one direction: {one:?}");
+            let host1 = host_solve(&split, &refs[..1], mvus);
+            assert_eq!(x1, host1, "{harts} harts, one direction vs host");
+            assert_eq!(
+                x1[0], x[0],
+                "{harts} harts, one direction vs the fused first"
+            );
             match &baseline {
                 None => baseline = Some(Outcome { report, x }),
                 Some(base) => {

@@ -3,8 +3,8 @@
 //! parent module's documentation for the loop shape and the numerics.
 
 use super::{
-    rebuild_split, Lanes, COLUMN_OFFSET_MASK, COLUMN_OFFSET_SHIFT, ER_BIT, MAX_DIRECTIONS,
-    VALUE_SIGN_SHIFT,
+    column_offset_mask, column_offset_shift, rebuild_split, Lanes, COLUMN_OFFSET_MASK,
+    COLUMN_OFFSET_SHIFT, ER_BIT, MAX_DIRECTIONS, VALUE_SIGN_SHIFT,
 };
 use core::arch::asm;
 
@@ -18,9 +18,9 @@ fn join(lo: u32, hi: u32) -> i64 {
 /// # Safety
 ///
 /// `w` points at a row of a validated tile and `cols` at p[col_base] (see
-/// [`super::run_tile`]).
+/// [`super::run_tile`]), p being `1 << L` bytes a node with `4·D` ≤ `1 << L`.
 #[inline(always)]
-pub unsafe fn row<const D: usize, const SPLIT: bool>(
+pub unsafe fn row<const D: usize, const SPLIT: bool, const L: u32>(
     w: *const u32,
     cols: *const u8,
     acc: &mut [i64; D],
@@ -76,9 +76,9 @@ pub unsafe fn row<const D: usize, const SPLIT: bool>(
                     m = inout(reg) 0u32 => _,
                     hh = inout(reg) 0u32 => _,
                     base = in(reg) cols,
-                    mask = in(reg) COLUMN_OFFSET_MASK,
+                    mask = in(reg) column_offset_mask(L),
                     er = in(reg) ER_BIT,
-                    cs = const COLUMN_OFFSET_SHIFT,
+                    cs = const column_offset_shift(L),
                     vs = const VALUE_SIGN_SHIFT,
                     w = out(reg) _,
                     t = out(reg) _,
@@ -120,9 +120,9 @@ pub unsafe fn row<const D: usize, const SPLIT: bool>(
                     l1 = inout(reg) a[2],
                     h1 = inout(reg) a[3],
                     base = in(reg) cols,
-                    mask = in(reg) COLUMN_OFFSET_MASK,
+                    mask = in(reg) column_offset_mask(L),
                     er = in(reg) ER_BIT,
-                    cs = const COLUMN_OFFSET_SHIFT,
+                    cs = const column_offset_shift(L),
                     vs = const VALUE_SIGN_SHIFT,
                     w = out(reg) _,
                     t = out(reg) _,
@@ -177,9 +177,9 @@ pub unsafe fn row<const D: usize, const SPLIT: bool>(
                     a4 = inout(reg) a[4],
                     a5 = inout(reg) a[5],
                     base = in(reg) cols,
-                    mask = in(reg) COLUMN_OFFSET_MASK,
+                    mask = in(reg) column_offset_mask(L),
                     er = in(reg) ER_BIT,
-                    cs = const COLUMN_OFFSET_SHIFT,
+                    cs = const column_offset_shift(L),
                     vs = const VALUE_SIGN_SHIFT,
                     w = out(reg) _,
                     t = out(reg) _,
@@ -207,7 +207,7 @@ pub unsafe fn row<const D: usize, const SPLIT: bool>(
 ///
 /// As [`row`]; `mirror_cols` points at p[n − 1 − col_base].
 #[inline(always)]
-pub unsafe fn mirrored_row<const D: usize, const SPLIT: bool>(
+pub unsafe fn mirrored_row<const D: usize, const SPLIT: bool, const L: u32>(
     w: *const u32,
     cols: *const u8,
     mirror_cols: *const u8,
@@ -217,7 +217,7 @@ pub unsafe fn mirrored_row<const D: usize, const SPLIT: bool>(
     if SPLIT && (D == 1 || D == 3) {
         let mut a = [0u32; 4 * MAX_DIRECTIONS];
         // SAFETY: forwarded; the caller allows split sums for these rows.
-        let wp = unsafe { split_mirrored_row::<D>(w, cols, mirror_cols, &mut a) };
+        let wp = unsafe { split_mirrored_row::<D, L>(w, cols, mirror_cols, &mut a) };
         for d in 0..D {
             acc[d] = rebuild_split(a[2 * d], a[2 * d + 1]);
             mirror_acc[d] = rebuild_split(a[6 + 2 * d], a[7 + 2 * d]);
@@ -263,9 +263,9 @@ pub unsafe fn mirrored_row<const D: usize, const SPLIT: bool>(
                     h1 = inout(reg) a[7],
                     base = in(reg) cols,
                     mbase = in(reg) mirror_cols,
-                    mask = in(reg) COLUMN_OFFSET_MASK,
+                    mask = in(reg) column_offset_mask(L),
                     er = in(reg) ER_BIT,
-                    cs = const COLUMN_OFFSET_SHIFT,
+                    cs = const column_offset_shift(L),
                     vs = const VALUE_SIGN_SHIFT,
                     w = out(reg) _,
                     t = out(reg) _,
@@ -332,9 +332,9 @@ pub unsafe fn mirrored_row<const D: usize, const SPLIT: bool>(
                     a9 = inout(reg) a[9],
                     base = in(reg) cols,
                     mbase = in(reg) mirror_cols,
-                    mask = in(reg) COLUMN_OFFSET_MASK,
+                    mask = in(reg) column_offset_mask(L),
                     er = in(reg) ER_BIT,
-                    cs = const COLUMN_OFFSET_SHIFT,
+                    cs = const column_offset_shift(L),
                     vs = const VALUE_SIGN_SHIFT,
                     w = out(reg) _,
                     t = out(reg) _,
@@ -423,9 +423,9 @@ pub unsafe fn mirrored_row<const D: usize, const SPLIT: bool>(
                     a11 = inout(reg) a[11],
                     base = in(reg) cols,
                     mbase = in(reg) mirror_cols,
-                    mask = in(reg) COLUMN_OFFSET_MASK,
+                    mask = in(reg) column_offset_mask(L),
                     er = in(reg) ER_BIT,
-                    cs = const COLUMN_OFFSET_SHIFT,
+                    cs = const column_offset_shift(L),
                     vs = const VALUE_SIGN_SHIFT,
                     w = out(reg) _,
                     t = out(reg) _,
@@ -459,7 +459,7 @@ pub unsafe fn mirrored_row<const D: usize, const SPLIT: bool>(
 /// As [`mirrored_row`], and the row within [`super::SPLIT_MAX_WORDS`] and
 /// [`super::SPLIT_MAX_ROW_ABS`].
 #[inline(always)]
-unsafe fn split_mirrored_row<const D: usize>(
+unsafe fn split_mirrored_row<const D: usize, const L: u32>(
     w: *const u32,
     cols: *const u8,
     mirror_cols: *const u8,
@@ -467,14 +467,19 @@ unsafe fn split_mirrored_row<const D: usize>(
 ) -> *const u32 {
     let mut wp = w;
     if D == 1 {
+        // The word and its pointer are in a4 and a5, so that the loop's head, `lw`, assembles
+        // to a 16-bit `c.lw` (its registers must be among x8–x15, and x8 and x9 are not the
+        // asm's to name): the VexRiscv fetches aligned 32-bit words, and a taken branch to a
+        // 32-bit instruction at an address 2 mod 4 costs a second fetch, a bubble a word
+        // (docs/PERFORMANCE.md, "The VexRiscv's stalls, traced"), where the layout put it.
         // SAFETY: reads only the row's words, p[col_base + c] and p[n − 1 − col_base − c].
         unsafe {
             asm!(
                 "2:",
-                "lw {w}, 0({wp})",
-                "addi {wp}, {wp}, 4",
-                "srli {t}, {w}, {cs}",
-                "slli {vv}, {w}, {vs}",
+                "lw a4, 0(a5)",
+                "addi a5, a5, 4",
+                "srli {t}, a4, {cs}",
+                "slli {vv}, a4, {vs}",
                 "and {t}, {t}, {mask}",
                 "srai {v}, {vv}, {vs}",
                 "sub {tm}, {mbase}, {t}",
@@ -489,19 +494,19 @@ unsafe fn split_mirrored_row<const D: usize>(
                 "add {c0}, {c0}, {p}",
                 "add {l1}, {l1}, {n}",
                 "add {c1}, {c1}, {q}",
-                "bltu {w}, {er}, 2b",
-                wp = inout(reg) wp,
+                "bltu a4, {er}, 2b",
+                inout("a5") wp,
                 l0 = inout(reg) a[0],
                 c0 = inout(reg) a[1],
                 l1 = inout(reg) a[6],
                 c1 = inout(reg) a[7],
                 base = in(reg) cols,
                 mbase = in(reg) mirror_cols,
-                mask = in(reg) COLUMN_OFFSET_MASK,
+                mask = in(reg) column_offset_mask(L),
                 er = in(reg) ER_BIT,
-                cs = const COLUMN_OFFSET_SHIFT,
+                cs = const column_offset_shift(L),
                 vs = const VALUE_SIGN_SHIFT,
-                w = out(reg) _,
+                out("a4") _,
                 t = out(reg) _,
                 tm = out(reg) _,
                 v = out(reg) _,
@@ -573,9 +578,9 @@ unsafe fn split_mirrored_row<const D: usize>(
                 a11 = inout(reg) a[11],
                 base = in(reg) cols,
                 mbase = in(reg) mirror_cols,
-                mask = in(reg) COLUMN_OFFSET_MASK,
+                mask = in(reg) column_offset_mask(L),
                 er = in(reg) ER_BIT,
-                cs = const COLUMN_OFFSET_SHIFT,
+                cs = const column_offset_shift(L),
                 vs = const VALUE_SIGN_SHIFT,
                 w = out(reg) _,
                 t = out(reg) _,

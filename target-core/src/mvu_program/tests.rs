@@ -10,8 +10,8 @@ use std::vec::Vec;
 use super::*;
 use crate::kernel::Lanes;
 use crate::testkit::mvu::{
-    random_matrix, random_p, reference_mvu_phase, saturating_matrix, saturating_p, Mirroring,
-    MvuPhase, RandomMatrix, Recorded, Shape, Split,
+    compact_mvu_phase, random_matrix, random_p, reference_mvu_phase, saturating_matrix,
+    saturating_p, Mirroring, MvuPhase, RandomMatrix, Recorded, Shape, Split,
 };
 use deform_shared::protocol::MAX_DIRECTIONS;
 use deform_shared::word::{Word, EM_BIT};
@@ -183,6 +183,43 @@ fn every_split_and_mirroring_matches_the_kernel() {
                 check(&m, mvus, &mut rng, None);
             }
         }
+    }
+}
+
+/// One direction's p laid out 4 bytes a node (the solver's layout without hardware MVUs) gives
+/// the 16-byte layout's Kp, pᵀKp and OR of |Kp| bit for bit, on every split and mirroring and
+/// at the edge of exact sums.
+#[test]
+fn one_directions_compact_p_matches_the_lanes() {
+    let mut rng = fastrand::Rng::with_seed(19);
+    let mut cases = Vec::new();
+    for split in [Split::Rows, Split::Overlap] {
+        for mirroring in [Mirroring::None, Mirroring::All, Mirroring::Extra] {
+            for (mvus, n) in [(1, 37), (3, 91), (8, 1100)] {
+                let shape = Shape {
+                    n,
+                    mvus,
+                    split,
+                    mirroring,
+                    row_words: 6,
+                    tile_rows: 40,
+                    extremes: 10,
+                };
+                let m = random_matrix(&mut rng, &shape);
+                let p = random_p(&mut rng, n, 10);
+                cases.push((m, p));
+            }
+        }
+    }
+    for (mirrored, mvus) in [(false, 1), (true, 2)] {
+        cases.push((saturating_matrix(9, mvus, mirrored), saturating_p(9)));
+    }
+    for (m, p) in &cases {
+        let (want, got) = (reference_mvu_phase(m, p, 1), compact_mvu_phase(m, p));
+        let kp = |ph: &MvuPhase| ph.kp.iter().map(|k| k[0]).collect::<Vec<_>>();
+        assert_eq!(kp(&got), kp(&want), "Kp, n {}", m.n);
+        assert_eq!(got.p_kp[0], want.p_kp[0], "pᵀKp, n {}", m.n);
+        assert_eq!(got.kp_or[0], want.kp_or[0], "OR of |Kp|, n {}", m.n);
     }
 }
 

@@ -312,8 +312,21 @@ fn rows_fit(m: &RandomMatrix) -> bool {
 /// The MVU phase by the portable kernel: every tile added into Kp (mirror rows included), then
 /// pᵀKp and the OR of |Kp| over the finished rows, for `directions` fused directions.
 pub fn reference_mvu_phase(m: &RandomMatrix, p: &[Lanes], directions: usize) -> MvuPhase {
+    mvu_phase_in::<4>(m, &p[..m.n], directions)
+}
+
+/// [`reference_mvu_phase`] for one direction with p laid out 4 bytes a node, as the solver
+/// lays it out for one direction without hardware MVUs ([`crate::kernel::lane_words`]): p's
+/// first lane only.
+pub fn compact_mvu_phase(m: &RandomMatrix, p: &[Lanes]) -> MvuPhase {
+    let compact: Vec<[i32; 1]> = p[..m.n].iter().map(|l| [l[0]]).collect();
+    mvu_phase_in::<1>(m, &compact, 1)
+}
+
+/// The MVU phase by the portable kernel with p `S` i32 words a node.
+fn mvu_phase_in<const S: usize>(m: &RandomMatrix, p: &[[i32; S]], directions: usize) -> MvuPhase {
     let n = m.n;
-    assert!(p.len() >= n && (1..=MAX_DIRECTIONS).contains(&directions));
+    assert!(p.len() >= n && (1..=MAX_DIRECTIONS.min(S)).contains(&directions));
     let mut kp = vec![[0i64; MAX_DIRECTIONS]; n];
     let mut start = 0usize;
     for (i, t) in m.tiles.iter().enumerate() {
@@ -323,15 +336,15 @@ pub fn reference_mvu_phase(m: &RandomMatrix, p: &[Lanes], directions: usize) -> 
         let run = TileRun {
             words: tile_words.as_ptr(),
             rows: t.rows,
-            p_cols: p.as_ptr().wrapping_add(col_base),
-            p_mirror_cols: p.as_ptr().wrapping_add(n - 1 - col_base),
+            p_cols: p.as_ptr().wrapping_add(col_base).cast(),
+            p_mirror_cols: p.as_ptr().wrapping_add(n - 1 - col_base).cast(),
             y: kp.as_mut_ptr().wrapping_add(row_base),
             y_mirror: kp.as_mut_ptr().wrapping_add(n - 1 - row_base),
         };
         // SAFETY: the tile was validated against n just above; p and kp hold n elements, so
         // every column, mirrored column, row and mirror row the tile reaches is in bounds, and
         // nothing else touches kp during the call.
-        unsafe { run_tile_dyn(&run, directions, t.mirrored, false, false) };
+        unsafe { run_tile_dyn::<S>(&run, directions, t.mirrored, false, false) };
         start += t.words as usize;
     }
     let (p_kp, kp_or) = p_kp_and_max(&p[..n], &kp, directions);
