@@ -29,11 +29,19 @@ stream (a taken backward branch); a loop's figures are per iteration.
 
     vex_stalls.py locate --elf FW [--pattern NAME]   # the loop head's address, in hex
     vex_stalls.py analyse --elf FW --vcd sim.vcd [--loops 3] [--listing]
+    vex_stalls.py span --elf FW --vcd sim.vcd --edge PC [--after N] [--mark PC ...]
+
+``span`` measures a stretch of straight-line work, such as a phase between two readings of the
+cycle counter: from the window's first retirement of ``--edge`` to its N-th next one (the
+next by default), split at each
+``--mark``'s first retirement in between, with the causes of each part's clocks and the clocks
+and instructions of each function (every clock charged as in ``analyse``).
 
 Python 3 alone, and riscv64-unknown-elf-objdump for the disassembly.
 """
 
 import argparse
+import bisect
 import collections
 import re
 import subprocess
@@ -334,6 +342,54 @@ def report(table, pending, clocks, code, loops, listing):
         print(f"(after the last retirement: {dict(pending)})")
 
 
+def symbols(elf):
+    """[(address, name)] of the ELF's functions, sorted."""
+    out = subprocess.run(
+        [OBJDUMP.replace("objdump", "nm"), "-C", "-n", elf], check=True, capture_output=True,
+        text=True,
+    ).stdout
+    found = []
+    for text in out.splitlines():
+        fields = text.split(" ", 2)
+        if len(fields) == 3 and fields[1] in "tTW":
+            found.append((int(fields[0], 16), fields[2]))
+    return found
+
+
+def span(clocks, elf, edge, after, marks):
+    """Prints the clocks from `edge`'s first retirement to its `after`-th next, split at
+    `marks`."""
+    retired = [(i, pc) for i, (_, pc) in enumerate(clocks) if pc is not None]
+    edges = [i for i, pc in retired if pc == edge]
+    if len(edges) <= after:
+        sys.exit(f"{edge:#x} retires {len(edges)} time(s) in the window: no span")
+    first, last = edges[0], edges[after]
+    cuts = [first]
+    for mark in marks:
+        cuts += [next((i for i, pc in retired if pc == mark and cuts[-1] < i < last), cuts[-1])]
+    cuts.append(last)
+    print(f"span {edge:#x} to {edge:#x}: {last - first} clocks")
+    names = ["edge"] + [f"{m:#x}" for m in marks] + ["edge"]
+    for k in range(len(cuts) - 1):
+        part = collections.Counter(cause for cause, _ in clocks[cuts[k] + 1 : cuts[k + 1] + 1])
+        causes = ", ".join(f"{c} {n}" for c, n in part.most_common())
+        print(f"  {names[k]} to {names[k + 1]}: {cuts[k + 1] - cuts[k]} clocks ({causes})")
+    table = symbols(elf)
+    starts = [a for a, _ in table]
+    per_function = collections.defaultdict(collections.Counter)
+    pending = 0
+    for cause, pc in clocks[first + 1 : last + 1]:
+        if pc is None:
+            pending += 1
+            continue
+        name = table[max(bisect.bisect_right(starts, pc) - 1, 0)][1]
+        per_function[name]["clocks"] += pending + 1
+        per_function[name]["instructions"] += 1
+        pending = 0
+    for name, c in sorted(per_function.items(), key=lambda item: -item[1]["clocks"]):
+        print(f"  {c['clocks']:>6} clocks {c['instructions']:>5} instructions  {name[:100]}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -345,6 +401,12 @@ def main():
     analyse.add_argument("--vcd", required=True)
     analyse.add_argument("--loops", type=int, default=3, help="hottest loops to show")
     analyse.add_argument("--listing", action="store_true", help="per-instruction cycles in the loops")
+    measure = sub.add_parser("span", help="the clocks between two retirements of an instruction")
+    measure.add_argument("--elf", required=True)
+    measure.add_argument("--vcd", required=True)
+    measure.add_argument("--edge", required=True, type=lambda t: int(t, 16))
+    measure.add_argument("--after", type=int, default=1, help="end at the N-th next retirement")
+    measure.add_argument("--mark", action="append", default=[], type=lambda t: int(t, 16))
     args = parser.parse_args()
     code = disassemble(args.elf)
     if args.command == "locate":
@@ -361,6 +423,9 @@ def main():
     if not samples:
         sys.exit(f"{args.vcd}: no clock in the trace (did the window's start pc ever retire?)")
     clocks = attribute(samples, code)
+    if args.command == "span":
+        span(clocks, args.elf, args.edge, args.after, args.mark)
+        return
     table, pending = per_instruction(clocks)
     report(table, pending, clocks, code, find_loops(clocks, code), (args.loops, args.listing))
 

@@ -61,6 +61,7 @@ use crate::kernel::{
     lane_words, p_kp_and_max, p_kp_bounded, run_tile_dyn, Lanes, Sums, TileRun, P_KP_BOUNDED_ROWS,
     SPLIT_MAX_ROW_ABS, SPLIT_MAX_WORDS, VALUE_SIGN_SHIFT,
 };
+use crate::mvu_backend::MvuBackend;
 use crate::svu::{
     self, bound_of, bound_of_squares, bound_of_u64, check_bound, magnitude_bits, sum_squares,
     Block, HartOut, Lin, Narrow, PassR, PassXP, Scalar, Threshold,
@@ -572,6 +573,17 @@ impl Costs {
         let sum = counts
             .iter()
             .fold(PhaseCounters::default(), |s, &c| s.saturating_add(c));
+        self.charge(max, sum, mvu);
+    }
+
+    /// An MVU phase that hart 0 alone ran (on hardware MVUs): what [`parallel`](Self::parallel)
+    /// charges for hart 0's counts beside idle harts' zeros, without the array of every hart's
+    /// counts that it fills and folds (a `memset` and two loops on hart 0's serial path).
+    fn hart_0_mvu(&mut self, counts: PhaseCounters) {
+        self.charge(counts, counts, true);
+    }
+
+    fn charge(&mut self, max: PhaseCounters, sum: PhaseCounters, mvu: bool) {
         for (cost, on) in [
             (&mut self.whole, true),
             (&mut self.first, self.first_iteration),
@@ -604,6 +616,8 @@ impl Costs {
 struct Engine<'e, 'a, E: Executor> {
     a: &'e Matrix<'a>,
     exec: &'e E,
+    /// The executor's hardware MVUs if they take this solve's MVU phases ([`hardware`]).
+    hardware: Option<&'e dyn MvuBackend>,
     harts: usize,
     directions: usize,
     /// p's layout: i32 words a node (1 or 4; [`lane_words_for`]).
@@ -733,28 +747,26 @@ impl<E: Executor> Engine<'_, '_, E> {
 
     /// The MVU phase on the executor's hardware MVUs ([`crate::mvu_backend`]): their results
     /// go to hart 0's slot (the others' are zero), hart 0's instructions meanwhile to the MVU
-    /// phase's counts. False if there is no hardware or it cannot run this phase.
+    /// phase's counts. False if the solve's phases run in software.
+    ///
+    /// The counters are read twice, at the phase's start and end, and the bookkeeping of both
+    /// readings follows the second: done between them, as [`run`](Self::run) does it, it fell
+    /// inside the phase's span, and with the instruction cache cold after the SVU's passes it
+    /// cost as many cycles as the array's own work on 4 MVUs (docs/PERFORMANCE.md, session 11).
     fn mvu_on_hardware(&self, clock: &mut Clock) -> bool {
-        let Some(hardware) = self.exec.mvu_backend() else {
-            return false;
-        };
-        if self.lane_words != size_of::<Lanes>() / 4 {
-            return false;
-        }
-        clock.flush_serial(self.exec);
-        let before = self.exec.now();
-        let p = self.p.as_mut_ptr() as *const Lanes;
-        let Some(results) = hardware.run(self.a.n, p, self.kp.as_mut_ptr(), self.directions) else {
+        let Some(hardware) = self.hardware else {
             return false;
         };
         // SAFETY: no task runs; hart 0 has the totals' slot to itself (and the shared totals
         // stay zero).
         let out = unsafe { &mut self.out.slice_mut(0..1)[0] };
-        (out.p_kp, out.kp_or) = (results.p_kp, results.kp_or);
-        let mut counts = [PhaseCounters::default(); MAX_HARTS];
-        counts[0] = self.exec.now().since(before);
-        clock.costs.parallel(counts, self.harts, true);
-        clock.last = self.exec.now();
+        let start = self.exec.now();
+        hardware.run(self.directions, (&mut out.p_kp, &mut out.kp_or));
+        let end = self.exec.now();
+        clock.costs.serial(start.since(clock.last));
+        clock.flushed = start;
+        clock.costs.hart_0_mvu(end.since(start));
+        clock.last = end;
         true
     }
 
@@ -1155,6 +1167,23 @@ impl Clock {
     }
 }
 
+/// The executor's hardware MVUs if they take the MVU phases of a solve with these vectors
+/// ([`MvuBackend::holds`]), asked once for the solve. Their p window is `Lanes`, 16 bytes a
+/// node: p laid out more compactly ([`lane_words_for`]) is never theirs.
+fn hardware<'e, E: Executor>(
+    exec: &'e E,
+    n: usize,
+    (p, kp, lane_words): (&SharedSlice<'_, Lanes>, &SharedSlice<'_, Sums>, usize),
+    directions: usize,
+) -> Option<&'e dyn MvuBackend> {
+    if lane_words != size_of::<Lanes>() / 4 {
+        return None;
+    }
+    let p_ptr = p.as_mut_ptr() as *const Lanes;
+    exec.mvu_backend()
+        .filter(|h| h.holds(n, p_ptr, kp.as_mut_ptr(), directions))
+}
+
 /// One solve in progress: its phases are the methods.
 struct Solver<'s, 'e, 'a, E: Executor> {
     engine: &'s Engine<'e, 'a, E>,
@@ -1523,14 +1552,17 @@ pub fn solve(
         let _ = xs.push(SharedSlice::new(&mut s.x[..n]));
         let _ = rs.push(SharedSlice::new(&mut s.r[..n]));
     }
+    let (p, kp) = (SharedSlice::new(p), SharedSlice::new(kp));
+    let lane_words = lane_words_for(exec, directions);
     let engine = Engine {
         a,
         exec,
+        hardware: hardware(exec, n, (&p, &kp, lane_words), directions),
         harts,
         directions,
-        lane_words: lane_words_for(exec, directions),
-        p: SharedSlice::new(p),
-        kp: SharedSlice::new(kp),
+        lane_words,
+        p,
+        kp,
         partial: SharedSlice::new(partial),
         out: SharedSlice::new(&mut out),
         totals: &totals,
@@ -1681,14 +1713,20 @@ pub fn product(
     for v in vectors.iter_mut() {
         let _ = xs.push(SharedSlice::new(&mut v[..n]));
     }
+    let (p, kp) = (
+        SharedSlice::new(&mut p[..n]),
+        SharedSlice::new(&mut kp[..n]),
+    );
+    let lane_words = lane_words_for(exec, lanes);
     let engine = Engine {
         a,
         exec,
+        hardware: hardware(exec, n, (&p, &kp, lane_words), lanes),
         harts,
         directions: lanes,
-        lane_words: lane_words_for(exec, lanes),
-        p: SharedSlice::new(&mut p[..n]),
-        kp: SharedSlice::new(&mut kp[..n]),
+        lane_words,
+        p,
+        kp,
         partial: SharedSlice::new(partial),
         out: SharedSlice::new(&mut out),
         totals: &totals,

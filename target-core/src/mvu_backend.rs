@@ -8,20 +8,22 @@
 //! backend lays it out in its MVUs' memories ([`crate::mvu_program`]) if it fits. The solver's
 //! p and Kp are the MVU array's own memories on such a board (the firmware lends those windows
 //! as its vectors), so a phase copies no vector: [`MvuBackend::run`] starts the MVUs, waits, and
-//! returns pᵀKp and the OR of |Kp|, Kp being where the solver reads it.
+//! writes pᵀKp and the OR of |Kp| into hart 0's slot, Kp being where the solver reads it.
 
 use deform_shared::protocol::MAX_DIRECTIONS;
 
 use crate::cg::Matrix;
 use crate::kernel::{Lanes, Sums};
 
-/// What an MVU phase yields besides Kp, summed over the MVUs (pᵀKp is exact, the ORs are of the
-/// finished rows' magnitudes, as [`crate::kernel::p_kp_and_max`] computes them).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct MvuResults {
-    pub p_kp: [i128; MAX_DIRECTIONS],
-    pub kp_or: [u64; MAX_DIRECTIONS],
-}
+/// Where an MVU phase puts what it yields besides Kp, summed over the MVUs, for directions
+/// `0..directions` (pᵀKp is exact, the ORs are of the finished rows' magnitudes, as
+/// [`crate::kernel::p_kp_and_max`] computes them): hart 0's slot of the phase's results. The
+/// backend writes them there itself: a struct of them returned by value cost a `memset` and two
+/// `memcpy`s of 72 bytes per phase on the CPU's path.
+pub type MvuOut<'o> = (
+    &'o mut [i128; MAX_DIRECTIONS],
+    &'o mut [u64; MAX_DIRECTIONS],
+);
 
 /// Hardware that runs the MVU phase.
 pub trait MvuBackend: Sync {
@@ -37,15 +39,13 @@ pub trait MvuBackend: Sync {
     /// has n rows to lay it out with. Returns whether the hardware will run its phases.
     fn load(&self, a: &Matrix<'_>, scratch: &mut [Sums]) -> bool;
 
-    /// One MVU phase for `directions` fused directions on the loaded matrix of dimension `n`:
-    /// K·p into `kp`, p and kp being the solver's vectors. `None` if the hardware cannot run it
-    /// (no matrix loaded, another n, or p and kp not in its memories): the software kernel
-    /// then runs the phase.
-    fn run(
-        &self,
-        n: usize,
-        p: *const Lanes,
-        kp: *mut Sums,
-        directions: usize,
-    ) -> Option<MvuResults>;
+    /// Whether the hardware takes the MVU phases of a solve of `directions` fused directions on
+    /// the loaded matrix of dimension `n`, with the solver's vectors `p` and `kp` (they must be
+    /// its memories). Asked once per solve, whose matrix and vectors stay the same throughout:
+    /// asked every phase, it cost the phase data-cache misses on the backend's state.
+    fn holds(&self, n: usize, p: *const Lanes, kp: *mut Sums, directions: usize) -> bool;
+
+    /// One MVU phase of a solve that [`holds`](Self::holds) accepted: K·p into the solver's
+    /// Kp, pᵀKp and the OR of |Kp| into `out`.
+    fn run(&self, directions: usize, out: MvuOut<'_>);
 }

@@ -14,14 +14,16 @@
 //!   `deform_target_core::mvu_program` and written through the bus (words, tiles, lengths, row
 //!   owners, shared rows); one that does not fit is refused with a log line, and its phases run
 //!   in software.
-//! - **A phase** ([`MvuBackend::run`]): write the direction count and `start`, poll `busy`, read
-//!   pᵀKp and the OR of |Kp|; Kp is already where the solver reads it.
+//! - **A phase** ([`MvuBackend::run`]): write the direction count and `start`, wait for the end
+//!   ([`wait`]), read pᵀKp and the OR of |Kp| into the solver's slot; Kp is already where the
+//!   solver reads it.
 
-use core::sync::atomic::{compiler_fence, AtomicBool, AtomicU32, AtomicUsize, Ordering};
+use core::sync::atomic::{compiler_fence, AtomicU32, AtomicUsize, Ordering};
 
+use deform_shared::protocol::MAX_DIRECTIONS;
 use deform_target_core::cg::Matrix;
 use deform_target_core::kernel::{Lanes, Sums};
-use deform_target_core::mvu_backend::{MvuBackend, MvuResults};
+use deform_target_core::mvu_backend::{MvuBackend, MvuOut};
 use deform_target_core::mvu_program::{build, Capacity, ProgramError, ProgramSink, TileEntry};
 
 use super::litex_vexriscv::{read32, write32};
@@ -30,11 +32,12 @@ use super::Mvus;
 /// The addresses generated from csr.json.
 use super::litex_vexriscv::csr::mvus as regs;
 
-/// The array's state as the firmware knows it.
+/// The array's state as the firmware knows it: one 16-byte block, so that a phase, which finds
+/// it evicted from the data cache by the SVU's passes, misses on one line only.
+#[repr(C, align(16))]
 pub struct LitexMvus {
-    /// A program is loaded and the Kp window follows its row owners.
-    loaded: AtomicBool,
-    /// The loaded matrix's n.
+    /// The loaded matrix's n, 0 when no program is loaded (then the Kp window is plain). One
+    /// word where a flag beside it cost a phase a second load.
     n: AtomicU32,
     /// Phases run on the loaded matrix, the clocks the array spent in them (its own `cycles`
     /// register, start to end of the reduction) and MVU 0's fetch stalls: logged when the
@@ -46,7 +49,6 @@ pub struct LitexMvus {
 }
 
 static ARRAY: LitexMvus = LitexMvus {
-    loaded: AtomicBool::new(false),
     n: AtomicU32::new(0),
     phases: AtomicU32::new(0),
     cycles: AtomicU32::new(0),
@@ -152,7 +154,7 @@ impl MvuBackend for LitexMvus {
     }
 
     fn unload(&self) {
-        self.loaded.store(false, Ordering::Relaxed);
+        self.n.store(0, Ordering::Relaxed);
         write32(regs::KP_PLAIN, 1);
         let phases = self.phases.load(Ordering::Relaxed);
         if phases > 0 {
@@ -182,7 +184,6 @@ impl MvuBackend for LitexMvus {
                 write32(regs::SHARED_ROWS, program.shared_rows as u32);
                 write32(regs::KP_PLAIN, 0);
                 self.n.store(a.n as u32, Ordering::Relaxed);
-                self.loaded.store(true, Ordering::Relaxed);
                 defmt::info!(
                     "hardware MVUs hold the matrix: {=usize} words on {=usize} MVU(s), {=usize} shared rows",
                     a.words.len(),
@@ -201,41 +202,88 @@ impl MvuBackend for LitexMvus {
         }
     }
 
-    fn run(
-        &self,
-        n: usize,
-        p: *const Lanes,
-        kp: *mut Sums,
-        directions: usize,
-    ) -> Option<MvuResults> {
+    fn holds(&self, n: usize, p: *const Lanes, kp: *mut Sums, directions: usize) -> bool {
         let ours = p as usize == p_window() && kp as usize == kp_window();
-        if !self.loaded.load(Ordering::Relaxed)
-            || self.n.load(Ordering::Relaxed) as usize != n
-            || !ours
-            || !(1..=3).contains(&directions)
-        {
-            return None;
-        }
+        n != 0
+            && self.n.load(Ordering::Relaxed) as usize == n
+            && ours
+            && (1..=MAX_DIRECTIONS).contains(&directions)
+    }
+
+    /// Starts the phase at once: the instructions before `start` fall in the phase's span, and
+    /// each cold cache line costs some 20 clocks, so `run` is these two writes and a jump.
+    fn run(&self, directions: usize, (p_kp, kp_or): MvuOut<'_>) {
         write32(regs::DIRECTIONS, directions as u32);
-        // Every store to p before the start, every load of Kp after the end.
+        // Every store to p before the start.
         compiler_fence(Ordering::SeqCst);
         write32(regs::START, 1);
-        while read32(regs::BUSY) != 0 {}
-        compiler_fence(Ordering::SeqCst);
+        self.finish(directions, p_kp, kp_or);
+    }
+}
+
+impl LitexMvus {
+    /// [`read_out`](Self::read_out) twice: the first pass, while the array runs, reads the
+    /// registers' old values and so fetches its instructions; the second waits for the end and
+    /// finds them in the instruction cache. (Waiting holds the bus: code first reached after
+    /// the wait would be fetched only then, some 20 clocks a line.)
+    #[inline(never)]
+    fn finish(
+        &self,
+        directions: usize,
+        p_kp: &mut [i128; MAX_DIRECTIONS],
+        kp_or: &mut [u64; MAX_DIRECTIONS],
+    ) {
+        self.read_out(directions, p_kp, kp_or, false);
+        self.read_out(directions, p_kp, kp_or, true);
+    }
+
+    /// pᵀKp and the OR of |Kp| into the solver's slot, after waiting for the phase's end if
+    /// `end`; then, if `end`, the phase, its clocks and its stalls added to the counts logged
+    /// at [`MvuBackend::unload`]. The same instructions in both passes (not inlined, no branch
+    /// but the wait's), so that the first pass warms all of the second's. Each direction's
+    /// registers are read before its results are stored: a load behind a store waits for the
+    /// store's write-through to RAM.
+    #[inline(never)]
+    fn read_out(
+        &self,
+        directions: usize,
+        p_kp: &mut [i128; MAX_DIRECTIONS],
+        kp_or: &mut [u64; MAX_DIRECTIONS],
+        end: bool,
+    ) {
+        if end {
+            wait();
+            // Every load of Kp after the end.
+            compiler_fence(Ordering::SeqCst);
+        }
+        let count = u32::from(end);
+        let (cycles, stalls) = (read32(regs::CYCLES), read32(regs::STALLS));
+        for d in 0..MAX_DIRECTIONS {
+            if d == directions {
+                break;
+            }
+            let (s, or) = (read_wide(regs::P_KP[d], 4), read_wide(regs::KP_OR[d], 2));
+            (p_kp[d], kp_or[d]) = (s as i128, or as u64);
+        }
         let add = |counter: &AtomicU32, v: u32| {
             counter.store(
                 counter.load(Ordering::Relaxed).wrapping_add(v),
                 Ordering::Relaxed,
             )
         };
-        add(&self.phases, 1);
-        add(&self.cycles, read32(regs::CYCLES));
-        add(&self.stalls, read32(regs::STALLS));
-        let mut results = MvuResults::default();
-        for d in 0..directions {
-            results.p_kp[d] = read_wide(regs::P_KP[d], 4) as i128;
-            results.kp_or[d] = read_wide(regs::KP_OR[d], 2) as u64;
-        }
-        Some(results)
+        add(&self.phases, count);
+        add(&self.cycles, cycles.wrapping_mul(count));
+        add(&self.stalls, stalls.wrapping_mul(count));
     }
+}
+
+/// Waits for the phase that `start` began. The array's region withholds its acknowledge while a
+/// phase runs, so one read there returns when the phase ends, where polling `busy` took a CSR
+/// read and a branch every 8 clocks (over 100 polls a phase on 4 MVUs, 400 on one). `busy`
+/// is still read once: the read may reach the array before the write of `start` has raised
+/// `busy`, and then returns at once. (A phase is far shorter than the bus's timeout of 10⁶
+/// clocks: an MVU holds at most `WORDS` words.)
+fn wait() {
+    read32(p_window());
+    while read32(regs::BUSY) != 0 {}
 }
