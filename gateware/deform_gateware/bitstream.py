@@ -1,7 +1,7 @@
 """deform's SoC on an ECP5 board, built into a bitstream with open tools.
 
     python -m deform_gateware.bitstream --board ulx3s --mvus N --out DIR [--seed S]
-        [--router router1|router2] [--no-pnr] [--nodes 512|1024]
+        [--router router1|router2] [--no-pnr] [--nodes 512|1024] [--no-bus-bursting]
 
 The SoC is litex-boards' ULX3S target on an LFE5U-85F: a VexRiscv ``imac`` at 50 MHz, the
 board's SDRAM as main RAM at 0x4000_0000, the stock LiteX BIOS in ROM (which loads the firmware
@@ -21,6 +21,15 @@ MULT18X18D, DP16KD, ...), nextpnr's use of the device and the system clock's Fma
 ``--no-pnr``), the stages run with their seconds, the MVUs' capacity and the gateware's commit.
 report.json and the bitstream are removed before a build and written only by a build that got
 that far, so neither is ever a stale or half-written file.
+
+The SoC is built with LiteX's ``bus_bursting`` (issue 19), as the simulated SoC is: the CPU's
+caches fill a line in one Wishbone incrementing burst where the slave supports it. On this board
+that is the integrated ROM (the BIOS) and SRAM, LiteX's ``wishbone.SRAM`` with burst support;
+the SDRAM's port (main RAM, where the firmware runs) is a plain Wishbone interface behind
+LiteX's L2 cache (``wishbone.Cache``) and LiteDRAM's ``LiteDRAMWishbone2Native``, neither of
+which reads CTI, so its line fills stay single accesses, as valid as before (a bursting master
+on a classic slave gets one ack per word). ``--no-bus-bursting`` builds the SoC without it (the
+earlier figures).
 
 nextpnr routes with its own default, ``router1``, or with ``--router router2``; the report names
 the one used. On the SoC without MVUs router2 took 33 s against 319 and reached 42.9 MHz against
@@ -80,12 +89,12 @@ def capacity(mvus, nodes=None):
     return words, tiles, rows
 
 
-def ulx3s_soc(mvus, nodes=None):
+def ulx3s_soc(mvus, nodes=None, bus_bursting=True):
     from litex_boards.targets.radiona_ulx3s import BaseSoC
     soc = BaseSoC(device="LFE5U-85F", revision="2.0", toolchain="trellis",
                   sys_clk_freq=SYS_CLK_FREQ, cpu_type="vexriscv", cpu_variant="imac",
                   integrated_rom_size=0x20000, integrated_sram_size=0x2000,
-                  with_led_chaser=False)
+                  with_led_chaser=False, bus_bursting=bus_bursting)
     words, tiles, nodes = capacity(mvus, nodes)
     add_to_soc(soc, mvus, words=words, tiles=tiles, nodes=nodes, primitive=True)
     return soc
@@ -149,7 +158,7 @@ def build(args, out):
     stages = {}
     log("--> LiteX: the SoC, its BIOS, the Verilog and the tools' scripts")
     started = time.monotonic()
-    soc = ulx3s_soc(args.mvus, args.nodes)
+    soc = ulx3s_soc(args.mvus, args.nodes, bus_bursting=not args.no_bus_bursting)
     gateware = os.path.join(out, "gateware")
     name = soc.platform.name
     bitstream = os.path.join(gateware, name + ".bit")
@@ -165,7 +174,7 @@ def build(args, out):
     stages["yosys"] = run_stage("yosys", tool_argv(toolchain._yosys.get_yosys_call("script")),
                                 gateware, "yosys.log")
     report = dict(board=args.board, mvus=args.mvus, seed=args.seed, router=args.router,
-                  commit=commit,
+                  bus_bursting=not args.no_bus_bursting, commit=commit,
                   yosys=yosys_cells(os.path.join(gateware, name + ".rpt")), pnr=None,
                   bitstream=None, stages=stages)
     report.update(zip(("words", "tiles", "nodes"), capacity(args.mvus, args.nodes)))
@@ -200,6 +209,9 @@ def main():
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--router", choices=ROUTERS, default=ROUTERS[0],
                         help="nextpnr's router (default %(default)s, nextpnr's own)")
+    parser.add_argument("--no-bus-bursting", action="store_true",
+                        help="the SoC without Wishbone burst cycles (LiteX's bus_bursting off; "
+                             "the default has them)")
     parser.add_argument("--no-pnr", action="store_true",
                         help="stop after Yosys: cell counts only, no place and route, no Fmax, "
                              "no bitstream")

@@ -27,8 +27,11 @@ the number of MVUs and their capacity from the array's registers at boot. The sc
 writes the gateware and build_sim.sh; the caller runs that (the Verilator build) and the
 simulator itself.
 
---bus-bursting (issue 19) lets the CPU's caches fill a line in one Wishbone burst (CTI
-incrementing) instead of one single access per word; the CSR map does not change.
+Bus bursting (issue 19) is on by default: the CPU's caches fill a line in one Wishbone burst
+(CTI incrementing) from main RAM instead of one single access per word (LiteX's
+``bus_bursting``: the integrated RAMs accept bursts). ``--no-bus-bursting`` builds the SoC
+without it, so the earlier, non-bursting figures stay reproducible. The CSR map does not change
+(csr.json's constant ``config_bus_bursting`` does: 1, or 0 without).
 
 With --uart-baud (on by default for the BIOS shape) the module also paces what it hands the
 SoC: one received byte per sys_clk/(baud/10) clocks, as a UART at that baud rate would, instead
@@ -140,9 +143,10 @@ def main():
     parser.add_argument("--bios", action="store_true", help="ROM with the stock LiteX BIOS")
     parser.add_argument("--mvus", type=int, default=0, help="hardware MVUs (0 to 8)")
     parser.add_argument(
-        "--bus-bursting",
+        "--no-bus-bursting",
         action="store_true",
-        help="Wishbone burst cycles: a cache line fills in one incrementing burst from main RAM",
+        help="no Wishbone burst cycles: a cache line fills by one single access per word (by "
+        "default it fills in one incrementing burst from main RAM)",
     )
     parser.add_argument(
         "--uart-baud",
@@ -161,10 +165,8 @@ def main():
         uart_name="sim",
         integrated_sram_size=0x2000,
         integrated_main_ram_size=args.main_ram_size,
+        bus_bursting=not args.no_bus_bursting,
     )
-    if args.bus_bursting:
-        # Only then: an unchanged SoC keeps its arguments, and so its cached build.
-        soc_args.update(bus_bursting=True)
     if args.bios:
         # litex_sim's default ROM; the BIOS and its picolibc are built into it.
         soc_args.update(integrated_rom_size=0x20000)

@@ -208,7 +208,8 @@ pub struct SocConfig {
     /// Hardware MVUs in the SoC's MVU array (0 to [`MAX_MVUS`]); every count has the same CSR
     /// map, so one firmware runs on all of them.
     pub mvus: u8,
-    /// Wishbone burst cycles, so a cache line fills in one burst (`--bus-bursting`).
+    /// Wishbone burst cycles, so a cache line fills in one burst (the default, issue 19);
+    /// `false` builds the SoC without them (`--no-bus-bursting`), as before session 11.
     pub bus_bursting: bool,
     /// With the VexRiscv pipeline probe and a Verilator trace gated by the run's
     /// [`TraceWindow`] (`deform_soc_trace.py`): a separate, slower simulator.
@@ -217,14 +218,14 @@ pub struct SocConfig {
 
 impl Default for SocConfig {
     /// The SoC the committed csr.json describes: `imac`, 2 MiB main RAM, no BIOS, no MVUs
-    /// (the array's registers are there all the same).
+    /// (the array's registers are there all the same), bus bursting.
     fn default() -> Self {
         SocConfig {
             cpu_variant: "imac".into(),
             main_ram_size: 0x20_0000,
             bios: false,
             mvus: 0,
-            bus_bursting: false,
+            bus_bursting: true,
             trace: false,
         }
     }
@@ -255,8 +256,8 @@ impl SocConfig {
         if self.bios {
             args.push("--bios".into());
         }
-        if self.bus_bursting {
-            args.push("--bus-bursting".into());
+        if !self.bus_bursting {
+            args.push("--no-bus-bursting".into());
         }
         args
     }
@@ -965,6 +966,12 @@ mod tests {
         traced.trace = true;
         assert_ne!(a.key(), traced.key());
         assert!(traced.key().starts_with("ram-trace-"), "{}", traced.key());
+        // Bursting is the default; the SoC without it is its own build, asked for by the flag.
+        assert!(a.bus_bursting && !a.args().contains(&"--no-bus-bursting".to_string()));
+        let mut single = a.clone();
+        single.bus_bursting = false;
+        assert_ne!(a.key(), single.key());
+        assert!(single.args().contains(&"--no-bus-bursting".to_string()));
     }
 
     #[test]
