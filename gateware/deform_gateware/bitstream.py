@@ -1,7 +1,8 @@
 """deform's SoC on an ECP5 board, built into a bitstream with open tools.
 
     python -m deform_gateware.bitstream --board ulx3s --mvus N --out DIR [--seed S]
-        [--router router1|router2] [--no-pnr] [--nodes 512|1024] [--no-bus-bursting]
+        [--router router1|router2] [--no-pnr | --place-only] [--nodes 512|1024]
+        [--no-bus-bursting]
 
 The SoC is litex-boards' ULX3S target on an LFE5U-85F: a VexRiscv ``imac`` at 50 MHz, the
 board's SDRAM as main RAM at 0x4000_0000, the stock LiteX BIOS in ROM (which loads the firmware
@@ -13,7 +14,7 @@ LiteX writes the BIOS, the Verilog and the tools' scripts (``Builder.build(run=F
 module then runs the three stages itself — Yosys, nextpnr-ecp5 (with its timing and utilisation
 report) and ecppack, YoWASP's builds (PyPI wheels with the chip database) of the commands LiteX's
 ``trellis`` toolchain asks for — so that each stage is printed with its time, ``--no-pnr`` can
-stop after Yosys, and no stage's process outlives this one.
+stop after Yosys, ``--place-only`` after placement, and no stage's process outlives this one.
 
 Outputs, in DIR: gateware/*.bit and .svf, csr.json (for the firmware: DEFORM_LITEX_CSR_JSON),
 each stage's log in gateware/, and report.json: Yosys's cell counts (LUT4, CCU2C, TRELLIS_FF,
@@ -34,6 +35,13 @@ earlier figures).
 nextpnr routes with its own default, ``router1``, or with ``--router router2``; the report names
 the one used. On the SoC without MVUs router2 took 33 s against 319 and reached 42.9 MHz against
 46.5; on the 4-MVU SoC neither finished on a 2-core machine (docs/PERFORMANCE.md).
+
+``--place-only`` packs and places (nextpnr's ``--no-route``) and stops: the placement settles
+whether a design fits the device and gives nextpnr's estimate of its Fmax after placement, where
+routing a big SoC takes hours here. The report holds that estimate with ``routed: false`` (read
+from nextpnr's log: its ``--report`` has no Fmax without routing); it is an estimate, never a
+routed Fmax. No ``--textcfg`` is asked for (an unrouted design has no configuration to write),
+so no bitstream either.
 
 With more than four MVUs the MVUs get half the memories (512 rows, 2048 words). Meant to let
 eight fit the LFE5U-85F's 208 block RAMs, it is not enough: Yosys counts 259 DP16KD for eight
@@ -57,7 +65,7 @@ import time
 from litex.soc.integration.builder import Builder
 
 from deform_gateware.mvu_array import add_to_soc
-from deform_gateware.synth import log, run_stage, summary, tool
+from deform_gateware.synth import log, placement_estimate, run_stage, summary, tool
 
 BOARDS = ("ulx3s",)
 SYS_CLK_FREQ = 50e6
@@ -152,6 +160,19 @@ def tool_argv(command):
     return [tool(argv[0])] + argv[1:]
 
 
+def place_only_argv(argv):
+    """nextpnr's command line placing and not routing: ``--no-route``, and without
+    ``--textcfg FILE`` (there is no routed design to write)."""
+    kept = []
+    it = iter(argv)
+    for arg in it:
+        if arg == "--textcfg":
+            next(it, None)
+        elif not arg.startswith("--textcfg="):
+            kept.append(arg)
+    return kept + ["--no-route"]
+
+
 def build(args, out):
     """Runs the stages; returns report.json's content."""
     commit = gateware_commit()  # before the build: the sources it reads
@@ -181,11 +202,22 @@ def build(args, out):
     if args.no_pnr:
         log("    --no-pnr: nextpnr-ecp5 and ecppack not run (no Fmax, no bitstream)")
         return report
-    pnr = tool_argv(toolchain._nextpnr.get_call("script")) + ["--report", REPORT,
-                                                              "--router", args.router]
+    pnr = tool_argv(toolchain._nextpnr.get_call("script")) + ["--report", REPORT]
+    if args.place_only:
+        pnr = place_only_argv(pnr)
+    else:
+        pnr += ["--router", args.router]
     stages["nextpnr"] = run_stage("nextpnr-ecp5", pnr, gateware, "nextpnr.log")
+    estimate = None
+    if args.place_only:
+        with open(os.path.join(gateware, "nextpnr.log")) as f:
+            estimate = placement_estimate(f.read())
     with open(os.path.join(gateware, REPORT)) as f:
-        report["pnr"] = summary(json.load(f), SYS_CLK_FREQ / 1e6)
+        report["pnr"] = summary(json.load(f), SYS_CLK_FREQ / 1e6, estimate)
+    if args.place_only:
+        log("    --place-only: placed, not routed; nextpnr's estimate after placement %.1f MHz "
+            "(no bitstream)" % report["pnr"]["fmax_mhz"])
+        return report
     try:
         stages["ecppack"] = run_stage(
             "ecppack", tool_argv("%s %s" % (toolchain.packer_cmd, toolchain._packer_opts)),
@@ -208,13 +240,20 @@ def main():
                              "else 512)" % " or ".join(map(str, NODES)))
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--router", choices=ROUTERS, default=ROUTERS[0],
-                        help="nextpnr's router (default %(default)s, nextpnr's own)")
+                        help="nextpnr's router (default %(default)s, nextpnr's own; none "
+                             "with --place-only, which does not route)")
     parser.add_argument("--no-bus-bursting", action="store_true",
                         help="the SoC without Wishbone burst cycles (LiteX's bus_bursting off; "
                              "the default has them)")
-    parser.add_argument("--no-pnr", action="store_true",
-                        help="stop after Yosys: cell counts only, no place and route, no Fmax, "
-                             "no bitstream")
+    depth = parser.add_mutually_exclusive_group()
+    depth.add_argument("--no-pnr", action="store_true",
+                       help="stop after Yosys: cell counts only, no place and route, no Fmax, "
+                            "no bitstream")
+    depth.add_argument("--place-only", action="store_true",
+                       help="pack and place, do not route (nextpnr's --no-route): the placement "
+                            "settles whether the design fits and gives nextpnr's Fmax estimate "
+                            "after placement (not a routed Fmax), where routing a big SoC takes "
+                            "hours; no bitstream")
     args = parser.parse_args()
     out = os.path.abspath(args.out)
     if out.startswith("/tmp/"):

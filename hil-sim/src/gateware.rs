@@ -100,7 +100,8 @@ pub struct Usage {
 }
 
 /// What nextpnr-ecp5 reports of a placed and routed design (synth.py's `summary`): its use of
-/// the LFE5U-85F and the slowest clock's Fmax.
+/// the LFE5U-85F and the slowest clock's Fmax; of a design placed and not routed (bitstream.py's
+/// `--place-only`), the same use and nextpnr's Fmax estimate after placement.
 #[derive(Debug, Clone, PartialEq, serde::Deserialize, serde::Serialize)]
 pub struct Placed {
     /// LUT4s (nextpnr's TRELLIS_COMB: logic and carry cells).
@@ -114,6 +115,16 @@ pub struct Placed {
     pub target_mhz: f64,
     pub fits: bool,
     pub meets_timing: bool,
+    /// Whether the design was routed. If not, `fmax_mhz` is nextpnr's estimate after placement,
+    /// never a routed Fmax. Reports from before it was recorded were all routed.
+    #[serde(default = "Placed::routed_before_it_was_recorded")]
+    pub routed: bool,
+}
+
+impl Placed {
+    fn routed_before_it_was_recorded() -> bool {
+        true
+    }
 }
 
 /// What the synthesis of one MVU alone (gateware/deform_gateware/synth.py) reports.
@@ -362,6 +373,9 @@ pub struct SocBuild {
     pub nodes: Option<u32>,
     /// Stop after Yosys: cell counts only, no Fmax, no bitstream.
     pub no_pnr: bool,
+    /// Stop after placement (nextpnr's `--no-route`): the use of the device and nextpnr's Fmax
+    /// estimate after placement, no bitstream.
+    pub place_only: bool,
 }
 
 /// Builds deform's SoC as `build` says into a bitstream in `out` (see
@@ -385,6 +399,9 @@ pub fn build_bitstream(build: &SocBuild, out: &Path) -> Result<SocReport, Gatewa
     if build.no_pnr {
         args.push("--no-pnr".into());
     }
+    if build.place_only {
+        args.push("--place-only".into());
+    }
     run_report("the bitstream build", "deform_gateware.bitstream", &args)
 }
 
@@ -399,6 +416,8 @@ mod tests {
         assert_eq!(report.placed.fmax_mhz, 141.4);
         assert_eq!(report.placed.lut4.used, 5683);
         assert!(report.placed.fits && report.placed.meets_timing);
+        // A report from before `routed` was recorded: every such build was routed.
+        assert!(report.placed.routed);
         assert_eq!((report.words, report.tiles, report.nodes), (1024, 16, 1024));
         for bad in [
             line.replace("141.4", "\"fast\""),
@@ -443,5 +462,31 @@ mod tests {
         assert_eq!(report.yosys.ccu2c, 4000);
         assert_eq!(report.yosys.mult18x18d, 60);
         assert!(report.pnr.is_none() && report.bitstream.is_none());
+    }
+
+    #[test]
+    fn a_report_placed_and_not_routed_says_so() {
+        let json = r#"{"board": "ulx3s", "mvus": 8, "seed": 1, "router": "router1",
+            "commit": "abc", "yosys": {"LUT4": 30000, "CCU2C": 4000, "TRELLIS_FF": 20000,
+                      "MULT18X18D": 60, "DP16KD": 120},
+            "pnr": {"lut4": {"used": 40844, "available": 83640},
+                    "ff": {"used": 26902, "available": 83640},
+                    "mult18x18d": {"used": 70, "available": 156},
+                    "dp16kd": {"used": 139, "available": 208}, "fmax_mhz": 37.5,
+                    "target_mhz": 50.0, "fits": true, "meets_timing": false, "routed": false},
+            "bitstream": null, "stages": {"nextpnr": 984.0},
+            "words": 2048, "tiles": 256, "nodes": 512}"#;
+        let report: SocReport = serde_json::from_str(json).unwrap();
+        let placed = report.pnr.unwrap();
+        assert!(!placed.routed);
+        assert_eq!((placed.fmax_mhz, placed.dp16kd.used), (37.5, 139));
+        let routed = json.replace(r#""routed": false"#, r#""routed": true"#);
+        assert!(
+            serde_json::from_str::<SocReport>(&routed)
+                .unwrap()
+                .pnr
+                .unwrap()
+                .routed
+        );
     }
 }

@@ -3,7 +3,8 @@
 //! every build: resources, Fmax, the Fmax lost against the SoC without MVUs, Fig. 5-1.
 //!
 //! The report in `target/bitstream/BOARD/` gathers builds across runs, one row per MVU count,
-//! seed and depth (with or without place and route), each with the gateware commit it built:
+//! seed and depth (Yosys only, placed only, or placed and routed), each with the gateware commit
+//! it built:
 //! the SoCs are built one at a time and a big one takes long, so a sweep is often several runs,
 //! and a second seed is a row beside the first, not in its place. It is rewritten after each
 //! build, whole or not at all, so an interrupted sweep keeps the builds it finished.
@@ -30,7 +31,7 @@ const LFE5U_85F_MULTIPLIERS: u64 = 156;
 
 pub const USAGE: &str = "\
   bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--router router1|router2]
-            [--nodes 512|1024] [--no-pnr | --report-only]
+            [--nodes 512|1024] [--no-pnr | --place-only | --report-only]
                      build deform's SoC with each number of hardware MVUs, one at a time,
                      into an ECP5 bitstream (YoWASP Yosys, nextpnr-ecp5, ecppack; each stage
                      printed with its time) in target/bitstream/BOARD-<N>mvu/, and gather the
@@ -45,6 +46,12 @@ pub const USAGE: &str = "\
                      MVU, not 32; the firmware runs a larger model's MVU phase in
                      software, as the SoC's rows say); --no-pnr:
                      stop after Yosys (cell counts only: no Fmax, no bitstream);
+                     --place-only: pack and place, do not route (nextpnr's
+                     --no-route): the placement settles whether the SoC fits
+                     and gives nextpnr's Fmax estimate after placement, where
+                     routing a 4-MVU SoC took over an hour here and did not
+                     finish; the report labels that figure an estimate, not
+                     a routed Fmax (no bitstream; --router does not apply);
                      --report-only: build nothing, rewrite report.md and the plot from
                      report.json";
 
@@ -60,6 +67,8 @@ pub enum Request {
         /// Each MVU's rows of p and Kp, if not bitstream.py's default.
         nodes: Option<u32>,
         no_pnr: bool,
+        /// Stop after placement: the use of the device and nextpnr's estimate, not routed.
+        place_only: bool,
     },
     /// Rewrite report.md and the plot from the gathered report.json.
     Report {
@@ -72,8 +81,9 @@ pub fn parse(args: &[String]) -> Result<Request> {
     let mut board = None;
     let mut mvus = DEFAULT_MVUS.to_vec();
     let mut seed = 1;
-    let mut router = Router::default();
+    let mut router = None;
     let mut no_pnr = false;
+    let mut place_only = false;
     let mut nodes = None;
     let mut report_only = false;
     let mut it = args.iter();
@@ -85,6 +95,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
         match flag.as_str() {
             "-h" | "--help" => return Ok(Request::Help),
             "--no-pnr" => no_pnr = true,
+            "--place-only" => place_only = true,
             "--report-only" => report_only = true,
             "--board" => board = Some(value()?.clone()),
             "--mvus" => mvus = parse_mvus(value()?)?,
@@ -94,7 +105,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
                     .parse()
                     .with_context(|| format!("--seed takes a number, not `{value}`"))?;
             }
-            "--router" => router = value()?.parse().map_err(anyhow::Error::msg)?,
+            "--router" => router = Some(value()?.parse().map_err(anyhow::Error::msg)?),
             "--nodes" => {
                 let value = value()?;
                 match value.parse() {
@@ -116,18 +127,28 @@ pub fn parse(args: &[String]) -> Result<Request> {
         );
     }
     if report_only {
-        if no_pnr || nodes.is_some() {
-            bail!("--report-only builds nothing: --no-pnr and --nodes do not go with it");
+        if no_pnr || place_only || nodes.is_some() {
+            bail!(
+                "--report-only builds nothing: --no-pnr, --place-only and --nodes do not go \
+                 with it"
+            );
         }
         return Ok(Request::Report { board });
+    }
+    if place_only && no_pnr {
+        bail!("--place-only places after Yosys; --no-pnr stops before: one or the other");
+    }
+    if place_only && router.is_some() {
+        bail!("--place-only does not route: --router does not go with it");
     }
     Ok(Request::Build {
         board,
         mvus,
         seed,
-        router,
+        router: router.unwrap_or_default(),
         nodes,
         no_pnr,
+        place_only,
     })
 }
 
@@ -151,7 +172,7 @@ fn parse_mvus(value: &str) -> Result<Vec<u32>> {
 
 /// Runs `cargo xtask bitstream ARGS`.
 pub fn run(args: &[String], workspace: &Path) -> Result<()> {
-    let (board, mvus, seed, router, nodes, no_pnr) = match parse(args)? {
+    let (board, mvus, seed, router, nodes, no_pnr, place_only) = match parse(args)? {
         Request::Help => {
             println!("usage: cargo xtask\n{USAGE}");
             return Ok(());
@@ -173,7 +194,8 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
             router,
             nodes,
             no_pnr,
-        } => (board, mvus, seed, router, nodes, no_pnr),
+            place_only,
+        } => (board, mvus, seed, router, nodes, no_pnr, place_only),
     };
     check_synthesis_venv(&litex_dir())?;
     let dir = workspace.join("target/bitstream").join(&board);
@@ -183,11 +205,17 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
     for (i, &n) in mvus.iter().enumerate() {
         let out = build_dir(workspace, &board, n, nodes);
         eprintln!(
-            "\n==> [{}/{}] {board}: the SoC with {n} MVU(s){}, seed {seed}, {router}{} ({})",
+            "\n==> [{}/{}] {board}: the SoC with {n} MVU(s){}, seed {seed}{} ({})",
             i + 1,
             mvus.len(),
             nodes.map(|r| format!(" of {r} rows")).unwrap_or_default(),
-            if no_pnr { ", Yosys only" } else { "" },
+            if no_pnr {
+                ", Yosys only".to_string()
+            } else if place_only {
+                ", placed only (not routed)".to_string()
+            } else {
+                format!(", {router}")
+            },
             out.display()
         );
         let started = Instant::now();
@@ -198,6 +226,7 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
             router,
             nodes,
             no_pnr,
+            place_only,
         };
         let report =
             build_bitstream(&build, &out).with_context(|| format!("building the {n}-MVU SoC"))?;
@@ -226,10 +255,20 @@ fn read_builds(path: &Path) -> Result<Vec<SocReport>> {
     }
 }
 
+/// How far a build went, in the report's order: Yosys only, placed only (`--place-only`), placed
+/// and routed, the last by its router (a build that did not route has none).
+fn depth(r: &SocReport) -> (u8, Option<Router>) {
+    match &r.pnr {
+        None => (0, None),
+        Some(p) if !p.routed => (1, None),
+        Some(_) => (2, Some(r.router)),
+    }
+}
+
 /// Adds `report` to `builds`, in place of an earlier build of the same count, seed, rows per MVU
-/// and depth (and router, for a placed build: a Yosys-only build does not route).
+/// and depth (and router, for a routed build).
 fn record(builds: &mut Vec<SocReport>, report: SocReport) {
-    let key = |r: &SocReport| (r.mvus, r.seed, r.nodes, r.pnr.as_ref().map(|_| r.router));
+    let key = |r: &SocReport| (r.mvus, r.seed, r.nodes, depth(r));
     builds.retain(|b| key(b) != key(&report));
     builds.push(report);
     builds.sort_by_key(key);
@@ -279,14 +318,17 @@ fn plot(dir: &Path, builds: &[SocReport]) -> Result<()> {
 
 /// The report's table: Yosys's cells, nextpnr's use and Fmax, the Fmax against the SoC without
 /// MVUs placed with the same seed and routed by the same router, each stage's time, the
-/// gateware built.
+/// gateware built. A build placed and not routed shows nextpnr's estimate after placement,
+/// labelled so, compared only with a 0-MVU build placed and not routed likewise.
 pub fn markdown(board: &str, builds: &[SocReport]) -> String {
     let mut md = format!(
         "# deform's SoC on the {board} (LFE5U-85F, speed grade 6), synthesised\n\n\
          Yosys's cells (LUT4 and CCU2C apart; nextpnr counts both as TRELLIS_COMB), nextpnr's \
          use of the device and the system clock's Fmax (asked: 50 MHz). \"vs. 0 MVUs\": the \
          Fmax against the SoC without MVUs placed with the same seed and routed by the same \
-         router.\n\n\
+         router; for a build placed and not routed (--place-only), nextpnr's estimate after \
+         placement, against the SoC without MVUs placed likewise: an estimate, not a routed \
+         Fmax.\n\n\
          | MVUs | seed | router | LUT4 | CCU2C | FF | MULT18X18D | DP16KD | placed: COMB / FF / DP16KD of the device | Fmax (MHz) | vs. 0 MVUs | words / tiles / rows per MVU | stages (s) | gateware |\n\
          |---:|---:|---|---:|---:|---:|---:|---:|---|---:|---:|---|---|---|\n"
     );
@@ -294,7 +336,7 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
         let y = &b.yosys;
         let baseline = builds
             .iter()
-            .find(|r| r.mvus == 0 && r.seed == b.seed && r.router == b.router)
+            .find(|r| r.mvus == 0 && r.seed == b.seed && r.pnr.is_some() && depth(r) == depth(b))
             .and_then(|r| r.pnr.as_ref());
         let (placed, fmax, versus) = match (&b.pnr, baseline) {
             (None, _) => ("—".into(), "not placed (Yosys only)".into(), "—".into()),
@@ -309,11 +351,17 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
                     p.dp16kd.available,
                     if p.fits { "" } else { " (does not fit)" }
                 ),
-                format!("{:.1}", p.fmax_mhz),
+                if p.routed {
+                    format!("{:.1}", p.fmax_mhz)
+                } else {
+                    format!("{:.1} (estimate after placement; not routed)", p.fmax_mhz)
+                },
                 match base {
-                    Some(base) if b.mvus > 0 => {
-                        format!("{:+.1} %", 100.0 * (p.fmax_mhz / base.fmax_mhz - 1.0))
-                    }
+                    Some(base) if b.mvus > 0 => format!(
+                        "{:+.1} %{}",
+                        100.0 * (p.fmax_mhz / base.fmax_mhz - 1.0),
+                        if p.routed { "" } else { " (estimates)" }
+                    ),
                     _ => "—".into(),
                 },
             ),
@@ -327,7 +375,11 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
             "| {} | {} | {} | {} | {} | {} | {} | {} | {placed} | {fmax} | {versus} | {} / {} / {} | {stages} | {} |\n",
             b.mvus,
             b.seed,
-            if b.pnr.is_some() { b.router.to_string() } else { "—".into() },
+            match &b.pnr {
+                Some(p) if p.routed => b.router.to_string(),
+                Some(_) => "— (not routed)".into(),
+                None => "—".into(),
+            },
             y.lut4,
             y.ccu2c,
             y.trellis_ff,
@@ -389,7 +441,8 @@ mod tests {
                 seed: 1,
                 router: Router::Router1,
                 nodes: None,
-                no_pnr: false
+                no_pnr: false,
+                place_only: false
             }
         );
         assert_eq!(
@@ -403,7 +456,20 @@ mod tests {
                 seed: 2,
                 router: Router::Router2,
                 nodes: Some(512),
-                no_pnr: true
+                no_pnr: true,
+                place_only: false
+            }
+        );
+        assert_eq!(
+            parse(&args("--board ulx3s --mvus 8 --nodes 512 --place-only")).unwrap(),
+            Request::Build {
+                board: "ulx3s".into(),
+                mvus: vec![8],
+                seed: 1,
+                router: Router::Router1,
+                nodes: Some(512),
+                no_pnr: false,
+                place_only: true
             }
         );
         assert_eq!(parse(&args("--help")).unwrap(), Request::Help);
@@ -432,6 +498,11 @@ mod tests {
         assert!(error("--board ulx3s --fast").contains("does not take `--fast`"));
         assert!(error("--board ulx3s --report-only --no-pnr").contains("do not go with it"));
         assert!(error("--board ulx3s --report-only --nodes 512").contains("do not go with it"));
+        assert!(error("--board ulx3s --report-only --place-only").contains("do not go with it"));
+        assert!(error("--board ulx3s --place-only --no-pnr").contains("one or the other"));
+        assert!(error("--board ulx3s --place-only --router router2")
+            .contains("--place-only does not route: --router does not go with it"));
+        assert!(error("--board ulx3s --router router1 --place-only").contains("does not route"));
         assert!(error("--board ulx3s --nodes 500").contains("built with 512 or 1024 rows"));
         assert!(error("--board ulx3s --nodes x").contains("--nodes x:"));
         assert!(error("--board ulx3s --nodes").contains("--nodes needs a value"));
@@ -467,6 +538,7 @@ mod tests {
                 target_mhz: 50.0,
                 fits: true,
                 meets_timing: fmax_mhz >= 50.0,
+                routed: true,
             }),
             bitstream: None,
             stages: [("yosys".to_string(), 12.0)].into_iter().collect(),
@@ -498,6 +570,52 @@ mod tests {
         assert!(rows[5].starts_with("| 8 | 1 | — |"), "{}", rows[5]);
         assert!(rows[5].contains("not placed (Yosys only)"));
         assert!(rows[5].contains("yosys 12"), "{}", rows[5]);
+    }
+
+    /// `build` placed and not routed (`--place-only`): its Fmax is nextpnr's estimate.
+    fn placed_only(mvus: u32, seed: u32, estimate: f64) -> SocReport {
+        let mut b = build(mvus, seed, Some(estimate));
+        b.pnr.as_mut().unwrap().routed = false;
+        b
+    }
+
+    #[test]
+    fn an_estimate_after_placement_is_labelled_and_compared_with_its_like_only() {
+        let mut builds = Vec::new();
+        record(&mut builds, build(0, 1, Some(46.7)));
+        record(&mut builds, placed_only(8, 1, 30.0));
+        let md = markdown("ulx3s", &builds);
+        let rows: Vec<&str> = md.lines().filter(|l| l.starts_with("| ")).skip(1).collect();
+        assert_eq!(rows.len(), 2, "{md}");
+        // No placed-only 0-MVU build: the estimate is not set against a routed Fmax.
+        assert!(
+            rows[1].starts_with("| 8 | 1 | — (not routed) |")
+                && rows[1].contains("| 30.0 (estimate after placement; not routed) | — |"),
+            "{}",
+            rows[1]
+        );
+        record(&mut builds, placed_only(0, 1, 37.5));
+        let md = markdown("ulx3s", &builds);
+        let rows: Vec<&str> = md.lines().filter(|l| l.starts_with("| ")).skip(1).collect();
+        assert_eq!(rows.len(), 3, "{md}");
+        assert!(
+            rows[0].starts_with("| 0 | 1 | — (not routed) |"),
+            "{}",
+            rows[0]
+        );
+        assert!(rows[1].starts_with("| 0 | 1 | router2 |") && rows[1].contains("| 46.7 | — |"));
+        assert!(rows[2].contains("| -20.0 % (estimates) |"), "{}", rows[2]);
+        // A routed build of the same count and seed is a row of its own; placing again
+        // replaces the placement only.
+        record(&mut builds, build(8, 1, Some(35.0)));
+        record(&mut builds, placed_only(8, 1, 31.0));
+        assert_eq!(builds.len(), 4);
+        let md = markdown("ulx3s", &builds);
+        assert!(
+            md.contains("| 31.0 (estimate after placement; not routed) | -17.3 % (estimates) |")
+        );
+        assert!(md.contains("| 35.0 | -25.1 % |"), "{md}");
+        assert!(!md.contains("| 30.0 "), "{md}");
     }
 
     #[test]
