@@ -22,7 +22,7 @@ use deform_shared::protocol::{PhaseCounters, MAX_HARTS};
 use deform_target_core::exec::{Executor, PhaseClock, Task};
 use deform_target_core::mvu_backend::MvuBackend;
 
-use crate::board::{Board, Bsp};
+use crate::board::{Board, Bsp, MvuDriver};
 
 /// How long hart 0 waits at boot for the other harts to report (virtual time).
 const PROBE_TICKS: u64 = Board::TICK_HZ / 200;
@@ -199,7 +199,7 @@ pub fn worker(hart: usize) -> ! {
 /// tasks for MVUs beyond the harts then run on hart 0, after its own.
 pub struct Harts {
     pub count: usize,
-    pub mvus: Option<&'static dyn MvuBackend>,
+    pub mvus: Option<&'static MvuDriver>,
 }
 
 impl Harts {
@@ -242,9 +242,23 @@ fn counters() -> PhaseCounters {
     }
 }
 
+/// [`counters`] into `out`, for [`PhaseClock::now_into`]: the same instructions between the
+/// two counters.
+#[inline(never)]
+fn counters_into(out: &mut PhaseCounters) {
+    *out = PhaseCounters {
+        cycles: riscv::register::mcycle::read64(),
+        instructions: riscv::register::minstret::read64(),
+    };
+}
+
 impl PhaseClock for Harts {
     fn now(&self) -> PhaseCounters {
         counters()
+    }
+
+    fn now_into(&self, out: &mut PhaseCounters) {
+        counters_into(out);
     }
 }
 
@@ -291,7 +305,9 @@ impl Executor for Harts {
         counts
     }
 
-    fn mvu_backend(&self) -> Option<&dyn MvuBackend> {
+    type Mvus = MvuDriver;
+
+    fn mvu_backend(&self) -> Option<&MvuDriver> {
         self.mvus
     }
 }

@@ -617,7 +617,7 @@ struct Engine<'e, 'a, E: Executor> {
     a: &'e Matrix<'a>,
     exec: &'e E,
     /// The executor's hardware MVUs if they take this solve's MVU phases ([`hardware`]).
-    hardware: Option<&'e dyn MvuBackend>,
+    hardware: Option<&'e E::Mvus>,
     harts: usize,
     directions: usize,
     /// p's layout: i32 words a node (1 or 4; [`lane_words_for`]).
@@ -760,12 +760,11 @@ impl<E: Executor> Engine<'_, '_, E> {
         // SAFETY: no task runs; hart 0 has the totals' slot to itself (and the shared totals
         // stay zero).
         let out = unsafe { &mut self.out.slice_mut(0..1)[0] };
-        let start = self.exec.now();
+        self.exec.now_into(&mut clock.flushed);
         hardware.run(self.directions, (&mut out.p_kp, &mut out.kp_or));
         let end = self.exec.now();
-        clock.costs.serial(start.since(clock.last));
-        clock.flushed = start;
-        clock.costs.hart_0_mvu(end.since(start));
+        clock.costs.serial(clock.flushed.since(clock.last));
+        clock.costs.hart_0_mvu(end.since(clock.flushed));
         clock.last = end;
         true
     }
@@ -1175,7 +1174,7 @@ fn hardware<'e, E: Executor>(
     n: usize,
     (p, kp, lane_words): (&SharedSlice<'_, Lanes>, &SharedSlice<'_, Sums>, usize),
     directions: usize,
-) -> Option<&'e dyn MvuBackend> {
+) -> Option<&'e E::Mvus> {
     if lane_words != size_of::<Lanes>() / 4 {
         return None;
     }

@@ -17,11 +17,18 @@ use core::ops::Range;
 
 use deform_shared::protocol::{PhaseCounters, MAX_HARTS};
 
-use crate::mvu_backend::MvuBackend;
+use crate::mvu_backend::{MvuBackend, NoMvus};
 
 /// Reads the cycle and retired-instruction counters, so that the solver can charge each phase.
 pub trait PhaseClock {
     fn now(&self) -> PhaseCounters;
+
+    /// [`now`](Self::now), written into `out`. The hardware MVU phase keeps its first reading
+    /// in place: read into a local, it was loaded back from the stack before `start`, each
+    /// load behind one of the reading's stores to the write-through data cache.
+    fn now_into(&self, out: &mut PhaseCounters) {
+        *out = self.now();
+    }
 }
 
 /// A clock that always reads zero, for hosts and tests.
@@ -49,9 +56,12 @@ pub trait Executor: PhaseClock + Sync {
     /// counts (zero where the executor cannot count).
     fn run_measured(&self, harts: usize, task: Task<'_>) -> [PhaseCounters; MAX_HARTS];
 
+    /// The board's hardware MVUs ([`crate::mvu_backend`]); [`NoMvus`] where it has none.
+    type Mvus: MvuBackend;
+
     /// The hardware MVUs beside the harts, if the board has them (see
     /// [`crate::mvu_backend`]); without them the harts run every MVU phase in software.
-    fn mvu_backend(&self) -> Option<&dyn MvuBackend> {
+    fn mvu_backend(&self) -> Option<&Self::Mvus> {
         None
     }
 }
@@ -77,6 +87,8 @@ impl PhaseClock for Sequential {
 }
 
 impl Executor for Sequential {
+    type Mvus = NoMvus;
+
     fn harts(&self) -> usize {
         self.harts.clamp(1, MAX_HARTS)
     }

@@ -42,10 +42,43 @@ pub trait MvuBackend: Sync {
     /// Whether the hardware takes the MVU phases of a solve of `directions` fused directions on
     /// the loaded matrix of dimension `n`, with the solver's vectors `p` and `kp` (they must be
     /// its memories). Asked once per solve, whose matrix and vectors stay the same throughout:
-    /// asked every phase, it cost the phase data-cache misses on the backend's state.
+    /// asked every phase, it cost the phase data-cache misses on the backend's state. Where it
+    /// answers yes, the backend may set the hardware up for the solve's phases (the direction
+    /// count): the solver asks at the start of each solve (and of each [`crate::cg::product`]),
+    /// and runs no other solve's phase before this one's last.
     fn holds(&self, n: usize, p: *const Lanes, kp: *mut Sums, directions: usize) -> bool;
 
     /// One MVU phase of a solve that [`holds`](Self::holds) accepted: K·p into the solver's
     /// Kp, pᵀKp and the OR of |Kp| into `out`.
     fn run(&self, directions: usize, out: MvuOut<'_>);
+}
+
+/// The backend of an executor without hardware MVUs: a type with no values, so that
+/// [`Executor::mvu_backend`](crate::exec::Executor::mvu_backend) of such an executor can only
+/// be `None`. The backend is a type of the executor, not a trait object, so that the solver's
+/// call of [`MvuBackend::run`] is a direct one that the board may inline: on the LiteX SoC, a
+/// call through the vtable cost the phase a cold instruction-cache line and a data load before
+/// `start` (docs/PERFORMANCE.md, "The hardware phase's start inlined, session 12").
+pub enum NoMvus {}
+
+impl MvuBackend for NoMvus {
+    fn mvus(&self) -> usize {
+        match *self {}
+    }
+
+    fn unload(&self) {
+        match *self {}
+    }
+
+    fn load(&self, _: &Matrix<'_>, _: &mut [Sums]) -> bool {
+        match *self {}
+    }
+
+    fn holds(&self, _: usize, _: *const Lanes, _: *mut Sums, _: usize) -> bool {
+        match *self {}
+    }
+
+    fn run(&self, _: usize, _: MvuOut<'_>) {
+        match *self {}
+    }
 }

@@ -79,6 +79,7 @@ use crate::dynamics::Dynamic;
 use crate::exec::Executor;
 use crate::kernel::{Lanes, Sums};
 use crate::live::Live;
+use crate::mvu_backend::MvuBackend;
 use crate::predict;
 
 /// The memory a [`Session`] works in, lent by its owner.

@@ -35,6 +35,13 @@ pub mod litex_vexriscv;
 #[cfg(all(feature = "litex-vexriscv", not(feature = "qemu-virt")))]
 pub use litex_vexriscv::LitexVexriscv as Board;
 
+/// The board's hardware MVUs' driver: a type, not a trait object, so that the solver calls it
+/// directly (see `deform_target_core::mvu_backend::NoMvus`).
+#[cfg(feature = "qemu-virt")]
+pub type MvuDriver = deform_target_core::mvu_backend::NoMvus;
+#[cfg(all(feature = "litex-vexriscv", not(feature = "qemu-virt")))]
+pub type MvuDriver = litex_mvus::LitexMvus;
+
 /// A board's support: its constants and the few board-wide operations. Drivers for the UART
 /// are [`Bsp::Uart`]; the rest is associated functions, since each board exists once.
 pub trait Bsp {
@@ -103,7 +110,7 @@ pub trait Bsp {
 /// Hardware MVUs beside the CPU, and the vectors they share with it.
 pub struct Mvus {
     /// Runs the MVU phase (see `deform_target_core::mvu_backend`).
-    pub backend: &'static dyn deform_target_core::mvu_backend::MvuBackend,
+    pub backend: &'static MvuDriver,
     /// The search directions and Kp in the MVUs' own memories, lent to the solver as its
     /// vectors, so that no phase copies them.
     pub p: &'static mut [deform_target_core::kernel::Lanes],

@@ -866,6 +866,8 @@ impl PhaseClock for CpiThree {
 }
 
 impl Executor for CpiThree {
+    type Mvus = crate::mvu_backend::NoMvus;
+
     fn harts(&self) -> usize {
         self.harts
     }

@@ -101,6 +101,8 @@ impl PhaseClock for Ticking {
 }
 
 impl Executor for Ticking {
+    type Mvus = crate::mvu_backend::NoMvus;
+
     fn harts(&self) -> usize {
         HARTS.harts()
     }
