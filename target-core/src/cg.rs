@@ -791,11 +791,7 @@ impl<E: Executor> Engine<'_, '_, E> {
             ));
             let start = clock.flushed;
             if !self.a.plan.fused {
-                with_lanes!(self, |S, R| self.run(
-                    &|h| self.mvu_rows::<S, R>(h),
-                    clock,
-                    true
-                ));
+                self.run(&|h| self.mvu_rows(h), clock, true);
             }
             self.collect(|t, out| (0..self.directions).for_each(|d| t.take_mvu(out, d)));
             start
@@ -944,7 +940,14 @@ impl<E: Executor> Engine<'_, '_, E> {
 
     /// Hart h's share of the rows: add the partial rows up (overlapping MVUs), then pᵀKp and
     /// max |Kp| over the finished rows.
-    fn mvu_rows<const S: usize, const R: usize>(&self, h: usize) {
+    /// The layouts' dispatch is here, on every hart, rather than around the phase on hart 0's
+    /// serial path.
+    fn mvu_rows(&self, h: usize) {
+        with_lanes!(self, |S, R| self.mvu_rows_in::<S, R>(h));
+    }
+
+    /// [`Engine::mvu_rows`] with p `S` words a node and Kp `R` words a row.
+    fn mvu_rows_in<const S: usize, const R: usize>(&self, h: usize) {
         let (plan, n) = (self.a.plan, self.a.n);
         let range = share(n, self.harts, h);
         // SAFETY: the shares of the rows are disjoint; the pool is only read.
