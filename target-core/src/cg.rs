@@ -58,8 +58,8 @@ use deform_shared::word::ER_BIT;
 use crate::exec::{share, SharedSlice};
 pub use crate::exec::{Executor, NoClock, PhaseClock, Sequential};
 use crate::kernel::{
-    lane_words, p_kp_and_max, p_kp_bounded, run_tile_dyn, Lanes, Sums, TileRun, P_KP_BOUNDED_ROWS,
-    SPLIT_MAX_ROW_ABS, SPLIT_MAX_WORDS, VALUE_SIGN_SHIFT,
+    lane_words, p_kp_and_max, p_kp_bounded, run_tile_dyn, sum_words, Lanes, Sums, TileRun,
+    P_KP_BOUNDED_ROWS, SPLIT_MAX_ROW_ABS, SPLIT_MAX_WORDS, VALUE_SIGN_SHIFT,
 };
 use crate::mvu_backend::MvuBackend;
 use crate::svu::{
@@ -620,7 +620,8 @@ struct Engine<'e, 'a, E: Executor> {
     hardware: Option<&'e E::Mvus>,
     harts: usize,
     directions: usize,
-    /// p's layout: i32 words a node (1 or 4; [`lane_words_for`]).
+    /// p's layout: i32 words a node (1 or 4; [`lane_words_for`]). Kp's and the partial pool's
+    /// follow it: [`sum_words`] i64 words a row.
     lane_words: usize,
     p: SharedSlice<'e, Lanes>,
     kp: SharedSlice<'e, Sums>,
@@ -635,7 +636,8 @@ struct Engine<'e, 'a, E: Executor> {
 }
 
 /// Runs `$body` with `$s` bound to the engine's p layout (i32 words a node, 1 or 4) as a
-/// constant, so that each layout's loops are compiled for their stride.
+/// constant, and `$r` (where named) to Kp's (i64 words a row, [`sum_words`]: 1 or 3), so that
+/// each layout's loops are compiled for their strides.
 macro_rules! with_lanes {
     ($engine:expr, |$s:ident| $body:expr) => {
         if $engine.lane_words == 1 {
@@ -643,6 +645,17 @@ macro_rules! with_lanes {
             $body
         } else {
             const $s: usize = 4;
+            $body
+        }
+    };
+    ($engine:expr, |$s:ident, $r:ident| $body:expr) => {
+        if $engine.lane_words == 1 {
+            const $s: usize = 1;
+            const $r: usize = sum_words($s);
+            $body
+        } else {
+            const $s: usize = 4;
+            const $r: usize = sum_words($s);
             $body
         }
     };
@@ -659,6 +672,13 @@ fn lane_words_for(exec: &impl Executor, directions: usize) -> usize {
     }
 }
 
+/// Kp's layout for a solve or [`product`] of `directions` on `exec`: i64 words a row, 1 or 3
+/// ([`sum_words`] of p's layout, [`lane_words_for`]). Row i's sum of direction (or lane) d is
+/// word `R·i + d` of `work.kp` seen as i64 words ([`crate::kernel::sum_rows`]).
+pub fn sum_words_for(exec: &impl Executor, directions: usize) -> usize {
+    sum_words(lane_words_for(exec, directions))
+}
+
 impl<E: Executor> Engine<'_, '_, E> {
     /// p's nodes `range`, `S` i32 words a node.
     ///
@@ -673,6 +693,36 @@ impl<E: Executor> Engine<'_, '_, E> {
         let base = self.p.as_mut_ptr().cast::<[i32; S]>();
         // SAFETY: n nodes of S ≤ 4 words lie within p's n `Lanes`; the caller has these.
         unsafe { core::slice::from_raw_parts_mut(base.wrapping_add(range.start), range.len()) }
+    }
+
+    /// Kp's rows `range`, `R` i64 words a row.
+    ///
+    /// # Safety
+    ///
+    /// `R` is [`sum_words`] of [`Engine::lane_words`] and `range` lies in `0..n`; as
+    /// [`SharedSlice::slice_mut`]: no one else accesses these rows of Kp while the slice lives.
+    #[allow(clippy::mut_from_ref)]
+    #[inline(always)]
+    unsafe fn kp_rows<const R: usize>(&self, range: core::ops::Range<usize>) -> &mut [[i64; R]] {
+        debug_assert!(R == sum_words(self.lane_words) && range.end <= self.a.n);
+        // SAFETY: forwarded; n rows of R ≤ 3 words lie within Kp's n `Sums`.
+        unsafe { rows_of(&self.kp, range) }
+    }
+
+    /// The partial pool's slots `range`, `R` i64 words a slot (Kp's layout).
+    ///
+    /// # Safety
+    ///
+    /// As [`Engine::kp_rows`], within the pool's `plan.partial_len` slots.
+    #[allow(clippy::mut_from_ref)]
+    #[inline(always)]
+    unsafe fn partial_rows<const R: usize>(
+        &self,
+        range: core::ops::Range<usize>,
+    ) -> &mut [[i64; R]] {
+        debug_assert!(R == sum_words(self.lane_words) && range.end <= self.a.plan.partial_len);
+        // SAFETY: forwarded; the slots lie within the pool's `Sums`.
+        unsafe { rows_of(&self.partial, range) }
     }
 
     /// Runs one parallel phase, every hart's share measured (one hart at a time: see
@@ -734,7 +784,11 @@ impl<E: Executor> Engine<'_, '_, E> {
         let start = if self.mvu_on_hardware(clock) {
             clock.flushed
         } else {
-            with_lanes!(self, |S| self.run(&|h| self.mvu_tiles::<S>(h), clock, true));
+            with_lanes!(self, |S, R| self.run(
+                &|h| self.mvu_tiles::<S, R>(h),
+                clock,
+                true
+            ));
             let start = clock.flushed;
             if !self.a.plan.fused {
                 self.run(&|h| self.mvu_rows(h), clock, true);
@@ -771,22 +825,24 @@ impl<E: Executor> Engine<'_, '_, E> {
 
     /// Hart h's tiles: every tile with `mvu = h`. Fused, each row end stores and finishes its
     /// row; otherwise hart h first zeroes its rows (or private slots) and each row end adds.
-    /// p is `S` words a node ([`Engine::lane_words`]), a constant so that a tile's column
-    /// addresses cost what they did with one layout.
-    fn mvu_tiles<const S: usize>(&self, h: usize) {
+    /// p is `S` words a node ([`Engine::lane_words`]) and Kp `R` words a row, constants so
+    /// that a tile's column and row addresses cost what they did with one layout.
+    fn mvu_tiles<const S: usize, const R: usize>(&self, h: usize) {
         let (a, plan, n) = (self.a, self.a.plan, self.a.n);
         let p = self.p.as_mut_ptr() as *const i32;
         let zeroed = if plan.fused { 0 } else { 2 };
         for (k, rows) in plan.rows[h].iter().enumerate().take(zeroed) {
-            let (target, range) = if plan.overlapping {
-                let lo = plan.offsets[h][k];
-                (&self.partial, lo..lo + rows.len())
-            } else {
-                (&self.kp, rows.lo..rows.hi)
-            };
             // SAFETY: the plan gives every MVU rows (direct: non-overlapping hulls) or slots
             // (overlapping: its own offsets) that no other MVU touches.
-            unsafe { target.slice_mut(range) }.fill([0; MAX_DIRECTIONS]);
+            let target = unsafe {
+                if plan.overlapping {
+                    let lo = plan.offsets[h][k];
+                    self.partial_rows::<R>(lo..lo + rows.len())
+                } else {
+                    self.kp_rows::<R>(rows.lo..rows.hi)
+                }
+            };
+            target.fill([0; R]);
         }
         let mut start = 0usize;
         let mut previous = None;
@@ -801,17 +857,18 @@ impl<E: Executor> Engine<'_, '_, E> {
             let (row_base, col_base) = (t.row_base as usize, t.col_base as usize);
             let mirror_row = n - 1 - row_base;
             let (y, y_mirror) = if plan.overlapping {
-                let base = self.partial.as_mut_ptr();
+                let base = self.partial.as_mut_ptr() as *mut i64;
                 let [own, mirror] = plan.rows[h];
                 (
-                    base.wrapping_add(plan.offsets[h][0] + row_base - own.lo),
-                    base.wrapping_add(plan.offsets[h][1])
-                        .wrapping_add(mirror_row)
-                        .wrapping_sub(mirror.lo),
+                    base.wrapping_add((plan.offsets[h][0] + row_base - own.lo) * R),
+                    base.wrapping_add((plan.offsets[h][1] + mirror_row - mirror.lo) * R),
                 )
             } else {
-                let base = self.kp.as_mut_ptr();
-                (base.wrapping_add(row_base), base.wrapping_add(mirror_row))
+                let base = self.kp.as_mut_ptr() as *mut i64;
+                (
+                    base.wrapping_add(row_base * R),
+                    base.wrapping_add(mirror_row * R),
+                )
             };
             let run = TileRun {
                 words: a.words.as_ptr().wrapping_add(first),
@@ -824,7 +881,10 @@ impl<E: Executor> Engine<'_, '_, E> {
             // A split row's first part, stored at the previous tile's row end, is carried over
             // the store of its second part (an exact i64 sum, so the same bits as adding).
             // SAFETY: fused plans do not overlap: these rows are this MVU's alone.
-            let saved = carried.then(|| unsafe { (*y, if t.mirrored { *y_mirror } else { *y }) });
+            let saved = carried.then(|| unsafe {
+                let (y, y_mirror) = (y.cast::<[i64; R]>(), y_mirror.cast::<[i64; R]>());
+                (*y, if t.mirrored { *y_mirror } else { *y })
+            });
             // SAFETY: the session validated every tile against n (rows, columns, ER/EM
             // structure) and sized p, kp and the pool for n and the plan; the tile's rows and
             // mirror rows lie in this MVU's hulls, which map to slots only it writes; p is only
@@ -832,21 +892,21 @@ impl<E: Executor> Engine<'_, '_, E> {
             unsafe { run_tile_dyn::<S>(&run, self.directions, t.mirrored, plan.fused, plan.split) };
             if let Some((own, mirror)) = saved {
                 // SAFETY: as above.
-                unsafe { carry(y, own, self.directions) };
+                unsafe { carry(y.cast(), own, self.directions) };
                 if t.mirrored {
                     // SAFETY: as above.
-                    unsafe { carry(y_mirror, mirror, self.directions) };
+                    unsafe { carry(y_mirror.cast(), mirror, self.directions) };
                 }
             }
         }
         if plan.fused {
-            self.finish_rows::<S>(plan.rows[h]);
+            self.finish_rows::<S, R>(plan.rows[h]);
         }
     }
 
     /// pᵀKp and max |Kp| over the rows of `hulls` (hart h's own and mirror rows, fused plans:
     /// they are finished, and only hart h wrote them), put to the totals.
-    fn finish_rows<const S: usize>(&self, hulls: [Rows; 2]) {
+    fn finish_rows<const S: usize, const R: usize>(&self, hulls: [Rows; 2]) {
         let mut p_kp = [0i128; MAX_DIRECTIONS];
         let mut or = [0u64; MAX_DIRECTIONS];
         for rows in hulls {
@@ -854,7 +914,7 @@ impl<E: Executor> Engine<'_, '_, E> {
             let (p, kp) = unsafe {
                 (
                     self.p_lanes::<S>(rows.lo..rows.hi),
-                    self.kp.slice_mut(rows.lo..rows.hi),
+                    self.kp_rows::<R>(rows.lo..rows.hi),
                 )
             };
             let (s, o) = self.p_kp(p, kp);
@@ -879,16 +939,23 @@ impl<E: Executor> Engine<'_, '_, E> {
 
     /// Hart h's share of the rows: add the partial rows up (overlapping MVUs), then pᵀKp and
     /// max |Kp| over the finished rows.
+    /// The layouts' dispatch is here, on every hart, rather than around the phase on hart 0's
+    /// serial path.
     fn mvu_rows(&self, h: usize) {
+        with_lanes!(self, |S, R| self.mvu_rows_in::<S, R>(h));
+    }
+
+    /// [`Engine::mvu_rows`] with p `S` words a node and Kp `R` words a row.
+    fn mvu_rows_in<const S: usize, const R: usize>(&self, h: usize) {
         let (plan, n) = (self.a.plan, self.a.n);
         let range = share(n, self.harts, h);
         // SAFETY: the shares of the rows are disjoint; the pool is only read.
-        let kp = unsafe { self.kp.slice_mut(range.clone()) };
+        let kp = unsafe { self.kp_rows::<R>(range.clone()) };
         let dirs = self.directions;
         if plan.overlapping {
-            kp.fill([0; MAX_DIRECTIONS]);
+            kp.fill([0; R]);
             // SAFETY: nothing writes the pool during this phase.
-            let pool = unsafe { self.partial.as_slice() };
+            let pool = unsafe { &*self.partial_rows::<R>(0..plan.partial_len) };
             let mine = Rows {
                 lo: range.start,
                 hi: range.end,
@@ -912,17 +979,17 @@ impl<E: Executor> Engine<'_, '_, E> {
             }
         }
         // SAFETY: p is only read during this phase.
-        let (p_kp, or) = with_lanes!(self, |S| self.p_kp(unsafe { self.p_lanes::<S>(range) }, kp));
+        let (p_kp, or) = self.p_kp(unsafe { self.p_lanes::<S>(range) }, kp);
         self.put_mvu(p_kp, or);
     }
 
     /// pᵀKp and the OR of |Kp| over finished rows: [`p_kp_bounded`] where the plan bounds |Kp|
     /// below 2^52 (split sums allowed) and the rows are few enough, else [`p_kp_and_max`].
     #[inline(always)]
-    fn p_kp<const S: usize>(
+    fn p_kp<const S: usize, const R: usize>(
         &self,
         p: &[[i32; S]],
-        kp: &[Sums],
+        kp: &[[i64; R]],
     ) -> ([i128; MAX_DIRECTIONS], [u64; MAX_DIRECTIONS]) {
         if self.a.plan.split && kp.len() <= P_KP_BOUNDED_ROWS {
             p_kp_bounded(p, kp, self.directions)
@@ -942,15 +1009,17 @@ impl<E: Executor> Engine<'_, '_, E> {
             // pass.
             unsafe {
                 let mut sink = self.sink();
-                let kp = &self.kp.as_slice()[range.clone()];
-                for (d, plan) in plans.iter().enumerate().take(self.directions) {
-                    if let Some(plan) = plan {
-                        let r = self.rs[d].slice_mut(range.clone());
-                        let (rr, or) = svu::pass_r(r, kp, d, *plan);
-                        sink.rr(d, rr);
-                        sink.or(OrField::R, d, or);
+                with_lanes!(self, |S, R| {
+                    let kp = &*self.kp_rows::<R>(range.clone());
+                    for (d, plan) in plans.iter().enumerate().take(self.directions) {
+                        if let Some(plan) = plan {
+                            let r = self.rs[d].slice_mut(range.clone());
+                            let (rr, or) = svu::pass_r(r, kp, d, *plan);
+                            sink.rr(d, rr);
+                            sink.or(OrField::R, d, or);
+                        }
                     }
-                }
+                });
             }
         };
         self.run(&task, clock, false);
@@ -1007,17 +1076,19 @@ impl<E: Executor> Engine<'_, '_, E> {
             // SAFETY: each hart writes only its own share of Kp; b is only read.
             unsafe {
                 let mut sink = self.sink();
-                let kp = self.kp.slice_mut(range.clone());
-                for (d, shift) in shifts.iter().enumerate().take(self.directions) {
-                    let Some(s) = *shift else { continue };
-                    let mut or = 0u64;
-                    for (ki, &bi) in kp.iter_mut().zip(&b[d][range.clone()]) {
-                        let v = ki[d].wrapping_sub(i64::from(bi) << s);
-                        ki[d] = v;
-                        or |= (v ^ (v >> 63)) as u64;
+                with_lanes!(self, |S, R| {
+                    let kp = self.kp_rows::<R>(range.clone());
+                    for (d, shift) in shifts.iter().enumerate().take(self.directions) {
+                        let Some(s) = *shift else { continue };
+                        let mut or = 0u64;
+                        for (ki, &bi) in kp.iter_mut().zip(&b[d][range.clone()]) {
+                            let v = ki[d].wrapping_sub(i64::from(bi) << s);
+                            ki[d] = v;
+                            or |= (v ^ (v >> 63)) as u64;
+                        }
+                        sink.kp_or(d, or);
                     }
-                    sink.kp_or(d, or);
-                }
+                });
             }
         };
         self.run(&task, clock, false);
@@ -1096,7 +1167,7 @@ impl<E: Executor> Engine<'_, '_, E> {
             unsafe {
                 let mut sink = self.sink();
                 if !self.a.plan.fused {
-                    self.kp.slice_mut(range.clone()).fill([0; MAX_DIRECTIONS]);
+                    with_lanes!(self, |S, R| self.kp_rows::<R>(range.clone()).fill([0; R]));
                 }
                 for d in 0..self.directions {
                     let b = &b[d][range.clone()];
@@ -1682,7 +1753,8 @@ pub struct Product {
 
 /// K·v for up to three vectors at once, `vectors[k]` into lane k of `work.kp` as exact `i64` row
 /// sums (value 2^(e_v − F) each): the MVU phase on its own, as a dynamic step needs it for
-/// K·u₀ ([`crate::dynamics`]). The vectors are only read (p's lanes take a copy).
+/// K·u₀ ([`crate::dynamics`]). The vectors are only read (p's lanes take a copy). Kp is laid
+/// out [`sum_words_for`]`(exec, vectors.len())` words a row, as the solver lays it out.
 pub fn product(
     a: &Matrix<'_>,
     vectors: &mut [&mut [i32]],
@@ -1742,7 +1814,8 @@ pub fn product(
             &|h| {
                 let range = share(n, harts, h);
                 // SAFETY: each hart clears only its own share of Kp.
-                unsafe { engine.kp.slice_mut(range) }.fill([0; MAX_DIRECTIONS]);
+                with_lanes!(engine, |S, R| unsafe { engine.kp_rows::<R>(range) }
+                    .fill([0; R]));
             },
             &mut clock,
             true,
@@ -1916,12 +1989,30 @@ fn sqrt(x: f64) -> f64 {
 /// # Safety
 ///
 /// `y` is a row of Kp that no other hart accesses during the call.
-unsafe fn carry(y: *mut Sums, part: Sums, directions: usize) {
+unsafe fn carry<const R: usize>(y: *mut [i64; R], part: [i64; R], directions: usize) {
     // SAFETY: forwarded from the caller.
     let row = unsafe { &mut *y };
     for (sum, part) in row.iter_mut().zip(part).take(directions) {
         *sum += part;
     }
+}
+
+/// Rows `range` of a buffer of [`Sums`] (Kp or the partial pool) seen `R` i64 words a row.
+///
+/// # Safety
+///
+/// `R` ≤ [`MAX_DIRECTIONS`] and `range` lies within the buffer's rows; as
+/// [`SharedSlice::slice_mut`]: no one else accesses these rows while the slice lives.
+#[allow(clippy::mut_from_ref)]
+#[inline(always)]
+unsafe fn rows_of<'s, const R: usize>(
+    buffer: &'s SharedSlice<'_, Sums>,
+    range: core::ops::Range<usize>,
+) -> &'s mut [[i64; R]] {
+    debug_assert!(R <= MAX_DIRECTIONS && range.start <= range.end);
+    let base = buffer.as_mut_ptr().cast::<[i64; R]>();
+    // SAFETY: forwarded from the caller.
+    unsafe { core::slice::from_raw_parts_mut(base.wrapping_add(range.start), range.len()) }
 }
 
 fn charge(total: &mut PhaseCounters, since: PhaseCounters, clock: &impl PhaseClock) {

@@ -25,7 +25,6 @@ use deform_shared::live::{LiveError, MAX_TOOL_NODES};
 use deform_shared::word::{VALUE_MAX, VALUE_MIN};
 use heapless::Vec;
 
-use crate::kernel::Sums;
 use crate::predict::{scale, scale_low, scale_low_wide};
 use crate::svu::{
     magnitude_bits, magnitude_bound, normalising_shift, sum_squares, term, Block, Lin, Narrow,
@@ -399,11 +398,11 @@ pub struct RhsSums {
     pub d_or: u64,
 }
 
-/// Pass B on one share: b (holding b₀) becomes b₁ from v₀ and K·u₀ (lane `lane` of `kp`),
-/// whose slot then holds d = b₁ − b₀.
-pub fn rhs_share(
+/// Pass B on one share: b (holding b₀) becomes b₁ from v₀ and K·u₀ (lane `lane` of `kp`, `R`
+/// sums a row as [`crate::cg::product`] laid it out), whose slot then holds d = b₁ − b₀.
+pub fn rhs_share<const R: usize>(
     b: &mut [i32],
-    kp: &mut [Sums],
+    kp: &mut [[i64; R]],
     v: &[i32],
     lane: usize,
     plan: &RhsPlan,
@@ -540,9 +539,9 @@ impl ResidualPlan {
 /// S·Δv₀ = d₀ − r₀f + r₋₁f (or, without a history, r₀ = d₁ + r₀f for v₀). r holds r₀f and
 /// becomes r₀; the history takes d₁ (narrowed) and r₀f for the next step. Returns Σr₀² and
 /// the OR of |r₀|.
-pub fn residual_share(
+pub fn residual_share<const R: usize>(
     r: &mut [i32],
-    kp: &[Sums],
+    kp: &[[i64; R]],
     lane: usize,
     plan: &ResidualPlan,
     history: Option<(&mut [i32], &mut [i32])>,
@@ -634,7 +633,7 @@ mod tests {
         let plan = RhsPlan::new(m, h, v_block, ku_or, e_ku, 0.0, e_b0, &mut sat);
         assert_eq!(sat, 0);
         let mut b = b0;
-        let mut kp: std::vec::Vec<Sums> = ku.iter().map(|&k| [0, k, 0]).collect();
+        let mut kp: std::vec::Vec<crate::kernel::Sums> = ku.iter().map(|&k| [0, k, 0]).collect();
         let sums = rhs_share(&mut b, &mut kp, &v, 1, &plan);
         for i in 0..5 {
             let want = m * ldexp(f64::from(v[i]), e_v) - h * ldexp(ku[i] as f64, e_ku);

@@ -14,7 +14,10 @@
 //!   the VexRiscv's data cache instead of twice it. The loops take the lane shift as a const
 //!   generic `L`; where hardware MVUs may run the phase, p stays 16 bytes a node (their
 //!   window's layout).
-//! - Row sums go to `y[row] : [i64; 3]` ([`Sums`]), one per direction.
+//! - Row sums go to Kp, one `i64` per direction, laid out like p by the direction count
+//!   ([`sum_words`]): `[i64; 3]` a row ([`Sums`], 24 bytes) where p is 16 bytes a node, one
+//!   `i64` a row where p is 4 bytes a node (one direction without hardware MVUs). 512 rows of
+//!   one direction's Kp are then 4 KiB instead of 12, and a row end stores 8 bytes.
 //!
 //! # Numerics
 //!
@@ -87,6 +90,40 @@ pub const fn lane_words(directions: usize) -> usize {
 pub const fn lane_shift(lane_words: usize) -> u32 {
     2 + lane_words.trailing_zeros()
 }
+
+/// i64 words a row of Kp takes where p is `lane_words` i32 words a node: 1 where p is one lane
+/// (one direction, [`lane_words`]), else [`MAX_DIRECTIONS`] (a whole [`Sums`]).
+///
+/// Kp follows p's layout for the same reason: 24 bytes a row made one direction's Kp 12 KiB
+/// for 512 rows, three times the VexRiscv's 4 KiB data cache, through which every row end
+/// stores and pᵀKp and pass R read it back. The hardware MVUs' Kp window stays 24 bytes a row:
+/// where an [`crate::mvu_backend::MvuBackend`] exists p is 16 bytes a node, so Kp is too.
+pub const fn sum_words(lane_words: usize) -> usize {
+    if lane_words == 1 {
+        1
+    } else {
+        MAX_DIRECTIONS
+    }
+}
+
+/// [`sum_words`] for p laid out `1 << lane_shift` bytes a node.
+pub const fn sum_words_of_shift(lane_shift: u32) -> usize {
+    sum_words(1 << (lane_shift - 2))
+}
+
+/// `kp`'s first `rows` rows laid out `R` i64 words a row ([`sum_words`]): the same buffer,
+/// n [`Sums`] long, seen with the solve's stride (its first `R·rows` words).
+///
+/// # Panics
+///
+/// If `R` is 0 or the rows do not fit in `kp`.
+pub fn sum_rows<const R: usize>(kp: &mut [Sums], rows: usize) -> &mut [[i64; R]] {
+    let flat = kp.as_flattened_mut();
+    assert!(R > 0 && rows * R <= flat.len());
+    // SAFETY: [i64; R] has the alignment of i64 and no padding; the rows lie within `flat`,
+    // which this borrow holds exclusively.
+    unsafe { core::slice::from_raw_parts_mut(flat.as_mut_ptr().cast(), rows) }
+}
 /// `((w << VALUE_SIGN_SHIFT) as i32) >> VALUE_SIGN_SHIFT` is word w's value, sign-extended.
 pub const VALUE_SIGN_SHIFT: u32 = 32 - VALUE_BITS;
 
@@ -125,6 +162,8 @@ const _: () = assert!(COLUMN_OFFSET_SHIFT == 17 && COLUMN_OFFSET_MASK == 0x1FF0)
 const _: () = assert!(column_offset_shift(lane_shift(1)) == 19);
 const _: () = assert!(column_offset_mask(lane_shift(1)) == 0x7FC);
 const _: () = assert!(lane_shift(lane_words(3)) == LANE_SHIFT);
+const _: () = assert!(sum_words_of_shift(lane_shift(1)) == 1);
+const _: () = assert!(sum_words_of_shift(LANE_SHIFT) == MAX_DIRECTIONS);
 const _: () = assert!(VALUE_SIGN_SHIFT == 11);
 
 /// Where one tile's words read and write. All pointers are into the solver's buffers.
@@ -140,15 +179,17 @@ pub struct TileRun {
     pub p_cols: *const Lanes,
     /// `&p[n − 1 − col_base]`: a mirrored word reads `p[n − 1 − col_base − c]`.
     pub p_mirror_cols: *const Lanes,
-    /// Where row `row_base`'s sums go; the next row's are one further.
-    pub y: *mut Sums,
+    /// Where row `row_base`'s sums go (its first direction's); the next row's are one row of
+    /// Kp further ([`sum_words`] of the kernel's `L`: 1 or 3 words).
+    pub y: *mut i64,
     /// Where the mirror row `n − 1 − row_base`'s sums go; the next tile row's mirror is one
-    /// slot *lower*.
-    pub y_mirror: *mut Sums,
+    /// row *lower*.
+    pub y_mirror: *mut i64,
 }
 
 /// pᵀKp over rows `p`/`kp` (finished rows) for `directions`, exactly, and the OR of |Kp| per
-/// direction (whose highest bit is that of max |Kp|). p is `S` lanes a node ([`lane_words`]).
+/// direction (whose highest bit is that of max |Kp|). p is `S` lanes a node ([`lane_words`]),
+/// Kp `R` sums a row ([`sum_words`]).
 ///
 /// Each product p·Kp (|p| < 2^30, |Kp| < 2^62) is split by Kp's 32-bit halves h (signed) and l
 /// (unsigned) into p·l and p·h, two 64-bit products; their words are summed in three `i64`s by
@@ -156,14 +197,14 @@ pub struct TileRun {
 /// 2^46), and are joined into the `i128` once. That is about half the instructions of an
 /// `i128` accumulation per row on rv32; one direction at a time keeps the six words of the
 /// sums in registers.
-pub fn p_kp_and_max<const S: usize>(
+pub fn p_kp_and_max<const S: usize, const R: usize>(
     p: &[[i32; S]],
-    kp: &[Sums],
+    kp: &[[i64; R]],
     directions: usize,
 ) -> ([i128; MAX_DIRECTIONS], [u64; MAX_DIRECTIONS]) {
     let mut p_kp = [0i128; MAX_DIRECTIONS];
     let mut or = [0u64; MAX_DIRECTIONS];
-    for d in 0..directions.min(MAX_DIRECTIONS).min(S) {
+    for d in 0..directions.min(MAX_DIRECTIONS).min(S).min(R) {
         let (mut w0, mut w1, mut w2) = (0i64, 0i64, 0i64);
         let mut o = 0u64;
         for (pi, ki) in p.iter().zip(kp) {
@@ -194,15 +235,15 @@ pub const P_KP_BOUNDED_ROWS: usize = (1 << 13) - 1;
 /// `xor`) so that it is summed unsigned, with its carries and those of p·hi's low word into
 /// the top word, which takes p·hi's high word and simply wraps: |pᵀKp| < 2^13·2^30·2^52 =
 /// 2^95, so the sum modulo 2^96, less the offsets, sign-extended from bit 95, is exact.
-pub fn p_kp_bounded<const S: usize>(
+pub fn p_kp_bounded<const S: usize, const R: usize>(
     p: &[[i32; S]],
-    kp: &[Sums],
+    kp: &[[i64; R]],
     directions: usize,
 ) -> ([i128; MAX_DIRECTIONS], [u64; MAX_DIRECTIONS]) {
     let mut p_kp = [0i128; MAX_DIRECTIONS];
     let mut or = [0u64; MAX_DIRECTIONS];
     let rows = p.len().min(kp.len());
-    for d in 0..directions.min(MAX_DIRECTIONS).min(S) {
+    for d in 0..directions.min(MAX_DIRECTIONS).min(S).min(R) {
         let (mut x0, mut k1, mut y1, mut y2) = (0u32, 0u32, 0u32, 0u32);
         let (mut o0, mut o1) = (0u32, 0u32);
         for (pi, ki) in p.iter().zip(kp) {
@@ -248,8 +289,9 @@ pub fn p_kp_bounded<const S: usize>(
 ///   the last one ends the tile, every column c has `col_base + c < n`.
 /// - `p_cols` is `&p[col_base]` of a `p` with at least n elements of `1 << L` bytes (`4·D`
 ///   of them lanes); for `MIRROR`, `p_mirror_cols` is `&p[n − 1 − col_base]`.
-/// - `y` points at `rows` writable slots (and `y_mirror` at the top of `rows` slots going
-///   down, for `MIRROR`) that no one else accesses during the call.
+/// - `y` points at `rows` writable rows of Kp, each [`sum_words_of_shift`]`(L)` i64 words
+///   (and `y_mirror` at the top of `rows` rows going down, for `MIRROR`) that no one else
+///   accesses during the call.
 ///
 /// `SPLIT` (the firmware's three-direction loops and one-direction mirrored loop; others
 /// ignore it) sums each row as split sums ([`rebuild_split`]), which the caller allows only
@@ -265,7 +307,8 @@ pub unsafe fn run_tile<
 >(
     t: &TileRun,
 ) {
-    const { assert!(4 * D <= 1 << L && L <= LANE_SHIFT) };
+    const { assert!(4 * D <= 1 << L && L <= LANE_SHIFT && D <= sum_words_of_shift(L)) };
+    let stride = sum_words_of_shift(L);
     #[cfg(target_arch = "riscv32")]
     if D == 3 && MIRROR && STORE && SPLIT {
         // SAFETY: forwarded; the whole tile, row ends included, in one loop.
@@ -306,24 +349,24 @@ pub unsafe fn run_tile<
         }
         // SAFETY: one slot per tile row, as the caller promised.
         unsafe { end_row::<D, STORE>(y, &acc) };
-        y = y.wrapping_add(1);
+        y = y.wrapping_add(stride);
         if MIRROR {
             // SAFETY: as above, walking down from the mirror of row_base.
             unsafe { end_row::<D, STORE>(y_mirror, &mirror_acc) };
-            y_mirror = y_mirror.wrapping_sub(1);
+            y_mirror = y_mirror.wrapping_sub(stride);
         }
     }
 }
 
-/// A row's end: its sum `acc` stored into `*y` (`STORE`) or added to it.
+/// A row's end: its sum `acc` stored into the row at `y` (`STORE`) or added to it.
 ///
 /// # Safety
 ///
-/// `y` is a writable slot no one else accesses.
+/// `y` is a writable row of at least `D` sums no one else accesses.
 #[inline(always)]
-unsafe fn end_row<const D: usize, const STORE: bool>(y: *mut Sums, acc: &[i64; D]) {
+unsafe fn end_row<const D: usize, const STORE: bool>(y: *mut i64, acc: &[i64; D]) {
     // SAFETY: forwarded from the caller.
-    let out = unsafe { &mut *y };
+    let out = unsafe { &mut *y.cast::<[i64; D]>() };
     for d in 0..D {
         if STORE {
             out[d] = acc[d];
@@ -532,6 +575,20 @@ mod tests {
         }
     }
 
+    /// Kp's buffer seen one sum a row: row i is word i of the buffer (the first rows' words),
+    /// three a row: the rows themselves; too many rows panic.
+    #[test]
+    fn sum_rows_lay_kp_out_by_its_stride() {
+        let mut kp: Vec<Sums> = (0..4).map(|i| [10 * i, 10 * i + 1, 10 * i + 2]).collect();
+        let one: Vec<i64> = sum_rows::<1>(&mut kp, 12).iter().map(|r| r[0]).collect();
+        assert_eq!(one, [0, 1, 2, 10, 11, 12, 20, 21, 22, 30, 31, 32]);
+        sum_rows::<1>(&mut kp, 4)[3][0] = -1;
+        assert_eq!(kp[1], [-1, 11, 12]);
+        assert_eq!(sum_rows::<3>(&mut kp, 4)[2], [20, 21, 22]);
+        let over = std::panic::catch_unwind(move || sum_rows::<3>(&mut kp, 5).len());
+        assert!(over.is_err());
+    }
+
     /// Split sums of `terms` (value, p) as the firmware's loops form them: `mul(v, p)` and
     /// `mulh(v << 11, p)` summed with wrapping, then [`rebuild_split`].
     fn split_sum(terms: &[(i32, i32)]) -> i64 {
@@ -682,11 +739,17 @@ mod tests {
                     "case {i}, {directions} direction(s)"
                 );
             }
-            // One direction's p 4 bytes a node (`lane_words(1)`): the same first sums.
+            // One direction's p 4 bytes a node (`lane_words(1)`) and its Kp 8 bytes a row
+            // (`sum_words(1)`): the same first sums.
             let compact: Vec<[i32; 1]> = p.iter().map(|l| [l[0]]).collect();
+            let compact_kp: Vec<[i64; 1]> = kp.iter().map(|k| [k[0]]).collect();
             let want = p_kp_and_max(p, kp, 1);
             assert_eq!(p_kp_bounded(&compact, kp, 1), want, "case {i}, compact");
             assert_eq!(p_kp_and_max(&compact, kp, 1), want, "case {i}, compact");
+            let got = p_kp_bounded(&compact, &compact_kp, 1);
+            assert_eq!(got, want, "case {i}, compact Kp");
+            let got = p_kp_and_max(&compact, &compact_kp, 1);
+            assert_eq!(got, want, "case {i}, compact Kp");
         }
     }
 }

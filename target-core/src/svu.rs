@@ -81,8 +81,6 @@
 use deform_shared::protocol::MAX_DIRECTIONS;
 use deform_shared::qformat::ldexp;
 
-use crate::kernel::Sums;
-
 /// Mantissas produced by the SVU stay below 2^OUTPUT_BITS (the MVU's exactness needs < 2^30).
 pub const OUTPUT_BITS: i32 = 30;
 /// The output exponent keeps the bound on |a·u + b·y| below 2^BOUND_BITS units, leaving room
@@ -639,8 +637,14 @@ pub struct HartOut {
 }
 
 /// Pass R on one slice of direction `d`: r ← lin.term(narrow(Kp)) + lin.own(r); returns
-/// (Σr², exact, and the OR of the squares' high words).
-pub fn pass_r(r: &mut [i32], kp: &[Sums], d: usize, plan: PassR) -> (u128, u32) {
+/// (Σr², exact, and the OR of the squares' high words). Kp is `R` sums a row
+/// ([`crate::kernel::sum_words`]: 1 or 3).
+pub fn pass_r<const R: usize>(
+    r: &mut [i32],
+    kp: &[[i64; R]],
+    d: usize,
+    plan: PassR,
+) -> (u128, u32) {
     #[cfg(target_arch = "riscv32")]
     if let Some(out) = riscv::pass_r(r, kp, d, plan) {
         return out;
@@ -650,7 +654,12 @@ pub fn pass_r(r: &mut [i32], kp: &[Sums], d: usize, plan: PassR) -> (u128, u32) 
 
 /// The specification of pass R (the assembly in `riscv` must equal it bit for bit). The K·p
 /// term is rounded to nearest, r's own term (coefficient one) is a floored shift.
-pub fn portable_pass_r(r: &mut [i32], kp: &[Sums], d: usize, plan: PassR) -> (u128, u32) {
+pub fn portable_pass_r<const R: usize>(
+    r: &mut [i32],
+    kp: &[[i64; R]],
+    d: usize,
+    plan: PassR,
+) -> (u128, u32) {
     let (mult, narrow) = (plan.lin.term.mult, plan.narrow);
     // One loop per case, so that neither choice is made per element.
     match (narrow, plan.lin.own) {
@@ -664,9 +673,9 @@ pub fn portable_pass_r(r: &mut [i32], kp: &[Sums], d: usize, plan: PassR) -> (u1
 /// Pass R's loop for one narrowing of K·p and one own term. The K·p term has no shift of its
 /// own: the narrowing normalises it (`Lin::new` with `u_normalised`).
 #[inline(always)]
-fn r_loop(
+fn r_loop<const R: usize>(
     r: &mut [i32],
-    kp: &[Sums],
+    kp: &[[i64; R]],
     d: usize,
     mult: i32,
     narrow: Narrow,
@@ -1015,15 +1024,79 @@ mod riscv {
         };
     }
 
+    /// [`pass_r_blocks`] with Kp 8 bytes a row (one direction, [`crate::kernel::sum_words`]):
+    /// the same instructions, Kp's offsets a third of the 24-byte rows'.
+    macro_rules! pass_r_blocks_compact {
+        ($own:literal, $($args:ident),*) => {
+            pass_r_asm!(
+                [
+                    "5:\n",
+                    r_pair!($own, "0", "4", "8", "12", "0", "4", r_squares_first),
+                    r_pair!($own, "16", "20", "24", "28", "8", "12"),
+                    r_pair!($own, "32", "36", "40", "44", "16", "20"),
+                    r_pair!($own, "48", "52", "56", "60", "24", "28"),
+                    r_pair!($own, "64", "68", "72", "76", "32", "36"),
+                    r_pair!($own, "80", "84", "88", "92", "40", "44"),
+                    r_pair!($own, "96", "100", "104", "108", "48", "52"),
+                    r_pair!($own, "112", "116", "120", "124", "56", "60"),
+                    "addi {kp}, {kp}, 128\n",
+                    "addi {r}, {r}, 64\n",
+                    r_fold!(),
+                    "bltu {r}, {end}, 5b\n",
+                ],
+                $($args),*,
+                lo = out(reg) _,
+                hi = out(reg) _,
+            )
+        };
+    }
+
+    /// [`pass_r_quads`] with Kp 8 bytes a row.
+    macro_rules! pass_r_quads_compact {
+        ($own:literal, $($args:ident),*) => {
+            pass_r_asm!(
+                [
+                    "3:\n",
+                    "addi {blk}, {r}, 64\n",
+                    "bltu {blk}, {end}, 4f\n",
+                    "mv {blk}, {end}\n",
+                    "4:\n",
+                    r_pair!($own, "0", "4", "8", "12", "0", "4"),
+                    r_pair!($own, "16", "20", "24", "28", "8", "12"),
+                    "addi {kp}, {kp}, 32\n",
+                    "addi {r}, {r}, 16\n",
+                    "bltu {r}, {blk}, 4b\n",
+                    r_fold!(),
+                    "li {lo}, 0\n",
+                    "li {hi}, 0\n",
+                    "bltu {r}, {end}, 3b\n",
+                ],
+                $($args),*,
+                lo = inout(reg) 0u32 => _,
+                hi = inout(reg) 0u32 => _,
+                blk = out(reg) _,
+            )
+        };
+    }
+
     /// The assembly pass R for a right-narrowed K·p with r's own term; `None` leaves every
     /// other case to the portable loop.
-    pub fn pass_r(r: &mut [i32], kp: &[Sums], d: usize, plan: PassR) -> Option<(u128, u32)> {
+    pub fn pass_r<const R: usize>(
+        r: &mut [i32],
+        kp: &[[i64; R]],
+        d: usize,
+        plan: PassR,
+    ) -> Option<(u128, u32)> {
         let (Narrow::Right(s), Some(own)) = (plan.narrow, plan.lin.own) else {
             return None;
         };
         let n = r.len().min(kp.len());
         let quads = n & !3;
-        if quads == 0 || d >= MAX_DIRECTIONS || !(1..=31).contains(&s) {
+        if quads == 0 || d >= MAX_DIRECTIONS.min(R) || !(1..=31).contains(&s) {
+            return None;
+        }
+        // The loops below are written for the two layouts the solver uses.
+        if R != 1 && R != MAX_DIRECTIONS {
             return None;
         }
         let blocks = n & !(SQUARE_BLOCK - 1);
@@ -1034,18 +1107,29 @@ mod riscv {
         // Whole blocks first (the portable loop's chunks of 16), then the quads that are left
         // (the last chunk's whole quads; its last `len % 4` go to the portable loop).
         let (kp_rest, r_rest) = (
-            kp_ptr.wrapping_add(blocks * size_of::<Sums>()),
+            kp_ptr.wrapping_add(blocks * size_of::<[i64; R]>()),
             r_ptr.wrapping_add(blocks),
         );
         let (block_end, end) = (r_rest, r_ptr.wrapping_add(quads));
         let (k, left) = amount(own);
         macro_rules! both {
             ($own:literal) => {{
-                if blocks > 0 {
-                    pass_r_blocks!($own, kp_ptr, r_ptr, block_end, m, s, k, w0, w1, w2, or);
-                }
-                if quads > blocks {
-                    pass_r_quads!($own, kp_rest, r_rest, end, m, s, k, w0, w1, w2, or);
+                if R == 1 {
+                    if blocks > 0 {
+                        pass_r_blocks_compact!(
+                            $own, kp_ptr, r_ptr, block_end, m, s, k, w0, w1, w2, or
+                        );
+                    }
+                    if quads > blocks {
+                        pass_r_quads_compact!($own, kp_rest, r_rest, end, m, s, k, w0, w1, w2, or);
+                    }
+                } else {
+                    if blocks > 0 {
+                        pass_r_blocks!($own, kp_ptr, r_ptr, block_end, m, s, k, w0, w1, w2, or);
+                    }
+                    if quads > blocks {
+                        pass_r_quads!($own, kp_rest, r_rest, end, m, s, k, w0, w1, w2, or);
+                    }
                 }
             }};
         }

@@ -679,7 +679,8 @@ unsafe fn split_row3(
 /// As [`super::run_tile`] with `STORE` and `SPLIT` (`rows` ≥ 1, as validated tiles have).
 #[inline(never)]
 pub unsafe fn split_mirrored_tile3_store(tile: &super::TileRun) {
-    let y_end = tile.y.wrapping_add(tile.rows as usize);
+    // Kp is 24 bytes a row here: three directions take p's 16-byte lanes ([`super::sum_words`]).
+    let y_end = tile.y.wrapping_add(MAX_DIRECTIONS * tile.rows as usize);
     let mut st = [tile.y as usize, tile.y_mirror as usize, y_end as usize];
     // SAFETY: reads the tile's words and p[col_base + c], p[n − 1 − col_base − c]; writes
     // the tile's rows and mirror rows of y (the caller's promise) and `st`.

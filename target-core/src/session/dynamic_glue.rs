@@ -21,8 +21,23 @@ use crate::dynamics::{
     History, LiveDynamicError, ResidualPlan, RhsPlan, RhsSums, MAX_UNCHECKED,
 };
 use crate::exec::{share, slowest, SharedSlice};
+use crate::kernel::sum_rows;
 use crate::svu::{bound_of, bound_of_u64, magnitude_bits, Block, Lin, Narrow, Scalar};
 use crate::upper::Upper;
+
+/// Runs `$body` with `$r` bound, as a constant, to Kp's layout `$words` (i64 words a row, 1 or
+/// [`MAX_DIRECTIONS`]: [`cg::sum_words_for`]), as the step's K·u₀ laid Kp out.
+macro_rules! with_sum_words {
+    ($words:expr, |$r:ident| $body:expr) => {
+        if $words == 1 {
+            const $r: usize = 1;
+            $body
+        } else {
+            const $r: usize = MAX_DIRECTIONS;
+            $body
+        }
+    };
+}
 
 fn dynamic(e: DynamicError) -> ErrorCode {
     ErrorCode::Dynamic(e)
@@ -631,9 +646,13 @@ impl<E: Executor> Session<'_, E> {
     ) -> Result<(), ErrorCode> {
         let harts = self.pass_harts();
         let mut sums = [[RhsSums::default(); MAX_DIRECTIONS]; MAX_HARTS];
-        {
+        let words = cg::sum_words_for(&self.exec, steps.len());
+        with_sum_words!(words, |R| {
             let Storage { directions, kp, .. } = &mut self.store;
-            let kp = SharedSlice::new(kp.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?);
+            if kp.len() < n {
+                return Err(ErrorCode::ChunkTooLong);
+            }
+            let kp = SharedSlice::new(sum_rows::<R>(kp, n));
             let mut bs: [&mut [i32]; MAX_DIRECTIONS] = Default::default();
             let mut vs: [&[i32]; MAX_DIRECTIONS] = Default::default();
             for (d, v) in directions.iter_mut().enumerate() {
@@ -663,7 +682,7 @@ impl<E: Executor> Session<'_, E> {
             let counts = self.exec.run_measured(harts, &task);
             let critical = slowest(&counts[..harts]);
             phases.add(self.exec.now().since(t), critical);
-        }
+        });
         for (lane, step) in steps.iter_mut().enumerate() {
             for hart in &sums[..harts] {
                 let s = hart[lane];
@@ -679,9 +698,11 @@ impl<E: Executor> Session<'_, E> {
     /// couples, b₁t = S_tt·v₁t at its own row; d, Σb² and the ORs follow.
     fn tool_rows(&mut self, steps: &mut [Step], stash: &Stash) -> Result<(), ErrorCode> {
         let tools = self.dynamic.tools();
+        // Kp's rows as K·u₀ laid them out: row i's lane is word `words·i + lane`.
+        let words = cg::sum_words_for(&self.exec, steps.len());
         for (lane, step) in steps.iter_mut().enumerate() {
             let b = &mut self.store.directions[step.d].b;
-            let kp = &mut self.store.kp;
+            let kp = self.store.kp.as_flattened_mut();
             // Per tool node, its couplings' multipliers in b's units as fixed-point integers:
             // a raw value times one is a product and a rounded shift, no soft float per row.
             let e = step.plan.e;
@@ -727,8 +748,8 @@ impl<E: Executor> Session<'_, E> {
                 step.sums.bb = step.sums.bb - sq(formed) + sq(value);
                 step.sums.b_or |= magnitude_bits(value);
                 let d = step.plan.change(value, old[step.d]);
-                if let Some(k) = kp.get_mut(i) {
-                    k[lane] = d;
+                if let Some(k) = kp.get_mut(words * i + lane) {
+                    *k = d;
                 }
                 step.sums.d_or |= (d ^ (d >> 63)) as u64;
             }
@@ -1011,14 +1032,18 @@ impl<E: Executor> Session<'_, E> {
             return Ok(out);
         }
         let mut sums = [[(0u128, 0u32); MAX_DIRECTIONS]; MAX_HARTS];
-        {
+        let words = cg::sum_words_for(&self.exec, steps.len());
+        with_sum_words!(words, |R| {
             let Storage {
                 directions,
                 kp,
                 responses,
                 ..
             } = &mut self.store;
-            let kp = SharedSlice::new(kp.get_mut(..n).ok_or(ErrorCode::ChunkTooLong)?);
+            if kp.len() < n {
+                return Err(ErrorCode::ChunkTooLong);
+            }
+            let kp = SharedSlice::new(sum_rows::<R>(kp, n));
             let spare = SharedSlice::new(responses);
             let mut rs: [&mut [i32]; MAX_DIRECTIONS] = Default::default();
             for (d, v) in directions.iter_mut().enumerate() {
@@ -1057,7 +1082,7 @@ impl<E: Executor> Session<'_, E> {
             let counts = self.exec.run_measured(harts, &task);
             let critical = slowest(&counts[..harts]);
             phases.add(self.exec.now().since(t), critical);
-        }
+        });
         for (lane, step) in steps.iter().enumerate() {
             let Some(plan) = plans[lane] else { continue };
             let rr: u128 = sums[..harts].iter().map(|s| s[lane].0).sum();

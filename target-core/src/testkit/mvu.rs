@@ -312,22 +312,29 @@ fn rows_fit(m: &RandomMatrix) -> bool {
 /// The MVU phase by the portable kernel: every tile added into Kp (mirror rows included), then
 /// pᵀKp and the OR of |Kp| over the finished rows, for `directions` fused directions.
 pub fn reference_mvu_phase(m: &RandomMatrix, p: &[Lanes], directions: usize) -> MvuPhase {
-    mvu_phase_in::<4>(m, &p[..m.n], directions)
+    mvu_phase_in::<4, 3>(m, &p[..m.n], directions)
 }
 
-/// [`reference_mvu_phase`] for one direction with p laid out 4 bytes a node, as the solver
-/// lays it out for one direction without hardware MVUs ([`crate::kernel::lane_words`]): p's
-/// first lane only.
+/// [`reference_mvu_phase`] for one direction with p laid out 4 bytes a node and Kp 8 bytes a
+/// row, as the solver lays them out for one direction without hardware MVUs
+/// ([`crate::kernel::lane_words`], [`crate::kernel::sum_words`]): p's first lane only; Kp's
+/// rows are returned as [`Sums`] with the other lanes zero.
 pub fn compact_mvu_phase(m: &RandomMatrix, p: &[Lanes]) -> MvuPhase {
     let compact: Vec<[i32; 1]> = p[..m.n].iter().map(|l| [l[0]]).collect();
-    mvu_phase_in::<1>(m, &compact, 1)
+    mvu_phase_in::<1, 1>(m, &compact, 1)
 }
 
-/// The MVU phase by the portable kernel with p `S` i32 words a node.
-fn mvu_phase_in<const S: usize>(m: &RandomMatrix, p: &[[i32; S]], directions: usize) -> MvuPhase {
+/// The MVU phase by the portable kernel with p `S` i32 words a node and Kp `R` i64 words a row
+/// (the kernel's layouts: `R` is [`crate::kernel::sum_words`]`(S)`).
+fn mvu_phase_in<const S: usize, const R: usize>(
+    m: &RandomMatrix,
+    p: &[[i32; S]],
+    directions: usize,
+) -> MvuPhase {
     let n = m.n;
     assert!(p.len() >= n && (1..=MAX_DIRECTIONS.min(S)).contains(&directions));
-    let mut kp = vec![[0i64; MAX_DIRECTIONS]; n];
+    assert_eq!(R, crate::kernel::sum_words(S));
+    let mut kp = vec![[0i64; R]; n];
     let mut start = 0usize;
     for (i, t) in m.tiles.iter().enumerate() {
         let tile_words = &m.words[start..start + t.words as usize];
@@ -338,8 +345,8 @@ fn mvu_phase_in<const S: usize>(m: &RandomMatrix, p: &[[i32; S]], directions: us
             rows: t.rows,
             p_cols: p.as_ptr().wrapping_add(col_base).cast(),
             p_mirror_cols: p.as_ptr().wrapping_add(n - 1 - col_base).cast(),
-            y: kp.as_mut_ptr().wrapping_add(row_base),
-            y_mirror: kp.as_mut_ptr().wrapping_add(n - 1 - row_base),
+            y: kp.as_mut_ptr().wrapping_add(row_base).cast(),
+            y_mirror: kp.as_mut_ptr().wrapping_add(n - 1 - row_base).cast(),
         };
         // SAFETY: the tile was validated against n just above; p and kp hold n elements, so
         // every column, mirrored column, row and mirror row the tile reaches is in bounds, and
@@ -348,6 +355,10 @@ fn mvu_phase_in<const S: usize>(m: &RandomMatrix, p: &[[i32; S]], directions: us
         start += t.words as usize;
     }
     let (p_kp, kp_or) = p_kp_and_max(&p[..n], &kp, directions);
+    let kp = kp
+        .iter()
+        .map(|row| core::array::from_fn(|d| row.get(d).copied().unwrap_or(0)))
+        .collect();
     MvuPhase { kp, p_kp, kp_or }
 }
 
