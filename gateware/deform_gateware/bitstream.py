@@ -2,7 +2,7 @@
 
     python -m deform_gateware.bitstream --board ulx3s --mvus N --out DIR [--seed S]
         [--router router1|router2] [--no-pnr | --place-only] [--nodes 512|1024]
-        [--no-bus-bursting]
+        [--no-bus-bursting] [--global-reset]
 
 The SoC is litex-boards' ULX3S target on an LFE5U-85F: a VexRiscv ``imac`` at 50 MHz, the
 board's SDRAM as main RAM at 0x4000_0000, the stock LiteX BIOS in ROM (which loads the firmware
@@ -31,6 +31,13 @@ LiteX's L2 cache (``wishbone.Cache``) and LiteDRAM's ``LiteDRAMWishbone2Native``
 which reads CTI, so its line fills stay single accesses, as valid as before (a bursting master
 on a classic slave gets one ack per word). ``--no-bus-bursting`` builds the SoC without it (the
 earlier figures).
+
+``--global-reset`` resets the MVU array's registers from the system reset through a DCCA, the
+ECP5's global clock buffer, so that nextpnr routes that reset on a global network as it does the
+clocks (``reset_on_global``), not through the general routing to 19,127 flip-flops (4 MVUs).
+Measured in session 12 (docs/PERFORMANCE.md, "4 MVUs routed, session 12"): 12,609 fewer arcs to
+route and a higher estimate after placement, but the 4-MVU SoC still did not route in the time
+there was, so it is not the default. report.json's ``global_reset`` says which.
 
 nextpnr routes with its own default, ``router1``, or with ``--router router2``; the report names
 the one used. On the SoC without MVUs router2 took 33 s against 319 and reached 42.9 MHz against
@@ -97,7 +104,7 @@ def capacity(mvus, nodes=None):
     return words, tiles, rows
 
 
-def ulx3s_soc(mvus, nodes=None, bus_bursting=True):
+def ulx3s_soc(mvus, nodes=None, bus_bursting=True, global_reset=False):
     from litex_boards.targets.radiona_ulx3s import BaseSoC
     soc = BaseSoC(device="LFE5U-85F", revision="2.0", toolchain="trellis",
                   sys_clk_freq=SYS_CLK_FREQ, cpu_type="vexriscv", cpu_variant="imac",
@@ -105,7 +112,31 @@ def ulx3s_soc(mvus, nodes=None, bus_bursting=True):
                   with_led_chaser=False, bus_bursting=bus_bursting)
     words, tiles, nodes = capacity(mvus, nodes)
     add_to_soc(soc, mvus, words=words, tiles=tiles, nodes=nodes, primitive=True)
+    if global_reset:
+        reset_on_global(soc)
     return soc
+
+
+def reset_on_global(soc):
+    """The MVU array's reset through a DCCA, the ECP5's global clock buffer, so that nextpnr
+    routes it on a global network, as it does the clocks, and not in the fabric.
+
+    LiteX resets every register of the system clock domain synchronously from one flip-flop
+    (the CRG's reset synchroniser), and nextpnr-ecp5 promotes only clocks to its global
+    networks. With four MVUs that reset net reaches 19,929 pins (19,872 of them flip-flops'
+    LSR; 19,127 the array's), from one driver to every corner of the device through the
+    general routing. Here the array runs in a clock domain
+    of its own, ``mvu``: the same clock (``sys``'s, one net), and ``sys``'s reset through a
+    DCCA (clock enable tied high), which nextpnr places on a global network that reaches every
+    tile's LSR multiplexers. The logic is unchanged: the same clock, the same synchronous
+    reset, a buffer's delay later (nextpnr times that path as any other). Only this board's
+    build does it: the simulated SoCs keep the array in ``sys``."""
+    from migen import ClockDomain, ClockDomainsRenamer, ClockSignal, Instance, ResetSignal
+    cd = ClockDomain("mvu")
+    soc.clock_domains += cd
+    soc.comb += cd.clk.eq(ClockSignal("sys"))
+    soc.specials += Instance("DCCA", i_CLKI=ResetSignal("sys"), i_CE=1, o_CLKO=cd.rst)
+    ClockDomainsRenamer("mvu")(soc.mvus)
 
 
 def yosys_cells(rpt):
@@ -179,7 +210,8 @@ def build(args, out):
     stages = {}
     log("--> LiteX: the SoC, its BIOS, the Verilog and the tools' scripts")
     started = time.monotonic()
-    soc = ulx3s_soc(args.mvus, args.nodes, bus_bursting=not args.no_bus_bursting)
+    soc = ulx3s_soc(args.mvus, args.nodes, bus_bursting=not args.no_bus_bursting,
+                    global_reset=args.global_reset)
     gateware = os.path.join(out, "gateware")
     name = soc.platform.name
     bitstream = os.path.join(gateware, name + ".bit")
@@ -195,7 +227,8 @@ def build(args, out):
     stages["yosys"] = run_stage("yosys", tool_argv(toolchain._yosys.get_yosys_call("script")),
                                 gateware, "yosys.log")
     report = dict(board=args.board, mvus=args.mvus, seed=args.seed, router=args.router,
-                  bus_bursting=not args.no_bus_bursting, commit=commit,
+                  bus_bursting=not args.no_bus_bursting, global_reset=args.global_reset,
+                  commit=commit,
                   yosys=yosys_cells(os.path.join(gateware, name + ".rpt")), pnr=None,
                   bitstream=None, stages=stages)
     report.update(zip(("words", "tiles", "nodes"), capacity(args.mvus, args.nodes)))
@@ -229,7 +262,8 @@ def build(args, out):
     return report
 
 
-def main():
+def arguments():
+    """The command line's parser."""
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--board", choices=BOARDS, default="ulx3s")
@@ -254,7 +288,14 @@ def main():
                             "settles whether the design fits and gives nextpnr's Fmax estimate "
                             "after placement (not a routed Fmax), where routing a big SoC takes "
                             "hours; no bitstream")
-    args = parser.parse_args()
+    parser.add_argument("--global-reset", action="store_true",
+                        help="the MVU array's reset on a global network through a DCCA "
+                             "(reset_on_global), not in the general routing")
+    return parser
+
+
+def main():
+    args = arguments().parse_args()
     out = os.path.abspath(args.out)
     if out.startswith("/tmp/"):
         raise SystemExit("--out must not be under /tmp (YoWASP's sandbox has its own /tmp)")

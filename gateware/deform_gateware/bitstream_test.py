@@ -132,6 +132,57 @@ class PlaceOnlyTest(unittest.TestCase):
                          ["nextpnr-ecp5", "--no-route"])
 
 
+class ArgumentsTest(unittest.TestCase):
+    def test_the_reset_is_in_the_fabric_unless_asked_otherwise(self):
+        self.assertFalse(bitstream.arguments().parse_args(["--mvus", "4", "--out", "o"])
+                         .global_reset)
+        args = bitstream.arguments().parse_args(["--mvus", "4", "--out", "o", "--global-reset",
+                                                 "--nodes", "512"])
+        self.assertEqual((args.global_reset, args.nodes, args.router), (True, 512, "router1"))
+
+    def test_place_only_and_no_pnr_exclude_each_other(self):
+        with self.assertRaises(SystemExit):
+            bitstream.arguments().parse_args(["--mvus", "4", "--out", "o", "--no-pnr",
+                                              "--place-only"])
+
+
+class ResetOnGlobalTest(unittest.TestCase):
+    """The array in a domain of its own: the system clock, the system reset through a DCCA."""
+
+    def soc(self, mvus):
+        from migen import Module, ClockDomain
+        from deform_gateware.mvu_array import MvuArray
+
+        soc = Module()
+        soc.clock_domains.cd_sys = ClockDomain("sys")
+        soc.submodules.mvus = MvuArray(mvus, words=64, tiles=4, nodes=16, primitive=True)
+        return soc
+
+    def test_every_register_of_the_array_resets_from_the_dcca(self):
+        from migen import ClockSignal, ResetSignal
+        soc = self.soc(1)
+        bitstream.reset_on_global(soc)
+        fragment = soc.get_fragment()
+        self.assertEqual(set(fragment.sync), {"mvu"})
+        dccas = [s for s in fragment.specials if getattr(s, "of", None) == "DCCA"]
+        self.assertEqual(len(dccas), 1)
+        items = {item.name: getattr(item, "expr", None) for item in dccas[0].items}
+        self.assertIsInstance(items["CLKI"], ResetSignal)
+        self.assertEqual(items["CLKI"].cd, "sys")
+        mvu = [cd for cd in fragment.clock_domains if cd.name == "mvu"]
+        self.assertEqual(len(mvu), 1)
+        self.assertIs(items["CLKO"], mvu[0].rst)
+        # The block RAMs and multipliers are clocked in the new domain, on the same clock.
+        clocks = {item.expr.cd for s in fragment.specials if getattr(s, "of", None) in
+                  ("DP16KD", "MULT18X18D") for item in s.items
+                  if isinstance(getattr(item, "expr", None), ClockSignal)}
+        self.assertEqual(clocks, {"mvu"})
+
+    def test_without_it_the_array_stays_in_sys(self):
+        fragment = self.soc(1).get_fragment()
+        self.assertEqual(set(fragment.sync), {"sys"})
+
+
 class StageTest(unittest.TestCase):
     def test_the_tool_comes_from_yowasp(self):
         argv = bitstream.tool_argv("yosys  -l top.rpt top.ys")

@@ -253,6 +253,10 @@ pub struct SocReport {
     pub bitstream: Option<PathBuf>,
     /// Each stage run (litex, yosys, nextpnr, ecppack) with its seconds.
     pub stages: std::collections::BTreeMap<String, f64>,
+    /// The MVU array's reset on a global network (a DCCA, `--global-reset`); builds gathered
+    /// before it was recorded had it in the general routing.
+    #[serde(default)]
+    pub global_reset: bool,
     /// Each MVU's capacity: words, tiles, rows.
     pub words: u64,
     pub tiles: u64,
@@ -376,6 +380,9 @@ pub struct SocBuild {
     /// Stop after placement (nextpnr's `--no-route`): the use of the device and nextpnr's Fmax
     /// estimate after placement, no bitstream.
     pub place_only: bool,
+    /// The MVU array's reset on a global network through a DCCA (bitstream.py's
+    /// `--global-reset`), not in the general routing.
+    pub global_reset: bool,
 }
 
 /// Builds deform's SoC as `build` says into a bitstream in `out` (see
@@ -401,6 +408,9 @@ pub fn build_bitstream(build: &SocBuild, out: &Path) -> Result<SocReport, Gatewa
     }
     if build.place_only {
         args.push("--place-only".into());
+    }
+    if build.global_reset {
+        args.push("--global-reset".into());
     }
     run_report("the bitstream build", "deform_gateware.bitstream", &args)
 }

@@ -31,7 +31,8 @@ const LFE5U_85F_MULTIPLIERS: u64 = 156;
 
 pub const USAGE: &str = "\
   bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--router router1|router2]
-            [--nodes 512|1024] [--no-pnr | --place-only | --report-only]
+            [--nodes 512|1024] [--global-reset]
+            [--no-pnr | --place-only | --report-only]
                      build deform's SoC with each number of hardware MVUs, one at a time,
                      into an ECP5 bitstream (YoWASP Yosys, nextpnr-ecp5, ecppack; each stage
                      printed with its time) in target/bitstream/BOARD-<N>mvu/, and gather the
@@ -44,7 +45,13 @@ pub const USAGE: &str = "\
                      and Kp (default 1024 up to 4 MVUs, else 512; at 512 Kp and
                      p's row copy take the block RAM's 36-bit mode: 24 DP16KD per
                      MVU, not 32; the firmware runs a larger model's MVU phase in
-                     software, as the SoC's rows say); --no-pnr:
+                     software, as the SoC's rows say); --global-reset: the
+                     MVU array's reset through a DCCA onto a global network,
+                     as the clocks go, not through the general routing (19,127
+                     flip-flops at 4 MVUs; 12,609 fewer arcs to route, and
+                     still not routed in session 12: docs/PERFORMANCE.md); the
+                     report marks such builds and compares them only with
+                     their like; --no-pnr:
                      stop after Yosys (cell counts only: no Fmax, no bitstream);
                      --place-only: pack and place, do not route (nextpnr's
                      --no-route): the placement settles whether the SoC fits
@@ -69,6 +76,8 @@ pub enum Request {
         no_pnr: bool,
         /// Stop after placement: the use of the device and nextpnr's estimate, not routed.
         place_only: bool,
+        /// The MVU array's reset on a global network (a DCCA), not in the general routing.
+        global_reset: bool,
     },
     /// Rewrite report.md and the plot from the gathered report.json.
     Report {
@@ -86,6 +95,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
     let mut place_only = false;
     let mut nodes = None;
     let mut report_only = false;
+    let mut global_reset = false;
     let mut it = args.iter();
     while let Some(flag) = it.next() {
         let mut value = || {
@@ -97,6 +107,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
             "--no-pnr" => no_pnr = true,
             "--place-only" => place_only = true,
             "--report-only" => report_only = true,
+            "--global-reset" => global_reset = true,
             "--board" => board = Some(value()?.clone()),
             "--mvus" => mvus = parse_mvus(value()?)?,
             "--seed" => {
@@ -127,10 +138,10 @@ pub fn parse(args: &[String]) -> Result<Request> {
         );
     }
     if report_only {
-        if no_pnr || place_only || nodes.is_some() {
+        if no_pnr || place_only || nodes.is_some() || global_reset {
             bail!(
-                "--report-only builds nothing: --no-pnr, --place-only and --nodes do not go \
-                 with it"
+                "--report-only builds nothing: --no-pnr, --place-only, --nodes and \
+                 --global-reset do not go with it"
             );
         }
         return Ok(Request::Report { board });
@@ -149,6 +160,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
         nodes,
         no_pnr,
         place_only,
+        global_reset,
     })
 }
 
@@ -172,7 +184,7 @@ fn parse_mvus(value: &str) -> Result<Vec<u32>> {
 
 /// Runs `cargo xtask bitstream ARGS`.
 pub fn run(args: &[String], workspace: &Path) -> Result<()> {
-    let (board, mvus, seed, router, nodes, no_pnr, place_only) = match parse(args)? {
+    let (board, mvus, seed, router, nodes, no_pnr, place_only, global_reset) = match parse(args)? {
         Request::Help => {
             println!("usage: cargo xtask\n{USAGE}");
             return Ok(());
@@ -195,7 +207,17 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
             nodes,
             no_pnr,
             place_only,
-        } => (board, mvus, seed, router, nodes, no_pnr, place_only),
+            global_reset,
+        } => (
+            board,
+            mvus,
+            seed,
+            router,
+            nodes,
+            no_pnr,
+            place_only,
+            global_reset,
+        ),
     };
     check_synthesis_venv(&litex_dir())?;
     let dir = workspace.join("target/bitstream").join(&board);
@@ -203,12 +225,17 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
     // Fail before the first build, not an hour in, if the gathered report cannot be read.
     let mut builds = read_builds(&dir.join("report.json"))?;
     for (i, &n) in mvus.iter().enumerate() {
-        let out = build_dir(workspace, &board, n, nodes);
+        let out = build_dir(workspace, &board, n, nodes, global_reset);
         eprintln!(
-            "\n==> [{}/{}] {board}: the SoC with {n} MVU(s){}, seed {seed}{} ({})",
+            "\n==> [{}/{}] {board}: the SoC with {n} MVU(s){}{}, seed {seed}{} ({})",
             i + 1,
             mvus.len(),
             nodes.map(|r| format!(" of {r} rows")).unwrap_or_default(),
+            if global_reset {
+                ", its reset on a global network"
+            } else {
+                ""
+            },
             if no_pnr {
                 ", Yosys only".to_string()
             } else if place_only {
@@ -227,6 +254,7 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
             nodes,
             no_pnr,
             place_only,
+            global_reset,
         };
         let report =
             build_bitstream(&build, &out).with_context(|| format!("building the {n}-MVU SoC"))?;
@@ -265,10 +293,10 @@ fn depth(r: &SocReport) -> (u8, Option<Router>) {
     }
 }
 
-/// Adds `report` to `builds`, in place of an earlier build of the same count, seed, rows per MVU
-/// and depth (and router, for a routed build).
+/// Adds `report` to `builds`, in place of an earlier build of the same count, seed, rows per MVU,
+/// reset network and depth (and router, for a routed build).
 fn record(builds: &mut Vec<SocReport>, report: SocReport) {
-    let key = |r: &SocReport| (r.mvus, r.seed, r.nodes, depth(r));
+    let key = |r: &SocReport| (r.mvus, r.seed, r.nodes, r.global_reset, depth(r));
     builds.retain(|b| key(b) != key(&report));
     builds.push(report);
     builds.sort_by_key(key);
@@ -326,7 +354,9 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
          Yosys's cells (LUT4 and CCU2C apart; nextpnr counts both as TRELLIS_COMB), nextpnr's \
          use of the device and the system clock's Fmax (asked: 50 MHz). \"vs. 0 MVUs\": the \
          Fmax against the SoC without MVUs placed with the same seed and routed by the same \
-         router; for a build placed and not routed (--place-only), nextpnr's estimate after \
+         router, with the MVU array's reset on the same network (in the fabric, or on a \
+         global one: marked so in the gateware column); for a build placed and not routed \
+         (--place-only), nextpnr's estimate after \
          placement, against the SoC without MVUs placed likewise: an estimate, not a routed \
          Fmax.\n\n\
          | MVUs | seed | router | LUT4 | CCU2C | FF | MULT18X18D | DP16KD | placed: COMB / FF / DP16KD of the device | Fmax (MHz) | vs. 0 MVUs | words / tiles / rows per MVU | stages (s) | gateware |\n\
@@ -336,7 +366,13 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
         let y = &b.yosys;
         let baseline = builds
             .iter()
-            .find(|r| r.mvus == 0 && r.seed == b.seed && r.pnr.is_some() && depth(r) == depth(b))
+            .find(|r| {
+                r.mvus == 0
+                    && r.seed == b.seed
+                    && r.global_reset == b.global_reset
+                    && r.pnr.is_some()
+                    && depth(r) == depth(b)
+            })
             .and_then(|r| r.pnr.as_ref());
         let (placed, fmax, versus) = match (&b.pnr, baseline) {
             (None, _) => ("—".into(), "not placed (Yosys only)".into(), "—".into()),
@@ -372,7 +408,7 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
             .collect::<Vec<_>>()
             .join(", ");
         md += &format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {placed} | {fmax} | {versus} | {} / {} / {} | {stages} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {placed} | {fmax} | {versus} | {} / {} / {} | {stages} | {}{} |\n",
             b.mvus,
             b.seed,
             match &b.pnr {
@@ -389,18 +425,30 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
             b.tiles,
             b.nodes,
             b.commit.as_deref().unwrap_or("?"),
+            if b.global_reset {
+                " (reset on a global network)"
+            } else {
+                ""
+            },
         );
     }
     md
 }
 
 /// Where a build of `mvus` MVUs lands: `target/bitstream/BOARD-<N>mvu`, `-<R>rows` after it
-/// when the rows per MVU were asked for.
-pub fn build_dir(workspace: &Path, board: &str, mvus: u32, nodes: Option<u32>) -> PathBuf {
+/// when the rows per MVU were asked for, `-global-reset` with the reset on a global network.
+pub fn build_dir(
+    workspace: &Path,
+    board: &str,
+    mvus: u32,
+    nodes: Option<u32>,
+    global_reset: bool,
+) -> PathBuf {
     let rows = nodes.map(|r| format!("-{r}rows")).unwrap_or_default();
+    let reset = if global_reset { "-global-reset" } else { "" };
     workspace
         .join("target/bitstream")
-        .join(format!("{board}-{mvus}mvu{rows}"))
+        .join(format!("{board}-{mvus}mvu{rows}{reset}"))
 }
 
 #[cfg(test)]
@@ -442,7 +490,8 @@ mod tests {
                 router: Router::Router1,
                 nodes: None,
                 no_pnr: false,
-                place_only: false
+                place_only: false,
+                global_reset: false
             }
         );
         assert_eq!(
@@ -457,7 +506,8 @@ mod tests {
                 router: Router::Router2,
                 nodes: Some(512),
                 no_pnr: true,
-                place_only: false
+                place_only: false,
+                global_reset: false
             }
         );
         assert_eq!(
@@ -469,7 +519,21 @@ mod tests {
                 router: Router::Router1,
                 nodes: Some(512),
                 no_pnr: false,
-                place_only: true
+                place_only: true,
+                global_reset: false
+            }
+        );
+        assert_eq!(
+            parse(&args("--board ulx3s --mvus 0,4 --nodes 512 --global-reset")).unwrap(),
+            Request::Build {
+                board: "ulx3s".into(),
+                mvus: vec![0, 4],
+                seed: 1,
+                router: Router::Router1,
+                nodes: Some(512),
+                no_pnr: false,
+                place_only: false,
+                global_reset: true
             }
         );
         assert_eq!(parse(&args("--help")).unwrap(), Request::Help);
@@ -499,6 +563,7 @@ mod tests {
         assert!(error("--board ulx3s --report-only --no-pnr").contains("do not go with it"));
         assert!(error("--board ulx3s --report-only --nodes 512").contains("do not go with it"));
         assert!(error("--board ulx3s --report-only --place-only").contains("do not go with it"));
+        assert!(error("--board ulx3s --report-only --global-reset").contains("do not go with it"));
         assert!(error("--board ulx3s --place-only --no-pnr").contains("one or the other"));
         assert!(error("--board ulx3s --place-only --router router2")
             .contains("--place-only does not route: --router does not go with it"));
@@ -542,6 +607,7 @@ mod tests {
             }),
             bitstream: None,
             stages: [("yosys".to_string(), 12.0)].into_iter().collect(),
+            global_reset: false,
             words: 4096,
             tiles: 256,
             nodes: 1024,
@@ -638,13 +704,46 @@ mod tests {
     fn a_build_with_rows_asked_for_lands_beside_the_default() {
         let ws = Path::new("/w");
         assert_eq!(
-            build_dir(ws, "ulx3s", 4, None),
+            build_dir(ws, "ulx3s", 4, None, false),
             Path::new("/w/target/bitstream/ulx3s-4mvu")
         );
         assert_eq!(
-            build_dir(ws, "ulx3s", 4, Some(512)),
+            build_dir(ws, "ulx3s", 4, Some(512), false),
             Path::new("/w/target/bitstream/ulx3s-4mvu-512rows")
         );
+        assert_eq!(
+            build_dir(ws, "ulx3s", 4, Some(512), true),
+            Path::new("/w/target/bitstream/ulx3s-4mvu-512rows-global-reset")
+        );
+    }
+
+    /// A build with the array's reset on a global network is a row of its own, compared only
+    /// with a 0-MVU build whose reset was on one too; reports from before it was recorded read
+    /// as builds with the reset in the fabric.
+    #[test]
+    fn the_reset_network_keeps_builds_apart() {
+        let mut builds = Vec::new();
+        record(&mut builds, build(0, 1, Some(50.0)));
+        record(&mut builds, build(4, 1, Some(45.0)));
+        let mut global = build(4, 1, Some(40.0));
+        global.global_reset = true;
+        record(&mut builds, global.clone());
+        assert_eq!(builds.len(), 3);
+        let md = markdown("ulx3s", &builds);
+        assert!(md.contains("| 45.0 | -10.0 % |"), "{md}");
+        assert!(
+            md.contains("| 40.0 | — |") && md.contains("abc (reset on a global network) |"),
+            "{md}"
+        );
+        let mut global_baseline = build(0, 1, Some(40.0));
+        global_baseline.global_reset = true;
+        record(&mut builds, global_baseline);
+        let md = markdown("ulx3s", &builds);
+        assert!(md.contains("| 40.0 | +0.0 % |"), "{md}");
+        let mut old = serde_json::to_value(&global).unwrap();
+        old.as_object_mut().unwrap().remove("global_reset");
+        let old: SocReport = serde_json::from_value(old).unwrap();
+        assert!(!old.global_reset);
     }
 
     #[test]
