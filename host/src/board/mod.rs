@@ -260,8 +260,8 @@ impl Board {
         })
     }
 
-    /// Bytes this board's link has moved so far, both ways (framing and retransmissions
-    /// included): readings apart give a message's or a step's cost on the line.
+    /// Bytes this board's link has moved so far for its messages, both ways (see
+    /// [`WireBytes`]): readings apart give a message's or a step's cost on the line.
     pub fn wire(&self) -> WireBytes {
         WireBytes::of(&self.target.stats())
     }
@@ -295,8 +295,10 @@ impl Board {
     }
 }
 
-/// Bytes moved on a board's line, as the link counts them: every byte written to and read from
-/// the port, retransmissions and framing included.
+/// Bytes a board's line carried for the messages, framing included: every frame's first copy
+/// each way. Retransmissions, the repeats they draw (duplicate replies and acknowledgements),
+/// NAKs, noise and corrupt frames are left out, so that a message's or a frame's cost is a property of the
+/// protocol and not of how loaded the host was or how noisy the line; [`LinkStats`] counts them.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct WireBytes {
     /// Host → target.
@@ -309,8 +311,8 @@ impl WireBytes {
     /// The byte counts in a link's statistics.
     pub fn of(stats: &LinkStats) -> WireBytes {
         WireBytes {
-            sent: stats.bytes_sent,
-            received: stats.bytes_received,
+            sent: stats.bytes_sent - stats.bytes_resent,
+            received: stats.bytes_received_clean,
         }
     }
 

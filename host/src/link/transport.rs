@@ -119,6 +119,11 @@ pub struct LinkStats {
     pub bytes_resent: u64,
     /// Bytes read from the port.
     pub bytes_received: u64,
+    /// Of those, bytes of the frames that a prompt, clean line carries: each reply,
+    /// acknowledgement and notice once. The rest is what a loaded host or a noisy line added:
+    /// noise, corrupt frames, NAKs, and the duplicate replies and repeated acknowledgements
+    /// that retransmissions draw.
+    pub bytes_received_clean: u64,
     /// Notices (firmware logs) received, and how many the numbering says were lost.
     pub notices: u64,
     pub notices_lost: u64,
@@ -434,7 +439,13 @@ impl<P: Port> Link<P> {
         self.held += held_past(wake);
         let progressed = match frame {
             None => false,
-            Some(up) => self.on_frame(up, &mut run.window)?,
+            Some((up, bytes)) => {
+                let (progressed, repeat) = self.on_frame(up, &mut run.window)?;
+                if !repeat {
+                    self.stats.bytes_received_clean += bytes as u64;
+                }
+                progressed
+            }
         };
         let held = std::mem::take(&mut self.held);
         run.postpone(held);
@@ -551,32 +562,43 @@ impl<P: Port> Link<P> {
         Ok(())
     }
 
-    /// Takes one frame from the target; whether it acknowledged anything new (progress).
-    fn on_frame(&mut self, up: Uplink, window: &mut VecDeque<InFlight>) -> Result<bool, LinkError> {
-        match up {
-            Uplink::Reply { seq, body } => return self.on_reply(seq, body, window),
-            Uplink::Ack { seq } => {
-                if let Some(entry) = window.iter_mut().find(|e| e.seq == seq) {
-                    let new = entry.accepted.is_none();
-                    entry.accepted.get_or_insert_with(Instant::now);
-                    return Ok(new);
+    /// Takes one frame from the target: whether it acknowledged anything new (progress), and
+    /// whether it was a repeat that a prompt, clean line would not have carried.
+    fn on_frame(
+        &mut self,
+        up: Uplink,
+        window: &mut VecDeque<InFlight>,
+    ) -> Result<(bool, bool), LinkError> {
+        let stale = self.stats.stale_answers;
+        let progressed = match up {
+            Uplink::Reply { seq, body } => self.on_reply(seq, body, window)?,
+            Uplink::Ack { seq } => match window.iter_mut().find(|e| e.seq == seq) {
+                Some(entry) if entry.accepted.is_none() => {
+                    entry.accepted = Some(Instant::now());
+                    true
                 }
-            }
-            Uplink::Nak { expected } => return self.on_nak(expected, window),
+                // Accepted before, or no longer awaited: the answer to a retransmission.
+                _ => return Ok((false, true)),
+            },
+            Uplink::Nak { expected } => return Ok((self.on_nak(expected, window)?, true)),
             Uplink::NotSynced { seq } => {
                 if window.iter().any(|e| e.seq == seq) {
                     return Err(LinkError::TargetReset);
                 }
                 self.stats.stale_answers += 1;
+                false
             }
-            Uplink::Notice { seq, body } => self.on_notice(seq, body),
+            Uplink::Notice { seq, body } => {
+                self.on_notice(seq, body);
+                false
+            }
             Uplink::Panic { message } => {
                 return Err(LinkError::TargetPanicked {
                     message: message.to_string(),
                 })
             }
-        }
-        Ok(false)
+        };
+        Ok((progressed, self.stats.stale_answers > stale))
     }
 
     /// A reply: delivered to its request, and an acknowledgement of every request before it.
@@ -785,7 +807,8 @@ impl<P: Port> Link<P> {
 
     /// The next well-formed frame, or `Nothing` once `deadline` passes (or the port's read
     /// returned nothing). Corrupt frames are counted and skipped.
-    fn receive(&mut self, deadline: Instant) -> Result<Option<Uplink>, LinkError> {
+    /// The frame comes with its length on the line (its encoded bytes and the delimiter).
+    fn receive(&mut self, deadline: Instant) -> Result<Option<(Uplink, usize)>, LinkError> {
         loop {
             let stats = &mut self.stats;
             let event = self
@@ -794,12 +817,12 @@ impl<P: Port> Link<P> {
                     &mut self.port,
                     deadline,
                     |n| stats.bytes_received += n as u64,
-                    |body| frame::decode::<Uplink>(body),
+                    |body| (body.len() + 1, frame::decode::<Uplink>(body)),
                 )
                 .map_err(io_error)?;
             match event {
-                FrameEvent::Frame(Ok(up)) => return Ok(Some(up)),
-                FrameEvent::Frame(Err(e)) => {
+                FrameEvent::Frame((bytes, Ok(up))) => return Ok(Some((up, bytes))),
+                FrameEvent::Frame((_, Err(e))) => {
                     self.stats.corrupt_frames += 1;
                     if e == deform_shared::frame::FrameError::Message {
                         self.stats.undecodable += 1;

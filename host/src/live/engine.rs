@@ -114,6 +114,12 @@ pub trait Engine {
     fn resets(&self) -> u32 {
         0
     }
+
+    /// Frames the host sent again so far (a loaded host or a noisy line): the byte counts
+    /// leave them out, so the report says how many there were.
+    fn retransmits(&self) -> u64 {
+        0
+    }
 }
 
 /// max over directions of max |a − b|, relative to `scale` (a tiny scale counts as 1e-308).

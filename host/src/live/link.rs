@@ -126,6 +126,11 @@ impl<'a, P: Port> LiveLink<'a, P> {
         WireBytes::of(&self.target.stats())
     }
 
+    /// Frames the link sent again so far.
+    pub fn retransmits(&self) -> u64 {
+        self.target.stats().retransmits
+    }
+
     fn solve_timeout(&self) -> Duration {
         self.target.timeouts().solve
     }

@@ -96,6 +96,10 @@ impl<P: Port> Engine for TargetEngine<'_, P> {
         self.link.resets
     }
 
+    fn retransmits(&self) -> u64 {
+        self.link.retransmits()
+    }
+
     fn model_report(&self) -> Option<deform_shared::live::ModelReport> {
         Some(self.link.model)
     }

@@ -104,14 +104,15 @@ pub struct Report {
     pub bytes_up_per_frame: f64,
     /// Median over the frames for `force` (a frame's answer); one field frame for `field`.
     pub bytes_down_per_frame: DownBytes,
-    /// The largest frame up and down: retransmissions included (a slow first frame outlasts
-    /// the host's retransmit timer).
+    /// The largest frame up and down, each frame's first copy (as all byte counts here).
     pub bytes_up_per_frame_max: u64,
     pub bytes_down_per_frame_max: u64,
     pub bytes_up_per_force_query: f64,
     pub bytes_down_per_force_query: f64,
     pub link_rates: Vec<LinkRate>,
     pub target_resets: u32,
+    /// Frames the host sent again (a loaded host or a noisy line), left out of the bytes.
+    pub link_retransmits: u64,
     /// Paced sessions only.
     pub lag: Option<Lag>,
     /// The tool's kind: "displacement" or "force".
@@ -127,6 +128,7 @@ pub struct Session {
     pub model_instructions: u64,
     pub model_iterations: u32,
     pub resets: u32,
+    pub retransmits: u64,
     pub paced: bool,
     pub kind: ToolKind,
     /// The field frames' node selection.
@@ -205,6 +207,7 @@ pub fn report(session: Session, records: &[Frame], summary: &Summary) -> Report 
         bytes_down_per_force_query: force_bytes.received as f64,
         link_rates,
         target_resets: session.resets,
+        link_retransmits: session.retransmits,
         lag: session.paced.then_some(summary.lag),
         tool: session.kind.name(),
         answer: match session.kind {
@@ -334,6 +337,14 @@ impl Report {
                 out,
                 "pace        {} frame slot(s) dropped, lag up to {:.3} s",
                 lag.frames_dropped, lag.lag_max_s
+            )
+            .unwrap();
+        }
+        if self.link_retransmits > 0 {
+            writeln!(
+                out,
+                "resent      {} frame(s) sent again (a loaded host or a noisy line), not in the bytes above",
+                self.link_retransmits
             )
             .unwrap();
         }
@@ -482,6 +493,7 @@ impl SessionReport {
             model_instructions: built.map_or(0, |m| m.cycles.saturating_sub(m.stall_cycles)),
             model_iterations: built.map_or(0, |m| m.iterations),
             resets: engine.resets(),
+            retransmits: engine.retransmits(),
             paced: options.pace.is_some(),
             kind: setup.kind,
             field: options.field(),

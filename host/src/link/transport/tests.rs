@@ -85,6 +85,13 @@ fn noise_and_stale_answers_before_the_answer_are_skipped() {
     let stats = link.stats();
     assert_eq!(stats.corrupt_frames, 3, "{stats:?}");
     assert_eq!(stats.stale_answers, 1, "{stats:?}");
+    // Of all that, only the answer is what a clean line carries.
+    let answer = answer_frame(0, Response::Hello(info())).len() as u64;
+    assert!(stats.bytes_received > 2 * MAX_FRAME_LEN as u64, "{stats:?}");
+    assert!(
+        (answer - 2..=answer + 2).contains(&stats.bytes_received_clean),
+        "{stats:?}"
+    );
 }
 
 #[test]
@@ -203,6 +210,14 @@ fn a_nak_makes_the_host_resend_at_once() {
     assert_eq!(link.stats().naks, 1);
     assert_eq!(link.stats().retransmits, 1);
     assert_eq!(link.stats().timeouts, 0);
+    // The NAK and the resent request are not the message's cost.
+    let stats = link.stats();
+    assert_eq!(stats.bytes_resent * 2, stats.bytes_sent, "{stats:?}");
+    let ack = answer_frame(0, Response::Ack).len() as u64;
+    assert!(
+        (ack - 2..=ack + 2).contains(&stats.bytes_received_clean),
+        "{stats:?}"
+    );
 }
 
 #[test]
