@@ -257,6 +257,10 @@ pub struct SocReport {
     /// before it was recorded had it in the general routing.
     #[serde(default)]
     pub global_reset: bool,
+    /// Wishbone burst cycles in the SoC (LiteX's `bus_bursting`: on unless
+    /// `--no-bus-bursting`); builds gathered before it was recorded had them off.
+    #[serde(default)]
+    pub bus_bursting: bool,
     /// Each MVU's capacity: words, tiles, rows.
     pub words: u64,
     pub tiles: u64,
@@ -383,6 +387,9 @@ pub struct SocBuild {
     /// The MVU array's reset on a global network through a DCCA (bitstream.py's
     /// `--global-reset`), not in the general routing.
     pub global_reset: bool,
+    /// Wishbone burst cycles, as the simulated SoC has them (off: bitstream.py's
+    /// `--no-bus-bursting`, to measure what they cost).
+    pub bus_bursting: bool,
 }
 
 /// Builds deform's SoC as `build` says into a bitstream in `out` (see
@@ -411,6 +418,9 @@ pub fn build_bitstream(build: &SocBuild, out: &Path) -> Result<SocReport, Gatewa
     }
     if build.global_reset {
         args.push("--global-reset".into());
+    }
+    if !build.bus_bursting {
+        args.push("--no-bus-bursting".into());
     }
     run_report("the bitstream build", "deform_gateware.bitstream", &args)
 }

@@ -1916,7 +1916,7 @@ fn finish<E: Executor>(solver: &Solver<'_, '_, '_, E>) -> (SolveReport, [i32; MA
 /// replaced Newton's method in soft f64 (a division per step, five to seven steps) on hart 0's
 /// serial path at the end of every solve (docs/PERFORMANCE.md, "The dynamic step's
 /// bookkeeping, session 10").
-fn sqrt(x: f64) -> f64 {
+pub(crate) fn sqrt(x: f64) -> f64 {
     if x <= 0.0 || !x.is_finite() {
         return if x == 0.0 { 0.0 } else { x.max(0.0) };
     }

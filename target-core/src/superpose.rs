@@ -38,7 +38,7 @@
 //! harts ([`apply_share`]), and hart 0 adds the own values at the tool nodes.
 
 use deform_shared::live::MAX_TOOL_NODES;
-use deform_shared::qformat::{floor_log2, ldexp};
+use deform_shared::qformat::ldexp;
 
 use crate::svu::{
     bound_of, magnitude_bits, magnitude_bound, normalising_shift, sum_squares, term, Block, Scalar,
@@ -358,23 +358,14 @@ impl ErrorBound {
     }
 }
 
-/// An upper bound on √v for v ≥ 0: four Newton steps from a first estimate within 13 % (the
-/// first step already lands at or above √v, the others descend towards it, the relative error
-/// squaring each time), then a relative 2^−50 up for the steps' own rounding. No `std` on the
-/// target; four soft divisions.
+/// An upper bound on √v for v ≥ 0: the correctly rounded root ([`crate::cg::sqrt`], in
+/// integers) is within half an ulp of √v, so the next float up is at or above it. It replaced
+/// four Newton steps in soft f64 (four divisions, twice a frame).
 pub fn sqrt_up(v: f64) -> f64 {
     if v <= 0.0 || !v.is_finite() {
         return v.max(0.0);
     }
-    // v = m·2^k with 1 ≤ m < 2: √m ≈ (1 + m)/2, and √2 ≈ 1.5 for odd k.
-    let k = floor_log2(v);
-    let m = ldexp(v, -k);
-    let odd = if k.rem_euclid(2) == 1 { 1.5 } else { 1.0 };
-    let mut g = ldexp(0.5 * (1.0 + m) * odd, k.div_euclid(2));
-    for _ in 0..4 {
-        g = 0.5 * (g + v / g);
-    }
-    g * (1.0 + ldexp(1.0, -50))
+    crate::cg::sqrt(v).next_up()
 }
 
 /// ⌈√k⌉ for an integer k, by integer Newton steps (the √n of the error bounds, once per frame).
@@ -566,9 +557,20 @@ mod tests {
 
     #[test]
     fn sqrt_up_is_an_upper_bound() {
-        for v in [0.0, 1e-300, 0.25, 2.0, 512.0, 65536.0, 1e300] {
-            let s = sqrt_up(v);
-            assert!(s * s >= v && s <= v.sqrt() * (1.0 + 1e-12) + 1e-160, "{v}");
+        let mut v = 1e-310_f64;
+        let mut values = vec![0.0, 1e-300, 0.25, 2.0, 3.0, 512.0, 65536.0, 1e300, f64::MAX];
+        while v < 1e300 {
+            values.push(v);
+            v *= 1.618_033_988_7;
         }
+        for v in values {
+            let s = sqrt_up(v);
+            // Above √v (checked exactly: s² rounded to nearest may fall below v when s is
+            // at most √v, so s's predecessor must be below √v), and within two ulps of it.
+            assert!(s >= v.sqrt(), "{v}");
+            assert!(s.next_down() <= v.sqrt() || v == 0.0, "{v}");
+            assert!(s <= v.sqrt().next_up().next_up() || v == 0.0, "{v}");
+        }
+        assert_eq!(sqrt_up(-1.0), 0.0);
     }
 }

@@ -31,7 +31,7 @@ const LFE5U_85F_MULTIPLIERS: u64 = 156;
 
 pub const USAGE: &str = "\
   bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--router router1|router2]
-            [--nodes 512|1024] [--global-reset]
+            [--nodes 512|1024] [--global-reset] [--no-bus-bursting]
             [--no-pnr | --place-only | --report-only]
                      build deform's SoC with each number of hardware MVUs, one at a time,
                      into an ECP5 bitstream (YoWASP Yosys, nextpnr-ecp5, ecppack; each stage
@@ -51,7 +51,11 @@ pub const USAGE: &str = "\
                      flip-flops at 4 MVUs; 12,609 fewer arcs to route, and
                      still not routed in session 12: docs/PERFORMANCE.md); the
                      report marks such builds and compares them only with
-                     their like; --no-pnr:
+                     their like; --no-bus-bursting: the SoC without
+                     Wishbone burst cycles (LiteX's bus_bursting off; the
+                     simulated SoC and the default build have them), to
+                     measure what they cost; marked and compared likewise;
+                     --no-pnr:
                      stop after Yosys (cell counts only: no Fmax, no bitstream);
                      --place-only: pack and place, do not route (nextpnr's
                      --no-route): the placement settles whether the SoC fits
@@ -66,23 +70,28 @@ pub const USAGE: &str = "\
 #[derive(Debug, PartialEq, Eq)]
 pub enum Request {
     Help,
-    Build {
-        board: String,
-        mvus: Vec<u32>,
-        seed: u32,
-        router: Router,
-        /// Each MVU's rows of p and Kp, if not bitstream.py's default.
-        nodes: Option<u32>,
-        no_pnr: bool,
-        /// Stop after placement: the use of the device and nextpnr's estimate, not routed.
-        place_only: bool,
-        /// The MVU array's reset on a global network (a DCCA), not in the general routing.
-        global_reset: bool,
-    },
+    Build(Sweep),
     /// Rewrite report.md and the plot from the gathered report.json.
     Report {
         board: String,
     },
+}
+
+/// One SoC build per MVU count, otherwise alike.
+#[derive(Debug, PartialEq, Eq)]
+pub struct Sweep {
+    pub mvus: Vec<u32>,
+    /// Each build as asked; its `mvus` is each count of the sweep in turn.
+    pub soc: SocBuild,
+}
+
+impl Sweep {
+    fn build(&self, mvus: u32) -> SocBuild {
+        SocBuild {
+            mvus,
+            ..self.soc.clone()
+        }
+    }
 }
 
 /// Parses `bitstream`'s arguments (those after the command's name).
@@ -96,6 +105,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
     let mut nodes = None;
     let mut report_only = false;
     let mut global_reset = false;
+    let mut bus_bursting = true;
     let mut it = args.iter();
     while let Some(flag) = it.next() {
         let mut value = || {
@@ -108,6 +118,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
             "--place-only" => place_only = true,
             "--report-only" => report_only = true,
             "--global-reset" => global_reset = true,
+            "--no-bus-bursting" => bus_bursting = false,
             "--board" => board = Some(value()?.clone()),
             "--mvus" => mvus = parse_mvus(value()?)?,
             "--seed" => {
@@ -138,10 +149,10 @@ pub fn parse(args: &[String]) -> Result<Request> {
         );
     }
     if report_only {
-        if no_pnr || place_only || nodes.is_some() || global_reset {
+        if no_pnr || place_only || nodes.is_some() || global_reset || !bus_bursting {
             bail!(
-                "--report-only builds nothing: --no-pnr, --place-only, --nodes and \
-                 --global-reset do not go with it"
+                "--report-only builds nothing: --no-pnr, --place-only, --nodes, \
+                 --global-reset and --no-bus-bursting do not go with it"
             );
         }
         return Ok(Request::Report { board });
@@ -152,16 +163,20 @@ pub fn parse(args: &[String]) -> Result<Request> {
     if place_only && router.is_some() {
         bail!("--place-only does not route: --router does not go with it");
     }
-    Ok(Request::Build {
-        board,
+    Ok(Request::Build(Sweep {
         mvus,
-        seed,
-        router: router.unwrap_or_default(),
-        nodes,
-        no_pnr,
-        place_only,
-        global_reset,
-    })
+        soc: SocBuild {
+            board,
+            mvus: 0,
+            seed,
+            router: router.unwrap_or_default(),
+            nodes,
+            no_pnr,
+            place_only,
+            global_reset,
+            bus_bursting,
+        },
+    }))
 }
 
 /// `0,4,8`: MVU counts from 0 to [`MAX_MVUS`], each once.
@@ -184,7 +199,7 @@ fn parse_mvus(value: &str) -> Result<Vec<u32>> {
 
 /// Runs `cargo xtask bitstream ARGS`.
 pub fn run(args: &[String], workspace: &Path) -> Result<()> {
-    let (board, mvus, seed, router, nodes, no_pnr, place_only, global_reset) = match parse(args)? {
+    let sweep = match parse(args)? {
         Request::Help => {
             println!("usage: cargo xtask\n{USAGE}");
             return Ok(());
@@ -199,74 +214,59 @@ pub fn run(args: &[String], workspace: &Path) -> Result<()> {
             print!("{}", markdown(&board, &builds));
             return Ok(());
         }
-        Request::Build {
-            board,
-            mvus,
-            seed,
-            router,
-            nodes,
-            no_pnr,
-            place_only,
-            global_reset,
-        } => (
-            board,
-            mvus,
-            seed,
-            router,
-            nodes,
-            no_pnr,
-            place_only,
-            global_reset,
-        ),
+        Request::Build(sweep) => sweep,
     };
     check_synthesis_venv(&litex_dir())?;
-    let dir = workspace.join("target/bitstream").join(&board);
+    let board = &sweep.soc.board;
+    let dir = workspace.join("target/bitstream").join(board);
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     // Fail before the first build, not an hour in, if the gathered report cannot be read.
     let mut builds = read_builds(&dir.join("report.json"))?;
-    for (i, &n) in mvus.iter().enumerate() {
-        let out = build_dir(workspace, &board, n, nodes, global_reset);
+    for (i, &n) in sweep.mvus.iter().enumerate() {
+        let build = sweep.build(n);
+        let out = build_dir(workspace, &build);
         eprintln!(
-            "\n==> [{}/{}] {board}: the SoC with {n} MVU(s){}{}, seed {seed}{} ({})",
+            "\n==> [{}/{}] {board}: the SoC with {}, seed {}{} ({})",
             i + 1,
-            mvus.len(),
-            nodes.map(|r| format!(" of {r} rows")).unwrap_or_default(),
-            if global_reset {
-                ", its reset on a global network"
-            } else {
-                ""
-            },
-            if no_pnr {
+            sweep.mvus.len(),
+            describe(&build),
+            build.seed,
+            if build.no_pnr {
                 ", Yosys only".to_string()
-            } else if place_only {
+            } else if build.place_only {
                 ", placed only (not routed)".to_string()
             } else {
-                format!(", {router}")
+                format!(", {}", build.router)
             },
             out.display()
         );
         let started = Instant::now();
-        let build = SocBuild {
-            board: board.clone(),
-            mvus: n,
-            seed,
-            router,
-            nodes,
-            no_pnr,
-            place_only,
-            global_reset,
-        };
         let report =
             build_bitstream(&build, &out).with_context(|| format!("building the {n}-MVU SoC"))?;
         eprintln!("    built in {:.0?}", started.elapsed());
         // Read again: another run may have added builds meanwhile.
         builds = read_builds(&dir.join("report.json"))?;
         record(&mut builds, report);
-        write_reports(&dir, &board, &builds)?;
+        write_reports(&dir, board, &builds)?;
     }
-    print!("\n{}", markdown(&board, &builds));
+    print!("\n{}", markdown(board, &builds));
     eprintln!("report: {}", dir.join("report.md").display());
     Ok(())
+}
+
+/// "4 MVU(s) of 512 rows, its reset on a global network, without bus bursting".
+fn describe(build: &SocBuild) -> String {
+    let mut text = format!("{} MVU(s)", build.mvus);
+    if let Some(rows) = build.nodes {
+        text += &format!(" of {rows} rows");
+    }
+    if build.global_reset {
+        text += ", its reset on a global network";
+    }
+    if !build.bus_bursting {
+        text += ", without bus bursting";
+    }
+    text
 }
 
 /// The builds gathered so far (none if there is no report yet).
@@ -294,9 +294,18 @@ fn depth(r: &SocReport) -> (u8, Option<Router>) {
 }
 
 /// Adds `report` to `builds`, in place of an earlier build of the same count, seed, rows per MVU,
-/// reset network and depth (and router, for a routed build).
+/// reset network, bus and depth (and router, for a routed build).
 fn record(builds: &mut Vec<SocReport>, report: SocReport) {
-    let key = |r: &SocReport| (r.mvus, r.seed, r.nodes, r.global_reset, depth(r));
+    let key = |r: &SocReport| {
+        (
+            r.mvus,
+            r.seed,
+            r.nodes,
+            r.global_reset,
+            r.bus_bursting,
+            depth(r),
+        )
+    };
     builds.retain(|b| key(b) != key(&report));
     builds.push(report);
     builds.sort_by_key(key);
@@ -355,7 +364,8 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
          use of the device and the system clock's Fmax (asked: 50 MHz). \"vs. 0 MVUs\": the \
          Fmax against the SoC without MVUs placed with the same seed and routed by the same \
          router, with the MVU array's reset on the same network (in the fabric, or on a \
-         global one: marked so in the gateware column); for a build placed and not routed \
+         global one) and the same bus (bursting, or not): the gateware column marks the \
+         exceptions; for a build placed and not routed \
          (--place-only), nextpnr's estimate after \
          placement, against the SoC without MVUs placed likewise: an estimate, not a routed \
          Fmax.\n\n\
@@ -370,6 +380,7 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
                 r.mvus == 0
                     && r.seed == b.seed
                     && r.global_reset == b.global_reset
+                    && r.bus_bursting == b.bus_bursting
                     && r.pnr.is_some()
                     && depth(r) == depth(b)
             })
@@ -408,7 +419,7 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
             .collect::<Vec<_>>()
             .join(", ");
         md += &format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {placed} | {fmax} | {versus} | {} / {} / {} | {stages} | {}{} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {placed} | {fmax} | {versus} | {} / {} / {} | {stages} | {}{}{} |\n",
             b.mvus,
             b.seed,
             match &b.pnr {
@@ -430,25 +441,35 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
             } else {
                 ""
             },
+            if b.bus_bursting {
+                ""
+            } else {
+                " (no bus bursting)"
+            },
         );
     }
     md
 }
 
-/// Where a build of `mvus` MVUs lands: `target/bitstream/BOARD-<N>mvu`, `-<R>rows` after it
-/// when the rows per MVU were asked for, `-global-reset` with the reset on a global network.
-pub fn build_dir(
-    workspace: &Path,
-    board: &str,
-    mvus: u32,
-    nodes: Option<u32>,
-    global_reset: bool,
-) -> PathBuf {
-    let rows = nodes.map(|r| format!("-{r}rows")).unwrap_or_default();
-    let reset = if global_reset { "-global-reset" } else { "" };
-    workspace
-        .join("target/bitstream")
-        .join(format!("{board}-{mvus}mvu{rows}{reset}"))
+/// Where a build lands: `target/bitstream/BOARD-<N>mvu`, `-<R>rows` after it when the rows per
+/// MVU were asked for, `-global-reset` with the reset on a global network, `-no-bursting`
+/// without bus bursting.
+pub fn build_dir(workspace: &Path, build: &SocBuild) -> PathBuf {
+    let rows = build.nodes.map(|r| format!("-{r}rows")).unwrap_or_default();
+    let reset = if build.global_reset {
+        "-global-reset"
+    } else {
+        ""
+    };
+    let bus = if build.bus_bursting {
+        ""
+    } else {
+        "-no-bursting"
+    };
+    workspace.join("target/bitstream").join(format!(
+        "{}-{}mvu{rows}{reset}{bus}",
+        build.board, build.mvus
+    ))
 }
 
 #[cfg(test)]
@@ -479,63 +500,66 @@ mod tests {
         assert_eq!(line, format!("NODES = ({listed})"));
     }
 
+    /// The sweep of the defaults, over `mvus`, changed by `change`.
+    fn sweep(mvus: &[u32], change: impl FnOnce(&mut SocBuild)) -> Request {
+        let mut soc = SocBuild {
+            board: "ulx3s".into(),
+            mvus: 0,
+            seed: 1,
+            router: Router::Router1,
+            nodes: None,
+            no_pnr: false,
+            place_only: false,
+            global_reset: false,
+            bus_bursting: true,
+        };
+        change(&mut soc);
+        Request::Build(Sweep {
+            mvus: mvus.to_vec(),
+            soc,
+        })
+    }
+
     #[test]
     fn arguments_parse_with_defaults() {
         assert_eq!(
             parse(&args("--board ulx3s")).unwrap(),
-            Request::Build {
-                board: "ulx3s".into(),
-                mvus: vec![0, 1, 2, 4, 8],
-                seed: 1,
-                router: Router::Router1,
-                nodes: None,
-                no_pnr: false,
-                place_only: false,
-                global_reset: false
-            }
+            sweep(&[0, 1, 2, 4, 8], |_| {})
         );
         assert_eq!(
             parse(&args(
                 "--mvus 0,4 --no-pnr --board ulx3s --seed 2 --router router2 --nodes 512"
             ))
             .unwrap(),
-            Request::Build {
-                board: "ulx3s".into(),
-                mvus: vec![0, 4],
-                seed: 2,
-                router: Router::Router2,
-                nodes: Some(512),
-                no_pnr: true,
-                place_only: false,
-                global_reset: false
-            }
+            sweep(&[0, 4], |b| {
+                b.seed = 2;
+                b.router = Router::Router2;
+                b.nodes = Some(512);
+                b.no_pnr = true;
+            })
         );
         assert_eq!(
             parse(&args("--board ulx3s --mvus 8 --nodes 512 --place-only")).unwrap(),
-            Request::Build {
-                board: "ulx3s".into(),
-                mvus: vec![8],
-                seed: 1,
-                router: Router::Router1,
-                nodes: Some(512),
-                no_pnr: false,
-                place_only: true,
-                global_reset: false
-            }
+            sweep(&[8], |b| {
+                b.nodes = Some(512);
+                b.place_only = true;
+            })
         );
         assert_eq!(
             parse(&args("--board ulx3s --mvus 0,4 --nodes 512 --global-reset")).unwrap(),
-            Request::Build {
-                board: "ulx3s".into(),
-                mvus: vec![0, 4],
-                seed: 1,
-                router: Router::Router1,
-                nodes: Some(512),
-                no_pnr: false,
-                place_only: false,
-                global_reset: true
-            }
+            sweep(&[0, 4], |b| {
+                b.nodes = Some(512);
+                b.global_reset = true;
+            })
         );
+        assert_eq!(
+            parse(&args("--board ulx3s --mvus 4 --no-bus-bursting")).unwrap(),
+            sweep(&[4], |b| b.bus_bursting = false)
+        );
+        let Request::Build(s) = sweep(&[0, 4], |b| b.seed = 3) else {
+            unreachable!()
+        };
+        assert_eq!((s.build(4).mvus, s.build(4).seed), (4, 3));
         assert_eq!(parse(&args("--help")).unwrap(), Request::Help);
         assert_eq!(
             parse(&args("--report-only --board ulx3s")).unwrap(),
@@ -564,6 +588,9 @@ mod tests {
         assert!(error("--board ulx3s --report-only --nodes 512").contains("do not go with it"));
         assert!(error("--board ulx3s --report-only --place-only").contains("do not go with it"));
         assert!(error("--board ulx3s --report-only --global-reset").contains("do not go with it"));
+        assert!(
+            error("--board ulx3s --report-only --no-bus-bursting").contains("do not go with it")
+        );
         assert!(error("--board ulx3s --place-only --no-pnr").contains("one or the other"));
         assert!(error("--board ulx3s --place-only --router router2")
             .contains("--place-only does not route: --router does not go with it"));
@@ -608,6 +635,7 @@ mod tests {
             bitstream: None,
             stages: [("yosys".to_string(), 12.0)].into_iter().collect(),
             global_reset: false,
+            bus_bursting: true,
             words: 4096,
             tiles: 256,
             nodes: 1024,
@@ -702,18 +730,27 @@ mod tests {
 
     #[test]
     fn a_build_with_rows_asked_for_lands_beside_the_default() {
-        let ws = Path::new("/w");
+        let dir = |change: fn(&mut SocBuild)| {
+            let Request::Build(s) = sweep(&[4], change) else {
+                unreachable!()
+            };
+            build_dir(Path::new("/w"), &s.build(4))
+        };
+        assert_eq!(dir(|_| {}), Path::new("/w/target/bitstream/ulx3s-4mvu"));
         assert_eq!(
-            build_dir(ws, "ulx3s", 4, None, false),
-            Path::new("/w/target/bitstream/ulx3s-4mvu")
-        );
-        assert_eq!(
-            build_dir(ws, "ulx3s", 4, Some(512), false),
+            dir(|b| b.nodes = Some(512)),
             Path::new("/w/target/bitstream/ulx3s-4mvu-512rows")
         );
         assert_eq!(
-            build_dir(ws, "ulx3s", 4, Some(512), true),
+            dir(|b| {
+                b.nodes = Some(512);
+                b.global_reset = true;
+            }),
             Path::new("/w/target/bitstream/ulx3s-4mvu-512rows-global-reset")
+        );
+        assert_eq!(
+            dir(|b| b.bus_bursting = false),
+            Path::new("/w/target/bitstream/ulx3s-4mvu-no-bursting")
         );
     }
 
@@ -744,6 +781,33 @@ mod tests {
         old.as_object_mut().unwrap().remove("global_reset");
         let old: SocReport = serde_json::from_value(old).unwrap();
         assert!(!old.global_reset);
+    }
+
+    /// Likewise a build without bus bursting: its own row and its own baseline; reports from
+    /// before bursting was recorded read as builds without it (as they were built).
+    #[test]
+    fn the_bus_keeps_builds_apart() {
+        let mut builds = Vec::new();
+        record(&mut builds, build(0, 1, Some(50.0)));
+        let mut plain = build(4, 1, Some(44.0));
+        plain.bus_bursting = false;
+        record(&mut builds, plain.clone());
+        record(&mut builds, build(4, 1, Some(45.0)));
+        assert_eq!(builds.len(), 3);
+        let md = markdown("ulx3s", &builds);
+        assert!(md.contains("| 45.0 | -10.0 % |"), "{md}");
+        assert!(
+            md.contains("| 44.0 | — |") && md.contains("abc (no bus bursting) |"),
+            "{md}"
+        );
+        let mut plain_baseline = build(0, 1, Some(40.0));
+        plain_baseline.bus_bursting = false;
+        record(&mut builds, plain_baseline);
+        assert!(markdown("ulx3s", &builds).contains("| 44.0 | +10.0 % |"));
+        let mut old = serde_json::to_value(&plain).unwrap();
+        old.as_object_mut().unwrap().remove("bus_bursting");
+        let old: SocReport = serde_json::from_value(old).unwrap();
+        assert!(!old.bus_bursting);
     }
 
     #[test]
