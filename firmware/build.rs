@@ -146,6 +146,7 @@ const MVUS_REGISTERS: &[(&str, &str)] = &[
     ("mvus_kp_plain", "KP_PLAIN"),
     ("mvus_start", "START"),
     ("mvus_busy", "BUSY"),
+    ("mvus_phases", "PHASES"),
     ("mvus_cycles", "CYCLES"),
     ("mvus_stalls", "STALLS"),
 ];

@@ -53,7 +53,7 @@ with one entry more in reserve); ``stalls`` counts those clocks.
 A phase: IDLE, HEADER (tile 0's header into ``header``), FIRST_TILE, RUN (one word fetched per
 clock), DRAIN (until nothing is in flight: ``drained``, a register, so a clock late). ``busy``
 is a register set and cleared with the state's own transitions, not a decode of the state; what
-a start resets or loads (``stalls``, ``fresh``, the tile context) hangs on ``go``, the start's
+a start resets or loads (``fresh``, the tile context) hangs on ``go``, the start's
 decode as a register of its own (a clock after ``start``, in HEADER), not on the state's.
 """
 
@@ -122,7 +122,7 @@ class Mvu(Module):
         # it selects every memory port between the array's bus and the unit, so it fans out
         # across the whole unit, and a decode of the state in front of it was a critical path.
         self.busy = Signal()
-        self.stalls = Signal(32)
+        self.stalls = Signal(32)  # clocks the fetch waited, over every phase since reset
         self.p_kp_low = [Signal((HALF_SUM_BITS, True)) for _ in range(LANES)]
         self.p_kp_high = [Signal((HALF_SUM_BITS, True)) for _ in range(LANES)]
         self.kp_or = [Signal(SUM_BITS) for _ in range(LANES)]
@@ -227,7 +227,7 @@ class Mvu(Module):
                          a["mirrored"]).eq(delayed[-1])
 
         # `go`: a phase starts (the start's decode, from the inputs and `busy`, as a register of
-        # its own, a clock after `start`); it clears `stalls` and sets `fresh`.
+        # its own, a clock after `start`); it sets `fresh`.
         go = Signal()
         self.sync += go.eq(self.start & ~self.busy & (self.length != 0))
 
@@ -287,13 +287,14 @@ class Mvu(Module):
             If(issue, NextValue(wa, wa + 1), NextValue(at_end, wa + 1 == self.length)),
             stalled.eq(~at_end & ~room),
             If(at_end, NextState("DRAIN")))
-        # `stalls` counts a clock late, from a register (`stalled` of the clock before), and
-        # clears at `go` (in HEADER, before the first stall can be counted): its 32 enables then
-        # hang on registers only, no decode of the state (that path was a critical one).
+        # `stalls` counts a clock late, from a register (`stalled` of the clock before), over
+        # every phase since reset (the firmware reads it when a matrix is loaded and dropped):
+        # its 32 enables hang on a register only, no decode of the state (that path was a
+        # critical one).
         stalled_before = Signal()
         self.sync += [
             stalled_before.eq(stalled),
-            If(go, self.stalls.eq(0)).Elif(stalled_before, self.stalls.eq(self.stalls + 1)),
+            If(stalled_before, self.stalls.eq(self.stalls + 1)),
         ]
         drained = Signal()
         fsm.act("DRAIN", If(drained, NextValue(self.busy, 0), NextState("IDLE")))

@@ -21,17 +21,20 @@ def array_for(vectors, case):
 
 
 def run_phase(dut, phase):
-    """Simulation process: starts a phase and waits for its end."""
+    """Simulation process: starts a phase and waits for its end; the clocks it was busy."""
     yield dut.directions.storage.eq(phase["directions"])
     yield dut.start.re.eq(1)
     yield
     yield dut.start.re.eq(0)
     yield
     budget = 100000
+    busy = 0
     while (yield dut.phase_busy):
+        busy += 1
         budget -= 1
         assert budget > 0, "the phase did not finish"
         yield
+    return busy
 
 
 def results(dut, phase):
@@ -68,6 +71,7 @@ class MvuArrayTest(unittest.TestCase):
         dut.tables.shared.init = testvectors.padded(
             [testvectors.shared_entry(e) for e in case["shared"]], depth)
         got = []
+        counts = []
 
         def bench():
             yield dut.n.storage.eq(case["n"])
@@ -79,7 +83,9 @@ class MvuArrayTest(unittest.TestCase):
                 if k:
                     for unit in dut.units:
                         yield from testvectors.set_p(unit, phase["p"])
-                yield from run_phase(dut, phase)
+                busy = yield from run_phase(dut, phase)
+                counts.append((busy, (yield dut.phases.status), (yield dut.cycles.status),
+                               (yield dut.stalls.status)))
                 kp = []
                 for row, owner in enumerate(case["owner"]):
                     entry = yield dut.units[owner].kp.memory[row]
@@ -89,6 +95,19 @@ class MvuArrayTest(unittest.TestCase):
         run_simulation(dut, bench())
         for phase, result in zip(case["phases"], got):
             self.check(phase, *result)
+        self.check_counts(counts)
+
+    def check_counts(self, counts):
+        """`phases`, `cycles` and `stalls` count over every phase since reset: the firmware
+        reads them when it loads and drops a matrix, not per phase."""
+        busy_total = 0
+        stalls_before = 0
+        for k, (busy, phases, cycles, stalls) in enumerate(counts):
+            busy_total += busy
+            self.assertEqual(phases, k + 1)
+            self.assertEqual(cycles, busy_total, "the phases' clocks so far")
+            self.assertGreaterEqual(stalls, stalls_before)
+            stalls_before = stalls
 
     def test_a_case_loaded_and_read_through_the_bus(self):
         vectors = testvectors.load()
@@ -98,6 +117,7 @@ class MvuArrayTest(unittest.TestCase):
         dut = array_for(vectors, case)
         bus = dut.bus
         got = []
+        counts = []
 
         def write(byte_offset, value):
             yield from bus.write(byte_offset >> 2, value & 0xFFFFFFFF)
@@ -138,7 +158,9 @@ class MvuArrayTest(unittest.TestCase):
                         value = yield from read(P_OFFSET + 16 * i + 4 * lane)
                         back.append(testvectors.signed(value, 32))
                     self.assertEqual(back, lanes)
-                yield from run_phase(dut, phase)
+                busy = yield from run_phase(dut, phase)
+                counts.append((busy, (yield dut.phases.status), (yield dut.cycles.status),
+                               (yield dut.stalls.status)))
                 kp = []
                 for row in range(case["n"]):
                     words = []
@@ -155,6 +177,7 @@ class MvuArrayTest(unittest.TestCase):
         run_simulation(dut, bench())
         for phase, result in zip(case["phases"], got):
             self.check(phase, *result)
+        self.check_counts(counts)
 
 
 if __name__ == "__main__":

@@ -39,21 +39,22 @@ pub struct LitexMvus {
     /// The loaded matrix's n, 0 when no program is loaded (then the Kp window is plain). One
     /// word where a flag beside it cost a phase a second load.
     n: AtomicU32,
-    /// Phases run on the loaded matrix, the clocks the array spent in them (its own `cycles`
-    /// register, start to end of the reduction) and MVU 0's fetch stalls: logged when the
-    /// matrix is dropped, beside which the solver's counters show what the CPU spent around
-    /// them (modulo 2^32).
-    phases: AtomicU32,
-    cycles: AtomicU32,
-    stalls: AtomicU32,
+    /// The array's own counts (since reset) when the matrix was loaded: its phases, their
+    /// clocks (start to the end of the reduction) and MVU 0's fetch stalls. What they grew by
+    /// is logged when the matrix is dropped, beside which the solver's counters show what the
+    /// CPU spent around them (modulo 2^32). A phase reads none of them.
+    at_load: [AtomicU32; 3],
 }
 
 static ARRAY: LitexMvus = LitexMvus {
     n: AtomicU32::new(0),
-    phases: AtomicU32::new(0),
-    cycles: AtomicU32::new(0),
-    stalls: AtomicU32::new(0),
+    at_load: [AtomicU32::new(0), AtomicU32::new(0), AtomicU32::new(0)],
 };
+
+/// The array's counts since reset: phases, their clocks, MVU 0's fetch stalls.
+fn counts() -> [u32; 3] {
+    [regs::PHASES, regs::CYCLES, regs::STALLS].map(read32)
+}
 
 /// Set once the vectors have been handed out.
 static TAKEN: AtomicUsize = AtomicUsize::new(0);
@@ -154,19 +155,20 @@ impl MvuBackend for LitexMvus {
     }
 
     fn unload(&self) {
+        // A load and a store: this VexRiscv has no AMOs (firmware/src/atomic.rs).
+        let loaded = self.n.load(Ordering::Relaxed) != 0;
         self.n.store(0, Ordering::Relaxed);
         write32(regs::KP_PLAIN, 1);
-        let phases = self.phases.load(Ordering::Relaxed);
-        if phases > 0 {
+        let now = counts();
+        let [phases, cycles, stalls] =
+            core::array::from_fn(|k| now[k].wrapping_sub(self.at_load[k].load(Ordering::Relaxed)));
+        if loaded && phases > 0 {
             defmt::info!(
                 "MVU array: {=u32} phases, {=u32} cycles in the MVUs, {=u32} of them with MVU 0's fetch stalled",
                 phases,
-                self.cycles.load(Ordering::Relaxed),
-                self.stalls.load(Ordering::Relaxed)
+                cycles,
+                stalls
             );
-        }
-        for counter in [&self.phases, &self.cycles, &self.stalls] {
-            counter.store(0, Ordering::Relaxed);
         }
     }
 
@@ -183,6 +185,9 @@ impl MvuBackend for LitexMvus {
                 write32(regs::N, a.n as u32);
                 write32(regs::SHARED_ROWS, program.shared_rows as u32);
                 write32(regs::KP_PLAIN, 0);
+                for (at, now) in self.at_load.iter().zip(counts()) {
+                    at.store(now, Ordering::Relaxed);
+                }
                 self.n.store(a.n as u32, Ordering::Relaxed);
                 defmt::info!(
                     "hardware MVUs hold the matrix: {=usize} words on {=usize} MVU(s), {=usize} shared rows",
@@ -225,7 +230,7 @@ impl MvuBackend for LitexMvus {
         // Every store to p before the start.
         compiler_fence(Ordering::SeqCst);
         write32(regs::START, 1);
-        self.finish(directions, p_kp, kp_or);
+        Self::finish(directions, p_kp, kp_or);
     }
 }
 
@@ -236,24 +241,21 @@ impl LitexMvus {
     /// the wait would be fetched only then, some 20 clocks a line.)
     #[inline(never)]
     fn finish(
-        &self,
         directions: usize,
         p_kp: &mut [i128; MAX_DIRECTIONS],
         kp_or: &mut [u64; MAX_DIRECTIONS],
     ) {
-        self.read_out(directions, p_kp, kp_or, false);
-        self.read_out(directions, p_kp, kp_or, true);
+        Self::read_out(directions, p_kp, kp_or, false);
+        Self::read_out(directions, p_kp, kp_or, true);
     }
 
     /// pᵀKp and the OR of |Kp| into the solver's slot, after waiting for the phase's end if
-    /// `end`; then, if `end`, the phase, its clocks and its stalls added to the counts logged
-    /// at [`MvuBackend::unload`]. The same instructions in both passes (not inlined, no branch
-    /// but the wait's), so that the first pass warms all of the second's. Each direction's
-    /// registers are read before its results are stored: a load behind a store waits for the
-    /// store's write-through to RAM.
+    /// `end`. The same instructions in both passes (not inlined, no branch but the wait's), so
+    /// that the first pass warms all of the second's. Each direction's registers are read
+    /// before its results are stored: a load behind a store waits for the store's
+    /// write-through to RAM.
     #[inline(never)]
     fn read_out(
-        &self,
         directions: usize,
         p_kp: &mut [i128; MAX_DIRECTIONS],
         kp_or: &mut [u64; MAX_DIRECTIONS],
@@ -264,8 +266,6 @@ impl LitexMvus {
             // Every load of Kp after the end.
             compiler_fence(Ordering::SeqCst);
         }
-        let count = u32::from(end);
-        let (cycles, stalls) = (read32(regs::CYCLES), read32(regs::STALLS));
         for d in 0..MAX_DIRECTIONS {
             if d == directions {
                 break;
@@ -273,15 +273,6 @@ impl LitexMvus {
             let (s, or) = (read_wide(regs::P_KP[d], 4), read_wide(regs::KP_OR[d], 2));
             (p_kp[d], kp_or[d]) = (s as i128, or as u64);
         }
-        let add = |counter: &AtomicU32, v: u32| {
-            counter.store(
-                counter.load(Ordering::Relaxed).wrapping_add(v),
-                Ordering::Relaxed,
-            )
-        };
-        add(&self.phases, count);
-        add(&self.cycles, cycles.wrapping_mul(count));
-        add(&self.stalls, stalls.wrapping_mul(count));
     }
 }
 
