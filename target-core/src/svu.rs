@@ -966,24 +966,26 @@ mod riscv {
         };
     }
 
-    /// Pass R over whole blocks of 16 elements, own shift $own: the block's 16 squares summed
-    /// in (lo, hi) and folded into the 96-bit (w0, w1, w2) at its end. The body is one block
-    /// unrolled, so the pointers' increments, the branch and the block bookkeeping are paid
-    /// once per 16 elements (the quad loop below handles what is left).
+    /// Pass R over whole blocks of 16 elements, own shift $own, Kp `$row` bytes a row (24, or
+    /// 8 for one direction, [`crate::kernel::sum_words`]: the same instructions, Kp's offsets
+    /// the row's multiples, as `const` operands): the block's 16 squares summed in (lo, hi) and
+    /// folded into the 96-bit (w0, w1, w2) at its end. The body is one block unrolled, so the
+    /// pointers' increments, the branch and the block bookkeeping are paid once per 16
+    /// elements (the quad loop below handles what is left).
     macro_rules! pass_r_blocks {
-        ($own:literal, $($args:ident),*) => {
+        ($own:literal, $row:expr, $($args:ident),*) => {
             pass_r_asm!(
                 [
                     "5:\n",
-                    r_pair!($own, "0", "4", "24", "28", "0", "4", r_squares_first),
-                    r_pair!($own, "48", "52", "72", "76", "8", "12"),
-                    r_pair!($own, "96", "100", "120", "124", "16", "20"),
-                    r_pair!($own, "144", "148", "168", "172", "24", "28"),
-                    r_pair!($own, "192", "196", "216", "220", "32", "36"),
-                    r_pair!($own, "240", "244", "264", "268", "40", "44"),
-                    r_pair!($own, "288", "292", "312", "316", "48", "52"),
-                    r_pair!($own, "336", "340", "360", "364", "56", "60"),
-                    "addi {kp}, {kp}, 384\n",
+                    r_pair!($own, "{k0}", "{k0h}", "{k1}", "{k1h}", "0", "4", r_squares_first),
+                    r_pair!($own, "{k2}", "{k2h}", "{k3}", "{k3h}", "8", "12"),
+                    r_pair!($own, "{k4}", "{k4h}", "{k5}", "{k5h}", "16", "20"),
+                    r_pair!($own, "{k6}", "{k6h}", "{k7}", "{k7h}", "24", "28"),
+                    r_pair!($own, "{k8}", "{k8h}", "{k9}", "{k9h}", "32", "36"),
+                    r_pair!($own, "{k10}", "{k10h}", "{k11}", "{k11h}", "40", "44"),
+                    r_pair!($own, "{k12}", "{k12h}", "{k13}", "{k13h}", "48", "52"),
+                    r_pair!($own, "{k14}", "{k14h}", "{k15}", "{k15h}", "56", "60"),
+                    "addi {kp}, {kp}, {step}\n",
                     "addi {r}, {r}, 64\n",
                     r_fold!(),
                     "bltu {r}, {end}, 5b\n",
@@ -991,14 +993,47 @@ mod riscv {
                 $($args),*,
                 lo = out(reg) _,
                 hi = out(reg) _,
+                k0 = const 0 * $row,
+                k0h = const 0 * $row + 4,
+                k1 = const 1 * $row,
+                k1h = const 1 * $row + 4,
+                k2 = const 2 * $row,
+                k2h = const 2 * $row + 4,
+                k3 = const 3 * $row,
+                k3h = const 3 * $row + 4,
+                k4 = const 4 * $row,
+                k4h = const 4 * $row + 4,
+                k5 = const 5 * $row,
+                k5h = const 5 * $row + 4,
+                k6 = const 6 * $row,
+                k6h = const 6 * $row + 4,
+                k7 = const 7 * $row,
+                k7h = const 7 * $row + 4,
+                k8 = const 8 * $row,
+                k8h = const 8 * $row + 4,
+                k9 = const 9 * $row,
+                k9h = const 9 * $row + 4,
+                k10 = const 10 * $row,
+                k10h = const 10 * $row + 4,
+                k11 = const 11 * $row,
+                k11h = const 11 * $row + 4,
+                k12 = const 12 * $row,
+                k12h = const 12 * $row + 4,
+                k13 = const 13 * $row,
+                k13h = const 13 * $row + 4,
+                k14 = const 14 * $row,
+                k14h = const 14 * $row + 4,
+                k15 = const 15 * $row,
+                k15h = const 15 * $row + 4,
+                step = const 16 * $row,
             )
         };
     }
 
-    /// Pass R over whole quads, own shift $own: blocks of 16 squares in (lo, hi), folded into
-    /// the 96-bit (w0, w1, w2) at each block's end.
+    /// Pass R over whole quads, own shift $own, Kp `$row` bytes a row: blocks of 16 squares in
+    /// (lo, hi), folded into the 96-bit (w0, w1, w2) at each block's end.
     macro_rules! pass_r_quads {
-        ($own:literal, $($args:ident),*) => {
+        ($own:literal, $row:expr, $($args:ident),*) => {
             pass_r_asm!(
                 [
                     "3:\n",
@@ -1006,9 +1041,9 @@ mod riscv {
                     "bltu {blk}, {end}, 4f\n",
                     "mv {blk}, {end}\n",
                     "4:\n",
-                    r_pair!($own, "0", "4", "24", "28", "0", "4"),
-                    r_pair!($own, "48", "52", "72", "76", "8", "12"),
-                    "addi {kp}, {kp}, 96\n",
+                    r_pair!($own, "{k0}", "{k0h}", "{k1}", "{k1h}", "0", "4"),
+                    r_pair!($own, "{k2}", "{k2h}", "{k3}", "{k3h}", "8", "12"),
+                    "addi {kp}, {kp}, {step}\n",
                     "addi {r}, {r}, 16\n",
                     "bltu {r}, {blk}, 4b\n",
                     r_fold!(),
@@ -1020,61 +1055,15 @@ mod riscv {
                 lo = inout(reg) 0u32 => _,
                 hi = inout(reg) 0u32 => _,
                 blk = out(reg) _,
-            )
-        };
-    }
-
-    /// [`pass_r_blocks`] with Kp 8 bytes a row (one direction, [`crate::kernel::sum_words`]):
-    /// the same instructions, Kp's offsets a third of the 24-byte rows'.
-    macro_rules! pass_r_blocks_compact {
-        ($own:literal, $($args:ident),*) => {
-            pass_r_asm!(
-                [
-                    "5:\n",
-                    r_pair!($own, "0", "4", "8", "12", "0", "4", r_squares_first),
-                    r_pair!($own, "16", "20", "24", "28", "8", "12"),
-                    r_pair!($own, "32", "36", "40", "44", "16", "20"),
-                    r_pair!($own, "48", "52", "56", "60", "24", "28"),
-                    r_pair!($own, "64", "68", "72", "76", "32", "36"),
-                    r_pair!($own, "80", "84", "88", "92", "40", "44"),
-                    r_pair!($own, "96", "100", "104", "108", "48", "52"),
-                    r_pair!($own, "112", "116", "120", "124", "56", "60"),
-                    "addi {kp}, {kp}, 128\n",
-                    "addi {r}, {r}, 64\n",
-                    r_fold!(),
-                    "bltu {r}, {end}, 5b\n",
-                ],
-                $($args),*,
-                lo = out(reg) _,
-                hi = out(reg) _,
-            )
-        };
-    }
-
-    /// [`pass_r_quads`] with Kp 8 bytes a row.
-    macro_rules! pass_r_quads_compact {
-        ($own:literal, $($args:ident),*) => {
-            pass_r_asm!(
-                [
-                    "3:\n",
-                    "addi {blk}, {r}, 64\n",
-                    "bltu {blk}, {end}, 4f\n",
-                    "mv {blk}, {end}\n",
-                    "4:\n",
-                    r_pair!($own, "0", "4", "8", "12", "0", "4"),
-                    r_pair!($own, "16", "20", "24", "28", "8", "12"),
-                    "addi {kp}, {kp}, 32\n",
-                    "addi {r}, {r}, 16\n",
-                    "bltu {r}, {blk}, 4b\n",
-                    r_fold!(),
-                    "li {lo}, 0\n",
-                    "li {hi}, 0\n",
-                    "bltu {r}, {end}, 3b\n",
-                ],
-                $($args),*,
-                lo = inout(reg) 0u32 => _,
-                hi = inout(reg) 0u32 => _,
-                blk = out(reg) _,
+                k0 = const 0 * $row,
+                k0h = const 0 * $row + 4,
+                k1 = const 1 * $row,
+                k1h = const 1 * $row + 4,
+                k2 = const 2 * $row,
+                k2h = const 2 * $row + 4,
+                k3 = const 3 * $row,
+                k3h = const 3 * $row + 4,
+                step = const 4 * $row,
             )
         };
     }
@@ -1114,22 +1103,37 @@ mod riscv {
         let (k, left) = amount(own);
         macro_rules! both {
             ($own:literal) => {{
-                if R == 1 {
-                    if blocks > 0 {
-                        pass_r_blocks_compact!(
-                            $own, kp_ptr, r_ptr, block_end, m, s, k, w0, w1, w2, or
-                        );
-                    }
-                    if quads > blocks {
-                        pass_r_quads_compact!($own, kp_rest, r_rest, end, m, s, k, w0, w1, w2, or);
-                    }
-                } else {
-                    if blocks > 0 {
-                        pass_r_blocks!($own, kp_ptr, r_ptr, block_end, m, s, k, w0, w1, w2, or);
-                    }
-                    if quads > blocks {
-                        pass_r_quads!($own, kp_rest, r_rest, end, m, s, k, w0, w1, w2, or);
-                    }
+                if blocks > 0 {
+                    pass_r_blocks!(
+                        $own,
+                        size_of::<[i64; R]>(),
+                        kp_ptr,
+                        r_ptr,
+                        block_end,
+                        m,
+                        s,
+                        k,
+                        w0,
+                        w1,
+                        w2,
+                        or
+                    );
+                }
+                if quads > blocks {
+                    pass_r_quads!(
+                        $own,
+                        size_of::<[i64; R]>(),
+                        kp_rest,
+                        r_rest,
+                        end,
+                        m,
+                        s,
+                        k,
+                        w0,
+                        w1,
+                        w2,
+                        or
+                    );
                 }
             }};
         }
