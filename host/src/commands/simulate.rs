@@ -89,7 +89,8 @@ pub struct SimulateArgs {
     /// Write one row per step to this CSV file: `step,t,iterations,residual,max_u,cycles`; with
     /// --dynamic `step,t,iterations,solves,fused_iterations,cycles,residual,max_u,energy,
     /// bytes_sent,bytes_received` (iterations summed over x, y and z; fused iterations of the
-    /// target's solves; cycles on their critical path).
+    /// target's solves; cycles on their critical path; bytes each frame's first copy, so
+    /// without the retransmissions of a loaded host or a noisy line).
     #[arg(long, value_name = "FILE")]
     pub steps_csv: Option<PathBuf>,
 
