@@ -510,3 +510,38 @@ impl SessionReport {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The bytes leave retransmissions out, so the report says how many there were.
+    #[test]
+    fn frames_sent_again_are_reported_beside_the_bytes() {
+        let session = |retransmits| Session {
+            header: Header {
+                target: "qemu".into(),
+                grid: [8, 8, 8],
+                model: "B".into(),
+                mvus: 8,
+                tolerance: 1e-3,
+                cycle_budget: 0,
+            },
+            model_cycles: 0,
+            model_instructions: 0,
+            model_iterations: 0,
+            resets: 0,
+            retransmits,
+            paced: false,
+            kind: ToolKind::Displacement,
+            field: FieldChoice::default(),
+        };
+        let quiet = report(session(0), &[], &Summary::default());
+        assert_eq!(quiet.link_retransmits, 0);
+        assert!(!quiet.summary(ToolKind::Displacement).contains("resent"));
+        let loaded = report(session(3), &[], &Summary::default());
+        assert_eq!(loaded.link_retransmits, 3);
+        let text = loaded.summary(ToolKind::Displacement);
+        assert!(text.contains("resent      3 frame(s) sent again"), "{text}");
+    }
+}
