@@ -57,6 +57,8 @@ a start resets or loads (``fresh``, the tile context) hangs on ``go``, the start
 decode as a register of its own (a clock after ``start``, in HEADER), not on the state's.
 """
 
+from types import SimpleNamespace
+
 from migen import (Module, Signal, Array, Cat, If, FSM, NextState, NextValue,
                    Replicate)
 
@@ -152,12 +154,28 @@ class Mvu(Module):
             self.bus_p.dat_r.eq(self.p_col.read[1].dat),
             self.bus_kp.dat_r.eq(self.kp.read[0].dat),
         ]
-        self._pipeline(idle)
+        # The word pipeline, stage by stage, then the write-back. The builders are called from
+        # here, one after another, in the order the signals were always made in, and hand their
+        # signals on in `pipe`: Migen names a signal after the variable that holds it and the
+        # `self` frames it was made in, and orders its Verilog by when it was made, so a builder
+        # called from another builder, or another order, would rename or reorder the Verilog.
+        pipe = SimpleNamespace()
+        self._decode(pipe)
+        self._multiply(pipe)
+        self._accumulate(pipe)
+        self._fetch(pipe)
+        self._tile_context(pipe, idle)
         self._write_back(idle)
 
     # The word pipeline -------------------------------------------------------------------------
 
-    def _pipeline(self, idle):
+    def _decode(self, pipe):
+        """F2: the fetched entry decoded (EM, ER, column, value, flags) in its tile's context
+        (``row``, ``col_base``, ``mirror_col_base``, ``mirrored``), with the next tile's header
+        waiting in ``header`` so that an EM word moves the context on from registers
+        (``advance``; ``_tile_context`` moves it). The fetch's word address and issue
+        (``_fetch`` drives them) and the write-back queue are made here first, where they always
+        were made (see ``__init__``)."""
         nb = self.node_bits
         wa = Signal(bits_for(self.words_depth + 1))
         issue = Signal()
@@ -187,7 +205,20 @@ class Mvu(Module):
             Cat(next_row_base, next_col_base, next_mirror_col_base, next_mirrored).eq(header),
             advance.eq(f2_valid & decode.em),
         ]
+        pipe.wa, pipe.issue, pipe.decode, pipe.fetched = wa, issue, decode, fetched
+        pipe.f2_valid, pipe.header, pipe.advance = f2_valid, header, advance
+        pipe.row, pipe.col_base = row, col_base
+        pipe.mirror_col_base, pipe.mirrored = mirror_col_base, mirrored
+        pipe.next_tile = (next_row_base, next_col_base, next_mirror_col_base, next_mirrored)
 
+    def _multiply(self, pipe):
+        """F3..F5 and the multipliers: the two p addresses of a word registered at F3 (its
+        column in the tile, own and mirrored), p from the block RAM at F5 into value x p for
+        three lanes, own and mirrored (``Multiplier.latency`` clocks); the word's control
+        travels alongside, in registers, out to ``a`` (stage A)."""
+        nb = self.node_bits
+        decode, f2_valid, row, mirrored = pipe.decode, pipe.f2_valid, pipe.row, pipe.mirrored
+        col_base, mirror_col_base = pipe.col_base, pipe.mirror_col_base
         # F3..F5: the p addresses, registered at F3, then the block RAM; p is there at F5. The
         # word's control and value travel alongside.
         control_bits = 1 + 1 + 4 + 2 * nb + 1
@@ -225,7 +256,17 @@ class Mvu(Module):
                  mirror_row=Signal(nb), mirrored=Signal())
         self.comb += Cat(a["valid"], a["er"], a["flags"], a["row"], a["mirror_row"],
                          a["mirrored"]).eq(delayed[-1])
+        pipe.f, pipe.p_own_adr, pipe.p_mirror_adr = f, p_own_adr, p_mirror_adr
+        pipe.own_mul, pipe.mirror_mul, pipe.latency = own_mul, mirror_mul, latency
+        pipe.delayed, pipe.a = delayed, a
 
+    def _accumulate(self, pipe):
+        """A and E: the products summed into 64-bit accumulators per lane, own and mirrored,
+        a row's first word storing rather than adding (``fresh``); an ER word's sums, rows
+        and flags into the write-back queue a clock later. Also makes ``go``, a phase's start
+        as a register, which sets ``fresh`` (and, in ``_tile_context``, loads tile 0)."""
+        nb = self.node_bits
+        queue, own_mul, mirror_mul, a = self.queue, pipe.own_mul, pipe.mirror_mul, pipe.a
         # `go`: a phase starts (the start's decode, from the inputs and `busy`, as a register of
         # its own, a clock after `start`); it sets `fresh`.
         go = Signal()
@@ -255,7 +296,15 @@ class Mvu(Module):
                              *own_acc, *mirror_acc)),
             queue.we.eq(e["valid"]),
         ]
+        pipe.go, pipe.e = go, e
 
+    def _fetch(self, pipe):
+        """F0 and the phase's state machine: one word fetched per clock while the queue has
+        room for every ER word that may be in flight (``room``, a register, decided a clock
+        ahead); ``stalls`` counts the clocks it waited, over every phase since reset. Makes
+        ``drained`` (the write-back drives it)."""
+        queue, wa, issue = self.queue, pipe.wa, pipe.issue
+        f, latency = pipe.f, pipe.latency
         # F0: fetch while the queue has room for every ER word that may be in flight.
         # (F1, F2, F3..F5, the multipliers, E, and the word being fetched.)
         # `room` is a register, made from the level of the clock before: the queue's level (its
@@ -298,7 +347,18 @@ class Mvu(Module):
         ]
         drained = Signal()
         fsm.act("DRAIN", If(drained, NextValue(self.busy, 0), NextState("IDLE")))
+        pipe.drained = drained
 
+    def _tile_context(self, pipe, idle):
+        """F1/F2's valid bits, the tile context moved at an EM word (and twice at a start, from
+        ``go``), ``row`` counted on at an ER word, and the p reads of F3 (the array's
+        address while the unit is idle)."""
+        go, advance, fetched, f2_valid = pipe.go, pipe.advance, pipe.fetched, pipe.f2_valid
+        decode, header, row, col_base = pipe.decode, pipe.header, pipe.row, pipe.col_base
+        mirror_col_base, mirrored = pipe.mirror_col_base, pipe.mirrored
+        next_row_base, next_col_base, next_mirror_col_base, next_mirrored = pipe.next_tile
+        issue, p_own_adr, p_mirror_adr = pipe.issue, pipe.p_own_adr, pipe.p_mirror_adr
+        drained, f, a, e, delayed = pipe.drained, pipe.f, pipe.a, pipe.e, pipe.delayed
         # F0 -> F2 valid bits, and the tile context at F2. The context moves to the next tile
         # at an EM word, and twice at a start, from registers (`go` and `go` a clock later, in
         # HEADER and FIRST_TILE: tile 0's header into `header`, then into the context), so no
