@@ -38,8 +38,7 @@ from migen import Module, Signal, Memory, Array, Cat, If, FSM, NextState, NextVa
 from litex.soc.interconnect import wishbone
 from litex.soc.interconnect.csr import AutoCSR, CSRStatus, CSRStorage
 
-from deform_gateware.mvu import (Mvu, LANES, SUM_BITS, HALF_SUM_BITS, bits_for, lanes,
-                                 magnitude)
+from deform_gateware.mvu import Mvu, LANES, SUM_BITS, HALF_SUM_BITS, bits_for, magnitude
 
 # Where an SoC puts the region: uncached I/O on the VexRiscv (bit 31 set), below LiteX's CSRs.
 REGION_ORIGIN = 0x9000_0000
@@ -82,7 +81,6 @@ class MvuArray(Module, AutoCSR):
         assert 0 <= mvus <= MAX_UNITS and nodes <= 1 << 16 and words <= 1 << 16
         self.mvus, self.words_depth, self.tiles_depth, self.nodes_depth = mvus, words, tiles, nodes
         self.bus = wishbone.Interface(data_width=32, adr_width=30)
-        nb = bits_for(nodes)
 
         self.count = CSRStatus(4, reset=mvus, description="MVUs in the array")
         self.nodes = CSRStatus(32, reset=nodes, description="Rows of p and Kp (largest n)")
