@@ -57,6 +57,8 @@ a start resets or loads (``fresh``, the tile context) hangs on ``go``, the start
 decode as a register of its own (a clock after ``start``, in HEADER), not on the state's.
 """
 
+from types import SimpleNamespace
+
 from migen import (Module, Signal, Array, Cat, If, FSM, NextState, NextValue,
                    Replicate)
 
@@ -152,12 +154,35 @@ class Mvu(Module):
             self.bus_p.dat_r.eq(self.p_col.read[1].dat),
             self.bus_kp.dat_r.eq(self.kp.read[0].dat),
         ]
-        self._pipeline(idle)
-        self._write_back(idle)
+        # The word pipeline, stage by stage, then the write-back. The builders are called from
+        # here, one after another, in the order the signals were always made in, and hand their
+        # signals on in `pipe` and `wb`: Migen names a signal after the variable that holds it
+        # and the `self` frames it was made in, and orders its Verilog by when it was made, so a
+        # builder called from another builder, or another order, would rename or reorder the
+        # Verilog.
+        pipe = SimpleNamespace()
+        self._decode(pipe)
+        self._multiply(pipe)
+        self._accumulate(pipe)
+        self._fetch(pipe)
+        self._tile_context(pipe, idle)
+        wb = SimpleNamespace()
+        self._queue_head(wb)
+        self._write_back_stages(wb)
+        self._take_part(wb, idle)
+        self._update_row(wb, idle)
+        self._p_kp(wb, idle)
+        self._drained(pipe, wb)
 
     # The word pipeline -------------------------------------------------------------------------
 
-    def _pipeline(self, idle):
+    def _decode(self, pipe):
+        """F2: the fetched entry decoded (EM, ER, column, value, flags) in its tile's context
+        (``row``, ``col_base``, ``mirror_col_base``, ``mirrored``), with the next tile's header
+        waiting in ``header`` so that an EM word moves the context on from registers
+        (``advance``; ``_tile_context`` moves it). The fetch's word address and issue
+        (``_fetch`` drives them) and the write-back queue are made here first, where they always
+        were made (see ``__init__``)."""
         nb = self.node_bits
         wa = Signal(bits_for(self.words_depth + 1))
         issue = Signal()
@@ -187,7 +212,20 @@ class Mvu(Module):
             Cat(next_row_base, next_col_base, next_mirror_col_base, next_mirrored).eq(header),
             advance.eq(f2_valid & decode.em),
         ]
+        pipe.wa, pipe.issue, pipe.decode, pipe.fetched = wa, issue, decode, fetched
+        pipe.f2_valid, pipe.header, pipe.advance = f2_valid, header, advance
+        pipe.row, pipe.col_base = row, col_base
+        pipe.mirror_col_base, pipe.mirrored = mirror_col_base, mirrored
+        pipe.next_tile = (next_row_base, next_col_base, next_mirror_col_base, next_mirrored)
 
+    def _multiply(self, pipe):
+        """F3..F5 and the multipliers: the two p addresses of a word registered at F3 (its
+        column in the tile, own and mirrored), p from the block RAM at F5 into value x p for
+        three lanes, own and mirrored (``Multiplier.latency`` clocks); the word's control
+        travels alongside, in registers, out to ``a`` (stage A)."""
+        nb = self.node_bits
+        decode, f2_valid, row, mirrored = pipe.decode, pipe.f2_valid, pipe.row, pipe.mirrored
+        col_base, mirror_col_base = pipe.col_base, pipe.mirror_col_base
         # F3..F5: the p addresses, registered at F3, then the block RAM; p is there at F5. The
         # word's control and value travel alongside.
         control_bits = 1 + 1 + 4 + 2 * nb + 1
@@ -225,7 +263,17 @@ class Mvu(Module):
                  mirror_row=Signal(nb), mirrored=Signal())
         self.comb += Cat(a["valid"], a["er"], a["flags"], a["row"], a["mirror_row"],
                          a["mirrored"]).eq(delayed[-1])
+        pipe.f, pipe.p_own_adr, pipe.p_mirror_adr = f, p_own_adr, p_mirror_adr
+        pipe.own_mul, pipe.mirror_mul, pipe.latency = own_mul, mirror_mul, latency
+        pipe.delayed, pipe.a = delayed, a
 
+    def _accumulate(self, pipe):
+        """A and E: the products summed into 64-bit accumulators per lane, own and mirrored,
+        a row's first word storing rather than adding (``fresh``); an ER word's sums, rows
+        and flags into the write-back queue a clock later. Also makes ``go``, a phase's start
+        as a register, which sets ``fresh`` (and, in ``_tile_context``, loads tile 0)."""
+        nb = self.node_bits
+        queue, own_mul, mirror_mul, a = self.queue, pipe.own_mul, pipe.mirror_mul, pipe.a
         # `go`: a phase starts (the start's decode, from the inputs and `busy`, as a register of
         # its own, a clock after `start`); it sets `fresh`.
         go = Signal()
@@ -255,7 +303,15 @@ class Mvu(Module):
                              *own_acc, *mirror_acc)),
             queue.we.eq(e["valid"]),
         ]
+        pipe.go, pipe.e = go, e
 
+    def _fetch(self, pipe):
+        """F0 and the phase's state machine: one word fetched per clock while the queue has
+        room for every ER word that may be in flight (``room``, a register, decided a clock
+        ahead); ``stalls`` counts the clocks it waited, over every phase since reset. Makes
+        ``drained`` (the write-back drives it)."""
+        queue, wa, issue = self.queue, pipe.wa, pipe.issue
+        f, latency = pipe.f, pipe.latency
         # F0: fetch while the queue has room for every ER word that may be in flight.
         # (F1, F2, F3..F5, the multipliers, E, and the word being fetched.)
         # `room` is a register, made from the level of the clock before: the queue's level (its
@@ -298,7 +354,17 @@ class Mvu(Module):
         ]
         drained = Signal()
         fsm.act("DRAIN", If(drained, NextValue(self.busy, 0), NextState("IDLE")))
+        pipe.drained = drained
 
+    def _tile_context(self, pipe, idle):
+        """F1/F2's valid bits, the tile context moved at an EM word (and twice at a start, from
+        ``go``), ``row`` counted on at an ER word, and the p reads of F3 (the array's
+        address while the unit is idle)."""
+        go, advance, fetched, f2_valid = pipe.go, pipe.advance, pipe.fetched, pipe.f2_valid
+        decode, header, row, col_base = pipe.decode, pipe.header, pipe.row, pipe.col_base
+        mirror_col_base, mirrored = pipe.mirror_col_base, pipe.mirrored
+        next_row_base, next_col_base, next_mirror_col_base, next_mirrored = pipe.next_tile
+        issue, p_own_adr, p_mirror_adr = pipe.issue, pipe.p_own_adr, pipe.p_mirror_adr
         # F0 -> F2 valid bits, and the tile context at F2. The context moves to the next tile
         # at an EM word, and twice at a start, from registers (`go` and `go` a clock later, in
         # HEADER and FIRST_TILE: tile 0's header into `header`, then into the context), so no
@@ -327,8 +393,6 @@ class Mvu(Module):
                 self.p_col.read[0].adr.eq(p_own_adr),
                 self.p_col.read[1].adr.eq(p_mirror_adr)),
         ]
-        self._drained_parts = (drained, fetched + [c[0] for c, _ in f]
-                               + [a["valid"], e["valid"]] + [d[0] for d in delayed])
 
     def _entry_width(self):
         nb = self.node_bits
@@ -336,12 +400,12 @@ class Mvu(Module):
 
     # The write-back and pᵀKp ---------------------------------------------------------------------
 
-    def _write_back(self, idle):
+    def _queue_head(self, wb):
+        """The write-back queue's head unpacked (``d_*``: rows, flags, own and mirrored sums of
+        an ER word), and the registers that keep an entry's mirror part while its own part goes
+        first (``mirror_row``, ``flags``, ``mirror``, ``mirror_pending``)."""
         nb = self.node_bits
         queue = self.queue
-        drained, in_pipe = self._drained_parts
-        kp_rd = self.kp.read[0]
-        p_at_row = self.p_row.read[0]
 
         # The queue's head, and the entry whose mirror part is still to go.
         d_row = Signal(nb)
@@ -356,7 +420,16 @@ class Mvu(Module):
         flags = Signal(4)
         mirror = [Signal((SUM_BITS, True)) for _ in range(LANES)]
         mirror_pending = Signal()
+        wb.d_row, wb.d_mirror_row, wb.d_mirrored = d_row, d_mirror_row, d_mirrored
+        wb.d_flags, wb.d_own, wb.d_mirror = d_flags, d_own, d_mirror
+        wb.mirror_row, wb.flags, wb.mirror = mirror_row, flags, mirror
+        wb.mirror_pending = mirror_pending
 
+    def _write_back_stages(self, wb):
+        """The registers of a part in each write-back stage (S, W, W2, U, R), and the pᵀKp
+        sequencer's job, count and ``free_soon``: whether a part leaving S now finds the
+        sequencer ready to take its job when it reaches U, LATENCY + 1 clocks later."""
+        nb = self.node_bits
         # A part (a row, its sums, first/last) through the stages S (the next part, in a
         # register of its own), W and W2 (Kp and p read at its row: the block RAMs, then a
         # register of their data beside the adders, which the block may be placed far from),
@@ -393,7 +466,23 @@ class Mvu(Module):
         ]
         self.sync += If(w["valid"] | w2["valid"], free_soon.eq(self.directions == 1)).Else(
             free_soon.eq(left_next <= LATENCY + 2))
+        wb.s, wb.w, wb.w2, wb.u, wb.r = s, w, w2, u, r
+        wb.job_p, wb.job_sums, wb.left, wb.step = job_p, job_sums, left, step
+        wb.seq_busy, wb.free_soon = seq_busy, free_soon
 
+    def _take_part(self, wb, idle):
+        """S: the next part (the pending mirror part, else the queue's head) and when it may
+        leave for W (``take``: no row hazard with W2, U or R, no part in W, the sequencer
+        free soon), every input of that a register; then W, W2, U carry it on while Kp and
+        p are read at its row."""
+        nb = self.node_bits
+        queue, kp_rd, p_at_row = self.queue, self.kp.read[0], self.p_row.read[0]
+        s, w, w2, u = wb.s, wb.w, wb.w2, wb.u
+        mirror_row, flags, mirror, mirror_pending = (wb.mirror_row, wb.flags, wb.mirror,
+                                                     wb.mirror_pending)
+        d_row, d_mirror_row, d_mirrored, d_flags = (wb.d_row, wb.d_mirror_row, wb.d_mirrored,
+                                                    wb.d_flags)
+        d_own, d_mirror, free_soon = wb.d_own, wb.d_mirror, wb.free_soon
         # S refills while empty: the mirror part of the entry taken last, else the queue's head.
         load = Signal()
         take = Signal()
@@ -451,6 +540,13 @@ class Mvu(Module):
                b["last"].eq(a["last"]), *[x.eq(y) for x, y in zip(b["sums"], a["sums"])]]],
         ]
 
+    def _update_row(self, wb, idle):
+        """U and R: the part's sums stored (a row's first write-back in the phase) or added to
+        Kp as read, written back at R, and a finished row's magnitudes ORed into max |Kp|;
+        at U the part's job (p[row] and its sums) goes to the pᵀKp sequencer."""
+        kp_rd, p_at_row = self.kp.read[0], self.p_row.read[0]
+        u, r, seq_busy, step, left = wb.u, wb.r, wb.seq_busy, wb.step, wb.left
+        job_p, job_sums = wb.job_p, wb.job_sums
         # U: store or add (Kp and p at the row have arrived), and hand over to pᵀKp.
         kp_at_u = Signal(len(kp_rd.dat))
         p_at_u = Signal(len(p_at_row.dat))
@@ -478,8 +574,12 @@ class Mvu(Module):
             *[j.eq(p) for j, p in zip(job_p, p_lanes)],
             *[j.eq(x) for j, x in zip(job_sums, u["sums"])],
         ).Elif(seq_busy, step.eq(step + 1), left.eq(left - 1))
-        stages = [s["valid"], w["valid"], w2["valid"], u["valid"], r["valid"]]
 
+    def _p_kp(self, wb, idle):
+        """pᵀKp: the sequencer's products p · (low or high half of a sum), one per clock
+        through one multiplier, each tagged with its lane and half, and accumulated by half
+        into ``p_kp_low`` and ``p_kp_high`` (cleared at a start)."""
+        step, job_p, job_sums, seq_busy = wb.step, wb.job_p, wb.job_sums, wb.seq_busy
         # The products p · (low or high half of a sum), accumulated by half: a zero-extended
         # low half and a sign-extended high half, so Σ p·sum = Σ p·low + 2^32 · Σ p·high.
         mul = Multiplier(P_BITS, 33, self.primitive)
@@ -509,6 +609,18 @@ class Mvu(Module):
             ).Elif(mul.valid & (out_tag[1:3] == lane),
                 If(out_tag[0], self.p_kp_high[lane].eq(self.p_kp_high[lane] + mul.p)).Else(
                     self.p_kp_low[lane].eq(self.p_kp_low[lane] + mul.p)))
+        wb.mul = mul
+
+    def _drained(self, pipe, wb):
+        """``drained``: nothing in flight anywhere, from the word pipeline's valid bits to the
+        pᵀKp multiplier; the state machine's DRAIN waits for it."""
+        queue, drained, mul = self.queue, pipe.drained, wb.mul
+        mirror_pending, seq_busy = wb.mirror_pending, wb.seq_busy
+        s, w, w2, u, r = wb.s, wb.w, wb.w2, wb.u, wb.r
+        fetched, f, a, e, delayed = pipe.fetched, pipe.f, pipe.a, pipe.e, pipe.delayed
+        in_pipe = (fetched + [c[0] for c, _ in f] + [a["valid"], e["valid"]]
+                   + [d[0] for d in delayed])
+        stages = [s["valid"], w["valid"], w2["valid"], u["valid"], r["valid"]]
 
         # Done once nothing is in flight anywhere; a register, a clock late (in DRAIN nothing
         # enters the pipeline, so what was empty stays empty): this wide AND is then no path

@@ -32,12 +32,13 @@ drops a matrix, not in every phase, where two CSR reads and the sums were some 3
 the CPU's side of a phase.
 """
 
+from types import SimpleNamespace
+
 from migen import Module, Signal, Memory, Array, Cat, If, FSM, NextState, NextValue, Mux
 from litex.soc.interconnect import wishbone
 from litex.soc.interconnect.csr import AutoCSR, CSRStatus, CSRStorage
 
-from deform_gateware.mvu import (Mvu, LANES, SUM_BITS, HALF_SUM_BITS, bits_for, lanes,
-                                 magnitude)
+from deform_gateware.mvu import Mvu, LANES, SUM_BITS, HALF_SUM_BITS, bits_for, magnitude
 
 # Where an SoC puts the region: uncached I/O on the VexRiscv (bit 31 set), below LiteX's CSRs.
 REGION_ORIGIN = 0x9000_0000
@@ -80,7 +81,6 @@ class MvuArray(Module, AutoCSR):
         assert 0 <= mvus <= MAX_UNITS and nodes <= 1 << 16 and words <= 1 << 16
         self.mvus, self.words_depth, self.tiles_depth, self.nodes_depth = mvus, words, tiles, nodes
         self.bus = wishbone.Interface(data_width=32, adr_width=30)
-        nb = bits_for(nodes)
 
         self.count = CSRStatus(4, reset=mvus, description="MVUs in the array")
         self.nodes = CSRStatus(32, reset=nodes, description="Rows of p and Kp (largest n)")
@@ -135,7 +135,17 @@ class MvuArray(Module, AutoCSR):
 
         self.phase_busy = Signal()
         self._phase()
-        self._slave()
+        # The bus, step by step. The builders are called from here, one after another, in the
+        # order the signals were always made in, and hand their signals on in `access`: Migen
+        # names a signal after the variable that holds it and the `self` frames it was made in,
+        # and orders its Verilog by when it was made, so a builder called from another builder,
+        # or another order, would rename or reorder the Verilog.
+        access = SimpleNamespace()
+        self._bus_access(access)
+        self._bus_decode(access)
+        self._bus_read_addresses(access)
+        self._bus_read(access)
+        self._bus_write(access)
 
     # The phase -----------------------------------------------------------------------------------
 
@@ -235,10 +245,11 @@ class MvuArray(Module, AutoCSR):
 
     # The bus -------------------------------------------------------------------------------------
 
-    def _slave(self):
+    def _bus_access(self, access):
+        """IDLE: a Wishbone access, taken only while no phase runs, latched whole (word
+        offset in the region, data, byte enables, write) for the steps that decode it; and
+        the registers the decode fills (``target``, ``index``, ``sub``, ``unit``, ``i64``)."""
         bus = self.bus
-        units = self.units
-        nb = bits_for(self.nodes_depth)
         word_offset = Signal(22)
         data = Signal(32)
         sel = Signal(4)
@@ -252,10 +263,6 @@ class MvuArray(Module, AutoCSR):
         self.comb += in_unit.eq(word_offset - UNIT_OFFSET // 4 - unit * (UNIT_STRIDE // 4))
         latch = Signal()
 
-        def region(offset, size):
-            lo = offset // 4
-            return (word_offset >= lo) & (word_offset < lo + size // 4)
-
         fsm = FSM(reset_state="IDLE")
         self.submodules.slave = fsm
         fsm.act("IDLE",
@@ -263,6 +270,23 @@ class MvuArray(Module, AutoCSR):
                 NextValue(word_offset, bus.adr[0:22]),
                 NextValue(data, bus.dat_w), NextValue(sel, bus.sel), NextValue(we, bus.we),
                 NextState("DECODE")))
+        access.word_offset, access.data, access.sel, access.we = word_offset, data, sel, we
+        access.target, access.index, access.sub, access.unit = target, index, sub, unit
+        access.i64, access.in_unit, access.latch, access.fsm = i64, in_unit, latch, fsm
+
+    def _bus_decode(self, access):
+        """DECODE and UNIT: which memory the word offset points at, which entry and which
+        32-bit part of it (a Kp entry's index by a multiplication for the division by 3, the
+        lane and half a clock later; an MVU's word, tile or length in UNIT); then READ, WAIT
+        and LATCH while the block RAMs answer."""
+        units, fsm, word_offset = self.units, access.fsm, access.word_offset
+        target, index, sub, unit = access.target, access.index, access.sub, access.unit
+        i64, in_unit, latch = access.i64, access.in_unit, access.latch
+
+        def region(offset, size):
+            lo = offset // 4
+            return (word_offset >= lo) & (word_offset < lo + size // 4)
+
         # Which memory, which entry, which part of the entry.
         kp_index = Signal(19)
         # The product in a signal of its own width: in Verilog `a * b >> s` assigned to a narrow
@@ -313,6 +337,10 @@ class MvuArray(Module, AutoCSR):
                 NextState("DATA")))
         fsm.act("LATCH", latch.eq(1), NextState("DATA"))
 
+    def _bus_read_addresses(self, access):
+        """Every memory's bus address, the decoded index; Kp's and the shared list's are the
+        reduction's while a phase runs."""
+        units, index = self.units, access.index
         # Read addresses, from the decoded index (the phase's own while it runs).
         for u in units:
             self.comb += [
@@ -329,6 +357,12 @@ class MvuArray(Module, AutoCSR):
         self.comb += self.shared_rd.adr.eq(
             Mux(self.phase_busy, self.reduce_entry, index) if units else index)
 
+    def _bus_read(self, access):
+        """The addressed entry latched (``entry``: every path from a block RAM to the bus or
+        another memory goes through this register), the 32-bit word the bus reads, and the
+        entry as a write would leave it (``entry_new``: the word merged by byte enables)."""
+        units, target, unit, latch = self.units, access.target, access.unit, access.latch
+        sub, sel, data = access.sub, access.sel, access.data
         # The entry as read, latched (`entry`), and the word the bus reads. Every path from a
         # block RAM's output to the bus or to another memory's input goes through a register:
         # combinational, the read-modify-write from one MVU's block RAM through the multiplexers
@@ -359,7 +393,15 @@ class MvuArray(Module, AutoCSR):
         entry_new = Signal(LANES * SUM_BITS)
         self.comb += entry_new.eq(entry)
         self.comb += Array([entry_new[32 * i:32 * (i + 1)] for i in range(6)])[sub].eq(merged)
+        access.owner, access.word, access.merged, access.entry_new = owner, word, merged, entry_new
 
+    def _bus_write(self, access):
+        """DATA: the bus acknowledged; a write lands a clock later from registers, in the
+        addressed memory (p in every MVU, Kp in its owner, an MVU's word, tile or length),
+        while the next access is still in IDLE."""
+        bus, units, fsm = self.bus, self.units, access.fsm
+        target, unit, sub, we = access.target, access.unit, access.sub, access.we
+        owner, word, merged, entry_new = access.owner, access.word, access.merged, access.entry_new
         # A write lands a clock after DATA, from registers (`written`, `new_entry`, `merged_r`), in
         # the next access's IDLE: its target, unit, sub-word and owner change only in that
         # access's DECODE and UNIT, and its first read address two clocks later still.
