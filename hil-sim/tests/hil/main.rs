@@ -20,7 +20,6 @@ mod link_reset;
 mod link_robustness;
 mod litex_mvus;
 mod litex_target;
-mod litex_term;
 mod live;
 mod logs_defmt;
 mod partition_equivalence;

@@ -1,17 +1,13 @@
 //! LiteX's own client on the simulated SoC with the stock BIOS: `litex_term --kernel fw.bin
 //! --kernel-adr 0x40000000` in its default mode (calibrated inter-frame delay, 128 frames in
 //! flight; no `--safe`) boots the firmware over the BIOS's serial boot, then `deform solve
-//! --port`'s path (`solve_model` on the board at that port) runs on the same line. It lives in
-//! this binary, beside the other long LiteX tests, so that the two cores run it alongside them:
-//! alone in the CLI tests' binary it held the gate for ten minutes with one core idle. Before the simulated UART was paced at a baud rate
+//! --port` runs on the same line. Before the simulated UART was paced at a baud rate
 //! (hil-sim/litex/deform_soc.py), it handed the SoC a byte per clock, the BIOS's 128-byte
 //! receive ring overflowed and the upload failed at 0–5 % with `Got unexpected response from
 //! device 'E'`.
 //!
 //! Needs the LiteX set-up (`cargo xtask setup`: the venv holds litex_term) and the LiteX firmware
 //! (`cargo xtask firmware --board litex`); the BIOS SoC is built once (a few minutes, cached).
-
-use crate::support;
 
 use std::io::Read;
 use std::path::Path;
@@ -21,11 +17,7 @@ use std::time::{Duration, Instant};
 
 use deform_hil_sim::child;
 use deform_hil_sim::litex::{litex_dir, litex_firmware_elf, LitexConfig, LitexSim};
-use deform_host::board::BoardChoice;
 use deform_host::flash::FlashImage;
-use deform_host::link::LinkFlags;
-use deform_host::model::{Connection, Grid, Model, ModelSpec};
-use deform_host::solve::solve_model;
 
 /// What litex_term prints once the BIOS has acknowledged the jump to the image. Its
 /// "Booting the device." comes *before* it sends that jump: ending litex_term on it raced the
@@ -134,27 +126,32 @@ fn stock_litex_term_boots_the_firmware_through_the_bios_and_deform_solves_on_tha
         !text.contains("switching to --safe"),
         "the calibration fell back to --safe mode:\n{text}"
     );
-    // litex_term holds the line: end it, and `deform solve`'s path takes the line over: the
-    // 4³ model B, refined to 1e-6, at most 8 target solves a direction.
+    // litex_term holds the line: end it, and `deform solve` takes the line over.
     let _ = term.kill();
     let _ = term.wait();
-    let grid = Grid::new(4, 4, 4).unwrap();
-    let model = Model::build(&ModelSpec {
-        grid,
-        connection: Connection::AxialShear,
-        loads: vec![ModelSpec::default_load(grid)],
-        ..ModelSpec::thesis_example()
-    })
-    .expect("model builds");
-    let mut plan = support::plan(BoardChoice::Port(serial), 1e-6, 8, Duration::from_secs(600));
-    plan.link = LinkFlags {
-        link_timeout: 60,
-        ..LinkFlags::default()
-    };
-    let solved = solve_model(&model, &plan).expect("the solve on the line litex_term booted");
-    let (deviation, _) = support::deviation_from_reference(&solved);
-    println!("deform solve on that line: deviation {deviation:.2e} from the f64 reference");
-    assert!(deviation <= 1e-6, "deviation {deviation:e}");
+
+    let out = Command::new(env!("CARGO_BIN_EXE_deform"))
+        .args([
+            "solve", "--port", &serial, "--grid", "4,4,4", "--model", "b",
+        ])
+        .arg("--elf")
+        .arg(&elf)
+        .args(["--link-timeout", "60", "--timeout", "600"])
+        .output()
+        .expect("the deform binary runs");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "deform solve on the line litex_term booted: {}\n{stdout}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let deviation = stdout
+        .lines()
+        .find_map(|l| l.strip_prefix("max deviation from the f64 reference: "))
+        .and_then(|l| l.split_whitespace().next())
+        .and_then(|v| v.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("no deviation in:\n{stdout}"));
+    assert!(deviation <= 1e-6, "deviation {deviation:e}:\n{stdout}");
     drop(sim);
     std::fs::remove_dir_all(&scratch).unwrap();
 }
