@@ -293,19 +293,16 @@ fn depth(r: &SocReport) -> (u8, Option<Router>) {
     }
 }
 
+/// What makes two SoCs of the same MVU count different designs, whose builds are kept and
+/// compared apart: the MVU array's reset network and the bus (bursting or not).
+fn kind(r: &SocReport) -> (bool, bool) {
+    (r.global_reset, r.bus_bursting)
+}
+
 /// Adds `report` to `builds`, in place of an earlier build of the same count, seed, rows per MVU,
 /// reset network, bus and depth (and router, for a routed build).
 fn record(builds: &mut Vec<SocReport>, report: SocReport) {
-    let key = |r: &SocReport| {
-        (
-            r.mvus,
-            r.seed,
-            r.nodes,
-            r.global_reset,
-            r.bus_bursting,
-            depth(r),
-        )
-    };
+    let key = |r: &SocReport| (r.mvus, r.seed, r.nodes, kind(r), depth(r));
     builds.retain(|b| key(b) != key(&report));
     builds.push(report);
     builds.sort_by_key(key);
@@ -379,8 +376,7 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
             .find(|r| {
                 r.mvus == 0
                     && r.seed == b.seed
-                    && r.global_reset == b.global_reset
-                    && r.bus_bursting == b.bus_bursting
+                    && kind(r) == kind(b)
                     && r.pnr.is_some()
                     && depth(r) == depth(b)
             })
@@ -757,57 +753,51 @@ mod tests {
     /// A build with the array's reset on a global network is a row of its own, compared only
     /// with a 0-MVU build whose reset was on one too; reports from before it was recorded read
     /// as builds with the reset in the fabric.
-    #[test]
-    fn the_reset_network_keeps_builds_apart() {
+    /// A build of another kind (`change`: the reset on a global network, or no bus bursting) is
+    /// a row of its own, marked `mark` and compared only with a 0-MVU build of its kind;
+    /// reports from before `field` was recorded read as builds without it.
+    fn a_kind_keeps_builds_apart(change: fn(&mut SocReport), mark: &str, field: &str) {
         let mut builds = Vec::new();
         record(&mut builds, build(0, 1, Some(50.0)));
         record(&mut builds, build(4, 1, Some(45.0)));
-        let mut global = build(4, 1, Some(40.0));
-        global.global_reset = true;
-        record(&mut builds, global.clone());
+        let mut other = build(4, 1, Some(44.0));
+        change(&mut other);
+        record(&mut builds, other.clone());
         assert_eq!(builds.len(), 3);
         let md = markdown("ulx3s", &builds);
         assert!(md.contains("| 45.0 | -10.0 % |"), "{md}");
         assert!(
-            md.contains("| 40.0 | — |") && md.contains("abc (reset on a global network) |"),
+            md.contains("| 44.0 | — |") && md.contains(&format!("abc ({mark}) |")),
             "{md}"
         );
-        let mut global_baseline = build(0, 1, Some(40.0));
-        global_baseline.global_reset = true;
-        record(&mut builds, global_baseline);
+        let mut other_baseline = build(0, 1, Some(40.0));
+        change(&mut other_baseline);
+        record(&mut builds, other_baseline);
         let md = markdown("ulx3s", &builds);
-        assert!(md.contains("| 40.0 | +0.0 % |"), "{md}");
-        let mut old = serde_json::to_value(&global).unwrap();
-        old.as_object_mut().unwrap().remove("global_reset");
-        let old: SocReport = serde_json::from_value(old).unwrap();
-        assert!(!old.global_reset);
+        assert!(md.contains("| 44.0 | +10.0 % |"), "{md}");
+        let mut before = serde_json::to_value(&other).unwrap();
+        before.as_object_mut().unwrap().remove(field);
+        let before: SocReport = serde_json::from_value(before).unwrap();
+        assert_eq!(serde_json::to_value(&before).unwrap()[field], false);
     }
 
-    /// Likewise a build without bus bursting: its own row and its own baseline; reports from
-    /// before bursting was recorded read as builds without it (as they were built).
+    #[test]
+    fn the_reset_network_keeps_builds_apart() {
+        a_kind_keeps_builds_apart(
+            |b| b.global_reset = true,
+            "reset on a global network",
+            "global_reset",
+        );
+    }
+
+    /// Reports from before bursting was recorded read as builds without it (as they were).
     #[test]
     fn the_bus_keeps_builds_apart() {
-        let mut builds = Vec::new();
-        record(&mut builds, build(0, 1, Some(50.0)));
-        let mut plain = build(4, 1, Some(44.0));
-        plain.bus_bursting = false;
-        record(&mut builds, plain.clone());
-        record(&mut builds, build(4, 1, Some(45.0)));
-        assert_eq!(builds.len(), 3);
-        let md = markdown("ulx3s", &builds);
-        assert!(md.contains("| 45.0 | -10.0 % |"), "{md}");
-        assert!(
-            md.contains("| 44.0 | — |") && md.contains("abc (no bus bursting) |"),
-            "{md}"
+        a_kind_keeps_builds_apart(
+            |b| b.bus_bursting = false,
+            "no bus bursting",
+            "bus_bursting",
         );
-        let mut plain_baseline = build(0, 1, Some(40.0));
-        plain_baseline.bus_bursting = false;
-        record(&mut builds, plain_baseline);
-        assert!(markdown("ulx3s", &builds).contains("| 44.0 | +10.0 % |"));
-        let mut old = serde_json::to_value(&plain).unwrap();
-        old.as_object_mut().unwrap().remove("bus_bursting");
-        let old: SocReport = serde_json::from_value(old).unwrap();
-        assert!(!old.bus_bursting);
     }
 
     #[test]

@@ -297,8 +297,9 @@ impl Board {
 
 /// Bytes a board's line carried for the messages, framing included: every frame's first copy
 /// each way. Retransmissions, the repeats they draw (duplicate replies and acknowledgements),
-/// NAKs, noise and corrupt frames are left out, so that a message's or a frame's cost is a property of the
-/// protocol and not of how loaded the host was or how noisy the line; [`LinkStats`] counts them.
+/// NAKs, noise and corrupt frames are left out, so that a message's or a frame's cost is a
+/// property of the protocol and not of how loaded the host was or how noisy the line;
+/// [`LinkStats`] counts them.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct WireBytes {
     /// Host → target.
