@@ -9,7 +9,7 @@ silicon — that is what a bitstream on the board does."""
 import random
 import unittest
 
-from migen import Module, Signal, Memory, Cat, If, run_simulation
+from migen import Module, Signal, Memory, Cat, run_simulation
 from migen.fhdl.specials import Instance
 
 from deform_gateware.bram import Bram, LATENCY

@@ -278,7 +278,7 @@ class Svu(Module, AutoCSR):
             z_b.eq(m_own_b + floored_mul.p[WORD:2 * WORD]),
             z_control.eq(m_control), z_entry.eq(m_entry),
         ]
-        z_valid, z_last, z_index = z_control[0], z_control[1], z_control[2:]
+        z_valid, z_index = z_control[0], z_control[2:]  # bit 1 (last) has no use here
         new_entry = Signal(LANES * P_BITS)
         self.comb += new_entry.eq(z_entry)
         self.comb += Array([new_entry[WORD * k:WORD * (k + 1)] for k in range(LANES)])[d].eq(z_b)
