@@ -9,7 +9,9 @@ silicon — that is what a bitstream on the board does."""
 import random
 import unittest
 
-from migen import Module, Signal, Memory, Cat, run_simulation
+from migen import Module, Signal, Memory, Cat
+
+from deform_gateware.simulation import run_simulation
 from migen.fhdl.specials import Instance
 
 from deform_gateware.bram import Bram, LATENCY

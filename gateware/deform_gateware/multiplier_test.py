@@ -3,7 +3,7 @@
 import random
 import unittest
 
-from migen import run_simulation
+from deform_gateware.simulation import run_simulation
 
 from deform_gateware.multiplier import Multiplier
 

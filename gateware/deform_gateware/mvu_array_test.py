@@ -7,7 +7,7 @@ import sys
 import time
 import unittest
 
-from migen import run_simulation
+from deform_gateware.simulation import run_simulation
 
 from deform_gateware import testvectors
 from deform_gateware.mvu_array import (MvuArray, P_OFFSET, KP_OFFSET, OWNER_OFFSET,

@@ -4,7 +4,7 @@ sums), two phases each, the second on the Kp memory the first left behind."""
 
 import unittest
 
-from migen import run_simulation
+from deform_gateware.simulation import run_simulation
 
 from deform_gateware import testvectors
 from deform_gateware.mvu import Mvu

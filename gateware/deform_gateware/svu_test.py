@@ -11,7 +11,9 @@ import sys
 import time
 import unittest
 
-from migen import Module, run_simulation
+from migen import Module
+
+from deform_gateware.simulation import run_simulation
 
 from deform_gateware import testvectors
 from deform_gateware.bram import Bram

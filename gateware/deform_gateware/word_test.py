@@ -2,7 +2,7 @@
 
 import unittest
 
-from migen import run_simulation
+from deform_gateware.simulation import run_simulation
 
 from deform_gateware import testvectors
 from deform_gateware.word import InstructionWord
