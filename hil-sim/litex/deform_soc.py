@@ -68,8 +68,8 @@ SYS_CLK_HZ = int(1e6)
 
 # The BIOS shape's default line rate. At the SoC's nominal 1 MHz, 9,600 baud gives the BIOS 1,042
 # cycles per received byte (a 100 MHz board has 868 at 115,200 baud). Measured with stock
-# litex_term's default mode (host/tests/cli/litex_term.rs): at 38,400 baud (260 cycles) its upload
-# failed in both of two runs (a CRC error, then an unexpected `E`: the BIOS's receive ring
+# litex_term's default mode (hil-sim/tests/hil/bios_boot.rs): at 38,400 baud (260 cycles) its
+# upload failed in both of two runs (a CRC error, then an unexpected `E`: the BIOS's receive ring
 # overflowed); at 9,600 it booted the 155 KB image in both of two runs (0.2-0.4 KB/s in a loaded
 # simulation). deform's own SFL client keeps one frame in flight and runs faster (hil-sim's
 # LitexConfig::uart_pace).

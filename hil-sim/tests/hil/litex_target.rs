@@ -11,8 +11,7 @@ use crate::support;
 use std::time::{Duration, Instant};
 
 use deform_hil_sim::litex::{litex_firmware_elf, LitexConfig, LitexSim};
-use deform_host::board::{BiosChoice, Board, BoardChoice};
-use deform_host::flash::sfl::SflTimeouts;
+use deform_host::board::BoardChoice;
 use deform_host::link::{open_serial, Link, Target, Timeouts};
 use deform_host::model::flags::{ConnectionArg, ModelFlags};
 use deform_host::model::{Grid, Node, PointLoad};
@@ -229,50 +228,4 @@ fn dynamic_live_frames_on_the_soft_core_follow_the_f64_stepper() {
         assert!(err <= 1e-3, "frame {frame}: {err:e}");
         assert!(f.cycles.unwrap() > 0);
     }
-}
-
-/// The stock LiteX BIOS (the litex_sim SoC with ROM, built once) boots our firmware over its
-/// serial line (SFL), as `litex_term --kernel` would; the firmware then solves.
-#[test]
-fn the_stock_litex_bios_boots_the_firmware_which_then_solves() {
-    let elf = litex_firmware_elf();
-    let started = Instant::now();
-    let (mut board, report) = Board::flash_litex_bios(
-        &BiosChoice::Simulated,
-        &elf,
-        timeouts(),
-        SflTimeouts::default(),
-        &Default::default(),
-        |_| {},
-    )
-    .unwrap_or_else(|e| panic!("boot through the BIOS: {e:#}"));
-    println!(
-        "booted through the LiteX BIOS: {} SFL frames, {} resent, {:.1} s",
-        report.frames,
-        report.resends,
-        started.elapsed().as_secs_f64()
-    );
-    assert!(report.frames > 1);
-    assert_eq!(board.target.info().harts, 1);
-    let matrix = support::banded_spd(32, 2);
-    board.target.upload_matrix(&matrix).unwrap();
-    let b: Vec<f64> = (0..32).map(|i| 1.0 + f64::from(i % 5)).collect();
-    let (report, x) = board
-        .target
-        .solve_for(
-            &b,
-            deform_shared::protocol::SolveParams {
-                max_iterations: 400,
-                tolerance: 1e-9,
-                start: deform_shared::protocol::Start::Zero,
-                directions: 1,
-                cycle_budget: 0,
-            },
-        )
-        .unwrap();
-    assert!(report.converged, "{report:?}");
-    // Against the f64 solution of the same (quantised) system.
-    let reference = support::cholesky_solve(&support::decode_dense(&matrix), &b);
-    let error = support::max_relative_error(&x, &reference);
-    assert!(error <= 1e-6, "deviation {error:e} from the f64 solution");
 }

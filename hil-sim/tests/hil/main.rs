@@ -8,6 +8,7 @@ mod support;
 
 mod bench_quick;
 mod big_grid_16;
+mod bios_boot;
 mod dynamics;
 mod engine_harts;
 mod examples;

@@ -6,7 +6,6 @@ mod dynamics_cli;
 mod flash_cli;
 mod inverse_cli;
 mod link_target_loss;
-mod litex_term;
 mod live_browser;
 mod live_cli;
 mod live_field;

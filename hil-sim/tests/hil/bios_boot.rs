@@ -1,13 +1,24 @@
-//! LiteX's own client on the simulated SoC with the stock BIOS: `litex_term --kernel fw.bin
-//! --kernel-adr 0x40000000` in its default mode (calibrated inter-frame delay, 128 frames in
-//! flight; no `--safe`) boots the firmware over the BIOS's serial boot, then `deform solve
-//! --port` runs on the same line. Before the simulated UART was paced at a baud rate
-//! (hil-sim/litex/deform_soc.py), it handed the SoC a byte per clock, the BIOS's 128-byte
-//! receive ring overflowed and the upload failed at 0–5 % with `Got unexpected response from
-//! device 'E'`.
+//! The firmware booted through the stock LiteX BIOS on the simulated SoC with ROM (built once,
+//! cached in target/litex): by deform's own SFL client (`deform flash --target litex`'s path),
+//! and by LiteX's own `litex_term`, after which `deform solve --port`'s path runs on the same
+//! line.
+//!
+//! Named to run first: libtest starts a binary's tests in the order of their names, and these
+//! two are among the longest (the BIOS receives ~315 KB at a paced line rate). Started first,
+//! they run beside the rest on the other core instead of alone at the end. (The litex_term test
+//! was alone at the end of the CLI tests' binary before session 14: ten minutes with one core
+//! idle.)
+//!
+//! `litex_term --kernel fw.bin --kernel-adr 0x40000000` runs in its default mode (calibrated
+//! inter-frame delay, 128 frames in flight; no `--safe`). Before the simulated UART was paced at
+//! a baud rate (hil-sim/litex/deform_soc.py), it handed the SoC a byte per clock, the BIOS's
+//! 128-byte receive ring overflowed and the upload failed at 0–5 % with `Got unexpected response
+//! from device 'E'`.
 //!
 //! Needs the LiteX set-up (`cargo xtask setup`: the venv holds litex_term) and the LiteX firmware
-//! (`cargo xtask firmware --board litex`); the BIOS SoC is built once (a few minutes, cached).
+//! (`cargo xtask firmware --board litex`).
+
+use crate::support;
 
 use std::fs::File;
 use std::io::{Read, Write};
@@ -19,7 +30,12 @@ use std::time::{Duration, Instant};
 
 use deform_hil_sim::child;
 use deform_hil_sim::litex::{litex_dir, litex_firmware_elf, LitexConfig, LitexSim};
+use deform_host::board::{BiosChoice, Board, BoardChoice};
+use deform_host::flash::sfl::SflTimeouts;
 use deform_host::flash::FlashImage;
+use deform_host::link::{LinkFlags, Timeouts};
+use deform_host::model::{Connection, Grid, Model, ModelSpec};
+use deform_host::solve::solve_model;
 
 /// What litex_term prints once the BIOS has acknowledged the jump to the image. Its
 /// "Booting the device." comes *before* it sends that jump: ending litex_term on it raced the
@@ -222,28 +238,79 @@ fn stock_litex_term_boots_the_firmware_through_the_bios_and_deform_solves_on_tha
     let _ = term.kill();
     let _ = term.wait();
 
-    let out = Command::new(env!("CARGO_BIN_EXE_deform"))
-        .args([
-            "solve", "--port", &serial, "--grid", "4,4,4", "--model", "b",
-        ])
-        .arg("--elf")
-        .arg(&elf)
-        .args(["--link-timeout", "60", "--timeout", "600"])
-        .output()
-        .expect("the deform binary runs");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "deform solve on the line litex_term booted: {}\n{stdout}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let deviation = stdout
-        .lines()
-        .find_map(|l| l.strip_prefix("max deviation from the f64 reference: "))
-        .and_then(|l| l.split_whitespace().next())
-        .and_then(|v| v.parse::<f64>().ok())
-        .unwrap_or_else(|| panic!("no deviation in:\n{stdout}"));
-    assert!(deviation <= 1e-6, "deviation {deviation:e}:\n{stdout}");
+    let grid = Grid::new(4, 4, 4).unwrap();
+    let model = Model::build(&ModelSpec {
+        grid,
+        connection: Connection::AxialShear,
+        loads: vec![ModelSpec::default_load(grid)],
+        ..ModelSpec::thesis_example()
+    })
+    .expect("model builds");
+    let mut plan = support::plan(BoardChoice::Port(serial), 1e-6, 8, Duration::from_secs(600));
+    plan.link = LinkFlags {
+        link_timeout: 60,
+        ..LinkFlags::default()
+    };
+    let solved = solve_model(&model, &plan).expect("the solve on the line litex_term booted");
+    let (deviation, _) = support::deviation_from_reference(&solved);
+    println!("deform solve on that line: deviation {deviation:.2e} from the f64 reference");
+    assert!(deviation <= 1e-6, "deviation {deviation:e}");
     drop(sim);
     std::fs::remove_dir_all(&scratch).unwrap();
+}
+
+/// The simulated SoC boots in about a second of wall time, more on a busy machine.
+fn timeouts() -> Timeouts {
+    Timeouts {
+        handshake: Duration::from_secs(120),
+        request: Duration::from_secs(60),
+        solve: Duration::from_secs(600),
+        ..Timeouts::default()
+    }
+}
+
+/// The stock LiteX BIOS (the litex_sim SoC with ROM, built once) boots our firmware over its
+/// serial line (SFL), as `litex_term --kernel` would; the firmware then solves.
+#[test]
+fn the_stock_litex_bios_boots_the_firmware_which_then_solves() {
+    let elf = litex_firmware_elf();
+    let started = Instant::now();
+    let (mut board, report) = Board::flash_litex_bios(
+        &BiosChoice::Simulated,
+        &elf,
+        timeouts(),
+        SflTimeouts::default(),
+        &Default::default(),
+        |_| {},
+    )
+    .unwrap_or_else(|e| panic!("boot through the BIOS: {e:#}"));
+    println!(
+        "booted through the LiteX BIOS: {} SFL frames, {} resent, {:.1} s",
+        report.frames,
+        report.resends,
+        started.elapsed().as_secs_f64()
+    );
+    assert!(report.frames > 1);
+    assert_eq!(board.target.info().harts, 1);
+    let matrix = support::banded_spd(32, 2);
+    board.target.upload_matrix(&matrix).unwrap();
+    let b: Vec<f64> = (0..32).map(|i| 1.0 + f64::from(i % 5)).collect();
+    let (report, x) = board
+        .target
+        .solve_for(
+            &b,
+            deform_shared::protocol::SolveParams {
+                max_iterations: 400,
+                tolerance: 1e-9,
+                start: deform_shared::protocol::Start::Zero,
+                directions: 1,
+                cycle_budget: 0,
+            },
+        )
+        .unwrap();
+    assert!(report.converged, "{report:?}");
+    // Against the f64 solution of the same (quantised) system.
+    let reference = support::cholesky_solve(&support::decode_dense(&matrix), &b);
+    let error = support::max_relative_error(&x, &reference);
+    assert!(error <= 1e-6, "deviation {error:e} from the f64 solution");
 }
