@@ -33,7 +33,7 @@ use deform_hil_sim::litex::{litex_dir, litex_firmware_elf, LitexConfig, LitexSim
 use deform_host::board::{BiosChoice, Board, BoardChoice};
 use deform_host::flash::sfl::SflTimeouts;
 use deform_host::flash::FlashImage;
-use deform_host::link::{LinkFlags, Timeouts};
+use deform_host::link::LinkFlags;
 use deform_host::model::{Connection, Grid, Model, ModelSpec};
 use deform_host::solve::solve_model;
 
@@ -259,16 +259,6 @@ fn stock_litex_term_boots_the_firmware_through_the_bios_and_deform_solves_on_tha
     std::fs::remove_dir_all(&scratch).unwrap();
 }
 
-/// The simulated SoC boots in about a second of wall time, more on a busy machine.
-fn timeouts() -> Timeouts {
-    Timeouts {
-        handshake: Duration::from_secs(120),
-        request: Duration::from_secs(60),
-        solve: Duration::from_secs(600),
-        ..Timeouts::default()
-    }
-}
-
 /// The stock LiteX BIOS (the litex_sim SoC with ROM, built once) boots our firmware over its
 /// serial line (SFL), as `litex_term --kernel` would; the firmware then solves.
 #[test]
@@ -278,7 +268,7 @@ fn the_stock_litex_bios_boots_the_firmware_which_then_solves() {
     let (mut board, report) = Board::flash_litex_bios(
         &BiosChoice::Simulated,
         &elf,
-        timeouts(),
+        support::litex_timeouts(),
         SflTimeouts::default(),
         &Default::default(),
         |_| {},

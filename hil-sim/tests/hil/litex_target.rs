@@ -24,16 +24,6 @@ fn start() -> LitexSim {
         .unwrap_or_else(|e| panic!("cannot start the LiteX SoC: {e}"))
 }
 
-/// The simulated SoC boots in about a second of wall time, more on a busy machine.
-fn timeouts() -> Timeouts {
-    Timeouts {
-        handshake: Duration::from_secs(120),
-        request: Duration::from_secs(60),
-        solve: Duration::from_secs(600),
-        ..Timeouts::default()
-    }
-}
-
 #[test]
 fn model_b_on_6_cubed_matches_f64_to_1e_8_with_refinement() {
     let args = ModelFlags {
@@ -104,7 +94,7 @@ fn bad_bytes_are_answered_with_an_error_frame() {
     let sim = start();
     let path = sim.serial_path().to_string_lossy().into_owned();
     let port = open_serial(&path).expect("open the bridge's pty");
-    let mut target = Target::handshake(Link::new(port), timeouts())
+    let mut target = Target::handshake(Link::new(port), support::litex_timeouts())
         .unwrap_or_else(|e| panic!("handshake: {e}; simulator:\n{}", sim.output()));
     assert_eq!(target.info().harts, 1, "{:?}", target.info());
     let before = target.stats().naks;
@@ -172,7 +162,7 @@ fn live_frames_on_the_soft_core_match_converged_solves() {
     let patient = Timeouts {
         retransmit: Duration::from_secs(2),
         retries: 200,
-        ..timeouts()
+        ..support::litex_timeouts()
     };
     let mut target = Target::handshake(Link::new(port), patient)
         .unwrap_or_else(|e| panic!("handshake: {e}; simulator:\n{}", sim.output()));
@@ -208,7 +198,7 @@ fn dynamic_live_frames_on_the_soft_core_follow_the_f64_stepper() {
     let needle = support::DynamicNeedle::load(&EncodeOptions::default());
     let sim = start();
     let port = open_serial(&sim.serial_path().to_string_lossy()).expect("open the bridge's pty");
-    let mut target = Target::handshake(Link::new(port), timeouts())
+    let mut target = Target::handshake(Link::new(port), support::litex_timeouts())
         .unwrap_or_else(|e| panic!("handshake: {e}; simulator:\n{}", sim.output()));
     let params = needle.params(1e-4, EncodeOptions::default());
     let (model, tools) = (&needle.setup.model, &needle.setup.tools);

@@ -198,3 +198,14 @@ pub fn deviation_from_reference(solved: &deform_host::solve::Solved) -> (f64, f6
 }
 
 pub use crate::needle::DynamicNeedle;
+
+/// A link's patience with the simulated LiteX SoC: it boots in about a second of wall time,
+/// more on a busy machine, and runs about 0.8 M cycles a second.
+pub fn litex_timeouts() -> Timeouts {
+    Timeouts {
+        handshake: Duration::from_secs(120),
+        request: Duration::from_secs(60),
+        solve: Duration::from_secs(600),
+        ..Timeouts::default()
+    }
+}
