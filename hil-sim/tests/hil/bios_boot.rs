@@ -148,7 +148,7 @@ fn boot_through(
     mut keys: File,
     events: &mpsc::Receiver<Term>,
 ) -> Vec<String> {
-    // The BIOS's boot and the ~315 KB upload at 0.3–0.8 KB/s under a loaded gate.
+    // The BIOS's boot and the ~315 KB upload: 0.6–0.9 KB/s here, slower under a loaded gate.
     let deadline = Instant::now() + Duration::from_secs(1800);
     let mut seen: Vec<String> = Vec::new();
     let mut typed = Instant::now();
@@ -197,8 +197,7 @@ fn stock_litex_term_boots_the_firmware_through_the_bios_and_deform_solves_on_tha
     let sim = LitexSim::start(&LitexConfig::bios().with_uart_pace(LITEX_TERM_UART_PACE))
         .unwrap_or_else(|e| panic!("cannot start the LiteX SoC with its BIOS: {e}"));
     let serial = sim.serial_path().to_str().unwrap().to_string();
-    // litex_term is an interactive terminal: it wants a tty on stdin, which Python's pty module
-    // gives it (the test's own stdin is not one).
+    // litex_term is an interactive terminal: its stdin is a pty of the test's (`keyboard`).
     let python = litex_dir().join("venv/bin/python");
     // At the lowest priority, so that under a loaded gate it takes no time the simulated SoC,
     // which sets the pace, could use (see `term_lines`).
