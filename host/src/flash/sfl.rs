@@ -245,11 +245,34 @@ pub fn detect_bios<P: Port>(port: &mut P, listen: Duration) -> Result<bool, io::
             Err(e) if is_timeout(&e) => {}
             Err(e) => return Err(e),
         }
-        if contains(&seen, BIOS_PROMPT) || contains(&seen, MAGIC_REQUEST) {
+        if shows_prompt(&seen) || contains(&seen, MAGIC_REQUEST) {
             return Ok(true);
         }
     }
     Ok(false)
+}
+
+/// Whether `seen` shows the BIOS's prompt. The stock BIOS colours it
+/// (`\e[92;1mlitex\e[0m> `), so escape sequences are dropped before [`BIOS_PROMPT`] is looked
+/// for: in the raw bytes `litex` and `>` are apart.
+pub fn shows_prompt(seen: &[u8]) -> bool {
+    contains(&without_escapes(seen), BIOS_PROMPT)
+}
+
+/// `bytes` without ANSI escape sequences: from ESC to the sequence's final letter.
+pub fn without_escapes(bytes: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut in_escape = false;
+    for &b in bytes {
+        if in_escape {
+            in_escape = !b.is_ascii_alphabetic();
+        } else if b == 0x1b {
+            in_escape = true;
+        } else {
+            out.push(b);
+        }
+    }
+    out
 }
 
 fn contains(haystack: &[u8], needle: &[u8]) -> bool {
@@ -262,6 +285,34 @@ mod tests {
     use std::io::{Read, Write};
     use std::os::unix::net::UnixStream;
     use std::thread;
+
+    /// The stock BIOS's prompt as it sends it (LiteX's bios/readline.h), answering the newline
+    /// that `detect_bios` pokes the line with.
+    const COLOURED_PROMPT: &[u8] = b"\x1b[92;1mlitex\x1b[0m> ";
+
+    #[test]
+    fn a_bios_at_its_coloured_prompt_is_detected_and_a_silent_line_is_not() {
+        assert!(shows_prompt(COLOURED_PROMPT));
+        assert!(
+            !contains(COLOURED_PROMPT, BIOS_PROMPT),
+            "the raw bytes hide it"
+        );
+        assert_eq!(without_escapes(b"a\x1b[0mb\x1b[92;1mc"), b"abc");
+
+        let (mut host, mut bios) = UnixStream::pair().unwrap();
+        let board = thread::spawn(move || {
+            let mut poke = [0u8; 1];
+            bios.read_exact(&mut poke).unwrap();
+            assert_eq!(&poke, b"\n");
+            bios.write_all(COLOURED_PROMPT).unwrap();
+            bios
+        });
+        assert!(detect_bios(&mut host, Duration::from_secs(5)).unwrap());
+        drop(board.join().unwrap());
+
+        let (mut host, _silent) = UnixStream::pair().unwrap();
+        assert!(!detect_bios(&mut host, Duration::from_millis(300)).unwrap());
+    }
 
     #[test]
     fn frames_carry_length_crc16_command_and_payload() {
