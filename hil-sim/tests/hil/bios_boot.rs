@@ -31,7 +31,7 @@ use std::time::{Duration, Instant};
 use deform_hil_sim::child;
 use deform_hil_sim::litex::{litex_dir, litex_firmware_elf, LitexConfig, LitexSim};
 use deform_host::board::{BiosChoice, Board, BoardChoice};
-use deform_host::flash::sfl::SflTimeouts;
+use deform_host::flash::sfl::{self, SflTimeouts};
 use deform_host::flash::FlashImage;
 use deform_host::link::LinkFlags;
 use deform_host::model::{Connection, Grid, Model, ModelSpec};
@@ -66,11 +66,8 @@ enum Term {
 /// How often the reader of litex_term's output drains it (see [`term_lines`]).
 const DRAIN_EVERY: Duration = Duration::from_millis(20);
 
-/// The BIOS's prompt once its colour codes are dropped.
-const PROMPT: &[u8] = b"litex> ";
-
-/// litex_term's own lines and the BIOS's prompts, sent on as they come. ANSI escape sequences
-/// (the prompt's colour) are dropped.
+/// litex_term's own lines and the BIOS's prompts (found as deform's own client finds them,
+/// `sfl::shows_prompt`), sent on as they come.
 ///
 /// Its upload loop spins while 128 frames are in flight, redrawing a progress bar with `\r` on
 /// every turn. Drained as fast as it came, through a pty, that bar was hundreds of MB, and
@@ -84,18 +81,13 @@ fn term_lines(mut out: ChildStdout, events: mpsc::Sender<Term>) {
     unsafe { libc::fcntl(out.as_raw_fd(), libc::F_SETPIPE_SZ, 4096) };
     let mut buf = [0u8; 4096];
     let mut line = Vec::new();
-    let mut in_escape = false;
     while let Ok(n) = out.read(&mut buf) {
         if n == 0 {
             break;
         }
         std::thread::sleep(DRAIN_EVERY);
         for &b in &buf[..n] {
-            if in_escape {
-                in_escape = !b.is_ascii_alphabetic();
-            } else if b == 0x1b {
-                in_escape = true;
-            } else if b == b'\r' || b == b'\n' {
+            if b == b'\r' || b == b'\n' {
                 let text = String::from_utf8_lossy(&line);
                 if text.contains("[LITEX-TERM]")
                     && events.send(Term::Line(text.into_owned())).is_err()
@@ -105,7 +97,8 @@ fn term_lines(mut out: ChildStdout, events: mpsc::Sender<Term>) {
                 line.clear();
             } else if line.len() < 512 {
                 line.push(b);
-                if line.ends_with(PROMPT) {
+                // The prompt ends in "> ": only then is the line worth a look.
+                if line.ends_with(b"> ") && sfl::shows_prompt(&line) {
                     if events.send(Term::Prompt).is_err() {
                         return;
                     }
@@ -122,20 +115,15 @@ const RETYPE_AFTER: Duration = Duration::from_secs(20);
 /// litex_term's keyboard: a pty whose slave is its stdin (it sets its terminal's modes, so it
 /// wants a tty there) and whose master the test types into.
 fn keyboard() -> (File, OwnedFd) {
-    let (mut master, mut slave) = (-1, -1);
-    // SAFETY: openpty writes two fresh descriptors; name, modes and size may be null.
-    let rc = unsafe {
-        libc::openpty(
-            &mut master,
-            &mut slave,
-            std::ptr::null_mut(),
-            std::ptr::null(),
-            std::ptr::null(),
-        )
-    };
-    assert_eq!(rc, 0, "openpty: {}", std::io::Error::last_os_error());
+    // nix's openpty, as hil-sim's relay opens its ptys.
+    let pair = nix::pty::openpty(None, None).expect("openpty");
     // SAFETY: openpty just returned these descriptors; each is owned by exactly one value.
-    unsafe { (File::from_raw_fd(master), OwnedFd::from_raw_fd(slave)) }
+    unsafe {
+        (
+            File::from_raw_fd(pair.master),
+            OwnedFd::from_raw_fd(pair.slave),
+        )
+    }
 }
 
 /// Waits until litex_term has booted the device, typing `serialboot` at the BIOS's prompt (as a
@@ -170,6 +158,8 @@ fn boot_through(
         );
         let asked = text.contains(DOWNLOAD_REQUEST);
         if !asked && (prompted || typed.elapsed() >= RETYPE_AFTER) {
+            // Not sfl::SERIALBOOT_COMMAND: its leading newline makes the BIOS print a prompt
+            // first, which would have this loop type again as the upload starts.
             keys.write_all(b"serialboot\n")
                 .expect("typing into litex_term");
             seen.push("[test] typed serialboot".into());
@@ -284,22 +274,5 @@ fn the_stock_litex_bios_boots_the_firmware_which_then_solves() {
     let matrix = support::banded_spd(32, 2);
     board.target.upload_matrix(&matrix).unwrap();
     let b: Vec<f64> = (0..32).map(|i| 1.0 + f64::from(i % 5)).collect();
-    let (report, x) = board
-        .target
-        .solve_for(
-            &b,
-            deform_shared::protocol::SolveParams {
-                max_iterations: 400,
-                tolerance: 1e-9,
-                start: deform_shared::protocol::Start::Zero,
-                directions: 1,
-                cycle_budget: 0,
-            },
-        )
-        .unwrap();
-    assert!(report.converged, "{report:?}");
-    // Against the f64 solution of the same (quantised) system.
-    let reference = support::cholesky_solve(&support::decode_dense(&matrix), &b);
-    let error = support::max_relative_error(&x, &reference);
-    assert!(error <= 1e-6, "deviation {error:e} from the f64 solution");
+    support::solve_matches_f64(&mut board.target, &matrix, &b, 400);
 }

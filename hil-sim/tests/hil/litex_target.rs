@@ -114,22 +114,7 @@ fn bad_bytes_are_answered_with_an_error_frame() {
         "{naks} NAK(s) for two bad frames: {:?}",
         target.stats()
     );
-    let (report, x) = target
-        .solve_for(
-            &[1.0; 16],
-            deform_shared::protocol::SolveParams {
-                max_iterations: 200,
-                tolerance: 1e-9,
-                start: deform_shared::protocol::Start::Zero,
-                directions: 1,
-                cycle_budget: 0,
-            },
-        )
-        .unwrap();
-    assert!(report.converged, "{report:?}");
-    let reference = support::cholesky_solve(&support::decode_dense(&matrix), &[1.0; 16]);
-    let error = support::max_relative_error(&x, &reference);
-    assert!(error <= 1e-6, "deviation {error:e} from the f64 solution");
+    let report = support::solve_matches_f64(&mut target, &matrix, &[1.0; 16], 200);
     // Real cycles: the RTL takes more cycles than it retires instructions.
     assert!(
         report.mvu.cycles > report.mvu.instructions && report.mvu.instructions > 0,

@@ -6,7 +6,8 @@ use std::time::Duration;
 
 use deform_hil_sim::{firmware_elf, Qemu, QemuConfig};
 use deform_host::encode::EncodedMatrix;
-use deform_host::link::{Target, Timeouts};
+use deform_host::link::{Port, Target, Timeouts};
+use deform_shared::protocol::{SolveParams, SolveReport, Start};
 use deform_shared::qformat::choose_frac_bits;
 use deform_shared::word::COLUMN_WINDOW;
 use deform_target_core::testkit::{banded_row, dense, encode_rows, TestSystem};
@@ -208,4 +209,28 @@ pub fn litex_timeouts() -> Timeouts {
         solve: Duration::from_secs(600),
         ..Timeouts::default()
     }
+}
+
+/// Solves K·x = `b` on the resident `matrix` (one direction, from zero, to 1e-9 in at most
+/// `max_iterations`) and checks that it converged to within 1e-6 of the f64 solution of the
+/// same (quantised) system. Returns the target's report, for its cycle counts.
+pub fn solve_matches_f64(
+    target: &mut Target<impl Port>,
+    matrix: &EncodedMatrix,
+    b: &[f64],
+    max_iterations: u32,
+) -> SolveReport {
+    let params = SolveParams {
+        max_iterations,
+        tolerance: 1e-9,
+        start: Start::Zero,
+        directions: 1,
+        cycle_budget: 0,
+    };
+    let (report, x) = target.solve_for(b, params).unwrap();
+    assert!(report.converged, "{report:?}");
+    let reference = cholesky_solve(&decode_dense(matrix), b);
+    let error = max_relative_error(&x, &reference);
+    assert!(error <= 1e-6, "deviation {error:e} from the f64 solution");
+    report
 }
