@@ -806,8 +806,10 @@ pub fn check_bound(bound: u64, sat: &mut u32) {
 /// For an in-order five-stage core such as VexRiscv (`/work/shared/notes/litex-vexriscv.md`):
 /// every loaded value is used at least three instructions after its load, every product three
 /// after its `mul`/`mulh`, every shifted value two after its shift; the two elements of a pair
-/// are interleaved to make that so. The counts are the same as unscheduled, so QEMU's
-/// instruction counts do not show it; the VexRiscv's cycles do.
+/// are interleaved to make that so. Pass XP's four stores a pair are two slots apart: the
+/// write-through data cache passes a store to the bus every other clock at best, so a run of
+/// four back to back held the third and fourth a clock each. The counts are the same as
+/// unscheduled, so QEMU's instruction counts do not show it; the VexRiscv's cycles do.
 ///
 /// The own terms' shift direction is loop-invariant, so each loop comes in a left and a right
 /// variant (one instruction instead of a shift pair), generated from one template per pass.
