@@ -1056,7 +1056,7 @@ impl<E: Executor> Engine<'_, '_, E> {
                     for (d, plan) in plans.iter().enumerate().take(self.directions) {
                         let x = self.xs[d].slice_mut(range.clone());
                         let r = &self.rs[d].as_slice()[range.clone()];
-                        let (x_or, p_or) = svu::pass_xp(x, p, r, d, *plan);
+                        let (x_or, p_or) = svu::pass_xp(x, p, r, d, plan);
                         sink.or(OrField::X, d, x_or);
                         sink.or(OrField::P, d, p_or);
                     }

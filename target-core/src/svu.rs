@@ -701,19 +701,20 @@ fn r_loop<const R: usize>(
 const SQUARE_BLOCK: usize = 16;
 
 /// Pass XP on one slice of direction `d`, p `S` lanes a node ([`crate::kernel::lane_words`]);
-/// returns the ORs of |x| and |p| (0 where not updated).
+/// returns the ORs of |x| and |p| (0 where not updated). The plan by reference: by value, its
+/// 48 bytes went through a `memcpy` on every hart at every pass.
 pub fn pass_xp<const S: usize>(
     x: &mut [i32],
     p: &mut [[i32; S]],
     r: &[i32],
     d: usize,
-    plan: PassXP,
+    plan: &PassXP,
 ) -> (u32, u32) {
     #[cfg(target_arch = "riscv32")]
     if let Some(out) = riscv::pass_xp(x, p, r, d, plan) {
         return out;
     }
-    portable_pass_xp(x, p, r, d, plan)
+    portable_pass_xp(x, p, r, d, *plan)
 }
 
 /// The specification of pass XP. Every own term is present (x's own x, p's own r).
@@ -1368,12 +1369,12 @@ mod riscv {
         p: &mut [[i32; S]],
         r: &[i32],
         d: usize,
-        plan: PassXP,
+        plan: &PassXP,
     ) -> Option<(u32, u32)> {
         let PassXP {
             x: Some(xl),
             p: Some(pl),
-        } = plan
+        } = *plan
         else {
             return None;
         };
@@ -1445,7 +1446,7 @@ mod riscv {
             (false, false) => both!("sra", "sra"),
         }
         let (tx, tp) = if quads < n {
-            portable_pass_xp(&mut x[quads..n], &mut p[quads..n], &r[quads..n], d, plan)
+            portable_pass_xp(&mut x[quads..n], &mut p[quads..n], &r[quads..n], d, *plan)
         } else {
             (0, 0)
         };
