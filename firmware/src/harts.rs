@@ -305,6 +305,13 @@ impl Executor for Harts {
         counts
     }
 
+    /// Hart 0's task alone, measured as [`run_measured`](Executor::run_measured) measures it.
+    fn run_one_measured(&self, task: Task<'_>) -> PhaseCounters {
+        let start = counters();
+        task(0);
+        counters().since(start)
+    }
+
     type Mvus = MvuDriver;
 
     fn mvu_backend(&self) -> Option<&MvuDriver> {

@@ -29,14 +29,25 @@ pub const STIFFNESS_WORDS: usize = Board::STIFFNESS_WORDS;
 
 /// Everything the session works in. All zero at boot, so it lands in `.bss`.
 ///
-/// In declaration order (`repr(C)`), so that p follows the directions' vectors at the
-/// offset modulo 4 KiB that [`DirectionBuffers`] leaves for it.
+/// In declaration order (`repr(C)`), so that p and Kp follow the directions' vectors at
+/// chosen offsets modulo 4 KiB, the VexRiscv's direct-mapped data cache (every vector is a
+/// multiple of 4 KiB): with r at 0, x is at 2 KiB ([`DirectionBuffers`]), p at 3 KiB and Kp
+/// at 0. Pass XP's p, x and r stay a quarter of the cache apart, element by element; and one
+/// direction's vectors of up to 512 nodes (p, x and r 2 KiB, Kp 4 KiB: 8 bytes a row) keep
+/// lines for the next pass. The MVU phase's pᵀKp reads p and Kp row by row, p at half Kp's
+/// stride, so each line p shares with Kp it reads before Kp does, and Kp's lines stay cached
+/// except the quarter under p's second half. Pass R then reads those lines of Kp before r,
+/// at half Kp's stride, takes them over; and pass XP finds every line of r still cached,
+/// since p and x lie in the other half from r's first 2 KiB (p's second half reaching r's
+/// lines only after r has been read there).
 #[repr(C)]
 pub struct Buffers {
     words: [u32; WORD_CAPACITY],
     tiles: [TileHeader; TILE_CAPACITY],
     directions: [DirectionBuffers; MAX_DIRECTIONS],
+    skew_p: [u8; SKEW_P],
     p: [Lanes; MAX_N],
+    skew_kp: [u8; SKEW_KP],
     kp: [Sums; MAX_N],
     partial: [Sums; PARTIAL_ROWS],
     responses: [i32; RESPONSE_VALUES],
@@ -49,8 +60,8 @@ pub struct Buffers {
 /// Each vector is a multiple of 4 KiB, so without the skews x, r and p would start at the same
 /// offset modulo 4 KiB, and element i of each would fall in the same line of the VexRiscv's
 /// 4 KiB direct-mapped data cache: pass XP, which reads x, r and p element by element, would
-/// evict each with the next. The skews put b (and p, which follows the directions in
-/// [`Buffers`]), x, x0 and r a quarter of the cache apart.
+/// evict each with the next. The skews put b, x, x0 and r a quarter of the cache apart (p,
+/// which follows the directions in [`Buffers`], has a skew of its own).
 #[repr(C)]
 pub struct DirectionBuffers {
     b: [i32; MAX_N],
@@ -65,6 +76,12 @@ pub struct DirectionBuffers {
 
 /// A quarter of the VexRiscv's 4 KiB data cache ([`DirectionBuffers`]).
 const CACHE_SKEW: usize = 1024;
+
+/// p's skew after the directions: p three quarters of the cache after r (modulo 4 KiB),
+/// where a 2 KiB p (one direction's 4 bytes a node, 512 nodes) leaves pass R's r alone.
+const SKEW_P: usize = 2 * CACHE_SKEW;
+/// Kp's skew after p: Kp at r's offset modulo 4 KiB (see [`Buffers`]).
+const SKEW_KP: usize = CACHE_SKEW;
 
 const NO_TILE: TileHeader = TileHeader {
     row_base: 0,
@@ -102,7 +119,9 @@ impl Buffers {
         words: [0; WORD_CAPACITY],
         tiles: [NO_TILE; TILE_CAPACITY],
         directions: [DirectionBuffers::ZERO; MAX_DIRECTIONS],
+        skew_p: [0; SKEW_P],
         p: [[0; 4]; MAX_N],
+        skew_kp: [0; SKEW_KP],
         kp: [[0; MAX_DIRECTIONS]; MAX_N],
         partial: [[0; MAX_DIRECTIONS]; PARTIAL_ROWS],
         responses: [0; RESPONSE_VALUES],

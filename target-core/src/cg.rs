@@ -732,8 +732,16 @@ impl<E: Executor> Engine<'_, '_, E> {
     #[inline(always)]
     fn run(&self, task: &(dyn Fn(usize) + Sync), clock: &mut Clock, mvu: bool) {
         clock.flush_serial(self.exec);
-        let counts = self.exec.run_measured(self.harts, task);
-        clock.costs.parallel(counts, self.harts, mvu);
+        if self.harts == 1 {
+            // What `parallel` charges for one hart's counts (its slowest and its sum), without
+            // the array of every hart's: a `memset`, a `memcpy` and two loops on hart 0's
+            // serial path at every phase.
+            let counts = self.exec.run_one_measured(task);
+            clock.costs.charge(counts, counts, mvu);
+        } else {
+            let counts = self.exec.run_measured(self.harts, task);
+            clock.costs.parallel(counts, self.harts, mvu);
+        }
         clock.last = self.exec.now();
     }
 
@@ -1048,7 +1056,7 @@ impl<E: Executor> Engine<'_, '_, E> {
                     for (d, plan) in plans.iter().enumerate().take(self.directions) {
                         let x = self.xs[d].slice_mut(range.clone());
                         let r = &self.rs[d].as_slice()[range.clone()];
-                        let (x_or, p_or) = svu::pass_xp(x, p, r, d, *plan);
+                        let (x_or, p_or) = svu::pass_xp(x, p, r, d, plan);
                         sink.or(OrField::X, d, x_or);
                         sink.or(OrField::P, d, p_or);
                     }

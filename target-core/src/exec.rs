@@ -56,6 +56,13 @@ pub trait Executor: PhaseClock + Sync {
     /// counts (zero where the executor cannot count).
     fn run_measured(&self, harts: usize, task: Task<'_>) -> [PhaseCounters; MAX_HARTS];
 
+    /// [`run_measured`](Self::run_measured) for one hart: `task(0)` alone, and its counts
+    /// alone. An executor that counts overrides it to skip the array of every hart's counts,
+    /// which hart 0 would otherwise zero, return and fold on its serial path at every phase.
+    fn run_one_measured(&self, task: Task<'_>) -> PhaseCounters {
+        self.run_measured(1, task)[0]
+    }
+
     /// The board's hardware MVUs ([`crate::mvu_backend`]); [`NoMvus`] where it has none.
     type Mvus: MvuBackend;
 

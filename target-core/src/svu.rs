@@ -701,19 +701,20 @@ fn r_loop<const R: usize>(
 const SQUARE_BLOCK: usize = 16;
 
 /// Pass XP on one slice of direction `d`, p `S` lanes a node ([`crate::kernel::lane_words`]);
-/// returns the ORs of |x| and |p| (0 where not updated).
+/// returns the ORs of |x| and |p| (0 where not updated). The plan by reference: by value, its
+/// 48 bytes went through a `memcpy` on every hart at every pass.
 pub fn pass_xp<const S: usize>(
     x: &mut [i32],
     p: &mut [[i32; S]],
     r: &[i32],
     d: usize,
-    plan: PassXP,
+    plan: &PassXP,
 ) -> (u32, u32) {
     #[cfg(target_arch = "riscv32")]
     if let Some(out) = riscv::pass_xp(x, p, r, d, plan) {
         return out;
     }
-    portable_pass_xp(x, p, r, d, plan)
+    portable_pass_xp(x, p, r, d, *plan)
 }
 
 /// The specification of pass XP. Every own term is present (x's own x, p's own r).
@@ -806,8 +807,10 @@ pub fn check_bound(bound: u64, sat: &mut u32) {
 /// For an in-order five-stage core such as VexRiscv (`/work/shared/notes/litex-vexriscv.md`):
 /// every loaded value is used at least three instructions after its load, every product three
 /// after its `mul`/`mulh`, every shifted value two after its shift; the two elements of a pair
-/// are interleaved to make that so. The counts are the same as unscheduled, so QEMU's
-/// instruction counts do not show it; the VexRiscv's cycles do.
+/// are interleaved to make that so. Pass XP's four stores a pair are two slots apart: the
+/// write-through data cache passes a store to the bus every other clock at best, so a run of
+/// four back to back held the third and fourth a clock each. The counts are the same as
+/// unscheduled, so QEMU's instruction counts do not show it; the VexRiscv's cycles do.
 ///
 /// The own terms' shift direction is loop-invariant, so each loop comes in a left and a right
 /// variant (one instruction instead of a shift pair), generated from one template per pass.
@@ -1194,21 +1197,21 @@ mod riscv {
                 "srai {tb}, {tb}, 1\n",
                 "add {ra}, {ra}, {pa}\n",
                 "add {rb}, {rb}, {pb}\n",
-                "add {xa}, {xa}, {ta}\n",
-                "add {xb}, {xb}, {tb}\n",
                 "sw {ra}, ",
                 $pa,
                 "({p})\n",
+                "add {xa}, {xa}, {ta}\n",
                 "sw {rb}, ",
                 $pb,
                 "({p})\n",
+                "add {xb}, {xb}, {tb}\n",
                 "sw {xa}, ",
                 $xa,
                 "({x})\n",
+                "srai {ta}, {ra}, 31\n",
                 "sw {xb}, ",
                 $xb,
                 "({x})\n",
-                "srai {ta}, {ra}, 31\n",
                 "srai {tb}, {rb}, 31\n",
                 "srai {ua}, {xa}, 31\n",
                 "srai {ub}, {xb}, 31\n",
@@ -1366,12 +1369,12 @@ mod riscv {
         p: &mut [[i32; S]],
         r: &[i32],
         d: usize,
-        plan: PassXP,
+        plan: &PassXP,
     ) -> Option<(u32, u32)> {
         let PassXP {
             x: Some(xl),
             p: Some(pl),
-        } = plan
+        } = *plan
         else {
             return None;
         };
@@ -1443,7 +1446,7 @@ mod riscv {
             (false, false) => both!("sra", "sra"),
         }
         let (tx, tp) = if quads < n {
-            portable_pass_xp(&mut x[quads..n], &mut p[quads..n], &r[quads..n], d, plan)
+            portable_pass_xp(&mut x[quads..n], &mut p[quads..n], &r[quads..n], d, *plan)
         } else {
             (0, 0)
         };
