@@ -446,17 +446,29 @@ pub fn drift_of_exact_pass(root_n: Upper, e_r: i32) -> Upper {
 }
 
 /// Whether ‖r‖ + `drift` ≤ `tol`·‖b‖ is proven, hence ‖b − A·x‖ ≤ tol·‖b‖, from Σr² = `rr` at
-/// exponent `e_r` and Σb² = `bb` at `e_b` (mantissas, exact). Without a square root:
-/// (‖r‖ + E)² ≤ 2‖r‖² + 2E², so 2‖r‖² + 2E² ≤ tol²·‖b‖² suffices (it gives up the cases where
-/// ‖r‖ is above about 0.7·tol·‖b‖). The left side is rounded up and the right side down, in
-/// integers ([`Upper`], [`Lower`]).
+/// exponent `e_r` and Σb² = `bb` at `e_b` (mantissas, exact). Without a square root, and
+/// without giving any case up (until session 16 the test was 2‖r‖² + 2E² ≤ tol²‖b‖², which
+/// refused every case with ‖r‖ above about 0.7·tol·‖b‖ and allowed a drift of only
+/// √(T²/2 − ‖r‖²)): with T² = tol²‖b‖², ‖r‖ + E ≤ T holds exactly where E² ≤ T² and
+/// ‖r‖² ≤ (T − E)² = T² − 2TE + E², that is where X = T² + E² − ‖r‖² ≥ 2TE, or where
+/// X ≥ 0 and X² ≥ 4T²E². T² is taken rounded down (the condition only weakens as T falls),
+/// then X is formed rounded down (E² in it too) and 4T²E² rounded up, in integers
+/// ([`Upper`], [`Lower`]).
 pub fn proves_tolerance(rr: u128, e_r: i32, bb: u128, e_b: i32, drift: Upper, tol: f64) -> bool {
     if !drift.is_finite() || bb == 0 {
         return false;
     }
-    let lhs = Upper::wide(rr, 2 * e_r).plus(drift.times(drift)).scale2(1);
     let tol = Lower::from_f64(tol);
-    lhs.at_most(tol.times(tol).times(Lower::wide(bb, 2 * e_b)))
+    let t2 = tol.times(tol).times(Lower::wide(bb, 2 * e_b));
+    let e2 = drift.times(drift);
+    if !e2.at_most(t2) {
+        return false;
+    }
+    let e2_exact = Lower::exact(drift).times(Lower::exact(drift));
+    let Some(x) = t2.plus(e2_exact).minus(Upper::wide(rr, 2 * e_r)) else {
+        return false;
+    };
+    Upper::exact(t2).times(e2).scale2(2).at_most(x.times(x))
 }
 
 /// The largest error, in units of r's exponent, of an element of b − A·x formed by an MVU pass

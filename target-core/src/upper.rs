@@ -155,6 +155,11 @@ impl Upper {
         deform_shared::qformat::ldexp(self.m as f64, self.e)
     }
 
+    /// A [`Lower`]'s value, exactly (the two share their form).
+    pub fn exact(l: Lower) -> Upper {
+        Upper { m: l.m, e: l.e }
+    }
+
     /// Whether self ≤ `m`·2^`e`, exactly (for a lower bound of the right-hand side formed by
     /// [`Lower`]).
     pub fn at_most(self, rhs: Lower) -> bool {
@@ -200,6 +205,62 @@ impl Lower {
     /// self · other, rounded down.
     pub fn times(self, other: Lower) -> Lower {
         floor_normalize(self.m * other.m, i64::from(self.e) + i64::from(other.e))
+    }
+
+    /// A finite [`Upper`]'s value, exactly (the two share their form); 0 for an infinite one
+    /// (nothing proven).
+    pub fn exact(u: Upper) -> Lower {
+        if !u.is_finite() {
+            return Lower { m: 0, e: 0 };
+        }
+        Lower { m: u.m, e: u.e }
+    }
+
+    /// self + other, rounded down.
+    pub fn plus(self, other: Lower) -> Lower {
+        if other.m == 0 {
+            return self;
+        }
+        if self.m == 0 {
+            return other;
+        }
+        let (hi, lo) = if self.e >= other.e {
+            (self, other)
+        } else {
+            (other, self)
+        };
+        let d = (i64::from(hi.e) - i64::from(lo.e)) as u64;
+        let aligned = if d >= u64::from(BITS) { 0 } else { lo.m >> d };
+        // Both below 2^32: the sum is below 2^33 (at most one place to cut, rounding down).
+        let sum = hi.m + aligned;
+        if sum >> BITS == 0 {
+            return Lower { m: sum, e: hi.e };
+        }
+        floor_normalize(sum >> 1, i64::from(hi.e) + 1)
+    }
+
+    /// self − `other`, rounded down, where it is proven non-negative (`other` ≤ self); `None`
+    /// where it is not.
+    pub fn minus(self, other: Upper) -> Option<Lower> {
+        if !other.is_finite() {
+            return None;
+        }
+        if other.m == 0 {
+            return Some(self);
+        }
+        // Both mantissas lie in [2^31, 2^32): a smaller exponent is a smaller value.
+        if self.m == 0 || self.e < other.e {
+            return None;
+        }
+        let d = (i64::from(self.e) - i64::from(other.e)) as u64;
+        if d <= u64::from(BITS) {
+            // Exact at other's exponent: self.m < 2^32 shifted by at most 32 places.
+            let hi = self.m << d;
+            let diff = hi.checked_sub(other.m)?;
+            return Some(floor_normalize(diff, i64::from(other.e)));
+        }
+        // other below one unit of self's exponent, counted as one (rounded up).
+        Some(floor_normalize(self.m - 1, i64::from(self.e)))
     }
 }
 

@@ -266,15 +266,16 @@ fn the_integer_bounds_are_at_least_the_f64_ones() {
             "{case}: {ext:e} {ext_f:e}"
         );
 
-        // The tolerance: never proven where 2‖r‖² + 2E² > tol²‖b‖² in exact arithmetic.
+        // The tolerance: never proven where ‖r‖ + E > tol·‖b‖ (f64, within 1e-12; the exact
+        // test is `the_tolerance_is_proven_exactly_where_it_holds`).
         let rr = u128::from(rng.mantissa()) << rng.below(40);
         let bb = u128::from(rng.mantissa()) << rng.below(40);
         let (e_r2, e_b) = (rng.exponent(20), rng.exponent(20));
         let tol = [1e-3, 1e-5, 1e-7, 0.3][rng.below(4) as usize];
         let drift = Upper::new(rng.mantissa(), rng.exponent(30));
         if proves_tolerance(rr, e_r2, bb, e_b, drift, tol) {
-            let lhs = 2.0 * (ldexp(rr as f64, 2 * e_r2) + drift.to_f64() * drift.to_f64());
-            let rhs = tol * tol * ldexp(bb as f64, 2 * e_b);
+            let lhs = ldexp((rr as f64).sqrt(), e_r2) + drift.to_f64();
+            let rhs = tol * ldexp((bb as f64).sqrt(), e_b);
             assert!(lhs <= rhs * (1.0 + 1e-12), "{case}: {lhs:e} > {rhs:e}");
         }
     }
@@ -288,7 +289,113 @@ fn the_tolerance_is_proven_only_within_it() {
     let bb = 1u128 << 40;
     assert!(proves_tolerance(25, 0, bb, 0, Upper::new(5, 0), 1e-5));
     assert!(!proves_tolerance(25, 0, bb, 0, Upper::new(6, 0), 1e-5));
-    assert!(!proves_tolerance(60, 0, bb, 0, Upper::ZERO, 1e-5));
+    // ‖r‖ above 0.7·tol·‖b‖: proven since session 16 (the old 2‖r‖² + 2E² ≤ T² refused both).
+    assert!(proves_tolerance(60, 0, bb, 0, Upper::ZERO, 1e-5));
+    assert!(proves_tolerance(100, 0, bb, 0, Upper::from_f64(0.4), 1e-5));
+    assert!(!proves_tolerance(100, 0, bb, 0, Upper::from_f64(0.5), 1e-5));
+    assert!(!proves_tolerance(110, 0, bb, 0, Upper::ZERO, 1e-5));
+    // A drift above T alone, with r = 0 (X ≥ 2TE would hold without E ≤ T).
+    assert!(!proves_tolerance(0, 0, bb, 0, Upper::new(11, 0), 1e-5));
     assert!(!proves_tolerance(1, 0, bb, 0, Upper::INFINITE, 1e-5));
     assert!(!proves_tolerance(0, 0, 0, 0, Upper::ZERO, 1e-5));
+}
+
+/// The tolerance test decides ‖r‖ + E ≤ T exactly (session 16), where the old one decided
+/// 2‖r‖² + 2E² ≤ T² (and refused about half of what holds): at tol = 1, e = 0 and E an integer
+/// k, T² = Σb² exactly, and ‖r‖ + E ≤ T holds exactly where k² ≤ Σb² and X = Σb² + k² − Σr² ≥ 0
+/// with X² ≥ 4·Σb²·k², checked here in integers. The test must never prove what does not hold;
+/// and wherever (‖r‖ + E)·(1 + 1e-4) ≤ T it must prove it (X − 2TE = (T − E)² − ‖r‖² is of
+/// the order of that gap squared where ‖r‖ is small, so 32-bit mantissas lose gaps below about
+/// 2^−15 of T there: nothing beside the 0.3 of T the old test gave up). Near-edge cases (Σb² drawn around
+/// (√Σr² + k)²) and the extremes (r = 0, E = 0, E above T) are drawn.
+#[test]
+fn the_tolerance_is_proven_exactly_where_it_holds() {
+    let mut rng = Rng(0x2545_f491_4f6c_dd1d);
+    let (mut proven, mut refused_edge, mut margin_cases) = (0, 0, 0);
+    for case in 0..300_000 {
+        let rr = match rng.below(8) {
+            0 => 0,
+            _ => rng.next() >> (2 + rng.below(60)),
+        };
+        let k = match rng.below(8) {
+            0 => 0,
+            _ => rng.next() >> (33 + rng.below(31)),
+        };
+        let root = (rr as f64).sqrt() + k as f64;
+        let bb: u64 = match rng.below(4) {
+            // Near the edge: (√Σr² + k)² moved by a few parts in 2^30 either way.
+            0 | 1 => {
+                let edge = root * root;
+                let moved = edge * (1.0 + (rng.unit() - 0.5) * 2f64.powi(-28));
+                if moved >= 2f64.powi(62) {
+                    continue;
+                }
+                moved as u64 + rng.below(3)
+            }
+            // Well within or beyond.
+            2 => ((root * (1.0 + rng.unit())).powi(2)).min(2f64.powi(62)) as u64,
+            _ => rng.next() >> (2 + rng.below(60)),
+        };
+        if bb == 0 || rr >= 1 << 62 || bb >= 1 << 62 {
+            continue;
+        }
+        let drift = Upper::new(k, 0);
+        let got = proves_tolerance(u128::from(rr), 0, u128::from(bb), 0, drift, 1.0);
+        let (rr_w, bb_w, k_w) = (i128::from(rr), i128::from(bb), i128::from(k));
+        let x = bb_w + k_w * k_w - rr_w;
+        let holds = k_w * k_w <= bb_w && x >= 0 && x * x >= 4 * bb_w * k_w * k_w;
+        assert!(!got || holds, "{case}: proven, but √{rr} + {k} > √{bb}");
+        if root * (1.0 + 1e-4) <= (bb as f64).sqrt() {
+            margin_cases += 1;
+            assert!(got, "{case}: √{rr} + {k} ≤ √{bb} with a margin, not proven");
+        }
+        proven += usize::from(got);
+        refused_edge += usize::from(holds && !got);
+    }
+    // The draws reach both sides and the edge.
+    assert!(
+        proven > 50_000 && margin_cases > 50_000,
+        "{proven} {margin_cases}"
+    );
+    assert!(refused_edge > 0, "{refused_edge}");
+}
+
+/// `Lower::plus` and `Lower::minus` round down and stay close; `minus` refuses only where the
+/// difference may be negative.
+#[test]
+fn lower_sums_and_differences_round_down() {
+    let mut rng = Rng(0x6a09_e667_f3bc_c908);
+    for case in 0..200_000 {
+        let (ma, ea) = (rng.mantissa(), rng.exponent(40));
+        let (mb, eb) = (rng.mantissa(), rng.exponent(40));
+        let a = Lower::exact(Upper::new(ma, ea));
+        let b = Lower::exact(Upper::new(mb, eb));
+        let u = Upper::new(mb, eb);
+        let units_l = |l: Lower, base: i32| u128::from(l.m) << (l.e - base);
+        if a.m == 0 || b.m == 0 || (a.e - b.e).abs() > 60 {
+            continue;
+        }
+        let base = a.e.min(b.e) - 2;
+        let s = a.plus(b);
+        let exact = units_l(a, base) + units_l(b, base);
+        let got = units_l(s, base);
+        assert!(got <= exact && exact - got <= exact >> 30, "{case}: plus");
+        match a.minus(u) {
+            Some(d) => {
+                let exact = units_l(a, base) as i128 - units(u, base) as i128;
+                assert!(exact >= 0, "{case}: minus of a larger value");
+                if d.m != 0 {
+                    let got = units_l(d, base.min(d.e)) >> (base - base.min(d.e));
+                    assert!(got as i128 <= exact, "{case}: minus rounds down");
+                    // Within one unit of a's exponent (where u is far below) or 2^−30.
+                    let slack = (exact as u128 >> 30).max(1u128 << (a.e - base));
+                    assert!(exact as u128 - got <= slack, "{case}: minus close");
+                }
+            }
+            None => assert!(
+                units(u, base) > units_l(a, base),
+                "{case}: minus refused a non-negative difference"
+            ),
+        }
+    }
 }
