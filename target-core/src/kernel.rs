@@ -39,10 +39,12 @@
 //! a second address (`p[n−1−col_base] − 16·c`) and a second set of accumulators.
 //!
 //! Where the plan allows it ([`crate::cg::Plan::split`]: rows of at most 2048 words and
-//! Σ|q| below 2^22), the three-direction loops and the one-direction mirrored loop keep split
-//! sums instead ([`rebuild_split`]): per product `mul`, `mulh` of the word shifted by 11 and two
-//! `add`s, the row's exact sum rebuilt at its end; 23 instructions a word instead of 29 (three
-//! directions, whole), 19 and 39 instead of 23 and 51 (one and three, mirrored).
+//! Σ|q| below 2^22), the three-direction loops, the one-direction mirrored loop and, where p
+//! is 4 bytes a node, the one-direction whole loop keep split sums instead
+//! ([`rebuild_split`]): per product `mul`, `mulh` of the word shifted by 11 and two `add`s,
+//! the row's exact sum rebuilt at its end; 23 instructions a word instead of 29 (three
+//! directions, whole), 19 and 39 instead of 23 and 51 (one and three, mirrored), 13 instead of
+//! 15 (one, whole).
 #![allow(unsafe_code)]
 
 use deform_shared::protocol::MAX_DIRECTIONS;
@@ -417,8 +419,9 @@ unsafe fn portable_row<const D: usize, const MIRROR: bool, const L: u32>(
 }
 
 /// [`run_tile`] for a run-time direction count (1..=3), mirror flag, row end and split sums
-/// (used by the three-direction loops and the one-direction mirrored loop only: the one- and
-/// two-direction whole loops keep their exact sums, the two-direction mirrored one too), p
+/// (used by the three-direction loops and the one-direction loops, the whole one only where p is
+/// 4 bytes a node: the two-direction loops keep their exact sums, and so does the one-direction
+/// whole loop on 16-byte lanes), p
 /// laid out `S` i32 words a node: 1 (one direction, [`lane_words`]) or 4. `S` is a constant so
 /// that each layout's dispatch costs what the one layout's did.
 ///
@@ -459,6 +462,8 @@ unsafe fn run_tile_compact(t: &TileRun, mirrored: bool, store: bool, split: bool
         match (mirrored, store, split) {
             (true, false, true) => run_tile::<1, true, false, true, L>(t),
             (true, true, true) => run_tile::<1, true, true, true, L>(t),
+            (false, false, true) => run_tile::<1, false, false, true, L>(t),
+            (false, true, true) => run_tile::<1, false, true, true, L>(t),
             (false, false, _) => run_tile::<1, false, false, false, L>(t),
             (true, false, _) => run_tile::<1, true, false, false, L>(t),
             (false, true, _) => run_tile::<1, false, true, false, L>(t),

@@ -35,6 +35,12 @@ pub unsafe fn row<const D: usize, const SPLIT: bool, const L: u32>(
         }
         return wp;
     }
+    if SPLIT && D == 1 {
+        // SAFETY: forwarded; the caller allows split sums for these rows.
+        let (wp, low, coarse) = unsafe { split_row1::<L>(w, cols) };
+        acc[0] = rebuild_split(low, coarse);
+        return wp;
+    }
     let mut wp = w;
     let mut a = [0u32; 2 * MAX_DIRECTIONS];
     match D {
@@ -198,6 +204,63 @@ pub unsafe fn row<const D: usize, const SPLIT: bool, const L: u32>(
         *acc = join(a[2 * d], a[2 * d + 1]);
     }
     wp
+}
+
+/// [`row`] for one direction with split sums ([`rebuild_split`]): returns the pointer past
+/// the row's ER word and the row's split sums (low, coarse).
+///
+/// Software-pipelined as the exact loop is: a trip adds the previous word's two products
+/// (zero before the first word) while its own word is decoded, and the last word's are added
+/// after the loop. 13 instructions a word instead of 15, scheduled so that no load or
+/// multiply is used within three slots and no shift within two: the word's load (the head)
+/// three slots before its decode, p's load three before its `mul`, the value's `srai` two
+/// before it. The word and its pointer are in a4 and a5, so that the head assembles to a
+/// 16-bit `c.lw` (see [`split_mirrored_row`]).
+///
+/// # Safety
+///
+/// As [`row`]; the caller allows split sums for the row ([`crate::cg::Plan::split`]).
+#[inline(always)]
+unsafe fn split_row1<const L: u32>(w: *const u32, cols: *const u8) -> (*const u32, u32, u32) {
+    let mut wp = w;
+    let (mut low, mut coarse) = (0u32, 0u32);
+    // SAFETY: reads only the row's words and p[col_base + c] for its columns.
+    unsafe {
+        asm!(
+            "2:",
+            "lw a4, 0(a5)",
+            "addi a5, a5, 4",
+            "add {l0}, {l0}, {m}",
+            "srli {t}, a4, {cs}",
+            "slli {vv}, a4, {vs}",
+            "and {t}, {t}, {mask}",
+            "add {t}, {t}, {base}",
+            "lw {t}, 0({t})",
+            "srai {v}, {vv}, {vs}",
+            "add {c0}, {c0}, {hh}",
+            "mul {m}, {v}, {t}",
+            "mulh {hh}, {vv}, {t}",
+            "bltu a4, {er}, 2b",
+            "add {l0}, {l0}, {m}",
+            "add {c0}, {c0}, {hh}",
+            inout("a5") wp,
+            l0 = inout(reg) low,
+            c0 = inout(reg) coarse,
+            m = inout(reg) 0u32 => _,
+            hh = inout(reg) 0u32 => _,
+            base = in(reg) cols,
+            mask = in(reg) column_offset_mask(L),
+            er = in(reg) ER_BIT,
+            cs = const column_offset_shift(L),
+            vs = const VALUE_SIGN_SHIFT,
+            out("a4") _,
+            t = out(reg) _,
+            v = out(reg) _,
+            vv = out(reg) _,
+            options(nostack, readonly),
+        );
+    }
+    (wp, low, coarse)
 }
 
 /// [`row`] for a mirrored tile: each word also multiplies p[n − 1 − col_base − c] into the
