@@ -217,6 +217,13 @@ pub unsafe fn row<const D: usize, const SPLIT: bool, const L: u32>(
 /// before it. The word and its pointer are in a4 and a5, so that the head assembles to a
 /// 16-bit `c.lw` (see [`split_mirrored_row`]).
 ///
+/// Two words a trip, each with its own exit test: the first's a forward `bgeu`, which the
+/// VexRiscv predicts not taken and so costs nothing while the row goes on, the second's the
+/// backward `bltu`, predicted taken, whose fetch bubble (a clock) is now paid every other
+/// word (a Verilator trace measured it at 0.84 clocks a word, docs/PERFORMANCE.md, "The
+/// whole-K MVU phase, session 16"). The same 13 instructions a word; a row's exit still
+/// costs one mispredicted branch, whichever word ends it.
+///
 /// # Safety
 ///
 /// As [`row`]; the caller allows split sums for the row ([`crate::cg::Plan::split`]).
@@ -240,7 +247,21 @@ unsafe fn split_row1<const L: u32>(w: *const u32, cols: *const u8) -> (*const u3
             "add {c0}, {c0}, {hh}",
             "mul {m}, {v}, {t}",
             "mulh {hh}, {vv}, {t}",
+            "bgeu a4, {er}, 3f",
+            "lw a4, 0(a5)",
+            "addi a5, a5, 4",
+            "add {l0}, {l0}, {m}",
+            "srli {t}, a4, {cs}",
+            "slli {vv}, a4, {vs}",
+            "and {t}, {t}, {mask}",
+            "add {t}, {t}, {base}",
+            "lw {t}, 0({t})",
+            "srai {v}, {vv}, {vs}",
+            "add {c0}, {c0}, {hh}",
+            "mul {m}, {v}, {t}",
+            "mulh {hh}, {vv}, {t}",
             "bltu a4, {er}, 2b",
+            "3:",
             "add {l0}, {l0}, {m}",
             "add {c0}, {c0}, {hh}",
             inout("a5") wp,
