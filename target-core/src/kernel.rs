@@ -320,6 +320,12 @@ pub unsafe fn run_tile<
         unsafe { riscv::split_mirrored_tile3_store(t) };
         return;
     }
+    #[cfg(target_arch = "riscv32")]
+    if D == 1 && !MIRROR && SPLIT {
+        // SAFETY: forwarded; the row loop with each row's last products carried.
+        unsafe { riscv::split_tile1::<STORE, L>(t) };
+        return;
+    }
     let mut w = t.words;
     let mut y = t.y;
     let mut y_mirror = t.y_mirror;
