@@ -262,13 +262,10 @@ pub fn p_kp_bounded<const S: usize, const R: usize>(
             let c1 = u32::from(y1 < b);
             y1 = y1.wrapping_add(c);
             let c2 = u32::from(y1 < c);
+            y2 = y2.wrapping_add(top).wrapping_add(c1).wrapping_add(c2);
             let sign = (hi >> 31) as u32;
             o0 |= lo ^ sign;
             o1 |= (hi as u32) ^ sign;
-            // p·hi's high word last: the VexRiscv stalls an add within three slots of its
-            // multiply (2 clocks a row where this add came first, docs/PERFORMANCE.md, "The
-            // whole-K MVU phase, session 16"); the sum wraps, so the order is free.
-            y2 = y2.wrapping_add(c1).wrapping_add(c2).wrapping_add(top);
         }
         let sum = u128::from(x0)
             .wrapping_add((u128::from(y1) + u128::from(k1)) << 32)
