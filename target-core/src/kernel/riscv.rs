@@ -200,6 +200,135 @@ pub unsafe fn row<const D: usize, const SPLIT: bool, const L: u32>(
     wp
 }
 
+/// [`row`] for one direction with split sums ([`rebuild_split`]), the rows run by
+/// [`split_tile1`]: returns the pointer past the row's ER word and the row's split sums (low,
+/// coarse); `carried` holds the previous row's last products and takes this row's.
+///
+/// Software-pipelined as the exact loop is: a trip adds the previous word's two products while
+/// its own word is decoded, and the last word's are added after the loop. 13 instructions a
+/// word instead of 15, scheduled so that no load or multiply is used within three slots and
+/// no shift within two: the word's load (the head) three slots before its decode, p's load
+/// three before its `mul`, the value's `srai` two before it.
+///
+/// Two words a trip, each with its own exit test: the first's a forward `bgeu`, which the
+/// VexRiscv predicts not taken and so costs nothing while the row goes on, the second's the
+/// backward `bltu`, predicted taken, whose fetch bubble (a clock) is now paid every other
+/// word (a Verilator trace measured it at 0.84 clocks a word). The same 13 instructions a
+/// word; a row's exit still costs one mispredicted branch, whichever word ends it.
+///
+/// Every instruction from the row's start is 32 bits (`norvc`) and the start is aligned to 4
+/// bytes (`.p2align 2`, padding only where the layout left it at 2 mod 4), so that no 32-bit
+/// instruction straddles two fetch words: a trace measured the taken branch to the head at 1
+/// clock where the 32-bit instructions after it were aligned, and at 2 where the head (a
+/// `c.lw`) sat at 0 mod 4 and put the first `srli` at 2 mod 4. (docs/PERFORMANCE.md, "The
+/// whole-K MVU phase, session 16".)
+///
+/// # Safety
+///
+/// As [`row`]; the caller allows split sums for the row ([`crate::cg::Plan::split`]).
+#[inline(always)]
+unsafe fn split_row1<const L: u32>(
+    w: *const u32,
+    cols: *const u8,
+    carried: &mut (u32, u32),
+) -> (*const u32, u32, u32) {
+    let mut wp = w;
+    // The first trip adds the products `carried` (the previous row's last, which its own
+    // end added already): the sums start at their negation, so that they are 0 after that
+    // add (wrapping, as every add of the split sums), which costs two instructions a row
+    // where zeroing the sums and the two products cost four.
+    let (mut m, mut hh) = *carried;
+    let (low, coarse): (u32, u32);
+    // SAFETY: reads only the row's words and p[col_base + c] for its columns.
+    unsafe {
+        asm!(
+            ".p2align 2",
+            ".option push",
+            ".option norvc",
+            "neg {l0}, {m}",
+            "neg {c0}, {hh}",
+            "2:",
+            "lw a4, 0(a5)",
+            "addi a5, a5, 4",
+            "add {l0}, {l0}, {m}",
+            "srli {t}, a4, {cs}",
+            "slli {vv}, a4, {vs}",
+            "and {t}, {t}, {mask}",
+            "add {t}, {t}, {base}",
+            "lw {t}, 0({t})",
+            "srai {v}, {vv}, {vs}",
+            "add {c0}, {c0}, {hh}",
+            "mul {m}, {v}, {t}",
+            "mulh {hh}, {vv}, {t}",
+            "bgeu a4, {er}, 3f",
+            "lw a4, 0(a5)",
+            "addi a5, a5, 4",
+            "add {l0}, {l0}, {m}",
+            "srli {t}, a4, {cs}",
+            "slli {vv}, a4, {vs}",
+            "and {t}, {t}, {mask}",
+            "add {t}, {t}, {base}",
+            "lw {t}, 0({t})",
+            "srai {v}, {vv}, {vs}",
+            "add {c0}, {c0}, {hh}",
+            "mul {m}, {v}, {t}",
+            "mulh {hh}, {vv}, {t}",
+            "bltu a4, {er}, 2b",
+            "3:",
+            "add {l0}, {l0}, {m}",
+            "add {c0}, {c0}, {hh}",
+            ".option pop",
+            inout("a5") wp,
+            l0 = out(reg) low,
+            c0 = out(reg) coarse,
+            m = inout(reg) m,
+            hh = inout(reg) hh,
+            base = in(reg) cols,
+            mask = in(reg) column_offset_mask(L),
+            er = in(reg) ER_BIT,
+            cs = const column_offset_shift(L),
+            vs = const VALUE_SIGN_SHIFT,
+            out("a4") _,
+            t = out(reg) _,
+            v = out(reg) _,
+            vv = out(reg) _,
+            options(nostack, readonly),
+        );
+    }
+    *carried = (m, hh);
+    (wp, low, coarse)
+}
+
+/// [`super::run_tile`] for one direction, whole, split sums: [`split_row1`] row after row, the
+/// last products of each row carried into the next row's first trip.
+///
+/// # Safety
+///
+/// As [`super::run_tile`] with `D` = 1, not `MIRROR`, `SPLIT`.
+#[inline(always)]
+pub unsafe fn split_tile1<const STORE: bool, const L: u32>(t: &super::TileRun) {
+    let stride = super::sum_words_of_shift(L);
+    let mut w = t.words;
+    let mut y = t.y;
+    let cols = t.p_cols as *const u8;
+    let mut carried = (0u32, 0u32);
+    for _ in 0..t.rows {
+        // SAFETY: forwarded from the caller.
+        let (next, low, coarse) = unsafe { split_row1::<L>(w, cols, &mut carried) };
+        w = next;
+        let sum = rebuild_split(low, coarse);
+        // SAFETY: one row of Kp per tile row, as the caller promised.
+        unsafe {
+            if STORE {
+                *y = sum;
+            } else {
+                *y += sum;
+            }
+        }
+        y = y.wrapping_add(stride);
+    }
+}
+
 /// [`row`] for a mirrored tile: each word also multiplies p[n − 1 − col_base − c] into the
 /// mirror row's sums.
 ///
