@@ -316,15 +316,8 @@ pub unsafe fn split_tile1<const STORE: bool, const L: u32>(t: &super::TileRun) {
         // SAFETY: forwarded from the caller.
         let (next, low, coarse) = unsafe { split_row1::<L>(w, cols, &mut carried) };
         w = next;
-        let sum = rebuild_split(low, coarse);
         // SAFETY: one row of Kp per tile row, as the caller promised.
-        unsafe {
-            if STORE {
-                *y = sum;
-            } else {
-                *y += sum;
-            }
-        }
+        unsafe { super::end_row::<1, STORE>(y, &[rebuild_split(low, coarse)]) };
         y = y.wrapping_add(stride);
     }
 }
