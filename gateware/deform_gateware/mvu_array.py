@@ -134,7 +134,12 @@ class MvuArray(Module, AutoCSR):
                           self.pad_rd, self.pad_wr]
 
         self.phase_busy = Signal()
-        self._phase()
+        # The phase, state by state, built in the order its signals were always made in (see
+        # the bus below for why the order matters).
+        phase = SimpleNamespace()
+        if self._phase(phase):
+            self._phase_reduce(phase)
+            self._phase_sum(phase)
         # The bus, step by step. The builders are called from here, one after another, in the
         # order the signals were always made in, and hand their signals on in `access`: Migen
         # names a signal after the variable that holds it and the `self` frames it was made in,
@@ -149,7 +154,10 @@ class MvuArray(Module, AutoCSR):
 
     # The phase -----------------------------------------------------------------------------------
 
-    def _phase(self):
+    def _phase(self, ph):
+        """The phase's registers and status, and its first two states: IDLE starts every MVU,
+        RUN counts clocks until none is busy. Hands on in ``ph`` what the later states share;
+        False with no MVUs, where there is no phase."""
         units = self.units
         n_units = len(units)
         self.reduce_row = Signal(bits_for(self.nodes_depth))
@@ -170,7 +178,7 @@ class MvuArray(Module, AutoCSR):
             self.comb += self.stalls.status.eq(units[0].stalls)
 
         if not n_units:
-            return
+            return False
         fsm = FSM(reset_state="IDLE")
         self.submodules.phase = fsm
         self.comb += self.phase_busy.eq(~fsm.ongoing("IDLE"))
@@ -185,13 +193,23 @@ class MvuArray(Module, AutoCSR):
         fsm.act("RUN",
             NextValue(cycles, cycles + 1),
             If(~any_busy, NextValue(entry, 0), NextState("REDUCE")))
+        ph.__dict__.update(fsm=fsm, entry=entry, mask=mask, m=m, cycles=cycles,
+                           total_or=total_or, total_low=total_low, total_high=total_high)
+        return True
+
+    def _phase_reduce(self, ph):
+        """REDUCE to REDUCE_WRITE: each shared row's Kp summed over the MVUs in its mask, one
+        MVU per clock, into its owner, and ORed into max |Kp|."""
+        units, fsm, entry, mask, m, cycles = (self.units, ph.fsm, ph.entry, ph.mask, ph.m,
+                                              ph.cycles)
+        n_units, total_or, totals = len(units), ph.total_or, ph.total_low + ph.total_high
         # The shared rows: read the list entry, then every MVU's Kp at its row, one MVU per
         # clock into the sum (those in the mask), then the sum into the owner.
         fsm.act("REDUCE",
             NextValue(cycles, cycles + 1),
             If(entry == self.shared_rows.storage,
                 NextValue(m, 0),
-                *[NextValue(t, 0) for t in total_low + total_high],
+                *[NextValue(t, 0) for t in totals],
                 NextState("SUM"),
             ).Else(NextState("REDUCE_ROW")))
         fsm.act("REDUCE_ROW",
@@ -223,6 +241,13 @@ class MvuArray(Module, AutoCSR):
             *[NextValue(o, o | magnitude(s)) for o, s in zip(total_or, self.reduce_sum)],
             NextValue(entry, entry + 1),
             NextState("REDUCE"))
+
+    def _phase_sum(self, ph):
+        """SUM and JOIN: the MVUs' Σ p·low, Σ p·high and ORs summed, one MVU per clock, into
+        ``p_kp*`` and ``kp_or*``."""
+        units, fsm, m, cycles = self.units, ph.fsm, ph.m, ph.cycles
+        n_units, total_or, total_low, total_high = (len(units), ph.total_or, ph.total_low,
+                                                    ph.total_high)
         # Σ over the MVUs, one per clock.
         fsm.act("SUM",
             NextValue(cycles, cycles + 1),
