@@ -231,25 +231,29 @@ impl Harts {
     }
 }
 
-/// This hart's `mcycle` and `minstret`. Never inlined: every reading then runs the same
-/// instructions between the two counters, so a delta of `mcycle` and one of `minstret` cover the
-/// same stretch of work (under QEMU `-icount`, where both count instructions, they are equal).
-#[inline(never)]
-fn counters() -> PhaseCounters {
+/// This hart's `mcycle` and `minstret`, read back to back: the one body of [`counters`] and
+/// [`counters_into`].
+#[inline(always)]
+fn read_counters() -> PhaseCounters {
     PhaseCounters {
         cycles: riscv::register::mcycle::read64(),
         instructions: riscv::register::minstret::read64(),
     }
 }
 
+/// This hart's `mcycle` and `minstret`. Never inlined: every reading then runs the same
+/// instructions between the two counters, so a delta of `mcycle` and one of `minstret` cover the
+/// same stretch of work (under QEMU `-icount`, where both count instructions, they are equal).
+#[inline(never)]
+fn counters() -> PhaseCounters {
+    read_counters()
+}
+
 /// [`counters`] into `out`, for [`PhaseClock::now_into`]: the same instructions between the
 /// two counters.
 #[inline(never)]
 fn counters_into(out: &mut PhaseCounters) {
-    *out = PhaseCounters {
-        cycles: riscv::register::mcycle::read64(),
-        instructions: riscv::register::minstret::read64(),
-    };
+    *out = read_counters();
 }
 
 impl PhaseClock for Harts {
