@@ -1258,7 +1258,7 @@ impl Clock {
 }
 
 /// The executor's hardware MVUs if they take the MVU phases of a solve with these vectors
-/// ([`MvuBackend::holds`]), asked once for the solve. Their p window is `Lanes`, 16 bytes a
+/// ([`MvuBackend::begin_solve`]), asked once for the solve. Their p window is `Lanes`, 16 bytes a
 /// node: p laid out more compactly ([`lane_words_for`]) is never theirs.
 fn hardware<'e, E: Executor>(
     exec: &'e E,
@@ -1271,7 +1271,7 @@ fn hardware<'e, E: Executor>(
     }
     let p_ptr = p.as_mut_ptr() as *const Lanes;
     exec.mvu_backend()
-        .filter(|h| h.holds(n, p_ptr, kp.as_mut_ptr(), directions))
+        .filter(|h| h.begin_solve(n, p_ptr, kp.as_mut_ptr(), directions))
 }
 
 /// One solve in progress: its phases are the methods.

@@ -46,9 +46,9 @@ pub trait MvuBackend: Sync {
     /// answers yes, the backend may set the hardware up for the solve's phases (the direction
     /// count): the solver asks at the start of each solve (and of each [`crate::cg::product`]),
     /// and runs no other solve's phase before this one's last.
-    fn holds(&self, n: usize, p: *const Lanes, kp: *mut Sums, directions: usize) -> bool;
+    fn begin_solve(&self, n: usize, p: *const Lanes, kp: *mut Sums, directions: usize) -> bool;
 
-    /// One MVU phase of a solve that [`holds`](Self::holds) accepted: K·p into the solver's
+    /// One MVU phase of a solve that [`begin_solve`](Self::begin_solve) accepted: K·p into the solver's
     /// Kp, pᵀKp and the OR of |Kp| into `out`.
     fn run(&self, directions: usize, out: MvuOut<'_>);
 }
@@ -74,7 +74,7 @@ impl MvuBackend for NoMvus {
         match *self {}
     }
 
-    fn holds(&self, _: usize, _: *const Lanes, _: *mut Sums, _: usize) -> bool {
+    fn begin_solve(&self, _: usize, _: *const Lanes, _: *mut Sums, _: usize) -> bool {
         match *self {}
     }
 

@@ -209,20 +209,20 @@ impl MvuBackend for LitexMvus {
 
     /// Also sets the array's direction count for the solve, so that a phase's `run` writes
     /// only `start` (one CSR write less on the phase's path).
-    fn holds(&self, n: usize, p: *const Lanes, kp: *mut Sums, directions: usize) -> bool {
+    fn begin_solve(&self, n: usize, p: *const Lanes, kp: *mut Sums, directions: usize) -> bool {
         let ours = p as usize == p_window() && kp as usize == kp_window();
-        let held = n != 0
+        let taken = n != 0
             && self.n.load(Ordering::Relaxed) as usize == n
             && ours
             && (1..=MAX_DIRECTIONS).contains(&directions);
-        if held {
+        if taken {
             write32(regs::DIRECTIONS, directions as u32);
         }
-        held
+        taken
     }
 
     /// Starts the phase at once: the instructions before `start` fall in the phase's span, and
-    /// each cold cache line costs some 20 clocks, so `run` is one write (`holds` set the
+    /// each cold cache line costs some 20 clocks, so `run` is one write (`begin_solve` set the
     /// direction count) and a call, inlined into the solver's phase (the solver calls this
     /// driver directly, not through a vtable: see `deform_target_core::mvu_backend::NoMvus`).
     #[inline(always)]
