@@ -1258,8 +1258,8 @@ impl Clock {
 }
 
 /// The executor's hardware MVUs if they take the MVU phases of a solve with these vectors
-/// ([`MvuBackend::begin_solve`]), asked once for the solve. Their p window is `Lanes`, 16 bytes a
-/// node: p laid out more compactly ([`lane_words_for`]) is never theirs.
+/// ([`MvuBackend::begin_solve`]), asked once for the solve. Their p window is `Lanes`, 16 bytes
+/// a node: p laid out more compactly ([`lane_words_for`]) is never theirs.
 fn hardware<'e, E: Executor>(
     exec: &'e E,
     n: usize,

@@ -48,8 +48,8 @@ pub trait MvuBackend: Sync {
     /// and runs no other solve's phase before this one's last.
     fn begin_solve(&self, n: usize, p: *const Lanes, kp: *mut Sums, directions: usize) -> bool;
 
-    /// One MVU phase of a solve that [`begin_solve`](Self::begin_solve) accepted: K·p into the solver's
-    /// Kp, pᵀKp and the OR of |Kp| into `out`.
+    /// One MVU phase of a solve that [`begin_solve`](Self::begin_solve) accepted: K·p into the
+    /// solver's Kp, pᵀKp and the OR of |Kp| into `out`.
     fn run(&self, directions: usize, out: MvuOut<'_>);
 }
 
