@@ -37,7 +37,11 @@ ECP5's global clock buffer, so that nextpnr routes that reset on a global networ
 clocks (``reset_on_global``), not through the general routing to 19,127 flip-flops (4 MVUs).
 Measured in session 12 (docs/PERFORMANCE.md, "4 MVUs routed, session 12"): 12,609 fewer arcs to
 route and a higher estimate after placement, but the 4-MVU SoC still did not route in the time
-there was, so it is not the default. report.json's ``global_reset`` says which.
+there was, so it is not the default. report.json's ``global_reset`` says which. It can also make a
+design unroutable: where Yosys merges the reset with a register's synchronous set into one LSR
+(the MVU's ``fresh``: ``mvu_rst | go``), the global net enters a LUT, and on the 2-MVU SoC (seed 1,
+session 18) that left the LUT's other input with no path at all ("Failed to route arc"), while
+the same SoC with the reset in the fabric routed.
 
 nextpnr routes with its own default, ``router1``, or with ``--router router2``; the report names
 the one used. On the SoC without MVUs router2 took 33 s against 319 and reached 42.9 MHz against
