@@ -2,7 +2,7 @@
 
     python -m deform_gateware.bitstream --board ulx3s --mvus N --out DIR [--seed S]
         [--router router1|router2] [--no-pnr | --place-only] [--nodes 512|1024]
-        [--no-bus-bursting] [--global-reset]
+        [--keep-out N] [--no-bus-bursting] [--global-reset]
 
 The SoC is litex-boards' ULX3S target on an LFE5U-85F: a VexRiscv ``imac`` at 50 MHz, the
 board's SDRAM as main RAM at 0x4000_0000, the stock LiteX BIOS in ROM (which loads the firmware
@@ -43,6 +43,14 @@ design unroutable: where Yosys merges the reset with a register's synchronous se
 session 18) that left the LUT's other input with no path at all ("Failed to route arc"), while
 the same SoC with the reset in the fabric routed.
 
+nextpnr places in two runs by default (``keepout``): first with every third row of logic tiles
+held by locked filler cells, so that its placer, whose density nextpnr 0.11 fixes for the ECP5,
+spreads the SoC over the whole device; then, the fillers deleted from the placed netlist, it
+routes that placement (``nextpnr-place.log``, ``nextpnr.log``). Without it the 4-MVU SoC never
+routed (router2's overuse stalled near 20,000 wires, sessions 6-18); with it, router2 falls to
+tens of wires (session 19, docs/PERFORMANCE.md). ``--keep-out N`` holds every N-th row instead,
+``--keep-out 0`` runs nextpnr's own flow in one run; report.json's ``keep_out`` says which.
+
 nextpnr routes with its own default, ``router1``, or with ``--router router2``; the report names
 the one used. On the SoC without MVUs router2 took 33 s against 319 and reached 42.9 MHz against
 46.5; on the 4-MVU SoC neither finished on a 2-core machine (docs/PERFORMANCE.md).
@@ -75,6 +83,7 @@ import time
 
 from litex.soc.integration.builder import Builder
 
+from deform_gateware import keepout
 from deform_gateware.mvu_array import add_to_soc
 from deform_gateware.synth import log, placement_estimate, run_stage, summary, tool
 
@@ -87,6 +96,11 @@ ROUTERS = ("router1", "router2")
 YOSYS_CELLS = ("LUT4", "CCU2C", "TRELLIS_FF", "MULT18X18D", "ALU54B", "DP16KD",
                "TRELLIS_DPR16X4", "PFUMX", "L6MUX21")
 
+
+# Every third row of logic tiles held while placing (``keepout``): router2's overuse on the 4-MVU
+# SoC then falls to tens of wires, where without it it stalled near 20,000 (docs/PERFORMANCE.md,
+# session 19), and the two thirds left hold the SoC (it takes 49 % of the LFE5U-85F's logic).
+KEEP_OUT = 3
 
 # The rows of p and Kp per MVU a build may ask for (``--nodes``): 1024 (the default up to four
 # MVUs) or 512, where Kp and p's row copy take the block RAM's 36-bit pseudo-dual-port mode
@@ -208,6 +222,76 @@ def place_only_argv(argv):
     return kept + ["--no-route"]
 
 
+def place_and_route(args, argv, gateware, stages):
+    """nextpnr's own flow, one run (placing only with ``--place-only``); returns its report
+    and, for a placement, its estimate of the Fmax."""
+    if args.place_only:
+        argv = place_only_argv(argv)
+    else:
+        argv = argv + ["--router", args.router]
+    stages["nextpnr"] = run_stage("nextpnr-ecp5", argv, gateware, "nextpnr.log")
+    estimate = None
+    if args.place_only:
+        with open(os.path.join(gateware, "nextpnr.log")) as f:
+            estimate = placement_estimate(f.read())
+    with open(os.path.join(gateware, REPORT)) as f:
+        return json.load(f), estimate
+
+
+def json_argv(argv, path):
+    """nextpnr's command line reading the netlist ``path`` instead of its ``--json FILE``."""
+    out = list(argv)
+    out[out.index("--json") + 1] = path
+    return out
+
+
+def kept_out_place_and_route(args, argv, gateware, name, stages):
+    """Two nextpnr runs (``keepout``): the netlist placed with every ``--keep-out``-th row of
+    logic tiles held by fillers, then the placement, fillers deleted, routed. Returns the
+    report (the device's use without the fillers) and, for ``--place-only``, the estimate."""
+    filled, placed, routable = (name + suffix for suffix in
+                                ("-keepout.json", "-placed.json", "-routable.json"))
+    netlist = keepout.load(os.path.join(gateware, name + ".json"))
+    tiles = keepout.logic_tiles(keepout.load(keepout.tilegrid_path()))
+    rows, fillers = keepout.add(netlist, tiles, args.keep_out)
+    keepout.save(netlist, os.path.join(gateware, filled))
+    del netlist
+    log("    keep-out: %d rows of logic tiles held while placing (%d filler cells)"
+        % (rows, fillers))
+    try:
+        place = place_only_argv(json_argv(argv, filled)) + ["--write", placed]
+        stages["nextpnr-place"] = run_stage("nextpnr-ecp5, placement", place, gateware,
+                                            "nextpnr-place.log")
+        if args.place_only:
+            with open(os.path.join(gateware, "nextpnr-place.log")) as f:
+                estimate = placement_estimate(f.read())
+            with open(os.path.join(gateware, REPORT)) as f:
+                return without_fillers(json.load(f), fillers), estimate
+        design = keepout.load(os.path.join(gateware, placed))
+        keepout.remove(design)
+        settings = keepout.top_module(design).setdefault("settings", {})
+        # The placed netlist's settings win over the command line's.
+        settings.update({"router": args.router, "target_freq": "%f" % SYS_CLK_FREQ})
+        keepout.save(design, os.path.join(gateware, routable))
+        del design
+        route = json_argv(argv, routable) + ["--no-pack", "--no-place", "--router", args.router]
+        stages["nextpnr-route"] = run_stage("nextpnr-ecp5, routing", route, gateware,
+                                            "nextpnr.log")
+        with open(os.path.join(gateware, REPORT)) as f:
+            return json.load(f), None
+    finally:
+        remove(*(os.path.join(gateware, f) for f in (filled, placed, routable)))
+
+
+def without_fillers(report, fillers):
+    """A placement's report with the keep-out fillers (half LUT4s, half flip-flops) taken out
+    of the use of the device."""
+    used = report["utilization"]
+    for cell in ("TRELLIS_COMB", "TRELLIS_FF"):
+        used[cell]["used"] -= fillers // 2
+    return report
+
+
 def build(args, out):
     """Runs the stages; returns report.json's content."""
     commit = gateware_commit()  # before the build: the sources it reads
@@ -232,6 +316,7 @@ def build(args, out):
                                 gateware, "yosys.log")
     report = dict(board=args.board, mvus=args.mvus, seed=args.seed, router=args.router,
                   bus_bursting=not args.no_bus_bursting, global_reset=args.global_reset,
+                  keep_out=args.keep_out,
                   commit=commit,
                   yosys=yosys_cells(os.path.join(gateware, name + ".rpt")), pnr=None,
                   bitstream=None, stages=stages)
@@ -240,17 +325,11 @@ def build(args, out):
         log("    --no-pnr: nextpnr-ecp5 and ecppack not run (no Fmax, no bitstream)")
         return report
     pnr = tool_argv(toolchain._nextpnr.get_call("script")) + ["--report", REPORT]
-    if args.place_only:
-        pnr = place_only_argv(pnr)
+    if args.keep_out:
+        placed, estimate = kept_out_place_and_route(args, pnr, gateware, name, stages)
     else:
-        pnr += ["--router", args.router]
-    stages["nextpnr"] = run_stage("nextpnr-ecp5", pnr, gateware, "nextpnr.log")
-    estimate = None
-    if args.place_only:
-        with open(os.path.join(gateware, "nextpnr.log")) as f:
-            estimate = placement_estimate(f.read())
-    with open(os.path.join(gateware, REPORT)) as f:
-        report["pnr"] = summary(json.load(f), SYS_CLK_FREQ / 1e6, estimate)
+        placed, estimate = place_and_route(args, pnr, gateware, stages)
+    report["pnr"] = summary(placed, SYS_CLK_FREQ / 1e6, estimate)
     if args.place_only:
         log("    --place-only: placed, not routed; nextpnr's estimate after placement %.1f MHz "
             "(no bitstream)" % report["pnr"]["fmax_mhz"])
@@ -264,6 +343,18 @@ def build(args, out):
         raise
     report["bitstream"] = bitstream
     return report
+
+
+def keep_out_rows(text):
+    """``--keep-out``'s value: 0 (off) or a period of at least 2 rows."""
+    try:
+        every = int(text)
+    except ValueError:
+        every = -1
+    if every != 0 and every < 2:
+        raise argparse.ArgumentTypeError(
+            "%r: 0 (no rows held) or every N-th row, N at least 2" % text)
+    return every
 
 
 def arguments():
@@ -292,6 +383,12 @@ def arguments():
                             "settles whether the design fits and gives nextpnr's Fmax estimate "
                             "after placement (not a routed Fmax), where routing a big SoC takes "
                             "hours; no bitstream")
+    parser.add_argument("--keep-out", type=keep_out_rows, default=KEEP_OUT, metavar="N",
+                        help="place with every N-th row of logic tiles held free (locked "
+                             "filler cells, deleted before routing), so that nextpnr spreads "
+                             "the design over the device (default %(default)s; 0: nextpnr's "
+                             "own flow in one run, which packs a 4-MVU SoC too densely to "
+                             "route)")
     parser.add_argument("--global-reset", action="store_true",
                         help="the MVU array's reset on a global network through a DCCA "
                              "(reset_on_global), not in the general routing")

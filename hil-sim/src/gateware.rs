@@ -261,6 +261,10 @@ pub struct SocReport {
     /// `--no-bus-bursting`); builds gathered before it was recorded had them off.
     #[serde(default)]
     pub bus_bursting: bool,
+    /// Every how many rows of logic tiles one was held free while placing (bitstream.py's
+    /// `--keep-out`; 0: nextpnr's own flow); builds gathered before it was recorded had none.
+    #[serde(default)]
+    pub keep_out: u32,
     /// Each MVU's capacity: words, tiles, rows.
     pub words: u64,
     pub tiles: u64,
@@ -390,6 +394,9 @@ pub struct SocBuild {
     /// Wishbone burst cycles, as the simulated SoC has them (off: bitstream.py's
     /// `--no-bus-bursting`, to measure what they cost).
     pub bus_bursting: bool,
+    /// Place with every `keep_out`-th row of logic tiles held free, then route with them freed
+    /// (bitstream.py's `--keep-out`, module `keepout`); 0: nextpnr's own flow in one run.
+    pub keep_out: u32,
 }
 
 /// Builds deform's SoC as `build` says into a bitstream in `out` (see
@@ -406,6 +413,8 @@ pub fn build_bitstream(build: &SocBuild, out: &Path) -> Result<SocReport, Gatewa
         build.seed.to_string(),
         "--router".into(),
         build.router.to_string(),
+        "--keep-out".into(),
+        build.keep_out.to_string(),
     ];
     if let Some(nodes) = build.nodes {
         args.extend(["--nodes".into(), nodes.to_string()]);

@@ -26,12 +26,15 @@ const DEFAULT_MVUS: &[u32] = &[0, 1, 2, 4, 8];
 /// The rows of p and Kp per MVU a build may ask for: bitstream.py's `NODES`, which a test
 /// holds this copy to.
 const NODES: [u32; 2] = [512, 1024];
+/// Every how many rows of logic tiles one is held free while placing, by default:
+/// bitstream.py's `KEEP_OUT`, which a test holds this copy to.
+const KEEP_OUT: u32 = 3;
 /// An LFE5U-85F's MULT18X18D, for the plot when no build was placed.
 const LFE5U_85F_MULTIPLIERS: u64 = 156;
 
 pub const USAGE: &str = "\
   bitstream --board ulx3s [--mvus 0,1,2,4,8] [--seed N] [--router router1|router2]
-            [--nodes 512|1024] [--global-reset] [--no-bus-bursting]
+            [--nodes 512|1024] [--keep-out N] [--global-reset] [--no-bus-bursting]
             [--no-pnr | --place-only | --report-only]
                      build deform's SoC with each number of hardware MVUs, one at a time,
                      into an ECP5 bitstream (YoWASP Yosys, nextpnr-ecp5, ecppack; each stage
@@ -45,7 +48,13 @@ pub const USAGE: &str = "\
                      and Kp (default 1024 up to 4 MVUs, else 512; at 512 Kp and
                      p's row copy take the block RAM's 36-bit mode: 24 DP16KD per
                      MVU, not 32; the firmware runs a larger model's MVU phase in
-                     software, as the SoC's rows say); --global-reset: the
+                     software, as the SoC's rows say); --keep-out N: place
+                     with every N-th row of logic tiles held free by locked
+                     filler cells, deleted before routing, so that nextpnr
+                     spreads the SoC over the device (default 3; 0: nextpnr's
+                     own flow in one run, which packs a 4-MVU SoC too densely
+                     to route; such builds are marked and compared only with
+                     their like); --global-reset: the
                      MVU array's reset through a DCCA onto a global network,
                      as the clocks go, not through the general routing (19,127
                      flip-flops at 4 MVUs; 12,609 fewer arcs to route, and
@@ -106,6 +115,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
     let mut report_only = false;
     let mut global_reset = false;
     let mut bus_bursting = true;
+    let mut keep_out = None;
     let mut it = args.iter();
     while let Some(flag) = it.next() {
         let mut value = || {
@@ -128,6 +138,15 @@ pub fn parse(args: &[String]) -> Result<Request> {
                     .with_context(|| format!("--seed takes a number, not `{value}`"))?;
             }
             "--router" => router = Some(value()?.parse().map_err(anyhow::Error::msg)?),
+            "--keep-out" => {
+                let value = value()?;
+                match value.parse() {
+                    Ok(n) if n != 1 => keep_out = Some(n),
+                    _ => bail!(
+                        "--keep-out {value}: 0 (no rows held) or every N-th row, N at least 2"
+                    ),
+                }
+            }
             "--nodes" => {
                 let value = value()?;
                 match value.parse() {
@@ -149,9 +168,15 @@ pub fn parse(args: &[String]) -> Result<Request> {
         );
     }
     if report_only {
-        if no_pnr || place_only || nodes.is_some() || global_reset || !bus_bursting {
+        if no_pnr
+            || place_only
+            || nodes.is_some()
+            || global_reset
+            || !bus_bursting
+            || keep_out.is_some()
+        {
             bail!(
-                "--report-only builds nothing: --no-pnr, --place-only, --nodes, \
+                "--report-only builds nothing: --no-pnr, --place-only, --nodes, --keep-out, \
                  --global-reset and --no-bus-bursting do not go with it"
             );
         }
@@ -175,6 +200,7 @@ pub fn parse(args: &[String]) -> Result<Request> {
             place_only,
             global_reset,
             bus_bursting,
+            keep_out: keep_out.unwrap_or(KEEP_OUT),
         },
     }))
 }
@@ -266,6 +292,9 @@ fn describe(build: &SocBuild) -> String {
     if !build.bus_bursting {
         text += ", without bus bursting";
     }
+    if build.keep_out != KEEP_OUT {
+        text += &keep_out_mark(build.keep_out);
+    }
     text
 }
 
@@ -294,9 +323,18 @@ fn depth(r: &SocReport) -> (u8, Option<Router>) {
 }
 
 /// What makes two SoCs of the same MVU count different designs, whose builds are kept and
-/// compared apart: the MVU array's reset network and the bus (bursting or not).
-fn kind(r: &SocReport) -> (bool, bool) {
-    (r.global_reset, r.bus_bursting)
+/// compared apart: the MVU array's reset network, the bus (bursting or not) and the rows kept
+/// out while placing.
+fn kind(r: &SocReport) -> (bool, bool, u32) {
+    (r.global_reset, r.bus_bursting, r.keep_out)
+}
+
+/// ", every 4th row kept out while placing": a build whose keep-out rows are not the default.
+fn keep_out_mark(keep_out: u32) -> String {
+    match keep_out {
+        0 => ", placed by nextpnr alone (no keep-out rows)".into(),
+        n => format!(", every {n}th row kept out while placing"),
+    }
 }
 
 /// Adds `report` to `builds`, in place of an earlier build of the same count, seed, rows per MVU,
@@ -361,7 +399,8 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
          use of the device and the system clock's Fmax (asked: 50 MHz). \"vs. 0 MVUs\": the \
          Fmax against the SoC without MVUs placed with the same seed and routed by the same \
          router, with the MVU array's reset on the same network (in the fabric, or on a \
-         global one) and the same bus (bursting, or not): the gateware column marks the \
+         global one), the same bus (bursting, or not) and the same rows of logic tiles held \
+         free while placing (every 3rd by default): the gateware column marks the \
          exceptions; for a build placed and not routed \
          (--place-only), nextpnr's estimate after \
          placement, against the SoC without MVUs placed likewise: an estimate, not a routed \
@@ -409,13 +448,20 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
                 },
             ),
         };
-        let stages = ["litex", "yosys", "nextpnr", "ecppack"]
-            .iter()
-            .filter_map(|s| b.stages.get(*s).map(|t| format!("{s} {t:.0}")))
-            .collect::<Vec<_>>()
-            .join(", ");
+        let stages = [
+            "litex",
+            "yosys",
+            "nextpnr",
+            "nextpnr-place",
+            "nextpnr-route",
+            "ecppack",
+        ]
+        .iter()
+        .filter_map(|s| b.stages.get(*s).map(|t| format!("{s} {t:.0}")))
+        .collect::<Vec<_>>()
+        .join(", ");
         md += &format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {placed} | {fmax} | {versus} | {} / {} / {} | {stages} | {}{}{} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {placed} | {fmax} | {versus} | {} / {} / {} | {stages} | {}{}{}{} |\n",
             b.mvus,
             b.seed,
             match &b.pnr {
@@ -442,6 +488,11 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
             } else {
                 " (no bus bursting)"
             },
+            if b.keep_out == KEEP_OUT {
+                String::new()
+            } else {
+                format!(" ({})", &keep_out_mark(b.keep_out)[2..])
+            },
         );
     }
     md
@@ -449,7 +500,8 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
 
 /// Where a build lands: `target/bitstream/BOARD-<N>mvu`, `-<R>rows` after it when the rows per
 /// MVU were asked for, `-global-reset` with the reset on a global network, `-no-bursting`
-/// without bus bursting.
+/// without bus bursting, `-keepout<N>` with other keep-out rows than the default's
+/// (`-keepout0`: none).
 pub fn build_dir(workspace: &Path, build: &SocBuild) -> PathBuf {
     let rows = build.nodes.map(|r| format!("-{r}rows")).unwrap_or_default();
     let reset = if build.global_reset {
@@ -462,8 +514,13 @@ pub fn build_dir(workspace: &Path, build: &SocBuild) -> PathBuf {
     } else {
         "-no-bursting"
     };
+    let keep_out = if build.keep_out == KEEP_OUT {
+        String::new()
+    } else {
+        format!("-keepout{}", build.keep_out)
+    };
     workspace.join("target/bitstream").join(format!(
-        "{}-{}mvu{rows}{reset}{bus}",
+        "{}-{}mvu{rows}{reset}{bus}{keep_out}",
         build.board, build.mvus
     ))
 }
@@ -508,6 +565,7 @@ mod tests {
             place_only: false,
             global_reset: false,
             bus_bursting: true,
+            keep_out: 3,
         };
         change(&mut soc);
         Request::Build(Sweep {
@@ -552,6 +610,14 @@ mod tests {
             parse(&args("--board ulx3s --mvus 4 --no-bus-bursting")).unwrap(),
             sweep(&[4], |b| b.bus_bursting = false)
         );
+        assert_eq!(
+            parse(&args("--board ulx3s --mvus 4 --keep-out 0")).unwrap(),
+            sweep(&[4], |b| b.keep_out = 0)
+        );
+        assert_eq!(
+            parse(&args("--board ulx3s --mvus 4 --keep-out 4")).unwrap(),
+            sweep(&[4], |b| b.keep_out = 4)
+        );
         let Request::Build(s) = sweep(&[0, 4], |b| b.seed = 3) else {
             unreachable!()
         };
@@ -594,6 +660,21 @@ mod tests {
         assert!(error("--board ulx3s --nodes 500").contains("built with 512 or 1024 rows"));
         assert!(error("--board ulx3s --nodes x").contains("--nodes x:"));
         assert!(error("--board ulx3s --nodes").contains("--nodes needs a value"));
+        assert!(error("--board ulx3s --keep-out 1").contains("N at least 2"));
+        assert!(error("--board ulx3s --keep-out x").contains("--keep-out x:"));
+        assert!(error("--board ulx3s --keep-out").contains("--keep-out needs a value"));
+        assert!(error("--board ulx3s --report-only --keep-out 0").contains("do not go with it"));
+    }
+
+    #[test]
+    fn the_default_keep_out_is_bitstream_py_s() {
+        let script =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../gateware/deform_gateware/bitstream.py");
+        let text = std::fs::read_to_string(&script).unwrap();
+        assert!(
+            text.lines().any(|l| l == format!("KEEP_OUT = {KEEP_OUT}")),
+            "bitstream.py's KEEP_OUT is not {KEEP_OUT}"
+        );
     }
 
     fn usage(used: u64) -> Usage {
@@ -632,6 +713,7 @@ mod tests {
             stages: [("yosys".to_string(), 12.0)].into_iter().collect(),
             global_reset: false,
             bus_bursting: true,
+            keep_out: 3,
             words: 4096,
             tiles: 256,
             nodes: 1024,
@@ -748,6 +830,10 @@ mod tests {
             dir(|b| b.bus_bursting = false),
             Path::new("/w/target/bitstream/ulx3s-4mvu-no-bursting")
         );
+        assert_eq!(
+            dir(|b| b.keep_out = 0),
+            Path::new("/w/target/bitstream/ulx3s-4mvu-keepout0")
+        );
     }
 
     /// A build with the array's reset on a global network is a row of its own, compared only
@@ -756,7 +842,12 @@ mod tests {
     /// A build of another kind (`change`: the reset on a global network, or no bus bursting) is
     /// a row of its own, marked `mark` and compared only with a 0-MVU build of its kind;
     /// reports from before `field` was recorded read as builds without it.
-    fn a_kind_keeps_builds_apart(change: fn(&mut SocReport), mark: &str, field: &str) {
+    fn a_kind_keeps_builds_apart(
+        change: fn(&mut SocReport),
+        mark: &str,
+        field: &str,
+        absent: serde_json::Value,
+    ) {
         let mut builds = Vec::new();
         record(&mut builds, build(0, 1, Some(50.0)));
         record(&mut builds, build(4, 1, Some(45.0)));
@@ -778,7 +869,7 @@ mod tests {
         let mut before = serde_json::to_value(&other).unwrap();
         before.as_object_mut().unwrap().remove(field);
         let before: SocReport = serde_json::from_value(before).unwrap();
-        assert_eq!(serde_json::to_value(&before).unwrap()[field], false);
+        assert_eq!(serde_json::to_value(&before).unwrap()[field], absent);
     }
 
     #[test]
@@ -787,6 +878,7 @@ mod tests {
             |b| b.global_reset = true,
             "reset on a global network",
             "global_reset",
+            false.into(),
         );
     }
 
@@ -797,6 +889,19 @@ mod tests {
             |b| b.bus_bursting = false,
             "no bus bursting",
             "bus_bursting",
+            false.into(),
+        );
+    }
+
+    /// Reports from before the keep-out rows were recorded read as builds placed without them
+    /// (as they were).
+    #[test]
+    fn the_keep_out_rows_keep_builds_apart() {
+        a_kind_keeps_builds_apart(
+            |b| b.keep_out = 0,
+            "placed by nextpnr alone (no keep-out rows)",
+            "keep_out",
+            0.into(),
         );
     }
 
