@@ -48,7 +48,8 @@ held by locked filler cells, so that its placer, whose density nextpnr 0.11 fixe
 spreads the SoC over the whole device; then, the fillers deleted from the placed netlist, it
 routes that placement (``nextpnr-place.log``, ``nextpnr.log``). Without it the 4-MVU SoC never
 routed (router2's overuse stalled near 20,000 wires, sessions 6-18); with it, router2 falls to
-tens of wires (session 19, docs/PERFORMANCE.md). ``--keep-out N`` holds every N-th row instead,
+tens of wires, and with its bounding box widened (``ROUTER2_SETTINGS``) to none: the 4-MVU SoC
+routes (session 19, docs/PERFORMANCE.md). ``--keep-out N`` holds every N-th row instead,
 ``--keep-out 0`` runs nextpnr's own flow in one run; report.json's ``keep_out`` says which.
 
 nextpnr routes with its own default, ``router1``, or with ``--router router2``; the report names
@@ -238,6 +239,17 @@ def place_and_route(args, argv, gateware, stages):
         return json.load(f), estimate
 
 
+# router2's bounding box around each net widened from 3 tiles to 8 (its settings, read only by
+# router2): on the kept-out 4-MVU SoC router2 then reached no overused wire (seed 1, 67 passes),
+# where with 3 it fell to 18 and turned back up (docs/PERFORMANCE.md, session 19). Bare values:
+# nextpnr cannot read a number with a trailing space.
+ROUTER2_SETTINGS = {"router2/bbMargin/x": "8", "router2/bbMargin/y": "8"}
+
+# The netlists of a kept-out build (filled, placed, routable): deleted when it ends, and before a
+# build (a build killed outright, SIGKILL, leaves them).
+KEPT_OUT_NETLISTS = ("-keepout.json", "-placed.json", "-routable.json")
+
+
 def json_argv(argv, path):
     """nextpnr's command line reading the netlist ``path`` instead of its ``--json FILE``."""
     out = list(argv)
@@ -249,8 +261,7 @@ def kept_out_place_and_route(args, argv, gateware, name, stages):
     """Two nextpnr runs (``keepout``): the netlist placed with every ``--keep-out``-th row of
     logic tiles held by fillers, then the placement, fillers deleted, routed. Returns the
     report (the device's use without the fillers) and, for ``--place-only``, the estimate."""
-    filled, placed, routable = (name + suffix for suffix in
-                                ("-keepout.json", "-placed.json", "-routable.json"))
+    filled, placed, routable = (name + suffix for suffix in KEPT_OUT_NETLISTS)
     netlist = keepout.load(os.path.join(gateware, name + ".json"))
     tiles = keepout.logic_tiles(keepout.load(keepout.tilegrid_path()))
     rows, fillers = keepout.add(netlist, tiles, args.keep_out)
@@ -271,7 +282,8 @@ def kept_out_place_and_route(args, argv, gateware, name, stages):
         keepout.remove(design)
         settings = keepout.top_module(design).setdefault("settings", {})
         # The placed netlist's settings win over the command line's.
-        settings.update({"router": args.router, "target_freq": "%f" % SYS_CLK_FREQ})
+        settings.update({"router": args.router, "target_freq": "%f" % SYS_CLK_FREQ},
+                        **ROUTER2_SETTINGS)
         keepout.save(design, os.path.join(gateware, routable))
         del design
         route = json_argv(argv, routable) + ["--no-pack", "--no-place", "--router", args.router]
@@ -304,7 +316,8 @@ def build(args, out):
     name = soc.platform.name
     bitstream = os.path.join(gateware, name + ".bit")
     remove(os.path.join(out, "report.json"), bitstream, os.path.join(gateware, name + ".svf"),
-           os.path.join(gateware, REPORT))
+           os.path.join(gateware, REPORT),
+           *(os.path.join(gateware, name + suffix) for suffix in KEPT_OUT_NETLISTS))
     builder = Builder(soc, output_dir=out, csr_json=os.path.join(out, "csr.json"))
     builder.build(run=False, seed=args.seed)
     stages["litex"] = round(time.monotonic() - started, 1)
@@ -386,9 +399,9 @@ def arguments():
     parser.add_argument("--keep-out", type=keep_out_rows, default=KEEP_OUT, metavar="N",
                         help="place with every N-th row of logic tiles held free (locked "
                              "filler cells, deleted before routing), so that nextpnr spreads "
-                             "the design over the device (default %(default)s; 0: nextpnr's "
-                             "own flow in one run, which packs a 4-MVU SoC too densely to "
-                             "route)")
+                             "the design over the device, and route with router2's bounding "
+                             "box widened to 8 tiles (default %(default)s; 0: nextpnr's own "
+                             "flow in one run, which packs a 4-MVU SoC too densely to route)")
     parser.add_argument("--global-reset", action="store_true",
                         help="the MVU array's reset on a global network through a DCCA "
                              "(reset_on_global), not in the general routing")

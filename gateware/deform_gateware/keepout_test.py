@@ -108,6 +108,14 @@ class BitstreamKeepOutTest(unittest.TestCase):
             with self.assertRaises(argparse.ArgumentTypeError):
                 keep_out_rows(bad)
 
+    def test_router2_settings_are_bare_numbers(self):
+        # nextpnr's lexical_cast throws on "8 " (session 18 found it the hard way).
+        from deform_gateware.bitstream import ROUTER2_SETTINGS
+        self.assertTrue(ROUTER2_SETTINGS)
+        for key, value in ROUTER2_SETTINGS.items():
+            self.assertTrue(key.startswith("router2/"), key)
+            self.assertEqual(str(int(value)), value)
+
     def test_the_nextpnr_command_reads_another_netlist_and_the_report_drops_the_fillers(self):
         from deform_gateware.bitstream import json_argv, without_fillers
         argv = ["nextpnr-ecp5", "--json", "soc.json", "--lpf", "soc.lpf", "--seed", "1"]

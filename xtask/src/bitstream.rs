@@ -51,7 +51,8 @@ pub const USAGE: &str = "\
                      software, as the SoC's rows say); --keep-out N: place
                      with every N-th row of logic tiles held free by locked
                      filler cells, deleted before routing, so that nextpnr
-                     spreads the SoC over the device (default 3; 0: nextpnr's
+                     spreads the SoC over the device, and route with router2's
+                     bounding box widened to 8 tiles (default 3; 0: nextpnr's
                      own flow in one run, which packs a 4-MVU SoC too densely
                      to route; such builds are marked and compared only with
                      their like); --global-reset: the
