@@ -294,7 +294,7 @@ fn describe(build: &SocBuild) -> String {
         text += ", without bus bursting";
     }
     if build.keep_out != KEEP_OUT {
-        text += &keep_out_mark(build.keep_out);
+        text += &format!(", {}", keep_out_mark(build.keep_out));
     }
     text
 }
@@ -330,11 +330,12 @@ fn kind(r: &SocReport) -> (bool, bool, u32) {
     (r.global_reset, r.bus_bursting, r.keep_out)
 }
 
-/// ", every 4th row kept out while placing": a build whose keep-out rows are not the default.
+/// "every 4th row kept out while placing": what marks a build whose keep-out rows are not the
+/// default.
 fn keep_out_mark(keep_out: u32) -> String {
     match keep_out {
-        0 => ", placed by nextpnr alone (no keep-out rows)".into(),
-        n => format!(", every {n}th row kept out while placing"),
+        0 => "no keep-out rows, nextpnr's own flow".into(),
+        n => format!("every {n}th row kept out while placing"),
     }
 }
 
@@ -492,7 +493,7 @@ pub fn markdown(board: &str, builds: &[SocReport]) -> String {
             if b.keep_out == KEEP_OUT {
                 String::new()
             } else {
-                format!(" ({})", &keep_out_mark(b.keep_out)[2..])
+                format!(" ({})", keep_out_mark(b.keep_out))
             },
         );
     }
@@ -900,7 +901,7 @@ mod tests {
     fn the_keep_out_rows_keep_builds_apart() {
         a_kind_keeps_builds_apart(
             |b| b.keep_out = 0,
-            "placed by nextpnr alone (no keep-out rows)",
+            "no keep-out rows, nextpnr's own flow",
             "keep_out",
             0.into(),
         );
